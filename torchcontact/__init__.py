@@ -5,8 +5,31 @@ Sensors and Force/Torque Sensors* (HRI 2012) in PyTorch: a URDF robot model, a b
 Newton-Euler algorithm, and the contact estimator built on it.
 """
 
+from torchcontact import robots, spatial
+from torchcontact.dynamics import (
+    BaseMotion,
+    ForwardPass,
+    body_wrenches,
+    compiled_inverse_dynamics,
+    forward_pass,
+    inverse_dynamics,
+)
+from torchcontact.model import Frame, FTSensor, RobotModel, URDFError
+
 __version__ = "0.1.0"
 
 __all__ = [
+    "BaseMotion",
+    "FTSensor",
+    "ForwardPass",
+    "Frame",
+    "RobotModel",
+    "URDFError",
     "__version__",
+    "body_wrenches",
+    "compiled_inverse_dynamics",
+    "forward_pass",
+    "inverse_dynamics",
+    "robots",
+    "spatial",
 ]

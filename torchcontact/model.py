@@ -1,0 +1,620 @@
+"""Robot model built once from a URDF into plain tensors.
+
+The model is a frozen value: :meth:`RobotModel.to` returns a copy, algorithms are functions of
+``(model, q, qd, qdd, ...)``. The URDF is read with ``yourdfpy`` (kinematic tree, inertials,
+mimic tags); the F/T sensor extension that iDynTree and Gazebo read (``<sensor
+type="force_torque">`` as a child of ``<robot>``) is read beside it, since no URDF parser keeps it.
+
+Bodies. Links joined by fixed joints are rigidly attached and are merged into one *body* (their
+inertias combined), except across fixed joints that carry an F/T sensor or that the caller names in
+``keep_fixed``: those stay body boundaries, because a sensor splits the tree there. Bodies are
+numbered breadth-first, so the bodies of one tree depth form a contiguous range and every parent
+lies in the previous range; the dynamics process a whole depth at once.
+
+Joints. ``joint_names`` lists the independent joint coordinates (revolute, continuous, prismatic),
+depth-first in URDF order like pinocchio, and fixes the order of every joint-space vector
+(``q``, ``qd``, ``qdd``, ``tau``). A ``<mimic>`` joint is not an independent coordinate: its
+position is ``multiplier * q_leader + offset``, its velocity and acceleration follow with the same
+multiplier, and its torque is added to the leader's times the multiplier (virtual work). A
+continuous joint is a revolute joint without limits, one coordinate in rad.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["FTSensor", "Frame", "RobotModel", "URDFError"]
+
+_MOVING = ("revolute", "continuous", "prismatic")
+_KNOWN_TYPES = (*_MOVING, "fixed", "floating", "planar")
+
+
+class URDFError(ValueError):
+    """A URDF that cannot describe a robot torchcontact can model; the message names the element."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A named frame rigidly attached to a body.
+
+    Attributes:
+        name: URDF link name, joint name, or sensor name.
+        body: index of the body (into ``RobotModel.body_names``) the frame is attached to.
+        R_body_frame: ``(3, 3)`` rotation of the frame in the body frame (numpy float64).
+        p_body_frame: ``(3,)`` origin of the frame in the body frame, m (numpy float64).
+    """
+
+    name: str
+    body: int
+    R_body_frame: np.ndarray
+    p_body_frame: np.ndarray
+
+
+@dataclass(frozen=True)
+class FTSensor:
+    """A 6-axis force/torque sensor on a fixed joint, as declared in the URDF.
+
+    The reading convention is iDynTree's: the sensor measures the wrench that the ``parent`` side
+    exerts on the ``child`` side of its joint (``measure_direction`` ``parent_to_child``), or its
+    opposite (``child_to_parent``), expressed in the sensor frame, moment about its origin.
+
+    Attributes:
+        name: sensor name (``<sensor name=...>``).
+        joint: the fixed joint the sensor sits on.
+        parent_body: body index on the parent side of the joint.
+        child_body: body index on the child side; the subtree rooted there is the sensor's subtree.
+        frame: ``"child"``, ``"parent"`` or ``"sensor"`` (the ``<frame>`` element).
+        measure_direction: ``"parent_to_child"`` or ``"child_to_parent"``.
+        R_child_sensor: ``(3, 3)`` rotation of the frame the reading is expressed in, relative to
+            the child body frame (numpy float64).
+        p_child_sensor: ``(3,)`` origin of that frame in the child body frame, m.
+    """
+
+    name: str
+    joint: str
+    parent_body: int
+    child_body: int
+    frame: Literal["child", "parent", "sensor"]
+    measure_direction: Literal["parent_to_child", "child_to_parent"]
+    R_child_sensor: np.ndarray
+    p_child_sensor: np.ndarray
+
+
+_TENSOR_FIELDS = (
+    "q_to_body",
+    "q_offset",
+    "C0",
+    "C1",
+    "C2",
+    "p0",
+    "prismatic_dir",
+    "axis",
+    "is_revolute",
+    "is_prismatic",
+    "mass",
+    "com",
+    "inertia_com",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """A rigid-body tree with its inertial parameters, as plain tensors.
+
+    Build it with :meth:`from_urdf`. Tensor attributes are on one device with one floating dtype;
+    :meth:`to` returns a converted copy. ``nb`` counts bodies including the root body 0.
+
+    Attributes:
+        name: robot name from the URDF.
+        joint_names: ``(nv,)`` independent joint coordinates; the order of ``q``, ``qd``, ``qdd``,
+            ``tau``.
+        joint_types: ``(nv,)`` ``"revolute"``, ``"continuous"`` or ``"prismatic"``.
+        body_names: ``(nb,)`` the URDF link each body is named after (its first link).
+        body_parent: ``(nb,)`` parent body index, -1 for the root.
+        body_joint: ``(nb,)`` name of the joint that connects each body to its parent ('' for root).
+        levels: ``(start, end)`` body ranges per tree depth (level 0 is the root alone).
+        level_parent: per level >= 1, a long tensor with the parent of each body as an index into
+            the previous level's range.
+        frames: every URDF link and every joint (its child link's frame), by name. Sensors have
+            their own namespace, ``ft_sensors`` (iCub names sensors like links).
+        ft_sensors: F/T sensors declared in the URDF (or added with :meth:`with_ft_sensor`).
+        q_to_body: ``(nv, nb)`` maps joint coordinates to each body's joint coordinate (mimic
+            included).
+        q_offset: ``(nb,)`` mimic offsets added to body joint positions, rad or m.
+        C0, C1, C2: ``(nb, 3, 3)`` so that ``R_parent_body(q) = C0 + sin(q) C1 + (1 - cos(q)) C2``
+            (Rodrigues' formula folded into the joint placement; C1 = C2 = 0 unless revolute).
+        p0: ``(nb, 3)`` joint origin in the parent body frame at q = 0, m.
+        prismatic_dir: ``(nb, 3)`` prismatic axis in the parent body frame (0 unless prismatic).
+        axis: ``(nb, 3)`` unit joint axis in the body frame (0 for the root and fixed joints).
+        is_revolute: ``(nb,)`` 1.0 where the body's joint is revolute or continuous.
+        is_prismatic: ``(nb,)`` 1.0 where the body's joint is prismatic.
+        mass: ``(nb,)`` kg.
+        com: ``(nb, 3)`` centre of mass in the body frame, m.
+        inertia_com: ``(nb, 3, 3)`` rotational inertia about the centre of mass, body axes, kg m^2.
+        urdf_sha256: hash of the URDF text the model was built from.
+    """
+
+    name: str
+    joint_names: tuple[str, ...]
+    joint_types: tuple[str, ...]
+    body_names: tuple[str, ...]
+    body_parent: tuple[int, ...]
+    body_joint: tuple[str, ...]
+    levels: tuple[tuple[int, int], ...]
+    level_parent: tuple[Tensor, ...]
+    frames: dict[str, Frame]
+    ft_sensors: dict[str, FTSensor]
+    q_to_body: Tensor
+    q_offset: Tensor
+    C0: Tensor
+    C1: Tensor
+    C2: Tensor
+    p0: Tensor
+    prismatic_dir: Tensor
+    axis: Tensor
+    is_revolute: Tensor
+    is_prismatic: Tensor
+    mass: Tensor
+    com: Tensor
+    inertia_com: Tensor
+    urdf_sha256: str = ""
+    body_joint_index: tuple[int, ...] = field(default=())
+
+    # ------------------------------------------------------------------ basic properties
+    @property
+    def nv(self) -> int:
+        """Number of independent joint coordinates."""
+        return len(self.joint_names)
+
+    @property
+    def nb(self) -> int:
+        """Number of bodies, the root included."""
+        return len(self.body_names)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the model's tensors."""
+        return self.C0.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the model's tensors."""
+        return self.C0.device
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> RobotModel:
+        """Return a copy with every tensor moved to ``device`` and/or cast to ``dtype``.
+
+        Args:
+            device: target device, or None to keep.
+            dtype: target floating dtype, or None to keep.
+
+        Returns:
+            A new :class:`RobotModel`; ``self`` is unchanged.
+        """
+        if dtype is not None and not dtype.is_floating_point:
+            raise ValueError(f"dtype must be a floating dtype, got {dtype}")
+        changes: dict[str, object] = {
+            f: getattr(self, f).to(device=device, dtype=dtype) for f in _TENSOR_FIELDS
+        }
+        changes["level_parent"] = tuple(t.to(device=device) for t in self.level_parent)
+        return replace(self, **changes)
+
+    def body_of(self, name: str) -> int:
+        """Index of the body a link or joint frame named ``name`` is attached to.
+
+        Raises:
+            KeyError: ``name`` is no frame of the model; the message lists close names.
+        """
+        return self.frame(name).body
+
+    def frame(self, name: str) -> Frame:
+        """The :class:`Frame` named ``name`` (a URDF link or a joint).
+
+        Raises:
+            KeyError: ``name`` is no frame of the model; the message lists close names.
+        """
+        try:
+            return self.frames[name]
+        except KeyError:
+            import difflib
+
+            close = difflib.get_close_matches(name, list(self.frames), n=5)
+            hint = f"; did you mean {close}?" if close else ""
+            raise KeyError(f"no link or joint frame named {name!r} in {self.name}{hint}") from None
+
+    def subtree(self, body: int) -> list[int]:
+        """Body indices of the subtree rooted at ``body`` (``body`` included), ascending."""
+        inside = [False] * self.nb
+        inside[body] = True
+        for i in range(body + 1, self.nb):  # breadth-first order: parents precede children
+            p = self.body_parent[i]
+            inside[i] = p >= 0 and inside[p]
+        return [i for i in range(self.nb) if inside[i]]
+
+    def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor, **kwargs) -> Tensor:
+        """Joint torques, ``(*B, nv)``; see :func:`torchcontact.inverse_dynamics` for arguments."""
+        from torchcontact.dynamics import inverse_dynamics
+
+        return inverse_dynamics(self, q, qd, qdd, **kwargs)
+
+    def forward_pass(self, q: Tensor, qd: Tensor, qdd: Tensor, **kwargs):
+        """Poses, twists, accelerations of all bodies; see :func:`torchcontact.forward_pass`."""
+        from torchcontact.dynamics import forward_pass
+
+        return forward_pass(self, q, qd, qdd, **kwargs)
+
+    def frame_pose(self, fp, name: str) -> tuple[Tensor, Tensor]:
+        """Pose of a named frame in the root frame from a forward pass.
+
+        Args:
+            fp: a :class:`torchcontact.ForwardPass` with ``(*B, nb, ...)`` fields.
+            name: a URDF link or joint name.
+
+        Returns:
+            ``R_root_frame`` ``(*B, 3, 3)`` and ``p_root_frame`` ``(*B, 3)`` (m).
+        """
+        fr = self.frame(name)
+        R_b, p_b = fp.R[..., fr.body, :, :], fp.p[..., fr.body, :]
+        R_bf = torch.as_tensor(fr.R_body_frame, dtype=R_b.dtype, device=R_b.device)
+        p_bf = torch.as_tensor(fr.p_body_frame, dtype=R_b.dtype, device=R_b.device)
+        return R_b @ R_bf, (R_b @ p_bf.unsqueeze(-1)).squeeze(-1) + p_b
+
+    def __repr__(self) -> str:
+        return (
+            f"RobotModel(name={self.name!r}, nv={self.nv}, nb={self.nb}, depth={len(self.levels)},"
+            f" ft_sensors={list(self.ft_sensors)}, dtype={self.dtype}, device={self.device})"
+        )
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_urdf(
+        cls,
+        urdf: str | os.PathLike | io.IOBase,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
+        keep_fixed: Iterable[str] = (),
+        root: str | None = None,
+    ) -> RobotModel:
+        """Build a model from a URDF file.
+
+        Args:
+            urdf: path to a ``.urdf`` file, or an open file object with its XML text.
+            dtype: floating dtype of the model's tensors (float64 recommended for estimation).
+            device: device of the model's tensors.
+            keep_fixed: names of fixed joints to keep as body boundaries (besides those carrying
+                an F/T sensor), e.g. to declare a sensor on them later with
+                :meth:`with_ft_sensor`.
+            root: name of the root link; by default the single link that is no joint's child.
+
+        Returns:
+            The :class:`RobotModel`.
+
+        Raises:
+            URDFError: malformed XML, an unknown joint type, a joint naming a missing link, a
+                cycle or several roots, a moving link without ``<inertial>``, or a malformed
+                ``<sensor>``; the message names the element.
+            FileNotFoundError: ``urdf`` is a path that does not exist.
+        """
+        from torchcontact import _urdf
+
+        text, source = _urdf.read_text(urdf)
+        parsed = _urdf.parse(text, source)
+        return _build(parsed, dtype, device, set(keep_fixed), root, source, text)
+
+    def with_ft_sensor(
+        self,
+        name: str,
+        joint: str,
+        frame: Literal["child", "parent", "sensor"] = "child",
+        measure_direction: Literal["parent_to_child", "child_to_parent"] = "child_to_parent",
+        R_child_sensor: np.ndarray | None = None,
+        p_child_sensor: np.ndarray | None = None,
+    ) -> RobotModel:
+        """Return a copy with one more F/T sensor, on a fixed joint that is a body boundary.
+
+        Args:
+            name: sensor name (the key of its reading).
+            joint: a fixed joint that splits two bodies (carries a URDF sensor, or was named in
+                ``keep_fixed`` of :meth:`from_urdf`), or a moving joint's name is refused.
+            frame: ``"child"`` (the joint's child link frame), ``"parent"`` (the joint's frame seen
+                from its parent, which for a fixed joint coincides with the child frame) or
+                ``"sensor"`` (the pose given by ``R_child_sensor``/``p_child_sensor``).
+            measure_direction: ``"child_to_parent"`` or ``"parent_to_child"`` (iDynTree).
+            R_child_sensor: ``(3, 3)`` sensor rotation in the child link frame (``"sensor"`` only).
+            p_child_sensor: ``(3,)`` sensor origin in the child link frame, m (``"sensor"`` only).
+
+        Raises:
+            ValueError: the joint is unknown, moving, or merged into a body.
+        """
+        child = [b for b, j in enumerate(self.body_joint) if j == joint]
+        if not child:
+            known = joint in {f for f in self.frames}
+            why = (
+                "it is a fixed joint merged inside a body: pass keep_fixed=[...] to from_urdf"
+                if known
+                else "no such joint"
+            )
+            raise ValueError(f"cannot put F/T sensor {name!r} on joint {joint!r}: {why}")
+        b = child[0]
+        if self.is_revolute[b] or self.is_prismatic[b]:
+            raise ValueError(f"cannot put F/T sensor {name!r} on moving joint {joint!r}")
+        sensor = _make_sensor(
+            name, joint, self.body_parent[b], b, frame, measure_direction,
+            np.eye(3) if R_child_sensor is None else np.asarray(R_child_sensor, float),
+            np.zeros(3) if p_child_sensor is None else np.asarray(p_child_sensor, float),
+        )  # fmt: skip
+        return replace(self, ft_sensors={**self.ft_sensors, name: sensor})
+
+
+def _make_sensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs) -> FTSensor:
+    if frame not in ("child", "parent", "sensor"):
+        raise URDFError(f"sensor {name!r}: <frame> must be child, parent or sensor, got {frame!r}")
+    if direction not in ("parent_to_child", "child_to_parent"):
+        raise URDFError(
+            f"sensor {name!r}: <measure_direction> must be parent_to_child or child_to_parent,"
+            f" got {direction!r}"
+        )
+    if frame != "sensor":  # child and parent frames coincide across a fixed joint
+        R_cs, p_cs = np.eye(3), np.zeros(3)
+    return FTSensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs)
+
+
+def _spatial_inertia_sum(parts: Sequence[tuple[float, np.ndarray, np.ndarray]]):
+    """Combine (mass, com, inertia about com) parts expressed in one frame."""
+    m = sum(p[0] for p in parts)
+    if m <= 0.0:
+        return 0.0, np.zeros(3), np.zeros((3, 3))
+    c = sum(p[0] * p[1] for p in parts) / m
+    inertia = np.zeros((3, 3))
+    for mi, ci, Ii in parts:  # parallel-axis theorem to the combined centre of mass
+        d = ci - c
+        inertia += Ii + mi * (d @ d * np.eye(3) - np.outer(d, d))
+    return m, c, inertia
+
+
+def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
+    from torchcontact._urdf import axis_rotation_terms
+
+    links, joints, sensors = parsed["links"], parsed["joints"], parsed["sensors"]
+    # Tree structure: every joint names existing links; each link has at most one parent.
+    child_of: dict[str, dict] = {}
+    children: dict[str, list[dict]] = {name: [] for name in links}
+    for j in joints:
+        for role in ("parent", "child"):
+            if j[role] not in links:
+                raise URDFError(
+                    f"{source}: joint {j['name']!r} names missing {role} link {j[role]!r}"
+                )
+        if j["type"] not in _KNOWN_TYPES:
+            raise URDFError(f"{source}: joint {j['name']!r} has unknown type {j['type']!r}")
+        if j["type"] in ("floating", "planar"):
+            raise URDFError(
+                f"{source}: joint {j['name']!r} of type {j['type']!r} is not supported; model a"
+                " moving base with the base-motion input of inverse_dynamics instead"
+            )
+        if j["child"] in child_of:
+            raise URDFError(
+                f"{source}: link {j['child']!r} is the child of two joints,"
+                f" {child_of[j['child']]['name']!r} and {j['name']!r} (the URDF must be a tree)"
+            )
+        child_of[j["child"]] = j
+        children[j["parent"]].append(j)
+    roots = [name for name in links if name not in child_of]
+    if root is None:
+        if len(roots) != 1:
+            cyc = "a cycle" if not roots else f"several roots {roots}"
+            raise URDFError(f"{source}: the links do not form one tree ({cyc})")
+        root = roots[0]
+    elif root not in links:
+        raise URDFError(f"{source}: root link {root!r} is not in the URDF")
+    reached = {root}
+    stack = [root]
+    while stack:
+        for j in children[stack.pop()]:
+            reached.add(j["child"])
+            stack.append(j["child"])
+    if len(reached) != len(links):
+        missing = sorted(set(links) - reached)[:5]
+        raise URDFError(
+            f"{source}: links {missing} are not reachable from root {root!r} (a cycle?)"
+        )
+
+    sensor_joints = {}
+    joint_by_name = {j["name"]: j for j in joints}
+    for s in sensors:
+        if s["joint"] not in joint_by_name:
+            raise URDFError(f"{source}: sensor {s['name']!r} names missing joint {s['joint']!r}")
+        if joint_by_name[s["joint"]]["type"] != "fixed":
+            raise URDFError(f"{source}: sensor {s['name']!r} sits on moving joint {s['joint']!r}")
+        sensor_joints[s["joint"]] = s
+    boundary = set(sensor_joints) | set(keep_fixed)
+    unknown_keep = set(keep_fixed) - set(joint_by_name)
+    if unknown_keep:
+        raise URDFError(f"{source}: keep_fixed names unknown joints {sorted(unknown_keep)}")
+
+    # Moving links need inertial parameters (a massless moving link is almost always a URDF bug).
+    for j in joints:
+        if j["type"] in _MOVING and links[j["child"]]["inertial"] is None:
+            raise URDFError(
+                f"{source}: link {j['child']!r} (child of {j['type']} joint {j['name']!r}) has no"
+                " <inertial>"
+            )
+
+    # Depth-first joint order (pinocchio's): visit children in URDF document order.
+    joint_order: list[str] = []
+    mimics: dict[str, dict] = {}
+
+    def dfs(link: str) -> None:
+        for j in children[link]:
+            if j["type"] in _MOVING:
+                if j["mimic"] is None:
+                    joint_order.append(j["name"])
+                else:
+                    mimics[j["name"]] = j
+            dfs(j["child"])
+
+    dfs(root)
+    for name, j in mimics.items():
+        lead = j["mimic"]["joint"]
+        if lead not in joint_by_name or lead not in joint_order:
+            raise URDFError(
+                f"{source}: mimic joint {name!r} follows {lead!r}, which is not an independent"
+                " moving joint"
+            )
+
+    # Bodies: a depth-first walk opens a body at every moving or boundary joint and merges the
+    # child of any other fixed joint into its parent's body; link_in_body[link] = (body, R, p)
+    # with (R, p) = T_body_link. Bodies are then sorted by depth (stably) so that each depth is a
+    # contiguous range whose parents all lie in the previous one.
+    body_names: list[str] = [root]
+    body_parent: list[int] = [-1]
+    body_joint: list[dict | None] = [None]
+    depth: list[int] = [0]
+    link_in_body: dict[str, tuple[int, np.ndarray, np.ndarray]] = {
+        root: (0, np.eye(3), np.zeros(3))
+    }
+    stack = [root]
+    while stack:
+        link = stack.pop()
+        b, R_bl, p_bl = link_in_body[link]
+        for j in reversed(children[link]):
+            if j["type"] == "fixed" and j["name"] not in boundary:
+                link_in_body[j["child"]] = (b, R_bl @ j["R"], R_bl @ j["p"] + p_bl)
+            else:
+                body_names.append(j["child"])
+                body_parent.append(b)
+                body_joint.append(j)
+                depth.append(depth[b] + 1)
+                link_in_body[j["child"]] = (len(body_names) - 1, np.eye(3), np.zeros(3))
+            stack.append(j["child"])
+    order = sorted(range(len(body_names)), key=lambda i: depth[i])
+    new_index = {old: new for new, old in enumerate(order)}
+    body_names = [body_names[i] for i in order]
+    body_parent = [-1 if body_parent[i] < 0 else new_index[body_parent[i]] for i in order]
+    body_joint = [body_joint[i] for i in order]
+    depth = [depth[i] for i in order]
+    link_in_body = {k: (new_index[b], R, p) for k, (b, R, p) in link_in_body.items()}
+    nb = len(body_names)
+
+    # Levels and parent indices local to the previous level.
+    levels: list[tuple[int, int]] = []
+    for d in range(max(depth) + 1):
+        idx = [i for i in range(nb) if depth[i] == d]
+        levels.append((idx[0], idx[-1] + 1))
+    level_parent = []
+    for d in range(1, len(levels)):
+        s, e = levels[d]
+        ps = levels[d - 1][0]
+        level_parent.append(torch.tensor([body_parent[i] - ps for i in range(s, e)], device=device))
+
+    # Inertias merged per body, in the body frame.
+    parts: list[list] = [[] for _ in range(nb)]
+    for name, link in links.items():
+        if link["inertial"] is None:
+            continue
+        b, R_bl, p_bl = link_in_body[name]
+        m, R_li, p_li, I_i = link["inertial"]
+        R_bi = R_bl @ R_li
+        parts[b].append((m, R_bl @ p_li + p_bl, R_bi @ I_i @ R_bi.T))
+    mass = np.zeros(nb)
+    com = np.zeros((nb, 3))
+    inertia = np.zeros((nb, 3, 3))
+    for b in range(nb):
+        mass[b], com[b], inertia[b] = _spatial_inertia_sum(parts[b])
+
+    # Joint placement and motion per body.
+    nv = len(joint_order)
+    jindex = {n: k for k, n in enumerate(joint_order)}
+    q_to_body = np.zeros((nv, nb))
+    q_offset = np.zeros(nb)
+    C0 = np.tile(np.eye(3), (nb, 1, 1))
+    C1 = np.zeros((nb, 3, 3))
+    C2 = np.zeros((nb, 3, 3))
+    p0 = np.zeros((nb, 3))
+    pdir = np.zeros((nb, 3))
+    axis = np.zeros((nb, 3))
+    is_rev = np.zeros(nb)
+    is_pri = np.zeros(nb)
+    body_joint_index = [-1] * nb
+    for b in range(1, nb):
+        j = body_joint[b]
+        _, R_pl, p_pl = link_in_body[j["parent"]]
+        R0 = R_pl @ j["R"]
+        C0[b] = R0
+        p0[b] = R_pl @ j["p"] + p_pl
+        if j["type"] == "fixed":
+            continue
+        a = j["axis"]
+        axis[b] = a
+        if j["mimic"] is None:
+            lead, mult, off = j["name"], 1.0, 0.0
+        else:
+            lead, mult, off = j["mimic"]["joint"], j["mimic"]["multiplier"], j["mimic"]["offset"]
+        q_to_body[jindex[lead], b] = mult
+        q_offset[b] = off
+        body_joint_index[b] = jindex[lead]
+        if j["type"] == "prismatic":
+            is_pri[b] = 1.0
+            pdir[b] = R0 @ a
+        else:
+            is_rev[b] = 1.0
+            C1[b], C2[b] = axis_rotation_terms(R0, a)
+
+    frames: dict[str, Frame] = {}
+    for name, (b, R, p) in link_in_body.items():
+        frames[name] = Frame(name, b, R, p)
+    for j in joints:  # a joint's frame is its child link's frame
+        if j["name"] not in frames:
+            frames[j["name"]] = Frame(j["name"], *link_in_body[j["child"]])
+    ft: dict[str, FTSensor] = {}
+    for s in sensors:
+        j = joint_by_name[s["joint"]]
+        cb = link_in_body[j["child"]][0]
+        sensor = _make_sensor(
+            s["name"], j["name"], body_parent[cb], cb, s["frame"], s["direction"], s["R"], s["p"]
+        )
+        if s["name"] in ft:
+            raise URDFError(f"{source}: sensor {s['name']!r} is declared twice")
+        ft[s["name"]] = sensor
+
+    def t(x):
+        return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
+
+    return RobotModel(
+        name=parsed["name"],
+        joint_names=tuple(joint_order),
+        joint_types=tuple(joint_by_name[n]["type"] for n in joint_order),
+        body_names=tuple(body_names),
+        body_parent=tuple(body_parent),
+        body_joint=tuple("" if j is None else j["name"] for j in body_joint),
+        levels=tuple(levels),
+        level_parent=tuple(level_parent),
+        frames=frames,
+        ft_sensors=ft,
+        q_to_body=t(q_to_body),
+        q_offset=t(q_offset),
+        C0=t(C0),
+        C1=t(C1),
+        C2=t(C2),
+        p0=t(p0),
+        prismatic_dir=t(pdir),
+        axis=t(axis),
+        is_revolute=t(is_rev),
+        is_prismatic=t(is_pri),
+        mass=t(mass),
+        com=t(com),
+        inertia_com=t(inertia),
+        urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
+        body_joint_index=tuple(body_joint_index),
+    )
