@@ -14,12 +14,25 @@ from torchcontact.dynamics import (
     forward_pass,
     inverse_dynamics,
 )
+from torchcontact.estimation import (
+    KINDS,
+    STATUS,
+    ContactEstimate,
+    ContactEstimator,
+    Contacts,
+    status_messages,
+)
 from torchcontact.model import Frame, FTSensor, RobotModel, URDFError
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "KINDS",
+    "STATUS",
     "BaseMotion",
+    "ContactEstimate",
+    "ContactEstimator",
+    "Contacts",
     "FTSensor",
     "ForwardPass",
     "Frame",
@@ -32,4 +45,5 @@ __all__ = [
     "inverse_dynamics",
     "robots",
     "spatial",
+    "status_messages",
 ]

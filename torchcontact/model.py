@@ -75,7 +75,8 @@ class FTSensor:
         frame: ``"child"``, ``"parent"`` or ``"sensor"`` (the ``<frame>`` element).
         measure_direction: ``"parent_to_child"`` or ``"child_to_parent"``.
         R_child_sensor: ``(3, 3)`` rotation of the frame the reading is expressed in, relative to
-            the child body frame (numpy float64).
+            the child body frame (numpy float64): identity for ``child``, the inverse of the joint's
+            rest rotation for ``parent``, the ``<origin>`` for ``sensor`` (iDynTree's rules).
         p_child_sensor: ``(3,)`` origin of that frame in the child body frame, m.
     """
 
@@ -167,7 +168,7 @@ class RobotModel:
     com: Tensor
     inertia_com: Tensor
     urdf_sha256: str = ""
-    body_joint_index: tuple[int, ...] = field(default=())
+    joint_parent_link: dict[str, str] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ basic properties
     @property
@@ -327,9 +328,9 @@ class RobotModel:
             name: sensor name (the key of its reading).
             joint: a fixed joint that splits two bodies (carries a URDF sensor, or was named in
                 ``keep_fixed`` of :meth:`from_urdf`), or a moving joint's name is refused.
-            frame: ``"child"`` (the joint's child link frame), ``"parent"`` (the joint's frame seen
-                from its parent, which for a fixed joint coincides with the child frame) or
-                ``"sensor"`` (the pose given by ``R_child_sensor``/``p_child_sensor``).
+            frame: ``"child"`` (the joint's child link frame), ``"parent"`` (the joint's parent
+                link frame) or ``"sensor"`` (the pose given by ``R_child_sensor``/``p_child_sensor``
+                relative to the child link).
             measure_direction: ``"child_to_parent"`` or ``"parent_to_child"`` (iDynTree).
             R_child_sensor: ``(3, 3)`` sensor rotation in the child link frame (``"sensor"`` only).
             p_child_sensor: ``(3,)`` sensor origin in the child link frame, m (``"sensor"`` only).
@@ -349,15 +350,24 @@ class RobotModel:
         b = child[0]
         if self.is_revolute[b] or self.is_prismatic[b]:
             raise ValueError(f"cannot put F/T sensor {name!r} on moving joint {joint!r}")
-        sensor = _make_sensor(
-            name, joint, self.body_parent[b], b, frame, measure_direction,
+        parent_link = self.frame(self.joint_parent_link[joint])
+        # rest transform parent link -> child link (= child body frame) across the fixed joint
+        R_pb_c, p_pb_c = self.C0[b].double().cpu().numpy(), self.p0[b].double().cpu().numpy()
+        R_pc = parent_link.R_body_frame.T @ R_pb_c
+        p_pc = parent_link.R_body_frame.T @ (p_pb_c - parent_link.p_body_frame)
+        R_cs, p_cs = _reading_frame(
+            frame, R_pc, p_pc,
             np.eye(3) if R_child_sensor is None else np.asarray(R_child_sensor, float),
             np.zeros(3) if p_child_sensor is None else np.asarray(p_child_sensor, float),
         )  # fmt: skip
+        sensor = _make_sensor(
+            name, joint, self.body_parent[b], b, frame, measure_direction, R_cs, p_cs
+        )
         return replace(self, ft_sensors={**self.ft_sensors, name: sensor})
 
 
 def _make_sensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs) -> FTSensor:
+    """An :class:`FTSensor`; ``(R_cs, p_cs)`` is the reading frame in the child body frame."""
     if frame not in ("child", "parent", "sensor"):
         raise URDFError(f"sensor {name!r}: <frame> must be child, parent or sensor, got {frame!r}")
     if direction not in ("parent_to_child", "child_to_parent"):
@@ -365,9 +375,20 @@ def _make_sensor(name, joint, parent_body, child_body, frame, direction, R_cs, p
             f"sensor {name!r}: <measure_direction> must be parent_to_child or child_to_parent,"
             f" got {direction!r}"
         )
-    if frame != "sensor":  # child and parent frames coincide across a fixed joint
-        R_cs, p_cs = np.eye(3), np.zeros(3)
     return FTSensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs)
+
+
+def _reading_frame(frame: str, R_pc, p_pc, R_origin, p_origin):
+    """Pose in the child link frame of the frame a reading is expressed in (iDynTree's rules).
+
+    ``(R_pc, p_pc)`` is the joint's rest transform parent link -> child link; ``(R_origin,
+    p_origin)`` the sensor's ``<origin>``, relative to the child link.
+    """
+    if frame == "parent":
+        return R_pc.T, -R_pc.T @ p_pc
+    if frame == "sensor":
+        return R_origin, p_origin
+    return np.eye(3), np.zeros(3)
 
 
 def _spatial_inertia_sum(parts: Sequence[tuple[float, np.ndarray, np.ndarray]]):
@@ -546,7 +567,6 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     axis = np.zeros((nb, 3))
     is_rev = np.zeros(nb)
     is_pri = np.zeros(nb)
-    body_joint_index = [-1] * nb
     for b in range(1, nb):
         j = body_joint[b]
         _, R_pl, p_pl = link_in_body[j["parent"]]
@@ -563,7 +583,6 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             lead, mult, off = j["mimic"]["joint"], j["mimic"]["multiplier"], j["mimic"]["offset"]
         q_to_body[jindex[lead], b] = mult
         q_offset[b] = off
-        body_joint_index[b] = jindex[lead]
         if j["type"] == "prismatic":
             is_pri[b] = 1.0
             pdir[b] = R0 @ a
@@ -581,8 +600,9 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     for s in sensors:
         j = joint_by_name[s["joint"]]
         cb = link_in_body[j["child"]][0]
+        R_cs, p_cs = _reading_frame(s["frame"], j["R"], j["p"], s["R"], s["p"])
         sensor = _make_sensor(
-            s["name"], j["name"], body_parent[cb], cb, s["frame"], s["direction"], s["R"], s["p"]
+            s["name"], j["name"], body_parent[cb], cb, s["frame"], s["direction"], R_cs, p_cs
         )
         if s["name"] in ft:
             raise URDFError(f"{source}: sensor {s['name']!r} is declared twice")
@@ -616,5 +636,5 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         com=t(com),
         inertia_com=t(inertia),
         urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
-        body_joint_index=tuple(body_joint_index),
+        joint_parent_link={j["name"]: j["parent"] for j in joints},
     )

@@ -2,7 +2,27 @@
 
 from __future__ import annotations
 
-__all__ = ["pendulum_urdf"]
+from importlib import resources
+from pathlib import Path
+
+__all__ = ["TCARM_SKIN_FRAMES", "pendulum_urdf", "tcarm_path"]
+
+#: Skin patch frames of the bundled arm (fixed frames on its links; contacts lie on them).
+TCARM_SKIN_FRAMES = ("upper_arm_skin", "forearm_skin", "hand_skin")
+
+
+def tcarm_path() -> Path:
+    """Path of the bundled robot ``tcarm``: a 7-joint arm on a base F/T sensor (``base_ft``).
+
+    Written by this project for examples, tests and first runs (not a real product). Skin
+    patches are the fixed frames :data:`TCARM_SKIN_FRAMES`; ``tool`` is the flange.
+
+    Example:
+        >>> import torchcontact as tc
+        >>> tc.RobotModel.from_urdf(tc.robots.tcarm_path()).joint_names[:2]
+        ('shoulder_yaw', 'shoulder_pitch')
+    """
+    return Path(str(resources.files("torchcontact") / "data" / "robots" / "tcarm.urdf"))
 
 
 def pendulum_urdf(length: float = 1.0, mass: float = 1.0) -> str:
