@@ -43,7 +43,7 @@ def encode_stream_frame(raw: np.ndarray | list[int] | tuple[int, ...]) -> bytes:
         ValueError: If ``raw`` has not 6 entries or a value does not fit in int16.
 
     Example:
-        >>> encode_stream_frame([20000, 0, 0, 0, 0, 0])[:4].hex()  # Fx = 200.00 N aliases the header
+        >>> encode_stream_frame([20000, 0, 0, 0, 0, 0])[:4].hex()  # Fx = 200.00 N: header alias
         '204e204e'
     """
     values = [int(v) for v in np.asarray(raw).reshape(-1)]
@@ -86,7 +86,7 @@ class StreamParserStats:
 
 
 class StreamParser:
-    """Incremental parser of FT 300 stream bytes: feed any chunks, get the valid frames back.
+    r"""Incremental parser of FT 300 stream bytes: feed any chunks, get the valid frames back.
 
     Pure (no I/O, no clock): the caller timestamps frames. Bytes that do not belong to a valid
     frame are discarded and counted; a frame is emitted only if its CRC matches, so corrupted or
@@ -95,7 +95,7 @@ class StreamParser:
     Example:
         >>> p = StreamParser()
         >>> f = encode_stream_frame([20000, -1, 2, 3, 4, 5])
-        >>> p.feed(b"\\xff\\x20" + f[:7])
+        >>> p.feed(b"\xff\x20" + f[:7])
         []
         >>> p.feed(f[7:] + f)
         [(20000, -1, 2, 3, 4, 5), (20000, -1, 2, 3, 4, 5)]
