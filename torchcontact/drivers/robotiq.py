@@ -158,6 +158,15 @@ class RobotiqFT300(ModbusFTSensor):
         self._queue.clear()
         self._after_reconnect = self._last_t is not None
 
+    def close(self) -> None:
+        """Stop the stream (stop bytes) if streaming, then close the port."""
+        if self._serial is not None and self._connected:
+            try:
+                self.send_stop_bytes(self._serial)
+            except Exception:  # noqa: BLE001 - the port may already be gone
+                pass
+        super().close()
+
     def _disconnect(self) -> None:
         if self._serial is not None:
             try:
