@@ -64,6 +64,31 @@ def sine_signal(
     return signal
 
 
+def constant_signal(wrench: np.ndarray | list[float]) -> Signal:
+    """A constant wrench (6,) [force; moment], N and N m."""
+    value = np.asarray(wrench, dtype=np.float64).reshape(6)
+    return lambda t: value.copy()
+
+
+def frame_pattern_signal(rate_hz: float = 100.0) -> Signal:
+    """A pattern that makes every frame distinct and aliases the stream header.
+
+    Fx = Fz = 200.00 N (encoded 0x4E20, i.e. the bytes 0x20 0x4E of the header), Fy ramps by
+    1 N per frame period over 300 values, Mx cycles over 7 values; used to check that frames
+    arrive in order, once, and intact.
+
+    Example:
+        >>> frame_pattern_signal()(0.01)[:3]
+        array([ 200., -149.,  200.])
+    """
+
+    def signal(t: float) -> np.ndarray:
+        k = round(t * rate_hz)
+        return np.array([200.0, (k % 300) - 150.0, 200.0, 0.001 * (k % 7), -0.5, 0.25])
+
+    return signal
+
+
 def parquet_signal(path: str | Path, sensor: str | None = None) -> Signal:
     """Replay the column ``ft.<sensor>`` of a Parquet log (looping, at its recorded timing).
 
@@ -140,12 +165,15 @@ class SimStats:
     stream_starts: int = 0
     stream_stops: int = 0
     disconnects: int = 0
+    frame_slots: int = 0
     sent_wrenches: list[np.ndarray] = field(default_factory=list, repr=False)
+    sent_slots: list[int] = field(default_factory=list, repr=False)
 
     def as_dict(self) -> dict[str, int]:
         """Counters as a dict (without the recorded wrenches)."""
         d = asdict(self)
         d.pop("sent_wrenches")
+        d.pop("sent_slots")
         return d
 
 
@@ -218,7 +246,8 @@ class RtuSimulator:
         signal: Wrench signal; default :func:`sine_signal`.
         faults: Fault injection; default none.
         link: Stable path of the port (a symlink to the current pty); default a new temp path.
-        record: Keep the counts of every stream frame sent intact (``stats.sent_wrenches``).
+        record: Keep the counts and slot (period index) of every stream frame sent intact
+            (``stats.sent_wrenches``, ``stats.sent_slots``).
         line_rate: Pace responses as the serial line would (10 bits per byte at the profile's
             baud rate, plus the 3.5-character RTU silence); a pty itself is instantaneous.
 
@@ -431,6 +460,8 @@ class RtuSimulator:
     def _send_frame(self, now: float) -> None:
         wrench = self.registers.wrench(now)
         frame = encode_stream_frame(wrench_to_counts(wrench))
+        slot = self.stats.frame_slots  # one slot per period, whatever happens to the frame
+        self.stats.frame_slots += 1
         if self.faults.drop and self.rng.random() < self.faults.drop:
             self.stats.frames_dropped += 1
             return
@@ -441,6 +472,7 @@ class RtuSimulator:
             self.stats.frames_sent += 1
             if self.record:
                 self.stats.sent_wrenches.append(wrench_to_counts(wrench))
+                self.stats.sent_slots.append(slot)
         self._write(out)
 
     def _unplug(self) -> None:
