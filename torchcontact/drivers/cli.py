@@ -77,7 +77,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
     sig = parquet_signal(args.replay, args.replay_sensor) if args.replay else sine_signal()
     if args.tcp:
-        host, port = parse_hostport(args.tcp)
+        host, port = parse_hostport(args.tcp, allow_zero=True)
         if not _is_loopback(host) and not args.allow_remote:
             raise SystemExit(f"refusing to serve on {host}: loopback only (--allow-remote)")
         sim: Any = TcpSimulator(args.profile, sig, faults, host=host, port=port).start()

@@ -24,8 +24,8 @@ from torchcontact.drivers.base import (
 from torchcontact.drivers.profiles import Profile, load_profile
 
 
-def parse_hostport(text: str, default_port: int = 502) -> tuple[str, int]:
-    """Split ``host:port`` (``port`` optional).
+def parse_hostport(text: str, default_port: int = 502, allow_zero: bool = False) -> tuple[str, int]:
+    """Split ``host:port`` (``port`` optional; 0 = any free port when ``allow_zero``).
 
     Raises:
         ValueError: If the port is not an integer in 1..65535.
@@ -41,7 +41,7 @@ def parse_hostport(text: str, default_port: int = 502) -> tuple[str, int]:
         number = int(port)
     except ValueError:
         number = -1
-    if not 1 <= number <= 65535 or not host:
+    if not (0 if allow_zero else 1) <= number <= 65535 or not host:
         raise ValueError(f"expected HOST:PORT with PORT in 1..65535, got {text!r}")
     return host, number
 
