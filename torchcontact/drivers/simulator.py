@@ -518,7 +518,8 @@ class RtuSimulator:
                 )
                 if jitter:
                     time.sleep(jitter)
-                self._send_frame(now)
+                # the sensor samples on its own clock: evaluate the signal at the frame's slot
+                self._send_frame(self._next_frame)
                 self._next_frame += period
                 if now - self._next_frame > 10 * period:  # fell far behind: do not burst
                     self._next_frame = now + period
