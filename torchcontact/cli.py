@@ -10,12 +10,15 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from torchcontact.drivers import cli as drivers_cli
+
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level argument parser with every sub-command registered."""
     parser = argparse.ArgumentParser(prog="torchcontact", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="store_true", help="print the version and exit")
-    parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    drivers_cli.add_parser(sub)
     return parser
 
 

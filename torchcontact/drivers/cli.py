@@ -1,0 +1,242 @@
+"""Command-line jobs of the drivers: ``sensor simulate``, ``sensor read`` and ``run``.
+
+Registered by :func:`add_parser` from ``torchcontact/cli.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from typing import Any
+
+from torchcontact.drivers.profiles import ProfileError, available_profiles
+
+
+def _is_loopback(host: str) -> bool:
+    return host == "localhost" or host.startswith("127.")
+
+
+def _make_source(args: argparse.Namespace) -> Any:
+    from torchcontact.drivers.modbus import ModbusFTSensor, parse_hostport, quiet_pymodbus
+    from torchcontact.drivers.profiles import load_profile
+    from torchcontact.drivers.robotiq import RobotiqFT300
+
+    quiet_pymodbus()
+    profile = load_profile(args.profile)
+    name = args.sensor or profile.name.replace("-", "_")
+    if args.tcp:
+        if args.stream:
+            raise SystemExit("--stream needs a serial port (--port): stream mode is RS-485 only")
+        host, port = parse_hostport(args.tcp)
+        return ModbusFTSensor(profile, host=host, tcp_port=port, timeout=args.timeout, name=name)
+    if profile.stream is not None or profile.name.startswith("robotiq"):
+        return RobotiqFT300(
+            args.port, stream=args.stream, profile=profile, timeout=args.timeout, name=name
+        )
+    if args.stream:
+        raise SystemExit(f"profile {profile.name!r} has no stream mode")
+    return ModbusFTSensor(profile, port=args.port, timeout=args.timeout, name=name)
+
+
+def _add_source_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--port", help="serial port (Modbus RTU), e.g. /dev/ttyUSB0")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="Modbus TCP server")
+    p.add_argument("--stream", action="store_true", help="FT 300 stream mode (100 Hz)")
+    p.add_argument("--sensor", help="sensor name for the log column ft.<sensor>")
+    p.add_argument("--timeout", type=float, default=0.05, help="response timeout, s")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--out", help="Parquet log of the frames (t_ns, ft.<sensor>)")
+    p.add_argument("--tare", type=int, default=0, metavar="N", help="software zero over N frames")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Run a simulated sensor until interrupted or ``--duration`` elapsed."""
+    from torchcontact.drivers.modbus import parse_hostport
+    from torchcontact.drivers.simulator import (
+        Faults,
+        RtuSimulator,
+        TcpSimulator,
+        parquet_signal,
+        sine_signal,
+    )
+
+    faults = Faults(
+        drop=args.drop,
+        corrupt=args.corrupt,
+        split=args.split,
+        delay_s=args.delay,
+        disconnect_every_s=args.disconnect_every,
+        disconnect_s=args.disconnect_for,
+        streaming_at_start=args.streaming_at_start,
+        seed=args.seed,
+    )
+    sig = parquet_signal(args.replay, args.replay_sensor) if args.replay else sine_signal()
+    if args.tcp:
+        host, port = parse_hostport(args.tcp, allow_zero=True)
+        if not _is_loopback(host) and not args.allow_remote:
+            raise SystemExit(f"refusing to serve on {host}: loopback only (--allow-remote)")
+        sim: Any = TcpSimulator(args.profile, sig, faults, host=host, port=port).start()
+        print(f"serving {args.profile} on tcp {sim.host}:{sim.port}", flush=True)
+    else:
+        sim = RtuSimulator(args.profile, sig, faults, link=args.link).start()
+        print(f"serving {args.profile} on pty {sim.port}", flush=True)
+    stop = {"flag": False}
+
+    def _on_term(*_: object) -> None:
+        stop["flag"] = True
+
+    signal.signal(signal.SIGTERM, _on_term)
+    end = time.monotonic() + args.duration if args.duration else float("inf")
+    try:
+        while not stop["flag"] and time.monotonic() < end:
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+    print(json.dumps({"simulator": sim.stats.as_dict()}), flush=True)
+    return 0
+
+
+def cmd_read(args: argparse.Namespace) -> int:
+    """Read a sensor, print live values and statistics, optionally log to Parquet."""
+    from torchcontact.drivers.base import FTConnectionError
+    from torchcontact.drivers.log import FTLogWriter
+
+    try:
+        src = _make_source(args)
+        log = FTLogWriter(args.out, src.name) if args.out else None
+        src.open()
+    except (FTConnectionError, ProfileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if getattr(src, "identity", None):
+        ident = {k: v for k, v in src.identity.items() if k != "raw"}
+        print(f"identity: {json.dumps(ident)}", flush=True)
+    end = time.monotonic() + args.duration if args.duration else float("inf")
+    t_start = time.monotonic()
+    next_print = t_start
+    try:
+        if args.tare:
+            print(f"tare: {src.tare(args.tare).round(4).tolist()}", flush=True)
+        while time.monotonic() < end:
+            s = src.read(min(0.1, max(0.001, end - time.monotonic())))
+            if s is None:
+                continue
+            if log is not None:
+                log.append(s.t_ns, s.wrench)
+            now = time.monotonic()
+            if now >= next_print:
+                rate = src.stats.frames / max(now - t_start, 1e-9)
+                values = " ".join(f"{v:+9.3f}" for v in s.wrench)
+                print(f"seq {s.seq:7d}  [{values}]  {rate:6.1f} Hz  {src.stats.as_dict()}")
+                sys.stdout.flush()
+                next_print = now + 0.5
+    except KeyboardInterrupt:
+        pass
+    finally:
+        src.close()
+        if log is not None:
+            log.close()
+    summary = {
+        "stats": src.stats.as_dict(),
+        "rate_hz": src.stats.frames / (time.monotonic() - t_start),
+    }
+    if log is not None:
+        summary["log"] = {"path": str(args.out), "rows": log.rows}
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
+    from torchcontact.drivers.base import FTConnectionError
+    from torchcontact.drivers.live import (
+        JsonLinesPublisher,
+        LiveLoop,
+        UdpJointSource,
+        UdpPublisher,
+        load_estimator,
+    )
+    from torchcontact.drivers.log import FTLogWriter
+    from torchcontact.drivers.modbus import parse_hostport
+
+    try:
+        estimator = load_estimator(args.estimator)
+        src = _make_source(args)
+        src.open()
+    except (FTConnectionError, ProfileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    joints = None
+    if args.joints:
+        host, port = parse_hostport(args.joints.removeprefix("udp://"))
+        joints = UdpJointSource(host, port)
+        print(f"joint states on udp {joints.address[0]}:{joints.address[1]}", file=sys.stderr)
+    publishers: list[Any] = []
+    if args.publish == "stdout":
+        publishers.append(JsonLinesPublisher(sys.stdout))
+    else:
+        host, port = parse_hostport(args.publish.removeprefix("udp://"))
+        publishers.append(UdpPublisher(host, port, allow_remote=args.allow_remote))
+    log = FTLogWriter(args.out, src.name) if args.out else None
+    loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints)
+    try:
+        summary = loop.run(duration=args.duration)
+    finally:
+        src.close()
+        if log is not None:
+            log.close()
+        if joints is not None:
+            joints.close()
+    print(json.dumps({"summary": summary}), file=sys.stderr, flush=True)
+    return 0
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``sensor simulate``, ``sensor read`` and ``run`` on the top-level subparsers."""
+    sensor = subparsers.add_parser("sensor", help="F/T sensor drivers and simulator")
+    sensor_sub = sensor.add_subparsers(dest="sensor_command", metavar="SENSOR_COMMAND")
+    sensor.set_defaults(func=lambda _args: (sensor.print_help(), 2)[1])
+
+    sim = sensor_sub.add_parser("simulate", help="serve a simulated sensor (pty or Modbus TCP)")
+    sim.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
+    where = sim.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", action="store_true", help="Modbus RTU on a pseudo-terminal")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="Modbus TCP, e.g. 127.0.0.1:1502")
+    sim.add_argument("--link", help="stable path for the pty (symlink); default a temp path")
+    sim.add_argument("--allow-remote", action="store_true", help="allow a non-loopback address")
+    sim.add_argument("--replay", help="Parquet log to replay (column ft.<sensor>)")
+    sim.add_argument("--replay-sensor", help="sensor name of the replayed column")
+    sim.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    sim.add_argument("--drop", type=float, default=0.0, help="probability a frame is dropped")
+    sim.add_argument("--corrupt", type=float, default=0.0, help="probability of a bad CRC")
+    sim.add_argument("--split", type=float, default=0.0, help="probability a write is split")
+    sim.add_argument("--delay", type=float, default=0.0, help="extra response delay, s")
+    sim.add_argument("--disconnect-every", type=float, default=0.0, help="unplug every S s")
+    sim.add_argument("--disconnect-for", type=float, default=0.3, help="unplugged for S s")
+    sim.add_argument("--streaming-at-start", action="store_true", help="start in stream mode")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.set_defaults(func=cmd_simulate)
+
+    read = sensor_sub.add_parser("read", help="read a sensor, show values, log to Parquet")
+    _add_source_args(read)
+    read.set_defaults(func=cmd_read)
+
+    run = subparsers.add_parser("run", help="live loop: sensor + joints -> estimator -> JSON")
+    _add_source_args(run)
+    run.add_argument(
+        "--estimator",
+        default="torchcontact.drivers.live:passthrough_estimator",
+        help="module:function called as f(q, qd, qdd, ft) -> dict",
+    )
+    run.add_argument("--joints", metavar="udp://HOST:PORT", help="joint-state UDP packets")
+    run.add_argument("--require-joints", action="store_true", help="skip frames without joints")
+    run.add_argument("--publish", default="stdout", help="stdout or udp://127.0.0.1:PORT")
+    run.add_argument("--allow-remote", action="store_true", help="allow a non-loopback target")
+    run.set_defaults(func=cmd_run)
