@@ -1,0 +1,271 @@
+"""Synthetic robot logs with known contacts and optional unmodeled effects (ground truth).
+
+The simulated robot moves along smooth multi-sine joint trajectories (analytic ``qd``, ``qdd``).
+Contacts come in segments: a segment holds 1..``max_contacts`` pure-force contacts at random points
+of the contact frames (skin patches), with a force that rises and falls smoothly (a half-sine in
+time) along a fixed direction pressing into the patch (the patch's -z within a cone). F/T readings
+are predicted by the estimator's own forward model (:meth:`ContactEstimator.predict_ft`) from a
+*true* robot that may differ from the nominal model (payload), plus effects the rigid-body model
+does not know (offset, drift, cable, noise). See :class:`UnmodeledEffects`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from torchcontact.estimation import ContactEstimator, Contacts
+from torchcontact.model import RobotModel
+
+__all__ = ["SimulatedLog", "UnmodeledEffects", "simulate"]
+
+
+@dataclass(frozen=True)
+class UnmodeledEffects:
+    """Effects present in the simulated readings but not in the nominal model.
+
+    Attributes:
+        offset: ``(6,)`` constant sensor offset ``[N; N m]``.
+        drift: ``(6,)`` thermal drift reached after warm-up, ``[N; N m]``: the offset moves by
+            ``drift * (1 - exp(-t / drift_time_constant))``; the logged ``temperature`` follows
+            the same curve (25 degC -> 35 degC), as a real sensor's housing would.
+        drift_time_constant: s.
+        cable_force: N, amplitude of a cable/hose force acting on ``cable_link`` that depends
+            nonlinearly on the joint positions (``tanh``/``sin`` of several joints).
+        cable_link: link the cable pulls on.
+        payload_mass: kg of an unmodelled payload rigidly attached to ``payload_link``.
+        payload_com: ``(3,)`` payload centre of mass in ``payload_link``'s frame, m.
+        payload_link: link carrying the payload.
+        noise_std: ``(6,)`` white Gaussian noise on the reading, ``[N; N m]``.
+    """
+
+    offset: Sequence[float] = (0.0,) * 6
+    drift: Sequence[float] = (0.0,) * 6
+    drift_time_constant: float = 120.0
+    cable_force: float = 0.0
+    cable_link: str = "upper_arm"
+    payload_mass: float = 0.0
+    payload_com: Sequence[float] = (0.0, 0.0, 0.08)
+    payload_link: str = "hand"
+    noise_std: Sequence[float] = (0.0,) * 6
+
+
+@dataclass
+class SimulatedLog:
+    """Columns of a simulated log (numpy, one row per frame).
+
+    Attributes:
+        t_ns: ``(N,)`` int64 time stamps, ns.
+        q: ``(N, nv)`` joint positions, rad; ``qd``, ``qdd`` likewise.
+        qd: ``(N, nv)`` rad/s.
+        qdd: ``(N, nv)`` rad/s^2.
+        ft: ``(N, 6)`` simulated reading of ``sensor`` (effects included).
+        ft_ideal: ``(N, 6)`` the reading the nominal model predicts with the true contacts.
+        contact_link: ``(N, K)`` index into ``links`` of each contact, -1 for no contact.
+        contact_position: ``(N, K, 3)`` contact points in the link frame, m.
+        contact_force: ``(N, K, 3)`` true contact forces in the link frame, N.
+        temperature: ``(N,)`` sensor temperature, degC.
+        links: contact frame names.
+        sensor: the sensor's name.
+        joint_names: ``model.joint_names``.
+    """
+
+    t_ns: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    ft: np.ndarray
+    ft_ideal: np.ndarray
+    contact_link: np.ndarray
+    contact_position: np.ndarray
+    contact_force: np.ndarray
+    temperature: np.ndarray
+    links: tuple[str, ...]
+    sensor: str
+    joint_names: tuple[str, ...]
+    extra: dict = field(default_factory=dict)
+
+
+def _trajectory(rng, n, nv, dt, speed):
+    t = np.arange(n) * dt
+    q = np.zeros((n, nv))
+    qd = np.zeros((n, nv))
+    qdd = np.zeros((n, nv))
+    for j in range(nv):
+        for _ in range(3):
+            a = rng.uniform(0.1, 0.5) * speed
+            w = 2 * np.pi * rng.uniform(0.05, 0.4) * speed
+            phi = rng.uniform(0, 2 * np.pi)
+            q[:, j] += a * np.sin(w * t + phi)
+            qd[:, j] += a * w * np.cos(w * t + phi)
+            qdd[:, j] += -a * w * w * np.sin(w * t + phi)
+        q[:, j] += rng.uniform(-0.8, 0.8)
+    return t, q, qd, qdd
+
+
+def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotModel:
+    """A copy of ``model`` with a point mass added to the body of ``link``."""
+    fr = model.frame(link)
+    b = fr.body
+    c = torch.as_tensor(fr.R_body_frame @ np.asarray(com_link, float) + fr.p_body_frame)
+    c = c.to(model.dtype)
+    m0, c0, I0 = model.mass[b], model.com[b], model.inertia_com[b]
+    m1 = m0 + mass
+    c1 = (m0 * c0 + mass * c) / m1
+    eye = torch.eye(3, dtype=model.dtype)
+    d0, d1 = c0 - c1, c - c1
+    inertia = (
+        I0
+        + m0 * (d0 @ d0 * eye - torch.outer(d0, d0))
+        + mass * (d1 @ d1 * eye - torch.outer(d1, d1))
+    )
+    mass_t, com_t, in_t = model.mass.clone(), model.com.clone(), model.inertia_com.clone()
+    mass_t[b], com_t[b], in_t[b] = m1, c1, inertia
+    return replace(model, mass=mass_t, com=com_t, inertia_com=in_t)
+
+
+def simulate(
+    model: RobotModel,
+    frames: int,
+    *,
+    sensor: str | None = None,
+    links: Sequence[str] | None = None,
+    rate_hz: float = 100.0,
+    seed: int = 0,
+    contact_fraction: float = 0.5,
+    max_contacts: int = 2,
+    force_max: float = 20.0,
+    speed: float = 1.0,
+    effects: UnmodeledEffects | None = None,
+    chunk: int = 65536,
+) -> SimulatedLog:
+    """Simulate a log of ``frames`` frames with known pure-force contacts.
+
+    Args:
+        model: the nominal robot (float64 recommended).
+        frames: number of frames.
+        sensor: F/T sensor to simulate (default: the model's first).
+        links: contact frames (default: the skin frames of the bundled arm when present, else the
+            links of the sensor's region).
+        rate_hz: frame rate, Hz.
+        seed: random seed (the log is a deterministic function of the arguments).
+        contact_fraction: share of frames inside contact segments.
+        max_contacts: most simultaneous contacts in a segment (the slot count K).
+        force_max: peak force of a contact, N (each segment draws its peak in [0, force_max]).
+        speed: scales joint amplitudes and frequencies.
+        effects: unmodeled effects in the readings (None: ideal sensor and model).
+        chunk: frames per batched call of the forward model.
+
+    Returns:
+        :class:`SimulatedLog`.
+
+    Example:
+        >>> import torchcontact as tc
+        >>> log = simulate(tc.RobotModel.from_urdf(tc.robots.tcarm_path()), 50, seed=1)
+        >>> log.ft.shape, log.contact_force.shape
+        ((50, 6), (50, 2, 3))
+    """
+    from torchcontact.robots import TCARM_SKIN_FRAMES
+
+    rng = np.random.default_rng(seed)
+    sensor = sensor or next(iter(model.ft_sensors))
+    est = ContactEstimator(model, [sensor])
+    if links is None:
+        if all(f in model.frames for f in TCARM_SKIN_FRAMES):
+            links = TCARM_SKIN_FRAMES
+        else:
+            links = tuple(
+                n
+                for n, f in model.frames.items()
+                if est.region[f.body] == 0 and n in model.body_names
+            )
+    links = tuple(links)
+    K, nv, dt = max_contacts, model.nv, 1.0 / rate_hz
+    t, q, qd, qdd = _trajectory(rng, frames, nv, dt, speed)
+
+    # contact segments: alternate free and contact stretches of 0.3-3 s
+    contact_link = -np.ones((frames, K), dtype=np.int64)
+    position = np.zeros((frames, K, 3))
+    force = np.zeros((frames, K, 3))
+    i = 0
+    in_contact = rng.random() < contact_fraction
+    while i < frames:
+        length = max(1, int(rng.uniform(0.3, 3.0) * rate_hz))
+        if not in_contact:
+            # free stretches are scaled so that contact frames make up contact_fraction
+            ratio = (1 - contact_fraction) / max(contact_fraction, 1e-9)
+            length = max(1, int(length * ratio))
+        e = min(frames, i + length)
+        if in_contact:
+            for k in range(rng.integers(1, K + 1)):
+                contact_link[i:e, k] = rng.integers(len(links))
+                position[i:e, k] = rng.uniform(-0.03, 0.03, 3) * np.array([1, 1, 0])
+                d = np.array([*rng.uniform(-0.5, 0.5, 2), -1.0])
+                d /= np.linalg.norm(d)
+                peak = rng.uniform(0, force_max)
+                shape = np.sin(np.pi * (np.arange(e - i) + 0.5) / (e - i))
+                force[i:e, k] = peak * shape[:, None] * d
+        in_contact = not in_contact
+        i = e
+
+    fx = effects or UnmodeledEffects()
+    true_model = model
+    if fx.payload_mass:
+        true_model = _with_payload(model, fx.payload_link, fx.payload_mass, fx.payload_com)
+    true_est = ContactEstimator(true_model, [sensor])
+    slots = (*links, fx.cable_link)  # one slot per contact frame, plus the cable
+    ft_true = np.zeros((frames, 6))
+    ft_ideal = np.zeros((frames, 6))
+    for s in range(0, frames, chunk):
+        sl = slice(s, min(frames, s + chunk))
+        n = sl.stop - sl.start
+        tq, tqd, tqdd = (torch.as_tensor(x[sl]) for x in (q, qd, qdd))
+        pos = torch.zeros(n, len(slots), 3, dtype=torch.float64)
+        wr = torch.zeros(n, len(slots), 6, dtype=torch.float64)
+        for k in range(K):  # several contacts on one frame: sum their wrenches about the origin
+            for li in range(len(links)):
+                on = contact_link[sl, k] == li
+                f = torch.as_tensor(force[sl, k] * on[:, None])
+                p = torch.as_tensor(position[sl, k] * on[:, None])
+                wr[:, li, :3] += f
+                wr[:, li, 3:] += torch.cross(p, f, dim=-1)
+        ideal = est.predict_ft(
+            tq, tqd, tqdd, Contacts(slots, ("known",) * len(slots), pos, wrenches=wr)
+        )
+        ft_ideal[sl] = ideal[sensor].numpy()
+        if fx.cable_force:
+            qs = q[sl]
+            cable = fx.cable_force * np.stack(
+                [
+                    np.tanh(2 * qs[:, 1]),
+                    np.sin(qs[:, 2]) * np.cos(qs[:, 0]),
+                    0.5 * np.sin(2 * qs[:, 3]),
+                ],
+                axis=-1,
+            )
+            wr[:, -1, :3] = torch.as_tensor(cable)
+        true = true_est.predict_ft(
+            tq, tqd, tqdd, Contacts(slots, ("known",) * len(slots), pos, wrenches=wr)
+        )
+        ft_true[sl] = true[sensor].numpy()
+    warm = 1 - np.exp(-t / fx.drift_time_constant)
+    ft = ft_true + np.asarray(fx.offset) + warm[:, None] * np.asarray(fx.drift)
+    ft = ft + rng.normal(size=(frames, 6)) * np.asarray(fx.noise_std)
+    return SimulatedLog(
+        t_ns=(t * 1e9).round().astype(np.int64),
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        ft=ft,
+        ft_ideal=ft_ideal,
+        contact_link=contact_link,
+        contact_position=position,
+        contact_force=force,
+        temperature=25.0 + 10.0 * warm,
+        links=links,
+        sensor=sensor,
+        joint_names=model.joint_names,
+    )
