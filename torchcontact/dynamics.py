@@ -414,12 +414,14 @@ def compiled_inverse_dynamics(model: RobotModel, chunk_size: int = 4096):
     def run(q, qd, qdd, gravity=(0.0, 0.0, -9.81), base=None):
         batch, joints, base_bl = _prepare(model, q, qd, qdd, gravity, base)
         n = joints[0].shape[-1]
-        pad = (-n) % chunk_size
-        ins = [torch.nn.functional.pad(x, (0, pad)).contiguous() for x in (*joints, *base_bl)]
-        outs = [
-            compiled(*(x[:, s : s + chunk_size] for x in ins))
-            for s in range(0, n + pad, chunk_size)
-        ]
-        return torch.cat(outs, dim=-1)[:, :n].T.reshape(*batch, model.nv)
+        out = joints[0].new_empty(n, model.nv)
+        for s in range(0, n, chunk_size):
+            # one cache-sized chunk at a time, made contiguous batch-last; the last one padded
+            e = min(n, s + chunk_size)
+            ins = [x[:, s:e] for x in (*joints, *base_bl)]
+            if e - s < chunk_size:
+                ins = [torch.nn.functional.pad(x, (0, chunk_size - (e - s))) for x in ins]
+            out[s:e] = compiled(*(x.contiguous() for x in ins))[:, : e - s].T
+        return out.reshape(*batch, model.nv)
 
     return run

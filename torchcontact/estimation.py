@@ -304,6 +304,7 @@ class ContactEstimator:
         tau_mask: Tensor | None = None,
         ft_covariance: Mapping[str, Tensor] | None = None,
         rank_rtol: float | None = None,
+        chunk_size: int | None = 8192,
     ) -> ContactEstimate:
         """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
 
@@ -324,6 +325,8 @@ class ContactEstimator:
                 noise; when given, ``covariance`` of the result is filled (joint torque rows and
                 nested sensors' noise are not propagated).
             rank_rtol: relative eigenvalue tolerance of ``A A^T`` for the rank (see module doc).
+            chunk_size: frames processed at once (bounds memory and keeps data in cache); None
+                for one go.
 
         Returns:
             :class:`ContactEstimate`.
@@ -336,6 +339,14 @@ class ContactEstimator:
         model, S = self.model, len(self.sensors)
         K = contacts.K
         nv, dtype = model.nv, model.dtype
+        if chunk_size is not None and isinstance(q, Tensor) and q.dim() >= 1:
+            n_frames = q.shape[:-1].numel()
+            if n_frames > chunk_size:
+                return self._estimate_chunked(
+                    chunk_size, q, qd, qdd, ft, contacts, gravity=gravity, base=base,
+                    tau_measured=tau_measured, tau_mask=tau_mask, ft_covariance=ft_covariance,
+                    rank_rtol=rank_rtol,
+                )  # fmt: skip
         # ---- validate shapes (values are checked per frame below)
         for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
             check_input(name, x, (nv,), model, f"(*B, {nv})", finite=False)
@@ -484,6 +495,60 @@ class ContactEstimator:
             status=status.reshape(batch),
             covariance=None if cov is None else fin(cov, (K, 6, 6)),
         )
+
+    def _estimate_chunked(self, chunk_size, q, qd, qdd, ft, contacts, **kw) -> ContactEstimate:
+        """:meth:`estimate` over chunks of the flattened batch, results concatenated."""
+        batch = q.shape[:-1]
+        n = batch.numel()
+
+        def flat(x, feat):
+            if not isinstance(x, Tensor) or x.dim() < feat or x.shape[: x.dim() - feat] != batch:
+                return x  # per-frame shape errors are reported by the un-chunked call
+            return x.reshape(n, *x.shape[x.dim() - feat :])
+
+        def cut(x, feat, sl):
+            x = flat(x, feat)
+            if isinstance(x, Tensor) and x.dim() > feat and x.shape[0] == n:
+                return x[sl]
+            return x
+
+        outs = []
+        for s in range(0, n, chunk_size):
+            sl = slice(s, min(n, s + chunk_size))
+            c = Contacts(
+                contacts.links, contacts.kinds, cut(contacts.positions, 2, sl),
+                None if contacts.directions is None else cut(contacts.directions, 2, sl),
+                None if contacts.wrenches is None else cut(contacts.wrenches, 2, sl),
+                None if contacts.active is None else cut(contacts.active, 1, sl),
+            )  # fmt: skip
+            extra = dict(kw)
+            for key, feat in (("tau_measured", 1), ("tau_mask", 1)):
+                if extra.get(key) is not None:
+                    extra[key] = cut(extra[key], feat, sl)
+            if isinstance(extra.get("gravity"), Tensor):
+                extra["gravity"] = cut(extra["gravity"], 1, sl)
+            if extra.get("base") is not None:
+                extra["base"] = BaseMotion(*(cut(x, 1, sl) for x in extra["base"]))
+            if extra.get("ft_covariance") is not None:
+                extra["ft_covariance"] = {
+                    k: cut(v, 2, sl) for k, v in extra["ft_covariance"].items()
+                }
+            outs.append(
+                self.estimate(
+                    cut(q, 1, sl), cut(qd, 1, sl), cut(qdd, 1, sl),
+                    {k: cut(v, 1, sl) for k, v in ft.items()}, c, chunk_size=None, **extra,
+                )
+            )  # fmt: skip
+
+        def join(xs):
+            if isinstance(xs[0], dict):
+                return {k: join([x[k] for x in xs]) for k in xs[0]}
+            if xs[0] is None:
+                return None
+            y = torch.cat(xs)
+            return y.reshape(*batch, *y.shape[1:])
+
+        return ContactEstimate(*(join([o[i] for o in outs]) for i in range(len(outs[0]))))
 
     def predict_ft(
         self,
