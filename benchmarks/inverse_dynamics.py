@@ -83,19 +83,11 @@ def main() -> None:
                     args_b = [x[:b] for x in T]
                     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
 
-                    def eager():
-                        model.inverse_dynamics(*args_b)
-                        sync()
+                    def timed(fn, args_b=args_b, sync=sync):
+                        return b / median_time(lambda: (fn(*args_b), sync()))
 
-                    e_rate = b / median_time(eager)
-                    c_rate = float("nan")
-                    if compiled is not None:
-
-                        def comp():
-                            compiled(*args_b)
-                            sync()
-
-                        c_rate = b / median_time(comp)
+                    e_rate = timed(model.inverse_dynamics)
+                    c_rate = float("nan") if compiled is None else timed(compiled)
                     best = max(e_rate, c_rate if c_rate == c_rate else 0)
                     print(
                         f"{device:6} {str(dtype)[6:]:8} {b:>9,} {e_rate:>13,.0f} {c_rate:>13,.0f}"

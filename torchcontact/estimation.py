@@ -283,6 +283,8 @@ class ContactEstimator:
             "p_bl": t(np.stack(p_bl) if K else np.zeros((0, 3))),
             "is": {k: t([1.0 if kind == k else 0.0 for kind in contacts.kinds]) for k in KINDS},
             "n_unknowns": t([KINDS[k] for k in contacts.kinds]),
+            # regions holding at least one slot: the only ones with a system to solve
+            "solved": torch.tensor(sorted(set(regions)), device=model.device, dtype=torch.long),
             # in-region-subtree mask of each region joint for each slot: (S, m, K)
             "slot_desc": self._desc[:, :, bodies] if K else self._desc[:, :, :0],
         }
@@ -322,8 +324,9 @@ class ContactEstimator:
             tau_mask: ``(nv,)`` or ``(*B, nv)`` bool, which joints have a torque measurement
                 (default: all finite entries of ``tau_measured``).
             ft_covariance: sensor name -> ``(6, 6)`` or ``(*B, 6, 6)`` covariance of its reading
-                noise; when given, ``covariance`` of the result is filled (joint torque rows and
-                nested sensors' noise are not propagated).
+                noise; when given, ``covariance`` of the result is filled with the first-order
+                propagation of each region's own sensor noise (noise of nested sensors and of
+                measured joint torques is not included).
             rank_rtol: relative eigenvalue tolerance of ``A A^T`` for the rank (see module doc).
             chunk_size: frames processed at once (bounds memory and keeps data in cache); None
                 for one go.
@@ -408,12 +411,15 @@ class ContactEstimator:
             joint_ok = joint_ok & finite_rows(torch.cat(base_t, -1))
         flag(~joint_ok, 2)
         act_b = active > 0
-        cdata = [pos] + [x for x in (dirs, wr) if x is not None]
-        bad_c = torch.zeros(n, dtype=torch.bool, device=model.device)
-        for x in cdata:
-            bad_c = bad_c | (~torch.isfinite(x).all(-1) & act_b).any(-1)
-        flag(bad_c, 4)
         lay = self._layout(contacts)
+        # a field counts only where an active slot's kind uses it (directions: force_dir,
+        # wrenches: known); NaN elsewhere, e.g. a null direction of a pure force, is ignored
+        bad_c = (~torch.isfinite(pos).all(-1) & act_b).any(-1)
+        for x, kind in ((dirs, "force_dir"), (wr, "known")):
+            if x is not None:
+                uses = act_b & (lay["is"][kind] > 0)
+                bad_c = bad_c | (~torch.isfinite(x).all(-1) & uses).any(-1)
+        flag(bad_c, 4)
         if dirs is not None:
             norm = dirs.norm(dim=-1)
             zero_dir = (norm <= 0) & act_b & (lay["is"]["force_dir"] > 0)
@@ -731,8 +737,10 @@ class ContactEstimator:
         else:
             G, b = G6, b6
         R_rows = G.shape[1]
-        # pseudo-inverse through the symmetric eigendecomposition of A A^T
-        Gm = G.permute(0, 3, 1, 2)  # (S, N, R, R)
+        # pseudo-inverse through the symmetric eigendecomposition of A A^T, for the regions that
+        # hold contact slots (the others have no unknown: y = 0, rank 0, residual |b|)
+        solved = lay["solved"]
+        Gm = G.index_select(0, solved).permute(0, 3, 1, 2)  # (S', N, R, R)
         Gm = 0.5 * (Gm + Gm.transpose(-1, -2))
         lam, V = torch.linalg.eigh(Gm)
         rtol = R_rows * torch.finfo(dtype).eps if rank_rtol is None else rank_rtol
@@ -741,10 +749,11 @@ class ContactEstimator:
         inv = torch.where(
             keep, 1.0 / torch.where(keep, lam, torch.ones_like(lam)), torch.zeros_like(lam)
         )
-        rank = keep.sum(-1).T  # (N, S)
-        bm = b.permute(0, 2, 1)  # (S, N, R)
-        y = (V * inv.unsqueeze(-2)) @ (V.transpose(-1, -2) @ bm.unsqueeze(-1))  # (S, N, R, 1)
-        y = y.squeeze(-1).permute(0, 2, 1)  # (S, R, N)
+        rank = torch.zeros(S, n, dtype=torch.long, device=q.device)
+        rank = rank.index_copy(0, solved, keep.sum(-1)).T  # (N, S)
+        bm = b.index_select(0, solved).permute(0, 2, 1)  # (S', N, R)
+        y_s = (V * inv.unsqueeze(-2)) @ (V.transpose(-1, -2) @ bm.unsqueeze(-1))  # (S', N, R, 1)
+        y = b.new_zeros(S, R_rows, n).index_copy(0, solved, y_s.squeeze(-1).permute(0, 2, 1))
         # each slot's wrench w_k = P_k Y_k^T y_region(k)
         y_k = y.index_select(0, lay["region"])  # (K, R, N)
         Yty = _dyn._mv_bl(X.transpose(1, 2), y_k[:, :6])
@@ -769,11 +778,15 @@ class ContactEstimator:
         tau = model.q_to_body @ (fp.S * F).sum(1)  # (nv, N)
         cov = None
         if cov_in is not None:
-            # cov(w_k) = M_k Sigma M_k^T with M_k = P_k X_k^T (A A^T)^+ [I6; 0] (own sensor only)
-            Ginv = (V * inv.unsqueeze(-2)) @ V.transpose(-1, -2)  # (S, N, R, R)
-            Gk = Ginv.index_select(0, lay["region"])[..., :6, :6]  # (K, N, 6, 6)
-            XPt = (P.permute(3, 0, 1, 2).transpose(0, 1)) @ X.permute(0, 3, 2, 1)  # (K, N, 6, 6)
-            M = XPt @ Gk
+            # w_k = P_k Y_k^T (A A^T)^+ b and b's first 6 rows hold minus the own reading:
+            # cov(w_k) = M_k Sigma M_k^T with M_k = P_k Y_k^T (A A^T)^+[:, :6]
+            Ginv = (V * inv.unsqueeze(-2)) @ V.transpose(-1, -2)  # (S', N, R, R)
+            Gk = Ginv.index_select(0, torch.searchsorted(solved, lay["region"]))  # (K, N, R, R)
+            Pm, Xm = P.permute(0, 3, 1, 2), X.permute(0, 3, 1, 2)  # (K, N, 6, 6)
+            M = Xm.transpose(-1, -2) @ Gk[..., :6, :6]
+            if m:
+                M = M + Tk_own.permute(0, 3, 2, 1) @ Gk[..., 6:, :6]  # (K, N, 6, m) @ (m, 6)
+            M = Pm @ M
             Sig = cov_in.permute(1, 0, 2, 3).index_select(0, lay["region"])  # (K, N, 6, 6)
             cov = (M @ Sig @ M.transpose(-1, -2)).permute(1, 0, 2, 3)
         return (
