@@ -1,0 +1,279 @@
+"""Contact estimation against iDynTree and independent least-squares computations.
+
+Reference: iDynTree's ``ExtWrenchesAndJointTorquesEstimator`` (the Python bindings of the version
+installed with the test extra, checked with 15.1) on iCubGenova04 from ``icub-models``: whole robot,
+fixed ``root_link``, gravity ``(0, 0, -9.81)`` in the root frame, its six F/T sensors read from the
+URDF. pinocchio's ``rnea`` with ``fext`` is the second reference for joint torques; numpy's
+``lstsq``/``pinv`` on a matrix A built column by column from ``predict_ft`` is the reference for the
+least-squares (minimum-norm) solutions and the covariance.
+
+iDynTree conventions used here (checked against its headers and by experiment):
+
+* a ``ContactWrench`` is the wrench the environment exerts on the link, link-frame orientation,
+  moment about its ``contactPoint`` -- torchcontact's convention;
+* the ``knownWrench`` of a ``NO_UNKNOWNS`` contact is, in 15.1, also taken about the
+  ``contactPoint`` (the header says "w.r.t. the origin of the link frame"; with that reading the
+  predicted F/T measurements differ by up to 2 N, about the contact point they agree to 1e-14);
+* the root submodel (the bodies on the root side of every F/T sensor) needs its own unknown: a full
+  wrench at the ``root_link`` origin (the fixed-base reaction). torchcontact has no unknown there.
+
+Tolerances: float64 to 1e-9 absolute (``robots.TOL``) unless a line says why.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from robots import ROBOTS, TOL, PinRobot, load_model, random_state
+
+import torchcontact as tc
+from torchcontact.spatial import transform_wrench
+
+idt = pytest.importorskip("idyntree.swig")
+
+ATOL = TOL[torch.float64]["atol"]
+DT = torch.float64
+
+
+# ---------------------------------------------------------------------------------- references
+class IDynTreeRef:
+    """iDynTree's estimator on the same URDF and joint order as a torchcontact model."""
+
+    KIND = {
+        "wrench": "FULL_WRENCH",
+        "force": "PURE_FORCE",
+        "force_dir": "PURE_FORCE_WITH_KNOWN_DIRECTION",
+        "known": "NO_UNKNOWNS",
+    }
+
+    def __init__(self, path, model: tc.RobotModel):
+        self.est = idt.ExtWrenchesAndJointTorquesEstimator()
+        assert self.est.loadModelAndSensorsFromFileWithSpecifiedDOFs(
+            str(path), list(model.joint_names)
+        )
+        self.m = self.est.model()
+        dofs = [self.m.getJointName(j) for j in range(self.m.getNrOfDOFs())]
+        assert dofs == list(model.joint_names)  # same coordinate order: no permutation needed
+        self.sens = self.est.sensors()
+        T = idt.SIX_AXIS_FORCE_TORQUE
+        self.ft_names = [
+            self.sens.getSensor(T, i).getName() for i in range(self.sens.getNrOfSensors(T))
+        ]
+        self.root = self.m.getFrameIndex("root_link")
+
+    def kinematics(self, q, qd, qdd, gravity=(0.0, 0.0, -9.81)):
+        assert self.est.updateKinematicsFromFixedBase(
+            idt.JointPosDoubleArray.FromPython(np.asarray(q, float)),
+            idt.JointDOFsDoubleArray.FromPython(np.asarray(qd, float)),
+            idt.JointDOFsDoubleArray.FromPython(np.asarray(qdd, float)),
+            self.root,
+            idt.Vector3.FromPython(list(gravity)),
+        )
+
+    def unknowns(self, contacts):
+        """``contacts``: list of (link, kind, point (3,), direction (3,) or None, wrench or None)."""
+        u = idt.LinkUnknownWrenchContacts(self.m)
+        u.clear()
+        assert u.addNewUnknownFullWrenchInFrameOrigin(self.m, self.root)
+        for link, kind, p, d, w in contacts:
+            li = self.m.getLinkIndex(link)
+            assert li >= 0, link
+            c = idt.UnknownWrenchContact()
+            c.unknownType = getattr(idt, self.KIND[kind])
+            c.contactPoint = idt.Position.FromPython(np.asarray(p, float))
+            if d is not None:
+                c.forceDirection = idt.Direction(*(float(x) for x in d))
+            if w is not None:  # about the contact point (see the module docstring)
+                c.knownWrench = idt.Wrench.FromPython(np.asarray(w, float))
+            u.addNewContactForLink(li, c)
+        return u
+
+    def predict(self, contacts) -> dict[str, np.ndarray]:
+        meas = idt.SensorsMeasurements(self.sens)
+        cw, tau = idt.LinkContactWrenches(self.m), idt.JointDOFsDoubleArray(self.m)
+        assert self.est.computeExpectedFTSensorsMeasurements(
+            self.unknowns(contacts), meas, cw, tau
+        )
+        out = {}
+        for i, name in enumerate(self.ft_names):
+            w = idt.Wrench()
+            assert meas.getMeasurement(idt.SIX_AXIS_FORCE_TORQUE, i, w)
+            out[name] = w.toNumPy().copy()
+        return out
+
+    def estimate(self, readings, contacts):
+        """Contact wrenches ``(K, 6)`` in ``contacts`` order and joint torques ``(nv,)``."""
+        meas = idt.SensorsMeasurements(self.sens)
+        for i, name in enumerate(self.ft_names):
+            w = idt.Wrench.FromPython(np.asarray(readings[name], float))
+            assert meas.setMeasurement(idt.SIX_AXIS_FORCE_TORQUE, i, w)
+        cw, tau = idt.LinkContactWrenches(self.m), idt.JointDOFsDoubleArray(self.m)
+        assert self.est.estimateExtWrenchesAndJointTorques(self.unknowns(contacts), meas, cw, tau)
+        seen: dict[int, int] = {}
+        out = []
+        for link, *_ in contacts:
+            li = self.m.getLinkIndex(link)
+            k = seen.get(li, 0)
+            seen[li] = k + 1
+            out.append(cw.contactWrench(li, k).contactWrench.toNumPy().copy())
+        return np.array(out), tau.toNumPy().copy()
+
+
+@pytest.fixture(scope="module")
+def icub():
+    model = load_model("icub")
+    return model, tc.ContactEstimator(model), IDynTreeRef(ROBOTS["icub"](), model)
+
+
+def true_wrenches(kinds, n, seed, directions=None):
+    """Random contact wrenches ``(n, K, 6)`` that fit their kinds (about the contact point)."""
+    g = torch.Generator().manual_seed(seed)
+    w = torch.randn(n, len(kinds), 6, generator=g, dtype=DT) * 10
+    for k, kind in enumerate(kinds):
+        if kind in ("force", "force_dir"):
+            w[:, k, 3:] = 0
+        if kind == "force_dir":
+            d = directions[:, k] / directions[:, k].norm(dim=-1, keepdim=True)
+            w[:, k, :3] = d * w[:, k, :1]
+    return w
+
+
+def random_contacts(links, kinds, n, seed, scale=0.05):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.randn(n, len(links), 3, generator=g, dtype=DT) * scale
+    dirs = torch.randn(n, len(links), 3, generator=g, dtype=DT)
+    wr = true_wrenches(kinds, n, seed + 1, dirs)
+    return pos, dirs, wr
+
+
+def fext_of(model, links, pos, wr):
+    """Contact wrenches (link frame, about the point) -> per-body f_ext about the body origin."""
+    f = torch.zeros(model.nb, 6, dtype=DT)
+    for k, link in enumerate(links):
+        fr = model.frame(link)
+        R = torch.as_tensor(fr.R_body_frame, dtype=DT)
+        p = torch.as_tensor(fr.p_body_frame, dtype=DT) + R @ pos[k]
+        f[fr.body] += transform_wrench(R, p, wr[k])
+    return f
+
+
+def pin_tau(pinrobot, q, qd, qdd, links, pos, wr):
+    """pinocchio's rnea with the contacts as ``fext`` (pinocchio merges the F/T sensor joints, so
+    each contact goes to its link's pinocchio frame, then to the parent joint's frame)."""
+    pin = pinrobot.pin
+    fext = [pin.Force.Zero() for _ in range(pinrobot.m.njoints)]
+    for k, link in enumerate(links):
+        fr = pinrobot.m.frames[pinrobot.m.getFrameId(link)]
+        w_link = transform_wrench(torch.eye(3, dtype=DT), pos[k], wr[k])  # about the link origin
+        fext[fr.parentJoint] += fr.placement.act(pin.Force(w_link.numpy()))
+    return pinrobot.rnea(q.numpy(), qd.numpy(), qdd.numpy(), fext)
+
+
+def build_A(est, q, qd, qdd, links, kinds, pos, dirs):
+    """Reading-space matrix of every frame, column by column from ``predict_ft`` (A is linear).
+
+    Returns ``A (n, 6 S, U)``, the zero-contact readings ``(n, 6 S)`` and the basis ``B (n, K, 6,
+    U)`` with ``w_k = B_k x``.
+    """
+    n, K = pos.shape[:2]
+    cols = []  # (slot, basis wrench (n, 6))
+    for k, kind in enumerate(kinds):
+        if kind == "wrench":
+            basis = [torch.eye(6, dtype=DT)[i].expand(n, 6) for i in range(6)]
+        elif kind == "force":
+            basis = [torch.eye(6, dtype=DT)[i].expand(n, 6) for i in range(3)]
+        elif kind == "force_dir":
+            d = dirs[:, k] / dirs[:, k].norm(dim=-1, keepdim=True)
+            basis = [torch.cat((d, torch.zeros_like(d)), -1)]
+        else:
+            basis = []
+        cols += [(k, b) for b in basis]
+
+    def readings(w):
+        c = tc.Contacts(links, ["known"] * K, pos, wrenches=w)
+        r = est.predict_ft(q, qd, qdd, c)
+        return torch.cat([r[s] for s in est.sensor_names], -1)
+
+    r0 = readings(torch.zeros(n, K, 6, dtype=DT))
+    A = torch.zeros(n, 6 * len(est.sensor_names), len(cols), dtype=DT)
+    B = torch.zeros(n, K, 6, len(cols), dtype=DT)
+    for j, (k, b) in enumerate(cols):
+        w = torch.zeros(n, K, 6, dtype=DT)
+        w[:, k] = b
+        A[:, :, j] = readings(w) - r0
+        B[:, k, :, j] = b
+    return A.numpy(), r0.numpy(), B.numpy()
+
+
+def stack_ft(est, ft):
+    return torch.cat([ft[s] for s in est.sensor_names], -1).numpy()
+
+
+# ---------------------------------------------------------------------------------- a. forward
+def test_predicted_ft_matches_idyntree(icub):
+    model, est, ref = icub
+    links = ["l_forearm", "l_hand", "r_lower_leg", "l_foot", "r_upper_arm", "l_upper_leg"]
+    n = 4
+    q, qd, qdd = random_state(model, n, seed=10)
+    pos, _, wr = random_contacts(links, ["wrench"] * len(links), n, seed=11)
+    ours = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr))
+    assert set(ours) == set(ref.ft_names)
+    assert not np.allclose(ours["l_arm_ft"][0], ours["l_arm_ft"][1])
+    for i in range(n):
+        ref.kinematics(q[i], qd[i], qdd[i])
+        theirs = ref.predict(
+            [(lk, "known", pos[i, k].numpy(), None, wr[i, k].numpy()) for k, lk in enumerate(links)]
+        )
+        for s in ref.ft_names:
+            np.testing.assert_allclose(ours[s][i].numpy(), theirs[s], atol=ATOL, rtol=0)
+    # the contacts matter: without them the arm sensor reads something else
+    free = est.predict_ft(q, qd, qdd, tc.Contacts((), (), torch.zeros(n, 0, 3, dtype=DT)))
+    assert (free["l_arm_ft"] - ours["l_arm_ft"]).abs().max() > 1.0
+
+
+# ---------------------------------------------------------------------------------- b. estimation
+# One region each: l_arm a full wrench, r_leg a pure force, l_foot six known-direction forces,
+# r_arm a pure force, l_leg two known-direction forces; r_foot no contact.
+B_LINKS = ["l_hand", "r_lower_leg", *["l_foot"] * 6, "r_forearm", "l_upper_leg", "l_upper_leg"]
+B_KINDS = ["wrench", "force", *["force_dir"] * 6, "force", "force_dir", "force_dir"]
+
+
+def test_estimate_matches_idyntree_pinocchio_and_truth(icub):
+    model, est, ref = icub
+    pinrobot = PinRobot(ROBOTS["icub"](), model)
+    n = 3
+    q, qd, qdd = random_state(model, n, seed=20)
+    pos, dirs, wr = random_contacts(B_LINKS, B_KINDS, n, seed=21)
+    K = len(B_LINKS)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(B_LINKS, ["known"] * K, pos, wrenches=wr))
+    out = est.estimate(q, qd, qdd, ft, tc.Contacts(B_LINKS, B_KINDS, pos, directions=dirs))
+    w_est = torch.cat((out.force, out.moment), -1)
+    assert (out.status == 0).all()
+    for s in est.sensor_names:
+        assert bool(out.identifiable[s].all()), s
+    assert out.unknowns["l_foot_ft"].tolist() == [6] * n
+    assert out.unknowns["r_foot_ft"].tolist() == [0] * n
+    # ours vs the truth; the truth's scale is 10 N, the worst conditioning (six forces on a foot
+    # with 5 cm lever arms) amplifies rounding to ~1e-12
+    np.testing.assert_allclose(w_est.numpy(), wr.numpy(), atol=ATOL, rtol=0)
+    tau_ref = model.inverse_dynamics(
+        q, qd, qdd, f_ext=torch.stack([fext_of(model, B_LINKS, pos[i], wr[i]) for i in range(n)])
+    )
+    for i in range(n):
+        ref.kinematics(q[i], qd[i], qdd[i])
+        readings = {s: ft[s][i].numpy() for s in est.sensor_names}
+        spec = [
+            (lk, kd, pos[i, k].numpy(), dirs[i, k].numpy() if kd == "force_dir" else None, None)
+            for k, (lk, kd) in enumerate(zip(B_LINKS, B_KINDS))
+        ]
+        w_idt, tau_idt = ref.estimate(readings, spec)
+        np.testing.assert_allclose(w_idt, wr[i].numpy(), atol=ATOL, rtol=0)
+        np.testing.assert_allclose(w_est[i].numpy(), w_idt, atol=ATOL, rtol=0)
+        tau_pin = pin_tau(pinrobot, q[i], qd[i], qdd[i], B_LINKS, pos[i], wr[i])
+        np.testing.assert_allclose(out.joint_torques[i].numpy(), tau_idt, atol=ATOL, rtol=0)
+        np.testing.assert_allclose(out.joint_torques[i].numpy(), tau_pin, atol=ATOL, rtol=0)
+        np.testing.assert_allclose(tau_ref[i].numpy(), tau_pin, atol=ATOL, rtol=0)
+    # the contacts change the torques: the comparison is not gravity alone
+    tau0 = model.inverse_dynamics(q, qd, qdd)
+    assert (tau0 - out.joint_torques).abs().max() > 1.0
