@@ -173,8 +173,8 @@ def pin_tau(pinrobot, q, qd, qdd, links, pos, wr):
 def build_A(est, q, qd, qdd, links, kinds, pos, dirs):
     """Reading-space matrix of every frame, column by column from ``predict_ft`` (A is linear).
 
-    Returns ``A (n, 6 S, U)``, the zero-contact readings ``(n, 6 S)`` and the basis ``B (n, K, 6,
-    U)`` with ``w_k = B_k x``.
+    Returns ``A (n, 6 S, U)``, the zero-contact readings ``(n, 6 S)``, the basis ``B (n, K, 6, U)``
+    with ``w_k = B_k x`` and the slot of each column ``(U,)``.
     """
     n, K = pos.shape[:2]
     cols = []  # (slot, basis wrench (n, 6))
@@ -203,7 +203,7 @@ def build_A(est, q, qd, qdd, links, kinds, pos, dirs):
         w[:, k] = b
         A[:, :, j] = readings(w) - r0
         B[:, k, :, j] = b
-    return A.numpy(), r0.numpy(), B.numpy()
+    return A.numpy(), r0.numpy(), B.numpy(), np.array([k for k, _ in cols])
 
 
 def stack_ft(est, ft):
@@ -277,3 +277,148 @@ def test_estimate_matches_idyntree_pinocchio_and_truth(icub):
     # the contacts change the torques: the comparison is not gravity alone
     tau0 = model.inverse_dynamics(q, qd, qdd)
     assert (tau0 - out.joint_torques).abs().max() > 1.0
+
+
+def region_blocks(est, links, col_slot):
+    """Per used sensor: its 6 reading rows and the columns of the slots in its region."""
+    model = est.model
+    region = np.array([est.region[model.frame(lk).body] for lk in links])
+    out = {}
+    for i, s in enumerate(est.sensor_names):
+        cols = np.flatnonzero(region[col_slot] == i)
+        out[s] = (np.arange(6 * i, 6 * i + 6), cols)
+    return out
+
+
+def pinv_solution(A, b, blocks, rcond=1e-7):
+    """Minimum-norm least squares, region by region (A is block diagonal by region).
+
+    ``rcond`` 1e-7 sits between the estimator's default singular-value cut (3.7e-8 sigma_max) and
+    the smallest kept singular value of these cases (above 1e-3 sigma_max); the zero ones are
+    ~1e-16 sigma_max.
+    """
+    x = np.zeros(A.shape[1])
+    rank, res = {}, {}
+    for s, (rows, cols) in blocks.items():
+        if len(cols) == 0:
+            rank[s], res[s] = 0, np.linalg.norm(b[rows])
+            continue
+        Ab = A[np.ix_(rows, cols)]
+        xs, _, rk, sv = np.linalg.lstsq(Ab, b[rows], rcond=rcond)
+        np.testing.assert_allclose(xs, np.linalg.pinv(Ab, rcond=rcond) @ b[rows], atol=1e-9)
+        x[cols] = xs
+        rank[s], res[s] = rk, np.linalg.norm(Ab @ xs - b[rows])
+    return x, rank, res
+
+
+# ---------------------------------------------------------------------------------- c. rank-deficient
+# Regions of the arm sensors only: their parent side is the root region, so in reading space A is
+# block diagonal by sensor (a contact on a foot would also move the leg sensor's reading, which the
+# estimator replaces by the measured nested foot reading).
+C_LINKS = ["l_hand", "l_forearm", "r_forearm", "r_hand"]
+C_KINDS = ["wrench", "force", "force", "force"]
+
+
+def test_underdetermined_is_minimum_norm_least_squares(icub):
+    model, est, ref = icub
+    n = 3
+    q, qd, qdd = random_state(model, n, seed=30)
+    pos, dirs, wr = random_contacts(C_LINKS, C_KINDS, n, seed=31)
+    K = len(C_LINKS)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(C_LINKS, ["known"] * K, pos, wrenches=wr))
+    g = torch.Generator().manual_seed(32)
+    for s in ("l_arm_ft", "r_arm_ft"):  # inconsistent readings: residual > 0
+        ft[s] = ft[s] + torch.randn(n, 6, generator=g, dtype=DT)
+    c = tc.Contacts(C_LINKS, C_KINDS, pos)
+    out = est.estimate(q, qd, qdd, ft, c)
+    A, r0, B, col_slot = build_A(est, q, qd, qdd, C_LINKS, C_KINDS, pos, dirs)
+    blocks = region_blocks(est, C_LINKS, col_slot)
+    b = stack_ft(est, ft) - r0
+    w_est = torch.cat((out.force, out.moment), -1).numpy()
+    for i in range(n):
+        x, rank, res = pinv_solution(A[i], b[i], blocks)
+        w_ref = np.einsum("kju,u->kj", B[i], x)
+        np.testing.assert_allclose(w_est[i], w_ref, atol=ATOL, rtol=0)
+        for s in est.sensor_names:
+            assert int(out.rank[s][i]) == rank[s], s
+            np.testing.assert_allclose(float(out.residual[s][i]), res[s], atol=ATOL, rtol=0)
+        # iDynTree's per-submodel solve is a least-squares solution too (same residual), but not
+        # the minimum-norm one (it zeroes unknowns, like a basic solution): ours is no longer
+        ref.kinematics(q[i], qd[i], qdd[i])
+        spec = [(lk, kd, pos[i, k].numpy(), None, None) for k, (lk, kd) in enumerate(zip(C_LINKS, C_KINDS))]
+        w_idt, _ = ref.estimate({s: ft[s][i].numpy() for s in est.sensor_names}, spec)
+        x_idt = np.einsum("kju,kj->u", B[i], w_idt)
+        np.testing.assert_allclose(np.einsum("kju,u->kj", B[i], x_idt), w_idt, atol=ATOL)
+        _, _, res_idt = pinv_solution(A[i], b[i] - A[i] @ x_idt, blocks)
+        for s in ("l_arm_ft", "r_arm_ft"):
+            rows, cols = blocks[s]
+            np.testing.assert_allclose(res_idt[s], res[s], atol=ATOL, rtol=0)
+            assert np.linalg.norm(x[cols]) <= np.linalg.norm(x_idt[cols]) + ATOL
+    assert out.rank["l_arm_ft"].tolist() == [6] * n and out.unknowns["l_arm_ft"].tolist() == [9] * n
+    assert out.rank["r_arm_ft"].tolist() == [5] * n and out.unknowns["r_arm_ft"].tolist() == [6] * n
+    assert not out.identifiable["r_arm_ft"].any() and not out.identifiable["l_arm_ft"].any()
+    assert (out.residual["r_arm_ft"] > 1e-3).all()  # the noisy reading is not in A's range
+    assert (out.residual["l_arm_ft"] < 1e-9).all()  # rank 6 = rows: any reading is consistent
+    # min-norm: the truth is another solution, and not the estimate
+    assert np.abs(w_est[:, 1] - wr[:, 1].numpy()).max() > 1e-3
+
+
+# ---------------------------------------------------------------------------------- d. round trip
+RPY = np.array([0.3, -0.2, 0.5])
+
+
+def _rot(rpy):
+    r, p, y = rpy
+    Rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    Ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    Rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+ROUND_TRIP = {
+    "panda-wrist": ("panda", "panda_hand_joint", ["panda_hand"], ["wrench"]),
+    "ur5-wrist": ("ur5", "ee_fixed_joint", ["ee_link"], ["wrench"]),
+    "ur5-base": (
+        "ur5",
+        "world_joint",
+        ["forearm_link", "wrist_2_link", "upper_arm_link"],
+        ["force", "force_dir", "force_dir"],
+    ),
+}
+
+
+@pytest.mark.parametrize("direction", ["child_to_parent", "parent_to_child"])
+@pytest.mark.parametrize("frame", ["child", "parent", "sensor"])
+@pytest.mark.parametrize("case", list(ROUND_TRIP))
+def test_round_trip_declared_sensor(case, frame, direction):
+    name, joint, links, kinds = ROUND_TRIP[case]
+    base = tc.RobotModel.from_urdf(ROBOTS[name](), keep_fixed=[joint])
+    extra = dict(R_child_sensor=_rot(RPY), p_child_sensor=[0.01, -0.02, 0.03])
+    model = base.with_ft_sensor(
+        "ft", joint, frame=frame, measure_direction=direction, **(extra if frame == "sensor" else {})
+    )
+    est = tc.ContactEstimator(model, ["ft"])
+    n = 4
+    q, qd, qdd = random_state(model, n, seed=40)
+    pos, dirs, wr = random_contacts(links, kinds, n, seed=41)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr))
+    out = est.estimate(q, qd, qdd, ft, tc.Contacts(links, kinds, pos, directions=dirs))
+    assert out.identifiable["ft"].all()
+    w = torch.cat((out.force, out.moment), -1)
+    torch.testing.assert_close(w, wr, atol=ATOL, rtol=0)
+    f_ext = torch.stack([fext_of(model, links, pos[i], wr[i]) for i in range(n)])
+    torch.testing.assert_close(
+        out.joint_torques, model.inverse_dynamics(q, qd, qdd, f_ext=f_ext), atol=ATOL, rtol=0
+    )
+    # the declared convention changes the reading: frame rotation and sign are applied
+    ref_model = base.with_ft_sensor("ft", joint, frame="child", measure_direction="parent_to_child")
+    r_child = tc.ContactEstimator(ref_model, ["ft"]).predict_ft(
+        q, qd, qdd, tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr)
+    )["ft"]
+    sign = 1.0 if direction == "parent_to_child" else -1.0
+    if frame == "child":
+        torch.testing.assert_close(ft["ft"], sign * r_child, atol=ATOL, rtol=0)
+    elif frame == "sensor":
+        R, p = torch.as_tensor(_rot(RPY)), torch.tensor([0.01, -0.02, 0.03], dtype=DT)
+        expected = tc.spatial.transform_wrench_inverse(R, p, r_child)
+        torch.testing.assert_close(ft["ft"], sign * expected, atol=ATOL, rtol=0)
