@@ -120,6 +120,16 @@ class IDynTreeRef:
         return np.array(out), tau.toNumPy().copy()
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Small per-frame tensors: intra-op threads only add overhead, and with iDynTree/pinocchio
+    loaded on the 2-core CI machine they made index_add ~1000x slower (test time 40 s -> 7 s)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def icub():
     model = load_model("icub")
@@ -422,3 +432,186 @@ def test_round_trip_declared_sensor(case, frame, direction):
         R, p = torch.as_tensor(_rot(RPY)), torch.tensor([0.01, -0.02, 0.03], dtype=DT)
         expected = tc.spatial.transform_wrench_inverse(R, p, r_child)
         torch.testing.assert_close(ft["ft"], sign * expected, atol=ATOL, rtol=0)
+
+
+# ---------------------------------------------------------------------------------- e. batches
+E_LINKS = ["l_hand", "l_hand", "l_forearm", "l_forearm", "r_hand", "r_forearm", "l_foot"]
+E_KINDS = ["wrench", "force", "force_dir", "known", "force", "force_dir", "force"]
+
+
+def _mixed(model, est, n, seed):
+    q, qd, qdd = random_state(model, n, seed=seed)
+    pos, dirs, wr = random_contacts(E_LINKS, E_KINDS, n, seed=seed + 1)
+    g = torch.Generator().manual_seed(seed + 2)
+    active = torch.rand(n, len(E_LINKS), generator=g) > 0.4
+    active[0] = False  # a frame without any contact
+    ft = est.predict_ft(
+        q, qd, qdd, tc.Contacts(E_LINKS, ["known"] * len(E_LINKS), pos, wrenches=wr, active=active)
+    )
+    return q, qd, qdd, pos, dirs, wr, active, ft
+
+
+def test_mixed_batch_equals_frame_by_frame(icub):
+    model, est, _ = icub
+    n = 7
+    q, qd, qdd, pos, dirs, wr, active, ft = _mixed(model, est, n, seed=50)
+    assert len({tuple(a.tolist()) for a in active}) > 3  # the frames use different slot sets
+    c = tc.Contacts(E_LINKS, E_KINDS, pos, directions=dirs, wrenches=wr, active=active)
+    out = est.estimate(q, qd, qdd, ft, c)
+    for i in range(n):
+        idx = [k for k in range(len(E_LINKS)) if active[i, k]]
+        ci = tc.Contacts(
+            [E_LINKS[k] for k in idx],
+            [E_KINDS[k] for k in idx],
+            pos[i, idx],
+            directions=dirs[i, idx],
+            wrenches=wr[i, idx],
+        )
+        oi = est.estimate(q[i], qd[i], qdd[i], {s: ft[s][i] for s in ft}, ci)
+        torch.testing.assert_close(out.force[i, idx], oi.force, atol=ATOL, rtol=0)
+        torch.testing.assert_close(out.moment[i, idx], oi.moment, atol=ATOL, rtol=0)
+        off = [k for k in range(len(E_LINKS)) if not active[i, k]]
+        assert (out.force[i, off] == 0).all() and (out.moment[i, off] == 0).all()
+        torch.testing.assert_close(out.joint_torques[i], oi.joint_torques, atol=ATOL, rtol=0)
+        for s in est.sensor_names:
+            assert out.rank[s][i] == oi.rank[s] and out.unknowns[s][i] == oi.unknowns[s]
+            torch.testing.assert_close(out.residual[s][i], oi.residual[s], atol=ATOL, rtol=0)
+    # identifiable slots are the truth
+    k_foot = E_LINKS.index("l_foot")
+    on = active[:, k_foot]
+    torch.testing.assert_close(out.force[on, k_foot], wr[on, k_foot, :3], atol=ATOL, rtol=0)
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (7,), (2, 3)])
+def test_batch_shapes(icub, shape):
+    model, est, _ = icub
+    n = 7
+    q, qd, qdd, pos, dirs, wr, active, ft = _mixed(model, est, n, seed=60)
+    flat = est.estimate(
+        q, qd, qdd, ft, tc.Contacts(E_LINKS, E_KINDS, pos, dirs, wr, active)
+    )
+    m = int(np.prod(shape))
+
+    def rs(x, trailing):
+        return x[:m].reshape(*shape, *trailing)
+
+    K = len(E_LINKS)
+    out = est.estimate(
+        rs(q, (model.nv,)),
+        rs(qd, (model.nv,)),
+        rs(qdd, (model.nv,)),
+        {s: rs(v, (6,)) for s, v in ft.items()},
+        tc.Contacts(
+            E_LINKS, E_KINDS, rs(pos, (K, 3)), rs(dirs, (K, 3)), rs(wr, (K, 6)), rs(active, (K,))
+        ),
+    )
+    assert out.force.shape == (*shape, K, 3) and out.joint_torques.shape == (*shape, model.nv)
+    assert out.status.shape == shape and out.rank["l_arm_ft"].shape == shape
+    torch.testing.assert_close(out.force, rs(flat.force, (K, 3)), atol=ATOL, rtol=0)
+    torch.testing.assert_close(out.moment, rs(flat.moment, (K, 3)), atol=ATOL, rtol=0)
+    torch.testing.assert_close(
+        out.joint_torques, rs(flat.joint_torques, (model.nv,)), atol=ATOL, rtol=0
+    )
+
+
+# ---------------------------------------------------------------------------------- f. bad input
+def test_bad_input_raises(icub):
+    model, est, _ = icub
+    q, qd, qdd = random_state(model, 2, seed=70)
+    ft = {s: torch.zeros(2, 6, dtype=DT) for s in est.sensor_names}
+    pos = torch.zeros(2, 1, 3, dtype=DT)
+    with pytest.raises(ValueError, match="'chest'.*outside every F/T sensor"):
+        est.estimate(q, qd, qdd, ft, tc.Contacts(["chest"], ["force"], pos))
+    with pytest.raises(ValueError, match="unknown link.*l_handd"):
+        est.estimate(q, qd, qdd, ft, tc.Contacts(["l_handd"], ["force"], pos))
+    with pytest.raises(ValueError, match="unknown F/T sensors.*'l_wrist_ft'"):
+        tc.ContactEstimator(model, ["l_arm_ft", "l_wrist_ft"])
+    missing = {s: v for s, v in ft.items() if s != "r_foot_ft"}
+    with pytest.raises(ValueError, match="missing readings.*r_foot_ft"):
+        est.estimate(q, qd, qdd, missing, tc.Contacts(["l_hand"], ["force"], pos))
+
+
+def test_bad_frames_get_status_and_nan_others_exact(icub):
+    model, est, _ = icub
+    n = 6
+    q, qd, qdd, pos, dirs, wr, active, ft = _mixed(model, est, n, seed=80)
+    k_dir = E_KINDS.index("force_dir")
+    active[:, k_dir] = True
+    ft = {s: v.clone() for s, v in ft.items()}
+    ft["r_arm_ft"][1, 4] = float("nan")  # frame 1: NaN reading
+    dirs = dirs.clone()
+    dirs[3, k_dir] = 0.0  # frame 3: zero-length direction of an active force_dir slot
+    # frame 4: NaN in the direction of an active "force" slot, a field its kind does not use: it is
+    # flagged all the same (bit 4)
+    dirs[4, E_KINDS.index("force")] = float("nan")
+    c = tc.Contacts(E_LINKS, E_KINDS, pos, dirs, wr, active)
+    out = est.estimate(q, qd, qdd, ft, c)
+    assert out.status.tolist() == [0, 1, 0, 8, 4, 0]
+    assert tc.status_messages(int(out.status[3])) == "zero-length contact direction"
+    bad = torch.tensor([False, True, False, True, True, False])
+    for x in (out.force, out.moment, out.joint_torques, out.residual["l_arm_ft"]):
+        assert x[bad].isnan().all() and x[~bad].isfinite().all()
+    good = [0, 2, 5]
+    ref = est.estimate(
+        q[good],
+        qd[good],
+        qdd[good],
+        {s: v[good] for s, v in ft.items()},
+        tc.Contacts(E_LINKS, E_KINDS, pos[good], dirs[good], wr[good], active[good]),
+    )
+    torch.testing.assert_close(out.force[good], ref.force, atol=ATOL, rtol=0)
+    torch.testing.assert_close(out.joint_torques[good], ref.joint_torques, atol=ATOL, rtol=0)
+
+
+# ---------------------------------------------------------------------------------- g. torque rows
+def test_joint_torque_rows_make_it_identifiable(icub):
+    model, est, _ = icub
+    n = 3
+    links, kinds = ["l_forearm", "l_hand"], ["force", "force"]
+    q, qd, qdd = random_state(model, n, seed=90)
+    pos, _, wr = random_contacts(links, kinds, n, seed=91)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * 2, pos, wrenches=wr))
+    c = tc.Contacts(links, kinds, pos)
+    plain = est.estimate(q, qd, qdd, ft, c)
+    assert plain.rank["l_arm_ft"].tolist() == [5] * n  # the force along the line is unobservable
+    w_plain = torch.cat((plain.force, plain.moment), -1)
+    assert (w_plain - wr).abs().max() > 1e-3
+    f_ext = torch.stack([fext_of(model, links, pos[i], wr[i]) for i in range(n)])
+    tau = model.inverse_dynamics(q, qd, qdd, f_ext=f_ext)
+    mask = torch.tensor([j.startswith(("l_elbow", "l_wrist")) for j in model.joint_names])
+    assert int(mask.sum()) == 4
+    out = est.estimate(q, qd, qdd, ft, c, tau_measured=tau, tau_mask=mask)
+    assert out.rank["l_arm_ft"].tolist() == [6] * n and out.identifiable["l_arm_ft"].all()
+    torch.testing.assert_close(torch.cat((out.force, out.moment), -1), wr, atol=ATOL, rtol=0)
+    torch.testing.assert_close(out.joint_torques, tau, atol=ATOL, rtol=0)
+    assert (out.residual["l_arm_ft"] < 1e-9).all()
+
+
+# ---------------------------------------------------------------------------------- h. covariance
+def test_covariance_is_pinv_sigma_pinv_t(icub):
+    model, est, _ = icub
+    n = 3
+    links, kinds = C_LINKS, C_KINDS  # l_arm rank 6 of 9 unknowns, r_arm rank 5 of 6
+    q, qd, qdd = random_state(model, n, seed=100)
+    pos, dirs, wr = random_contacts(links, kinds, n, seed=101)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr))
+    g = torch.Generator().manual_seed(102)
+    sig = {}
+    for s in est.sensor_names:
+        L = torch.randn(6, 6, generator=g, dtype=DT)
+        sig[s] = L @ L.T + 0.1 * torch.eye(6, dtype=DT)
+    out = est.estimate(q, qd, qdd, ft, tc.Contacts(links, kinds, pos), ft_covariance=sig)
+    A, _, B, col_slot = build_A(est, q, qd, qdd, links, kinds, pos, dirs)
+    blocks = region_blocks(est, links, col_slot)
+    for i in range(n):
+        cov_x = np.zeros((A.shape[2], A.shape[2]))
+        for s, (rows, cols) in blocks.items():
+            if len(cols):
+                Pi = np.linalg.pinv(A[i][np.ix_(rows, cols)], rcond=1e-7)
+                cov_x[np.ix_(cols, cols)] = Pi @ sig[s].numpy() @ Pi.T
+        cov_w = np.einsum("kau,uv,kbv->kab", B[i], cov_x, B[i])
+        # covariances are N^2-scale numbers up to ~1e3 here: 1e-9 relative to their largest
+        scale = np.abs(cov_w).max()
+        np.testing.assert_allclose(out.covariance[i].numpy(), cov_w, atol=1e-9 * scale, rtol=0)
+    assert out.covariance.shape == (n, len(links), 6, 6)
+    assert (out.covariance[:, 0].diagonal(dim1=-2, dim2=-1) > 0).all()
