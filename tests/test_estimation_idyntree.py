@@ -92,9 +92,7 @@ class IDynTreeRef:
     def predict(self, contacts) -> dict[str, np.ndarray]:
         meas = idt.SensorsMeasurements(self.sens)
         cw, tau = idt.LinkContactWrenches(self.m), idt.JointDOFsDoubleArray(self.m)
-        assert self.est.computeExpectedFTSensorsMeasurements(
-            self.unknowns(contacts), meas, cw, tau
-        )
+        assert self.est.computeExpectedFTSensorsMeasurements(self.unknowns(contacts), meas, cw, tau)
         out = {}
         for i, name in enumerate(self.ft_names):
             w = idt.Wrench()
@@ -275,7 +273,7 @@ def test_estimate_matches_idyntree_pinocchio_and_truth(icub):
         readings = {s: ft[s][i].numpy() for s in est.sensor_names}
         spec = [
             (lk, kd, pos[i, k].numpy(), dirs[i, k].numpy() if kd == "force_dir" else None, None)
-            for k, (lk, kd) in enumerate(zip(B_LINKS, B_KINDS))
+            for k, (lk, kd) in enumerate(zip(B_LINKS, B_KINDS, strict=True))
         ]
         w_idt, tau_idt = ref.estimate(readings, spec)
         np.testing.assert_allclose(w_idt, wr[i].numpy(), atol=ATOL, rtol=0)
@@ -355,7 +353,10 @@ def test_underdetermined_is_minimum_norm_least_squares(icub):
         # iDynTree's per-submodel solve is a least-squares solution too (same residual), but not
         # the minimum-norm one (it zeroes unknowns, like a basic solution): ours is no longer
         ref.kinematics(q[i], qd[i], qdd[i])
-        spec = [(lk, kd, pos[i, k].numpy(), None, None) for k, (lk, kd) in enumerate(zip(C_LINKS, C_KINDS))]
+        spec = [
+            (lk, kd, pos[i, k].numpy(), None, None)
+            for k, (lk, kd) in enumerate(zip(C_LINKS, C_KINDS, strict=True))
+        ]
         w_idt, _ = ref.estimate({s: ft[s][i].numpy() for s in est.sensor_names}, spec)
         x_idt = np.einsum("kju,kj->u", B[i], w_idt)
         np.testing.assert_allclose(np.einsum("kju,u->kj", B[i], x_idt), w_idt, atol=ATOL)
@@ -405,7 +406,11 @@ def test_round_trip_declared_sensor(case, frame, direction):
     base = tc.RobotModel.from_urdf(ROBOTS[name](), keep_fixed=[joint])
     extra = dict(R_child_sensor=_rot(RPY), p_child_sensor=[0.01, -0.02, 0.03])
     model = base.with_ft_sensor(
-        "ft", joint, frame=frame, measure_direction=direction, **(extra if frame == "sensor" else {})
+        "ft",
+        joint,
+        frame=frame,
+        measure_direction=direction,
+        **(extra if frame == "sensor" else {}),
     )
     est = tc.ContactEstimator(model, ["ft"])
     n = 4
@@ -487,9 +492,7 @@ def test_batch_shapes(icub, shape):
     model, est, _ = icub
     n = 7
     q, qd, qdd, pos, dirs, wr, active, ft = _mixed(model, est, n, seed=60)
-    flat = est.estimate(
-        q, qd, qdd, ft, tc.Contacts(E_LINKS, E_KINDS, pos, dirs, wr, active)
-    )
+    flat = est.estimate(q, qd, qdd, ft, tc.Contacts(E_LINKS, E_KINDS, pos, dirs, wr, active))
     m = int(np.prod(shape))
 
     def rs(x, trailing):
