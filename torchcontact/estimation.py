@@ -487,7 +487,7 @@ class ContactEstimator:
 
         def fin(x: Tensor, trailing: tuple[int, ...], fill=nan) -> Tensor:
             x = torch.where(bad.reshape(n, *([1] * len(trailing))), fill, x)
-            return x.reshape(*batch, *trailing)
+            return x.reshape((*batch, *trailing))
 
         ident = rank == unknowns
         return ContactEstimate(
