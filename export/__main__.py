@@ -1,4 +1,4 @@
-"""``python -m export``: write deployment artefacts with :mod:`torchcontact.export`.
+r"""``python -m export``: write deployment artefacts with :mod:`torchcontact.export`.
 
 Example::
 

@@ -37,7 +37,27 @@ _LAZY = {
     "status_messages": "torchcontact.estimation",
 }
 
-__all__ = sorted([*_LAZY, "__version__"], key=lambda s: (not s.isupper(), s))
+__all__ = [
+    "KINDS",
+    "STATUS",
+    "BaseMotion",
+    "ContactEstimate",
+    "ContactEstimator",
+    "Contacts",
+    "FTSensor",
+    "ForwardPass",
+    "Frame",
+    "RobotModel",
+    "URDFError",
+    "__version__",
+    "body_wrenches",
+    "compiled_inverse_dynamics",
+    "forward_pass",
+    "inverse_dynamics",
+    "robots",
+    "spatial",
+    "status_messages",
+]
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact import robots, spatial
