@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -49,4 +51,5 @@ def check_input(
 
 def flatten_batch(x: Tensor, batch: torch.Size, n_feature_dims: int) -> Tensor:
     """Reshape ``(*batch, *features)`` to ``(N, *features)``."""
-    return x.reshape(batch.numel(), *x.shape[x.dim() - n_feature_dims :])
+    # math.prod, not batch.numel(): a symbolic batch size stays symbolic under torch.export
+    return x.reshape(math.prod(batch), *x.shape[x.dim() - n_feature_dims :])

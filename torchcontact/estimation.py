@@ -36,6 +36,7 @@ the tolerance are treated as unobservable: they get no share of the solution.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -44,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcontact import _jacobi
 from torchcontact import dynamics as _dyn
 from torchcontact._internal import check_input, flatten_batch
 from torchcontact.dynamics import BaseMotion
@@ -156,12 +158,20 @@ class ContactEstimator:
         model: the robot; its dtype and device are those of the computation.
         sensors: names of F/T sensors of ``model.ft_sensors`` to use (default: all of them).
             Sensors not used do not cut the tree.
+        solver: eigensolver of the Gram matrix ``A A^T``: ``"eigh"`` (``torch.linalg.eigh``,
+            LAPACK/cuSOLVER) or ``"jacobi"`` (a fixed number of cyclic Jacobi sweeps in elementwise
+            ops, :mod:`torchcontact._jacobi`; exports to ONNX, agrees with ``eigh`` to rounding).
 
     Raises:
-        ValueError: an unknown sensor name.
+        ValueError: an unknown sensor name or solver.
     """
 
-    def __init__(self, model: RobotModel, sensors: Sequence[str] | None = None) -> None:
+    def __init__(
+        self, model: RobotModel, sensors: Sequence[str] | None = None, solver: str = "eigh"
+    ) -> None:
+        if solver not in ("eigh", "jacobi"):
+            raise ValueError(f"unknown solver {solver!r}; expected 'eigh' or 'jacobi'")
+        self.solver = solver
         names = list(model.ft_sensors) if sensors is None else list(sensors)
         unknown = [s for s in names if s not in model.ft_sensors]
         if unknown:
@@ -356,7 +366,7 @@ class ContactEstimator:
         batch = q.shape[:-1]
         if qd.shape[:-1] != batch or qdd.shape[:-1] != batch:
             raise ValueError("q, qd, qdd must share their batch shape")
-        n = batch.numel()
+        n = math.prod(batch)  # (not batch.numel(): keeps a symbolic batch size symbolic in export)
         missing = [s for s in self.sensor_names if s not in ft]
         if missing:
             raise ValueError(f"ft is missing readings of sensors {missing} (keys: {list(ft)})")
@@ -399,7 +409,8 @@ class ContactEstimator:
 
         def flag(bad: Tensor, bit: int) -> None:
             nonlocal status
-            status = status | (bad.to(torch.long) * bit)
+            # each bit is flagged once, so + is |; (exports: ONNX has no integer bitwise or)
+            status = status + bad.to(torch.long) * bit
 
         def finite_rows(x: Tensor) -> Tensor:
             return torch.isfinite(x).reshape(n, -1).all(-1)
@@ -742,9 +753,14 @@ class ContactEstimator:
         solved = lay["solved"]
         Gm = G.index_select(0, solved).permute(0, 3, 1, 2)  # (S', N, R, R)
         Gm = 0.5 * (Gm + Gm.transpose(-1, -2))
-        lam, V = torch.linalg.eigh(Gm)
+        if self.solver == "jacobi":
+            lam, V = _jacobi.jacobi_eigh_bl(G.permute(1, 2, 0, 3).reshape(R_rows, R_rows, -1))
+            lam = lam.reshape(R_rows, S, -1).permute(1, 2, 0)  # unsorted
+            V = V.reshape(R_rows, R_rows, S, -1).permute(2, 3, 0, 1)
+        else:
+            lam, V = torch.linalg.eigh(Gm)
         rtol = R_rows * torch.finfo(dtype).eps if rank_rtol is None else rank_rtol
-        lam_max = lam[..., -1:].clamp_min(0)
+        lam_max = lam.amax(-1, keepdim=True).clamp_min(0)
         keep = (lam > rtol * lam_max) & (lam > 0)
         inv = torch.where(
             keep, 1.0 / torch.where(keep, lam, torch.ones_like(lam)), torch.zeros_like(lam)

@@ -1,0 +1,424 @@
+"""Export the contact estimator and learned residual models to ONNX (extra ``export``).
+
+:func:`export_estimator` writes the *whole* estimator of one robot, sensor set and contact-slot
+layout as a single ONNX graph, traced from the same torch code as
+:meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` (RNEA forward pass,
+``b`` assembly, the residual correction of the readings, the pseudo-inverse solve with the
+exportable Jacobi eigensolver of :mod:`torchcontact._jacobi`, and the backward pass). The graph
+runs with onnxruntime alone through :mod:`torchcontact.runtime`.
+
+:func:`export_residual` writes any ``nn.Module`` mapping features ``(N, F)`` to an F/T residual
+``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``); :func:`check_parity` compares
+the file with the module.
+
+Graph inputs of the estimator (``N`` dynamic, ``S`` sensors, ``K`` slots, ``nv`` joints)::
+
+    q, qd, qdd   (N, nv)   joint positions (rad, m), velocities, accelerations
+    ft           (N, S, 6) readings [force N; moment N m], sensor frame and measure direction
+    positions    (N, K, 3) contact points in the slot's link frame, m
+    directions   (N, K, 3) force directions for force_dir slots (link frame; zeros elsewhere)
+    wrenches     (N, K, 6) given wrenches of known slots (link frame, about the point)
+    active       (N, K)    1 where the slot is in contact, 0 elsewhere (float, model dtype)
+    ft_residual  (N, S, 6) subtracted from ft before estimation (zeros: no correction)
+
+Outputs: ``force (N, K, 3)``, ``moment (N, K, 3)``, ``joint_torques (N, nv)``, ``rank (N, S)``
+int64, ``unknowns (N, S)`` int64, ``residual (N, S)``, ``status (N,)`` int64 (bits of
+:data:`torchcontact.STATUS`; outputs of such frames are NaN).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torchcontact import _jacobi
+from torchcontact.estimation import KINDS, ContactEstimator, Contacts
+from torchcontact.model import RobotModel
+
+__all__ = [
+    "ESTIMATOR_INPUTS",
+    "ESTIMATOR_OUTPUTS",
+    "EstimatorGraph",
+    "check_parity",
+    "export_estimator",
+    "export_residual",
+]
+
+#: Input names of an exported estimator, in order.
+ESTIMATOR_INPUTS = (
+    "q",
+    "qd",
+    "qdd",
+    "ft",
+    "positions",
+    "directions",
+    "wrenches",
+    "active",
+    "ft_residual",
+)
+#: Output names of an exported estimator, in order.
+ESTIMATOR_OUTPUTS = (
+    "force",
+    "moment",
+    "joint_torques",
+    "rank",
+    "unknowns",
+    "residual",
+    "status",
+)
+#: Format version of the metadata written by :func:`export_estimator`.
+FORMAT = "torchcontact.estimator/1"
+DEFAULT_OPSET = 18
+DYNAMO = False
+
+
+class EstimatorGraph(nn.Module):
+    """The estimator of fixed slots as a tensor-in, tensor-out module (what gets exported).
+
+    Holds no parameters; the robot model's tensors become constants of the traced graph.
+
+    Args:
+        estimator: a :class:`ContactEstimator` (its solver should be ``"jacobi"`` to export).
+        links: K link (or frame) names of the contact slots.
+        kinds: K slot kinds (see :data:`torchcontact.KINDS`).
+        gravity: ``(3,)`` gravity in the root frame, m/s^2, baked into the graph.
+        rank_rtol: eigenvalue tolerance of the rank (None: the estimator's default).
+    """
+
+    def __init__(
+        self,
+        estimator: ContactEstimator,
+        links: Sequence[str],
+        kinds: Sequence[str],
+        gravity: Sequence[float] = (0.0, 0.0, -9.81),
+        rank_rtol: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.est = estimator
+        self.links, self.kinds = tuple(links), tuple(kinds)
+        self.gravity = tuple(float(g) for g in gravity)
+        self.rank_rtol = rank_rtol
+        # validate the layout now (unknown links, slots outside every sensor's subtree)
+        estimator._layout(Contacts(self.links, self.kinds, torch.zeros(0, len(self.links), 3)))
+
+    def forward(
+        self,
+        q: Tensor,
+        qd: Tensor,
+        qdd: Tensor,
+        ft: Tensor,
+        positions: Tensor,
+        directions: Tensor,
+        wrenches: Tensor,
+        active: Tensor,
+        ft_residual: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """Estimate ``N`` frames; shapes as in the module docstring."""
+        est = self.est
+        readings = ft - ft_residual  # residual correction (a learned model's output, or zeros)
+        out = est.estimate(
+            q,
+            qd,
+            qdd,
+            {s: readings[:, i] for i, s in enumerate(est.sensor_names)},
+            Contacts(self.links, self.kinds, positions, directions, wrenches, active),
+            gravity=q.new_tensor(self.gravity),
+            rank_rtol=self.rank_rtol,
+        )
+        names = est.sensor_names
+        return (
+            out.force,
+            out.moment,
+            out.joint_torques,
+            torch.stack([out.rank[s] for s in names], -1),
+            torch.stack([out.unknowns[s] for s in names], -1),
+            torch.stack([out.residual[s] for s in names], -1),
+            out.status,
+        )
+
+
+def _example_inputs(model: RobotModel, S: int, K: int, n: int = 2) -> tuple[Tensor, ...]:
+    """Finite example inputs (distinct frames) for tracing."""
+    g = torch.Generator().manual_seed(0)
+    dt = model.dtype
+
+    def r(*shape):
+        return torch.rand(*shape, generator=g, dtype=torch.float64).to(dt)
+
+    nv = model.nv
+    return (
+        r(n, nv),
+        r(n, nv),
+        r(n, nv),
+        r(n, S, 6),
+        r(n, K, 3),
+        r(n, K, 3) + 0.5,
+        r(n, K, 6),
+        torch.ones(n, K, dtype=dt),
+        torch.zeros(n, S, 6, dtype=dt),
+    )
+
+
+def estimator_metadata(
+    model: RobotModel,
+    estimator: ContactEstimator,
+    links: Sequence[str],
+    kinds: Sequence[str],
+    opset: int,
+    gravity: Sequence[float],
+    rank_rtol: float | None,
+    sweeps: int,
+) -> dict[str, str]:
+    """The ``metadata_props`` of an exported estimator (all values are strings, JSON inside)."""
+    import torchcontact
+
+    S, K = len(estimator.sensor_names), len(links)
+    shapes = {
+        "q": ["N", model.nv],
+        "qd": ["N", model.nv],
+        "qdd": ["N", model.nv],
+        "ft": ["N", S, 6],
+        "positions": ["N", K, 3],
+        "directions": ["N", K, 3],
+        "wrenches": ["N", K, 6],
+        "active": ["N", K],
+        "ft_residual": ["N", S, 6],
+    }
+    sensors = [
+        {"name": s.name, "joint": s.joint, "frame": s.frame, "direction": s.measure_direction}
+        for s in estimator.sensors
+    ]
+    return {
+        "format": FORMAT,
+        "robot": model.name,
+        "urdf_sha256": model.urdf_sha256,
+        "joint_names": json.dumps(list(model.joint_names)),
+        "sensors": json.dumps(sensors),
+        "slot_links": json.dumps(list(links)),
+        "slot_kinds": json.dumps(list(kinds)),
+        "inputs": json.dumps(list(ESTIMATOR_INPUTS)),
+        "input_shapes": json.dumps(shapes),
+        "outputs": json.dumps(list(ESTIMATOR_OUTPUTS)),
+        "units": json.dumps(
+            {
+                "q": "rad or m",
+                "qd": "rad/s or m/s",
+                "qdd": "rad/s^2 or m/s^2",
+                "ft": "[N, N, N, N m, N m, N m]",
+                "positions": "m",
+                "force": "N",
+                "moment": "N m",
+                "joint_torques": "N m or N",
+                "gravity": "m/s^2",
+            }
+        ),
+        "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
+        "moments about the contact point; ft: each sensor's declared frame and direction",
+        "gravity": json.dumps(list(gravity)),
+        "dtype": str(model.dtype).removeprefix("torch."),
+        "solver": f"jacobi, {sweeps} sweeps",
+        "rank_rtol": "default" if rank_rtol is None else repr(float(rank_rtol)),
+        "torchcontact_version": torchcontact.__version__,
+        "torch_version": torch.__version__,
+        "opset": str(opset),
+    }
+
+
+def _export(module, args, path, input_names, output_names, dynamic_axes, opset) -> None:
+    """``torch.onnx.export`` with the TorchScript-based exporter (``dynamo=False``).
+
+    The estimator is straight-line elementwise code, which the tracing exporter handles without
+    extra dependencies; constant folding removes the model-constant arithmetic.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # deprecation notice of the TorchScript exporter
+        torch.onnx.export(
+            module,
+            args,
+            str(path),
+            input_names=list(input_names),
+            output_names=list(output_names),
+            dynamic_axes=dynamic_axes,
+            opset_version=opset,
+            dynamo=DYNAMO,
+            do_constant_folding=True,
+        )
+
+
+def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> None:
+    import onnx
+
+    m = onnx.load(str(path))
+    del m.metadata_props[:]
+    for k, v in metadata.items():
+        m.metadata_props.add(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
+    onnx.checker.check_model(m)
+    onnx.save(m, str(path))
+
+
+def export_estimator(
+    model: RobotModel,
+    sensors: Sequence[str] | None,
+    links: Sequence[str],
+    kinds: Sequence[str],
+    path: str | os.PathLike,
+    dtype: torch.dtype = torch.float32,
+    opset: int = DEFAULT_OPSET,
+    gravity: Sequence[float] = (0.0, 0.0, -9.81),
+    rank_rtol: float | None = None,
+) -> dict[str, str]:
+    """Export the estimator of a robot, sensors and contact-slot layout as one ONNX graph.
+
+    Args:
+        model: the robot (any dtype; converted to ``dtype``).
+        sensors: F/T sensor names (None: all of the model's).
+        links: K link (or frame) names of the contact slots.
+        kinds: K slot kinds, ``"wrench"``, ``"force"``, ``"force_dir"`` or ``"known"``.
+        path: output ``.onnx`` file (weights and constants inside).
+        dtype: ``torch.float32`` or ``torch.float64`` computation (and input/output) dtype.
+        opset: ONNX opset version.
+        gravity: ``(3,)`` gravity in the root frame, m/s^2 (fixed base; baked in).
+        rank_rtol: rank tolerance on the eigenvalues of ``A A^T`` (None: ``rows * eps(dtype)``,
+            as :meth:`ContactEstimator.estimate`).
+
+    Returns:
+        The metadata written into the file's ``metadata_props``.
+
+    Raises:
+        ValueError: an unknown sensor, link or kind, or a slot no sensor measures.
+
+    Example:
+        >>> import tempfile, torchcontact as tc
+        >>> m = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     meta = export_estimator(m, None, ["hand_skin"], ["force"], f"{d}/est.onnx")
+        >>> meta["robot"], json.loads(meta["slot_kinds"])
+        ('tcarm', ['force'])
+    """
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    for k in kinds:
+        if k not in KINDS:
+            raise ValueError(f"unknown kind {k!r}; expected one of {list(KINDS)}")
+    m = model.to(dtype=dtype, device="cpu")
+    est = ContactEstimator(m, sensors, solver="jacobi")
+    graph = EstimatorGraph(est, links, kinds, gravity, rank_rtol).eval()
+    args = _example_inputs(m, len(est.sensor_names), len(links))
+    names_out = list(ESTIMATOR_OUTPUTS)
+    dyn = {k: {0: "N"} for k in (*ESTIMATOR_INPUTS, *names_out)}
+    _export(graph, args, path, ESTIMATOR_INPUTS, names_out, dyn, opset)
+    meta = estimator_metadata(
+        m, est, links, kinds, opset, gravity, rank_rtol, _jacobi.DEFAULT_SWEEPS
+    )
+    _set_metadata(path, meta)
+    return meta
+
+
+def export_residual(
+    module: nn.Module,
+    example_features: Tensor,
+    path: str | os.PathLike,
+    metadata: Mapping[str, object] | None = None,
+    opset: int = DEFAULT_OPSET,
+    example_state: Tensor | None = None,
+) -> dict[str, str]:
+    """Export a learned F/T residual model ``features (N, F) -> residual (N, 6)`` to ONNX.
+
+    With ``example_state`` the module is recurrent: ``module(features, h_in) -> (residual,
+    h_out)`` with ``h_in``, ``h_out`` shaped ``(N, H)``. The batch axis ``N`` is dynamic, the
+    weights are stored inside the file and ``metadata`` goes to ``metadata_props`` (non-string
+    values as JSON), with ``opset``, ``torch_version`` and ``sha256_weights`` added.
+
+    Args:
+        module: the model; exported in eval mode (its mode is restored afterwards).
+        example_features: ``(N, F)`` example input (dtype of the export).
+        path: output ``.onnx`` file.
+        metadata: e.g. feature names and units, training run, sensor name.
+        opset: ONNX opset version.
+        example_state: ``(N, H)`` example recurrent state, or None for a stateless model.
+
+    Returns:
+        The metadata written.
+    """
+    was_training = module.training
+    module.eval()
+    try:
+        if example_state is None:
+            args, ins, outs = (example_features,), ["features"], ["residual"]
+        else:
+            args, ins = (example_features, example_state), ["features", "h_in"]
+            outs = ["residual", "h_out"]
+        dyn = {k: {0: "N"} for k in (*ins, *outs)}
+        with torch.no_grad():
+            _export(module, args, path, ins, outs, dyn, opset)
+    finally:
+        module.train(was_training)
+    h = hashlib.sha256()
+    for k, v in module.state_dict().items():
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    meta = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in (metadata or {}).items()}
+    meta.update(
+        format="torchcontact.residual/1",
+        opset=str(opset),
+        torch_version=torch.__version__,
+        sha256_weights=h.hexdigest(),
+        features=str(int(example_features.shape[-1])),
+        recurrent="true" if example_state is not None else "false",
+    )
+    _set_metadata(path, meta)
+    return meta
+
+
+def check_parity(
+    module: nn.Module,
+    path: str | os.PathLike,
+    inputs: Sequence[Tensor] | Tensor,
+    atol: float = 1e-5,
+) -> float:
+    """Run the module and the ONNX file on the same inputs; raise if they differ by > ``atol``.
+
+    Args:
+        module: the torch module (run in eval mode, no grad).
+        path: the exported ``.onnx`` file.
+        inputs: one tensor or a sequence, in the graph's input order.
+        atol: maximum absolute difference allowed on every output.
+
+    Returns:
+        The maximum absolute difference over all outputs.
+
+    Raises:
+        AssertionError: a difference above ``atol``, or a shape mismatch.
+    """
+    import onnxruntime as ort
+
+    ins = [inputs] if isinstance(inputs, Tensor) else list(inputs)
+    was_training = module.training
+    module.eval()
+    try:
+        with torch.no_grad():
+            ref = module(*ins)
+    finally:
+        module.train(was_training)
+    ref = [ref] if isinstance(ref, Tensor) else list(ref)
+    sess = ort.InferenceSession(str(Path(path)), providers=["CPUExecutionProvider"])
+    feed = {i.name: x.detach().cpu().numpy() for i, x in zip(sess.get_inputs(), ins, strict=True)}
+    got = sess.run(None, feed)
+    err = 0.0
+    for r, o in zip(ref, got, strict=True):
+        r = r.detach().cpu().numpy()
+        if r.shape != o.shape:
+            raise AssertionError(f"shape mismatch: torch {r.shape}, onnx {o.shape}")
+        if r.size:
+            err = max(err, float(np.max(np.abs(r.astype(np.float64) - o.astype(np.float64)))))
+    if not err <= atol:
+        raise AssertionError(f"ONNX output differs from torch by {err:.3g} > atol {atol:.3g}")
+    return err
