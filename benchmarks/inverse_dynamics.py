@@ -20,9 +20,10 @@ import torch.utils.benchmark as tb
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-import torchcontact as tc  # noqa: E402
 from _meta import metadata  # noqa: E402
 from robots import ROBOTS, PinRobot  # noqa: E402
+
+import torchcontact as tc  # noqa: E402
 
 
 def median_time(fn, min_run_time=1.0) -> float:
@@ -64,9 +65,8 @@ def main() -> None:
         q, qd, qdd = (rng.uniform(-1, 1, (nmax, base.nv)) for _ in range(3))
         pin_rate = pin_loop_rate(ref, q, qd, qdd)
         print(f"\n{name}: nv={base.nv}, bodies={base.nb}; pin.rnea loop: {pin_rate:,.0f} frames/s")
-        print(
-            f"{'device':6} {'dtype':8} {'batch':>9} {'eager f/s':>13} {'compiled f/s':>13} {'x pin loop':>10}"
-        )
+        head = ("device", "dtype", "batch", "eager f/s", "compiled f/s", "x pin loop")
+        print("{:6} {:8} {:>9} {:>13} {:>13} {:>10}".format(*head))
         for device in devices:
             for dtype in (torch.float64, torch.float32):
                 model = base.to(device=device, dtype=dtype)
@@ -76,14 +76,13 @@ def main() -> None:
                     compiled = tc.compiled_inverse_dynamics(model, chunk_size=4096)
                     t0 = time.perf_counter()
                     compiled(*(x[:1] for x in T))
-                    print(
-                        f"  compiled first result ({device}, {dtype}): {time.perf_counter() - t0:.1f} s"
-                    )
+                    first = time.perf_counter() - t0
+                    print(f"  compiled first result ({device}, {dtype}): {first:.1f} s")
                 for b in batches:
                     args_b = [x[:b] for x in T]
                     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
 
-                    def timed(fn, args_b=args_b, sync=sync):
+                    def timed(fn, args_b=args_b, sync=sync, b=b):
                         return b / median_time(lambda: (fn(*args_b), sync()))
 
                     e_rate = timed(model.inverse_dynamics)

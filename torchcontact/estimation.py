@@ -754,9 +754,11 @@ class ContactEstimator:
         Gm = G.index_select(0, solved).permute(0, 3, 1, 2)  # (S', N, R, R)
         Gm = 0.5 * (Gm + Gm.transpose(-1, -2))
         if self.solver == "jacobi":
-            lam, V = _jacobi.jacobi_eigh_bl(G.permute(1, 2, 0, 3).reshape(R_rows, R_rows, -1))
-            lam = lam.reshape(R_rows, S, -1).permute(1, 2, 0)  # unsorted
-            V = V.reshape(R_rows, R_rows, S, -1).permute(2, 3, 0, 1)
+            n_solved = solved.shape[0]
+            Gs = Gm.permute(2, 3, 0, 1).reshape(R_rows, R_rows, -1)  # batch-last (R, R, S'N)
+            lam, V = _jacobi.jacobi_eigh_bl(Gs)
+            lam = lam.reshape(R_rows, n_solved, -1).permute(1, 2, 0)  # unsorted
+            V = V.reshape(R_rows, R_rows, n_solved, -1).permute(2, 3, 0, 1)
         else:
             lam, V = torch.linalg.eigh(Gm)
         rtol = R_rows * torch.finfo(dtype).eps if rank_rtol is None else rank_rtol
