@@ -7,7 +7,13 @@ import pytest
 
 pytest.importorskip("pyarrow")
 
+import torch  # noqa: E402
+
 import torchcontact as tc  # noqa: E402
+
+# as the CLI does (--threads 1): the estimator's small index_add kernels are ~2000x slower with
+# two intra-op threads on a 2-core machine
+torch.set_num_threads(1)
 from torchcontact.logs import write_simulated_log  # noqa: E402
 
 

@@ -20,6 +20,15 @@ def _dtype(name: str) -> Any:
     return {"float64": torch.float64, "float32": torch.float32}[name]
 
 
+def _threads(args: argparse.Namespace) -> None:
+    # Small batched kernels (index_add over a few bodies) run far slower with several intra-op
+    # threads on small CPUs (measured ~2000x on 2 cores); one thread per process is the default.
+    import torch
+
+    if getattr(args, "threads", 0):
+        torch.set_num_threads(args.threads)
+
+
 def _robot(path: str | None) -> str:
     from torchcontact.robots import tcarm_path
 
@@ -30,6 +39,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs."""
     from torchcontact.logs.pipeline import LogError, estimate_files
 
+    _threads(args)
     kwargs: dict[str, Any] = dict(
         sensors=args.sensor or None,
         batch_size=args.batch_size,
@@ -92,6 +102,7 @@ def _simulate(args: argparse.Namespace, out: Path) -> Path:
     import torchcontact as tc
     from torchcontact.logs.simlog import write_simulated_log
 
+    _threads(args)
     model = tc.RobotModel.from_urdf(_robot(args.robot))
     return write_simulated_log(
         model,
@@ -178,6 +189,7 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cable", type=float, default=0.0, help="cable force amplitude, N")
     p.add_argument("--payload", type=float, default=0.0, help="unmodelled payload on hand, kg")
     p.add_argument("--noise", type=float, nargs="+", help="noise std, 1 or 6 numbers")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch default)")
     p.add_argument("--no-derivatives", action="store_true", help="omit qd/qdd (derive them)")
     p.add_argument(
         "--temperature",
@@ -197,6 +209,7 @@ def add_parser(subparsers: Any) -> None:
     est.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     est.add_argument("--dtype", default="float64", choices=list(DTYPES))
     est.add_argument("--batch-size", type=int, default=8192, help="frames per chunk")
+    est.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: default)")
     est.add_argument("--resume", action="store_true", help="finish an interrupted run")
     est.add_argument("--engine", default="local", choices=["local", "ray"])
     est.add_argument("--json", action="store_true", help="print a JSON summary at the end")
