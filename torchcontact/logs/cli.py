@@ -141,7 +141,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             leftover.unlink()
     (folder / "estimate.parquet.progress.json").unlink(missing_ok=True)
     summary = estimate_file(log, _robot(args.robot), est, progress=False)
-    pngs = plot_log(est, _robot(args.robot), folder, frame=None)
+    pngs = plot_log(est, _robot(args.robot), folder, input_log=log)
     print(f"simulated log:  {log}")
     print(f"estimates:      {est} ({summary['frames']} frames, {summary['frames_per_s']:.0f}/s)")
     for p in pngs:
@@ -154,7 +154,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from torchcontact.logs.plot import plot_log
 
     out = Path(args.out) if args.out else Path(args.log).with_suffix("")
-    for p in plot_log(args.log, _robot(args.robot), out, frame=args.frame):
+    for p in plot_log(args.log, _robot(args.robot), out, frame=args.frame, input_log=args.input):
         print(p)
     return 0
 
@@ -229,7 +229,8 @@ def add_parser(subparsers: Any) -> None:
     plot = subparsers.add_parser("plot", help="PNG plots of an estimated log")
     plot.add_argument("log", help="output of torchcontact estimate")
     plot.add_argument("--robot", help="URDF (default: the bundled tcarm)")
-    plot.add_argument("--frame", type=int, help="frame index of the 3D view (default: busiest)")
+    plot.add_argument("--frame", type=int, help="row of the 3D view (default: largest force)")
+    plot.add_argument("--input", help="the input log (joint positions for the 3D view)")
     plot.add_argument("--out", help="folder of the PNGs (default: next to the log)")
     plot.set_defaults(func=cmd_plot)
 
