@@ -619,7 +619,10 @@ def estimate_file(
     for k, (chunk, qd, qdd) in stream:
         if k < done:
             continue
-        res = le.process(chunk, qd, qdd)
+        # only the missing columns are replaced by derived values; logged ones are kept
+        res = le.process(
+            chunk, qd if "qd" in le.derived else None, qdd if "qdd" in le.derived else None
+        )
         ok = int(np.sum(np.asarray(res.column("status").to_pylist(), dtype=object) == "ok"))
         counts["ok"] += ok
         counts["bad"] += res.num_rows - ok
