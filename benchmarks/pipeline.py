@@ -129,14 +129,14 @@ def main():
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
     ).stdout.strip()
     print(
-        f"commit {commit}  torch {torch.__version__}  device cpu  threads {torch.get_num_threads()}  {platform.processor() or platform.machine()}"
+        f"commit {commit}  torch {torch.__version__}  device cpu  threads {torch.get_num_threads()}  {platform.processor() or platform.machine()}"  # noqa: E501
     )
     print("| measure | value |\n|---|---|")
     print(
-        f"| in-memory estimator, {a.frames} frames, batch {B} | {mem_fps:,.0f} frames/s (median of 3, spread {min(times):.2f}-{max(times):.2f} s) |"
+        f"| in-memory estimator, {a.frames} frames, batch {B} | {mem_fps:,.0f} frames/s (median of 3, spread {min(times):.2f}-{max(times):.2f} s) |"  # noqa: E501
     )
     print(
-        f"| end to end Parquet -> estimate -> Parquet | {e2e_fps:,.0f} frames/s (median of 3, spread {min(e2e):.2f}-{max(e2e):.2f} s) |"
+        f"| end to end Parquet -> estimate -> Parquet | {e2e_fps:,.0f} frames/s (median of 3, spread {min(e2e):.2f}-{max(e2e):.2f} s) |"  # noqa: E501
     )
     print(f"| ratio end-to-end / in-memory | {e2e_fps / mem_fps:.0%} (goal >= 50%) |")
     n0, n1 = a.mem
