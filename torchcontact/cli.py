@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from torchcontact.drivers import cli as drivers_cli
+from torchcontact.logs import cli as logs_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -19,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     drivers_cli.add_parser(sub)
+    logs_cli.add_parser(sub)
     return parser
 
 

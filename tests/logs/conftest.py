@@ -1,0 +1,35 @@
+"""Fixtures: small simulated logs of the bundled tcarm (made by torchcontact.simulation.simulate,
+seeded, so every run writes the same bytes; nothing binary is checked in)."""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("pyarrow")
+
+import torch  # noqa: E402
+
+import torchcontact as tc  # noqa: E402
+
+# as the CLI does (--threads 1): the estimator's small index_add kernels are ~2000x slower with
+# two intra-op threads on a 2-core machine
+torch.set_num_threads(1)
+from torchcontact.logs import write_simulated_log  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def model():
+    return tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+
+
+@pytest.fixture(scope="session")
+def sim_log(model, tmp_path_factory):
+    """600 frames with qd/qdd, one or two force contacts per contact frame."""
+    return write_simulated_log(model, 600, tmp_path_factory.mktemp("sim") / "log.parquet", seed=3)
+
+
+@pytest.fixture(scope="session")
+def sim_log_q_only(model, tmp_path_factory):
+    """The same trajectory without qd/qdd (the pipeline derives them)."""
+    path = tmp_path_factory.mktemp("simq") / "log.parquet"
+    return write_simulated_log(model, 600, path, seed=3, derivatives=False)

@@ -1,0 +1,148 @@
+"""Bags made here with rosbags' own writers (ROS 1 v2.0 bag, ROS 2 sqlite3 and MCAP), from the
+simulated log fixture; no ROS install."""
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+pytest.importorskip("rosbags")
+
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin  # noqa: E402
+from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from torchcontact.cli import main  # noqa: E402
+from torchcontact.logs import estimate_file  # noqa: E402
+from torchcontact.logs.convert import ConvertError, convert  # noqa: E402
+
+N = 120
+
+
+def _frames(sim_log):
+    tab = pq.read_table(sim_log).slice(0, N)
+    names = json.loads(tab.schema.metadata[b"torchcontact.joint_names"])
+    t = tab["t_ns"].to_numpy() + 1_000_000_000  # ROS stamps start after 0
+    q = np.stack(tab["q"].to_numpy(zero_copy_only=False))
+    qd = np.stack(tab["qd"].to_numpy(zero_copy_only=False))
+    ft = np.stack(tab["ft.base_ft"].to_numpy(zero_copy_only=False))
+    return names, t, q, qd, ft
+
+
+def _write_bag(kind, path, sim_log):
+    ros1 = kind == "ros1"
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    T = ts.types
+    Time = T["builtin_interfaces/msg/Time"]
+    names, t, q, qd, ft = _frames(sim_log)
+    # joint names in another order than the model's: the pipeline maps them by name
+    perm = np.arange(len(names))[::-1]
+
+    def header(tt):
+        stamp = Time(sec=int(tt // 10**9), nanosec=int(tt % 10**9))
+        if ros1:
+            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="base_ft")
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id="base_ft")
+
+    msgs = []
+    for i in range(N):
+        js = T["sensor_msgs/msg/JointState"](
+            header=header(t[i]),
+            name=[names[j] for j in perm],
+            position=q[i, perm],
+            velocity=qd[i, perm],
+            effort=np.zeros(0),
+        )
+        V3 = T["geometry_msgs/msg/Vector3"]
+        w = T["geometry_msgs/msg/WrenchStamped"](
+            header=header(t[i]),
+            wrench=T["geometry_msgs/msg/Wrench"](force=V3(*ft[i, :3]), torque=V3(*ft[i, 3:])),
+        )
+        msgs += [("/joint_states", "sensor_msgs/msg/JointState", t[i], js)]
+        msgs += [("/ft", "geometry_msgs/msg/WrenchStamped", t[i], w)]
+    h = header(t[50])
+    h.frame_id = "forearm_skin"
+    pt = T["geometry_msgs/msg/PointStamped"](
+        header=h, point=T["geometry_msgs/msg/Point"](0.01, 0.0, 0.0)
+    )
+    msgs.append(("/contacts", "geometry_msgs/msg/PointStamped", t[50], pt))
+    if ros1:
+        writer = Writer1(path)
+    else:
+        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        writer = Writer2(path, version=9, storage_plugin=plugin)
+    with writer:
+        conns = {}
+        for topic, mtype, _, _ in msgs:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, mtype, typestore=ts)
+        for topic, mtype, stamp, msg in msgs:
+            data = ts.serialize_ros1(msg, mtype) if ros1 else ts.serialize_cdr(msg, mtype)
+            writer.write(conns[topic], int(stamp), data)
+    return names, t, q
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_bag_to_log_and_estimate(kind, sim_log, model, tmp_path):
+    bag = tmp_path / ("in.bag" if kind == "ros1" else "bag2")
+    names, t, q = _write_bag(kind, bag, sim_log)
+    out = tmp_path / "log.parquet"
+    s = convert(bag, out, wrench_topics=["/ft=base_ft"], contacts_topic="/contacts")
+    assert s["frames"] == N
+    tab = pq.read_table(out)
+    assert tab["t_ns"].to_numpy().tolist() == t.tolist()
+    got_names = json.loads(tab.schema.metadata[b"torchcontact.joint_names"])
+    assert got_names == names[::-1]
+    q_got = np.stack(tab["q"].to_numpy(zero_copy_only=False))[:, ::-1]
+    np.testing.assert_allclose(q_got, q, rtol=0, atol=1e-12)
+    contacts = tab["contacts"].to_pylist()
+    assert contacts[50] == [
+        dict(
+            link="forearm_skin",
+            kind="force",
+            position=[0.01, 0.0, 0.0],
+            direction=None,
+            wrench=None,
+        )
+    ]
+    assert sum(map(len, contacts)) == 1
+    res = estimate_file(out, model, tmp_path / "est.parquet")
+    assert res["derived"] == ["qdd"] and res["frames"] == N
+    assert set(pq.read_table(res["output"])["status"].to_pylist()) == {"ok"}
+
+
+def test_sensor_name_from_frame_id(sim_log, tmp_path):
+    bag = tmp_path / "b.bag"
+    names, t, q = _write_bag("ros1", bag, sim_log)
+    s = convert(bag, tmp_path / "o.parquet", wrench_topics=["/ft"])
+    assert s["frames"] == N and "ft.base_ft" in s["columns"]  # sensor name from frame_id
+
+
+def test_csv_and_toml_spec(tmp_path, capsys):
+    spec = tmp_path / "contacts.toml"
+    spec.write_text(
+        '[[contact]]\nlink = "hand_skin"\nposition = [0, 0, 0]\nstart_ns = 10\nend_ns = 20\n'
+    )
+    csv = tmp_path / "log.csv"
+    rows = ["t_ns,q.a,q.b,ft.s.fx,ft.s.fy,ft.s.fz,ft.s.mx,ft.s.my,ft.s.mz"]
+    rows += [f"{i * 10},{i},{-i},1,2,3,4,5,6" for i in range(4)]
+    csv.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "log.parquet"
+    assert main(["convert", str(csv), "--out", str(out), "--contacts", str(spec)]) == 0
+    tab = pq.read_table(out)
+    assert json.loads(tab.schema.metadata[b"torchcontact.joint_names"]) == ["a", "b"]
+    assert [len(c) for c in tab["contacts"].to_pylist()] == [0, 1, 1, 0]
+    assert tab["ft.s"][0].as_py() == [1, 2, 3, 4, 5, 6]
+
+
+def test_convert_errors_name_the_file(tmp_path, sim_log):
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"garbage")
+    with pytest.raises(ConvertError, match="junk.bag"):
+        convert(junk, tmp_path / "o.parquet", wrench_topics=["/ft"])
+    bag = tmp_path / "b.bag"
+    _write_bag("ros1", bag, sim_log)
+    with pytest.raises(ConvertError, match="no topic '/nope'"):
+        convert(bag, tmp_path / "o.parquet", wrench_topics=["/nope"])
