@@ -143,9 +143,9 @@ class InertialLeastSquares:
     model: tc.RobotModel | None = None
     sensor: str = ""
 
-    def fit(self, model: tc.RobotModel, sensor: str, q, qd, qdd, residual) -> InertialLeastSquares:
-        """Fit on contact-free frames ``q, qd, qdd (n, nv)`` with residuals ``(n, 6)``."""
-        Y = inertial_regressor(model, sensor, q, qd, qdd)
+    def fit(self, model: tc.RobotModel, sensor: str, Y: np.ndarray, residual) -> InertialLeastSquares:
+        """Fit on contact-free frames: regressor ``Y (n, 6, P)`` (:func:`inertial_regressor`)
+        and residuals ``(n, 6)`` of the nominal model."""
         n, _, P = Y.shape
         A = np.concatenate([np.broadcast_to(np.eye(6), (n, 6, 6)), Y], -1).reshape(n * 6, 6 + P)
         scale = np.sqrt((A**2).mean(0))
@@ -156,11 +156,13 @@ class InertialLeastSquares:
         self.model, self.sensor = model, sensor
         return self
 
-    def correction(self, q, qd, qdd, chunk: int = 8192) -> np.ndarray:
-        """``(N, 6)`` predicted residual ``Y delta + o`` (regressor evaluated in chunks)."""
-        out = [
-            inertial_regressor(self.model, self.sensor, *(x[s : s + chunk] for x in (q, qd, qdd)))
-            @ self.delta
-            for s in range(0, len(q), chunk)
-        ]
-        return np.concatenate(out) + self.offset if out else np.zeros((0, 6))
+    def correction(self, Y: np.ndarray) -> np.ndarray:
+        """``(N, 6)`` predicted residual ``Y delta + o`` for regressors ``Y (N, 6, P)``."""
+        return Y @ self.delta + self.offset
+
+    def identified_model(self) -> tc.RobotModel:
+        """The nominal model with the re-identified parameters (may be physically inconsistent
+        in unexcited directions; for inspection)."""
+        bodies = subtree_bodies(self.model, self.sensor)
+        theta = inertial_params(self.model, bodies) + self.delta
+        return with_inertial_params(self.model, bodies, theta)
