@@ -129,7 +129,11 @@ def main(argv=None) -> int:
     b.add_argument("--gru", action=argparse.BooleanOptionalAction, default=True)
     b.add_argument("--gru-epochs", type=int, default=40)
     b.add_argument("--device", default="cpu")
+    for sp in (t, b):
+        sp.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (1 is fastest for these small models)")
     args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
     return {"train": cmd_train, "benchmark": cmd_benchmark}[args.cmd](args)
 
 

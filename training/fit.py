@@ -20,8 +20,8 @@ class TrainConfig:
     kind: str = "mlp"
     hidden: int = 128
     layers: int = 2
-    epochs: int = 200
-    batch_size: int = 256
+    epochs: int = 150
+    batch_size: int = 512
     lr: float = 3e-3
     weight_decay: float = 1e-5
     patience: int = 20
@@ -141,7 +141,7 @@ def fit_residual(
             loss.backward()
             torch.nn.utils.clip_grad_norm_(module.parameters(), 1.0)
             opt.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
             count += len(idx)
         module.eval()
         with torch.no_grad():
