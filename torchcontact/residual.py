@@ -50,7 +50,7 @@ META_FILE = "checkpoint.json"
 
 
 class CheckpointError(ValueError):
-    """A checkpoint that is missing, tampered with, foreign or inconsistent; the message says why."""
+    """A missing, tampered, foreign or inconsistent checkpoint; the message says why."""
 
 
 def feature_names(joint_names: Sequence[str], extra: Sequence[str] = ()) -> list[str]:
@@ -168,7 +168,7 @@ class ResidualGRU(_Normalised):
             h: ``(B, L, H)`` state before the first frame, or None for zeros.
 
         Returns:
-            ``r_hat (B, T, 6)`` in the input's dtype and ``h (B, L, H)`` float32 after the last frame.
+            ``r_hat (B, T, 6)`` in the input's dtype, ``h (B, L, H)`` float32 after the last frame.
         """
         dtype = features.dtype if features.is_floating_point() else torch.float32
         x = self._in(features)
@@ -198,7 +198,9 @@ def build_residual_model(arch: Mapping[str, Any]) -> ResidualMLP | ResidualGRU:
     arch = dict(arch)
     kind = arch.pop("kind", None)
     if kind not in _KINDS:
-        raise CheckpointError(f"unknown residual model kind {kind!r}; expected one of {list(_KINDS)}")
+        raise CheckpointError(
+            f"unknown residual model kind {kind!r}; expected one of {list(_KINDS)}"
+        )
     try:
         return _KINDS[kind](**arch)  # type: ignore[return-value]
     except TypeError as e:
@@ -228,7 +230,9 @@ def save_residual_model(
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in module.state_dict().items()}
+    state = {
+        k: v.detach().to("cpu", torch.float32).contiguous() for k, v in module.state_dict().items()
+    }
     save_file(state, str(d / WEIGHTS_FILE), metadata={"format": CHECKPOINT_FORMAT})
     full = dict(meta)
     if len(full.get("features", [])) != module.in_features:
@@ -236,7 +240,9 @@ def save_residual_model(
             f"meta['features'] has {len(full.get('features', []))} names for"
             f" {module.in_features} inputs"
         )
-    full.update(format=CHECKPOINT_FORMAT, arch=module.arch, weights_sha256=_sha256(d / WEIGHTS_FILE))
+    full.update(
+        format=CHECKPOINT_FORMAT, arch=module.arch, weights_sha256=_sha256(d / WEIGHTS_FILE)
+    )
     (d / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True) + "\n")
     return d
 

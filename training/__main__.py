@@ -1,11 +1,10 @@
-"""Command line: ``python -m training train --config CFG --out DIR`` and ``... benchmark --out DIR``."""
+"""Command line: ``python -m training train --config CFG --out DIR``, ``... benchmark --out DIR``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -49,6 +48,7 @@ def _seed(seed: int) -> None:
 
 
 def cmd_train(args) -> int:
+    """Train one residual model from a TOML config; write the checkpoint directory."""
     data_cfg, train_cfg, raw = load_config(args.config)
     _seed(train_cfg.seed)
     model = tc.RobotModel.from_urdf(args.urdf or tc.robots.tcarm_path())
@@ -58,13 +58,20 @@ def cmd_train(args) -> int:
     key = "d_gru" if train_cfg.kind == "gru" else "d_mlp"
     methods = ("a", "b", "c", key)
     exp = run_experiment(
-        model, ds, data_cfg, train_cfg, methods=methods, gru_cfg=train_cfg, device=args.device,
+        model,
+        ds,
+        data_cfg,
+        train_cfg,
+        methods=methods,
+        gru_cfg=train_cfg,
+        device=args.device,
         label="train",
     )
     table = table_markdown({args.config: exp.metrics})
     print(table)
-    save_checkpoint(out, exp.fits[key], ds, model, {**asdict_cfg(data_cfg, train_cfg), "toml": raw},
-                    exp.metrics)
+    save_checkpoint(
+        out, exp.fits[key], ds, model, {**asdict_cfg(data_cfg, train_cfg), "toml": raw}, exp.metrics
+    )
     (out / "metrics.md").write_text(table + "\n")
     plot(exp, ds, out, Path(args.config).stem)
     print(f"checkpoint: {out}")
@@ -72,12 +79,22 @@ def cmd_train(args) -> int:
 
 
 def cmd_benchmark(args) -> int:
+    """Run (a)-(d) on the three synthetic conditions; print and save the table."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
     train_cfg = TrainConfig(seed=args.seed)
-    gru_cfg = TrainConfig(kind="gru", hidden=64, layers=1, epochs=args.gru_epochs, lr=3e-3,
-                          batch_size=256, patience=10, seq_len=200, seed=args.seed)
+    gru_cfg = TrainConfig(
+        kind="gru",
+        hidden=64,
+        layers=1,
+        epochs=args.gru_epochs,
+        lr=3e-3,
+        batch_size=256,
+        patience=10,
+        seq_len=200,
+        seed=args.seed,
+    )
     methods = ("a", "b", "c", "d_mlp", "d_mlp_c") + (("d_gru",) if args.gru else ())
     results, timing = {}, {}
     t0 = time.perf_counter()
@@ -85,8 +102,16 @@ def cmd_benchmark(args) -> int:
         _seed(args.seed)
         data_cfg = DataConfig(frames=args.frames, seed=args.seed + i, effects=dict(fx))
         ds = make_dataset(model, data_cfg)
-        exp = run_experiment(model, ds, data_cfg, train_cfg, methods=methods, gru_cfg=gru_cfg,
-                             device=args.device, label=name)
+        exp = run_experiment(
+            model,
+            ds,
+            data_cfg,
+            train_cfg,
+            methods=methods,
+            gru_cfg=gru_cfg,
+            device=args.device,
+            label=name,
+        )
         results[name], timing[name] = exp.metrics, exp.seconds
         d = out / name.replace("+", "_")
         d.mkdir(exist_ok=True)
@@ -99,22 +124,28 @@ def cmd_benchmark(args) -> int:
     table = table_markdown(results)
     print(table)
     (out / "results.md").write_text(table + "\n")
-    write_json(out / "results.json", {
-        "methods": METHODS,
-        "conditions": {k: {kk: list(vv) if isinstance(vv, tuple) else vv for kk, vv in v.items()}
-                       for k, v in CONDITIONS.items()},
-        "frames": args.frames,
-        "seed": args.seed,
-        "results": results,
-        "seconds": timing,
-        "total_seconds": time.perf_counter() - t0,
-        "torch_version": torch.__version__,
-        "threads": torch.get_num_threads(),
-    })
+    write_json(
+        out / "results.json",
+        {
+            "methods": METHODS,
+            "conditions": {
+                k: {kk: list(vv) if isinstance(vv, tuple) else vv for kk, vv in v.items()}
+                for k, v in CONDITIONS.items()
+            },
+            "frames": args.frames,
+            "seed": args.seed,
+            "results": results,
+            "seconds": timing,
+            "total_seconds": time.perf_counter() - t0,
+            "torch_version": torch.__version__,
+            "threads": torch.get_num_threads(),
+        },
+    )
     return 0
 
 
 def main(argv=None) -> int:
+    """Entry point of ``python -m training``."""
     p = argparse.ArgumentParser(prog="python -m training", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train", help="train a residual model from a TOML config")
@@ -130,8 +161,12 @@ def main(argv=None) -> int:
     b.add_argument("--gru-epochs", type=int, default=40)
     b.add_argument("--device", default="cpu")
     for sp in (t, b):
-        sp.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads (1 is fastest for these small models)")
+        sp.add_argument(
+            "--threads",
+            type=int,
+            default=1,
+            help="torch CPU threads (1 is fastest for these small models)",
+        )
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     return {"train": cmd_train, "benchmark": cmd_benchmark}[args.cmd](args)

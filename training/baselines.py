@@ -33,7 +33,9 @@ def predict_free(est: tc.ContactEstimator, q, qd, qdd, sensor: str, chunk: int =
     """Contact-free reading ``(N, 6)`` numpy float64 predicted by ``est``'s model."""
     out = []
     for s in range(0, len(q), chunk):
-        t = [torch.as_tensor(np.asarray(x[s : s + chunk]), dtype=torch.float64) for x in (q, qd, qdd)]
+        t = [
+            torch.as_tensor(np.asarray(x[s : s + chunk]), dtype=torch.float64) for x in (q, qd, qdd)
+        ]
         out.append(est.predict_ft(*t, no_contacts(len(t[0])))[sensor].numpy())
     return np.concatenate(out) if out else np.zeros((0, 6))
 
@@ -100,7 +102,9 @@ def inertial_regressor(
         perturbed.append(with_inertial_params(model, bodies, th))
     out = []
     for s0 in range(0, len(q), chunk):
-        t = [torch.as_tensor(np.asarray(x[s0 : s0 + chunk]), dtype=model.dtype) for x in (q, qd, qdd)]
+        t = [
+            torch.as_tensor(np.asarray(x[s0 : s0 + chunk]), dtype=model.dtype) for x in (q, qd, qdd)
+        ]
         fp = tc.forward_pass(model, *t)
         # pose of the sensor frame in the root: T_root_child T_child_sensor
         R = fp.R[:, s.child_body] @ R_cs
@@ -143,14 +147,19 @@ class InertialLeastSquares:
     model: tc.RobotModel | None = None
     sensor: str = ""
 
-    def fit(self, model: tc.RobotModel, sensor: str, Y: np.ndarray, residual) -> InertialLeastSquares:
+    def fit(
+        self, model: tc.RobotModel, sensor: str, Y: np.ndarray, residual
+    ) -> InertialLeastSquares:
         """Fit on contact-free frames: regressor ``Y (n, 6, P)`` (:func:`inertial_regressor`)
-        and residuals ``(n, 6)`` of the nominal model."""
+        and residuals ``(n, 6)`` of the nominal model.
+        """
         n, _, P = Y.shape
         A = np.concatenate([np.broadcast_to(np.eye(6), (n, 6, 6)), Y], -1).reshape(n * 6, 6 + P)
         scale = np.sqrt((A**2).mean(0))
         scale[scale == 0] = 1.0
-        x, _, rank, _ = np.linalg.lstsq(A / scale, np.asarray(residual).reshape(-1), rcond=self.rcond)
+        x, _, rank, _ = np.linalg.lstsq(
+            A / scale, np.asarray(residual).reshape(-1), rcond=self.rcond
+        )
         x = x / scale
         self.offset, self.delta, self.rank = x[:6], x[6:], int(rank)
         self.model, self.sensor = model, sensor
@@ -161,8 +170,10 @@ class InertialLeastSquares:
         return Y @ self.delta + self.offset
 
     def identified_model(self) -> tc.RobotModel:
-        """The nominal model with the re-identified parameters (may be physically inconsistent
-        in unexcited directions; for inspection)."""
+        """The nominal model with the re-identified parameters (for inspection).
+
+        It may be physically inconsistent in directions the data did not excite.
+        """
         bodies = subtree_bodies(self.model, self.sensor)
         theta = inertial_params(self.model, bodies) + self.delta
         return with_inertial_params(self.model, bodies, theta)

@@ -225,8 +225,11 @@ def split_blocks(
     stops = np.r_[starts[1:], n]
     if len(np.unique(file_id)) != len(starts):
         raise ValueError("frames of each file must be consecutive")
-    blocks = [(s, min(s + block_frames, e)) for s0, e in zip(starts, stops, strict=True)
-              for s in range(s0, e, block_frames)]
+    blocks = [
+        (s, min(s + block_frames, e))
+        for s0, e in zip(starts, stops, strict=True)
+        for s in range(s0, e, block_frames)
+    ]
     order = np.random.default_rng(seed).permutation(len(blocks))
     nb = len(blocks)
     n_test = max(1, round(fractions[2] * nb)) if nb >= 3 else 0

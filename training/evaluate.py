@@ -95,4 +95,7 @@ def contact_metrics(
 
 def residual_rmse(residual: np.ndarray) -> dict[str, float]:
     """RMS of the force and moment parts of residuals ``(n, 6)``: N and N m."""
-    return {"residual_force_rms": _rmse(residual[:, :3]), "residual_moment_rms": _rmse(residual[:, 3:])}
+    return {
+        "residual_force_rms": _rmse(residual[:, :3]),
+        "residual_moment_rms": _rmse(residual[:, 3:]),
+    }

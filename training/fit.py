@@ -44,8 +44,7 @@ def _progress(it, desc: str):
 
 
 def _windows(x, y, mask, blocks, seq_len):
-    """Cut contiguous blocks into windows ``(W, T, .)``; the tail of a block is a shorter window
-    padded with mask 0."""
+    """Cut contiguous blocks into windows ``(W, T, .)``; a block's tail is padded, mask 0."""
     xs, ys, ms = [], [], []
     for s, e in blocks:
         for a in range(s, e, seq_len):
@@ -117,8 +116,12 @@ def fit_residual(
         def run(x):
             return module(x)
     else:
-        Xt, Yt, Mt = (t.to(device) for t in _windows(features, target, train_mask, train_blocks, cfg.seq_len))
-        Xv, Yv, Mv = (t.to(device) for t in _windows(features, target, train_mask, val_blocks, cfg.seq_len))
+        Xt, Yt, Mt = (
+            t.to(device) for t in _windows(features, target, train_mask, train_blocks, cfg.seq_len)
+        )
+        Xv, Yv, Mv = (
+            t.to(device) for t in _windows(features, target, train_mask, val_blocks, cfg.seq_len)
+        )
 
         def run(x):
             return module.forward_sequence(x)[0]

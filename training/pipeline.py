@@ -125,20 +125,38 @@ def run_experiment(
         del Y
     if "d_mlp" in methods:
         fits["d_mlp"] = fit_residual(
-            X, residual, free, split.blocks["train"], split.blocks["val"], train_cfg, device,
+            X,
+            residual,
+            free,
+            split.blocks["train"],
+            split.blocks["val"],
+            train_cfg,
+            device,
             desc=f"{label} MLP",
         )
         corr["d_mlp"] = predict_residual(fits["d_mlp"].module, X, [(0, len(X))])
     if "d_mlp_c" in methods:
         fits["d_mlp_c"] = fit_residual(
-            X, residual - corr["c"], free, split.blocks["train"], split.blocks["val"], train_cfg,
-            device, desc=f"{label} MLP on (c)",
+            X,
+            residual - corr["c"],
+            free,
+            split.blocks["train"],
+            split.blocks["val"],
+            train_cfg,
+            device,
+            desc=f"{label} MLP on (c)",
         )
         corr["d_mlp_c"] = corr["c"] + predict_residual(fits["d_mlp_c"].module, X, [(0, len(X))])
     if "d_gru" in methods:
         cfg = gru_cfg or TrainConfig(kind="gru", hidden=64, layers=1, epochs=60, lr=3e-3)
         fits["d_gru"] = fit_residual(
-            X, residual, free, split.blocks["train"], split.blocks["val"], cfg, device,
+            X,
+            residual,
+            free,
+            split.blocks["train"],
+            split.blocks["val"],
+            cfg,
+            device,
             desc=f"{label} GRU",
         )
         corr["d_gru"] = predict_residual(fits["d_gru"].module, X, split.blocks["test"])

@@ -5,7 +5,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-import torchcontact as tc
 from torchcontact.simulation import simulate
 from training.data import ResidualDataset, load_parquet, split_blocks
 
@@ -20,7 +19,7 @@ def test_split_by_contiguous_blocks_leaks_no_frame(lengths, block):
     for a in range(3):
         for b in range(a + 1, 3):
             assert not np.intersect1d(parts[a], parts[b]).size
-    for name, idx in zip(("train", "val", "test"), parts):
+    for name, idx in zip(("train", "val", "test"), parts, strict=True):
         assert len(idx) > 0
         rebuilt = np.concatenate([np.arange(x, y) for x, y in s.blocks[name]])
         np.testing.assert_array_equal(rebuilt, idx)
@@ -60,7 +59,9 @@ def test_parquet_loader(tmp_path, arm):
             "ft.base_ft": fsl(log.ft, 6),
             "contacts": pa.array(
                 contacts,
-                type=pa.list_(pa.struct([("link", pa.string()), ("position", pa.list_(pa.float64(), 3))])),
+                type=pa.list_(
+                    pa.struct([("link", pa.string()), ("position", pa.list_(pa.float64(), 3))])
+                ),
             ),
             "temperature": pa.array(log.temperature),
         }

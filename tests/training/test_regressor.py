@@ -23,7 +23,9 @@ def test_regressor_times_true_params_is_predict_ft(arm, log):
     bodies = subtree_bodies(arm, "base_ft")
     assert Y.shape == (300, 6, 10 * len(bodies))
     for model in (arm, _with_payload(arm, "hand", 0.7, (0.02, -0.01, 0.08))):
-        pred = predict_free(tc.ContactEstimator(model, ["base_ft"]), log.q, log.qd, log.qdd, "base_ft")
+        pred = predict_free(
+            tc.ContactEstimator(model, ["base_ft"]), log.q, log.qd, log.qdd, "base_ft"
+        )
         got = Y @ inertial_params(model, bodies)
         scale = np.abs(pred).max()
         assert scale > 1.0
