@@ -1,4 +1,4 @@
-"""Command line: ``python -m training train --config CFG --out DIR``, ``... benchmark --out DIR``."""
+"""Command line: ``python -m training train --config CFG --out DIR`` or ``benchmark --out DIR``."""
 
 from __future__ import annotations
 

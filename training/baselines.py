@@ -150,8 +150,16 @@ class InertialLeastSquares:
     def fit(
         self, model: tc.RobotModel, sensor: str, Y: np.ndarray, residual
     ) -> InertialLeastSquares:
-        """Fit on contact-free frames: regressor ``Y (n, 6, P)`` (:func:`inertial_regressor`)
-        and residuals ``(n, 6)`` of the nominal model.
+        """Fit on contact-free frames.
+
+        Args:
+            model: the nominal robot.
+            sensor: the sensor.
+            Y: ``(n, 6, P)`` regressor of the frames (:func:`inertial_regressor`).
+            residual: ``(n, 6)`` residuals of the nominal model.
+
+        Returns:
+            self, fitted.
         """
         n, _, P = Y.shape
         A = np.concatenate([np.broadcast_to(np.eye(6), (n, 6, 6)), Y], -1).reshape(n * 6, 6 + P)
