@@ -1,0 +1,176 @@
+"""Command line: ``python -m training train --config CFG --out DIR`` or ``benchmark --out DIR``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+import torchcontact as tc
+
+from .fit import TrainConfig
+from .pipeline import (
+    METHODS,
+    DataConfig,
+    asdict_cfg,
+    load_config,
+    make_dataset,
+    plot,
+    run_experiment,
+    save_checkpoint,
+    table_markdown,
+    write_json,
+)
+
+OFFSET = (3.0, -2.0, 4.0, 0.3, -0.2, 0.25)
+NOISE = (0.05, 0.05, 0.05, 0.005, 0.005, 0.005)
+
+#: the three synthetic conditions of the benchmark (issue 5)
+CONDITIONS = {
+    "offset": {"offset": OFFSET, "noise_std": NOISE},
+    "offset+payload": {"offset": OFFSET, "noise_std": NOISE, "payload_mass": 0.6},
+    "offset+drift+cable": {
+        "offset": OFFSET,
+        "noise_std": NOISE,
+        "drift": (4.0, -3.0, 2.0, 0.4, 0.3, -0.2),
+        "drift_time_constant": 60.0,
+        "cable_force": 6.0,
+    },
+}
+
+
+def _seed(seed: int) -> None:
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+
+
+def cmd_train(args) -> int:
+    """Train one residual model from a TOML config; write the checkpoint directory."""
+    data_cfg, train_cfg, raw = load_config(args.config)
+    _seed(train_cfg.seed)
+    model = tc.RobotModel.from_urdf(args.urdf or tc.robots.tcarm_path())
+    ds = make_dataset(model, data_cfg)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    key = "d_gru" if train_cfg.kind == "gru" else "d_mlp"
+    methods = ("a", "b", "c", key)
+    exp = run_experiment(
+        model,
+        ds,
+        data_cfg,
+        train_cfg,
+        methods=methods,
+        gru_cfg=train_cfg,
+        device=args.device,
+        label="train",
+    )
+    table = table_markdown({args.config: exp.metrics})
+    print(table)
+    save_checkpoint(
+        out, exp.fits[key], ds, model, {**asdict_cfg(data_cfg, train_cfg), "toml": raw}, exp.metrics
+    )
+    (out / "metrics.md").write_text(table + "\n")
+    plot(exp, ds, out, Path(args.config).stem)
+    print(f"checkpoint: {out}")
+    return 0
+
+
+def cmd_benchmark(args) -> int:
+    """Run (a)-(d) on the three synthetic conditions; print and save the table."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    train_cfg = TrainConfig(seed=args.seed)
+    gru_cfg = TrainConfig(
+        kind="gru",
+        hidden=64,
+        layers=1,
+        epochs=args.gru_epochs,
+        lr=3e-3,
+        batch_size=256,
+        patience=10,
+        seq_len=200,
+        seed=args.seed,
+    )
+    methods = ("a", "b", "c", "d_mlp", "d_mlp_c") + (("d_gru",) if args.gru else ())
+    results, timing = {}, {}
+    t0 = time.perf_counter()
+    for i, (name, fx) in enumerate(CONDITIONS.items()):
+        _seed(args.seed)
+        data_cfg = DataConfig(frames=args.frames, seed=args.seed + i, effects=dict(fx))
+        ds = make_dataset(model, data_cfg)
+        exp = run_experiment(
+            model,
+            ds,
+            data_cfg,
+            train_cfg,
+            methods=methods,
+            gru_cfg=gru_cfg,
+            device=args.device,
+            label=name,
+        )
+        results[name], timing[name] = exp.metrics, exp.seconds
+        d = out / name.replace("+", "_")
+        d.mkdir(exist_ok=True)
+        cfg = {**asdict_cfg(data_cfg, train_cfg), "gru": vars(gru_cfg)}
+        save_checkpoint(d / "checkpoint", exp.fits["d_mlp"], ds, model, cfg, exp.metrics)
+        if "d_gru" in exp.fits:
+            save_checkpoint(d / "checkpoint_gru", exp.fits["d_gru"], ds, model, cfg, exp.metrics)
+        plot(exp, ds, d, name)
+        print(f"[{name}] {exp.seconds:.1f} s", file=sys.stderr)
+    table = table_markdown(results)
+    print(table)
+    (out / "results.md").write_text(table + "\n")
+    write_json(
+        out / "results.json",
+        {
+            "methods": METHODS,
+            "conditions": {
+                k: {kk: list(vv) if isinstance(vv, tuple) else vv for kk, vv in v.items()}
+                for k, v in CONDITIONS.items()
+            },
+            "frames": args.frames,
+            "seed": args.seed,
+            "results": results,
+            "seconds": timing,
+            "total_seconds": time.perf_counter() - t0,
+            "torch_version": torch.__version__,
+            "threads": torch.get_num_threads(),
+        },
+    )
+    return 0
+
+
+def main(argv=None) -> int:
+    """Entry point of ``python -m training``."""
+    p = argparse.ArgumentParser(prog="python -m training", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train", help="train a residual model from a TOML config")
+    t.add_argument("--config", required=True)
+    t.add_argument("--out", required=True, help="checkpoint directory")
+    t.add_argument("--urdf", default=None, help="robot URDF (default: the bundled tcarm)")
+    t.add_argument("--device", default="cpu")
+    b = sub.add_parser("benchmark", help="synthetic benchmark of corrections (a)-(d)")
+    b.add_argument("--out", required=True)
+    b.add_argument("--frames", type=int, default=24000)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--gru", action=argparse.BooleanOptionalAction, default=True)
+    b.add_argument("--gru-epochs", type=int, default=40)
+    b.add_argument("--device", default="cpu")
+    for sp in (t, b):
+        sp.add_argument(
+            "--threads",
+            type=int,
+            default=1,
+            help="torch CPU threads (1 is fastest for these small models)",
+        )
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    return {"train": cmd_train, "benchmark": cmd_benchmark}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
