@@ -28,6 +28,7 @@ All code is elementwise torch with constant indexing: differentiable, exportable
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -198,18 +199,9 @@ def _prepare(model, q, qd, qdd, gravity, base):
             f"q, qd, qdd must share their batch shape; got {tuple(q.shape)}, {tuple(qd.shape)},"
             f" {tuple(qdd.shape)}"
         )
-    n = batch.numel()
     joints = [flatten_batch(x, batch, 1).T for x in (q, qd, qdd)]
     if base is None:
-        g = gravity if isinstance(gravity, Tensor) else q.new_tensor(gravity)
-        check_input("gravity", g, (3,), model, "(3,) or (*B, 3)")
-        if g.dim() > 1 and g.shape[:-1] != batch:
-            raise ValueError(
-                f"gravity must be (3,) or (*B, 3) with B={tuple(batch)}, got {tuple(g.shape)}"
-            )
-        g = g.reshape(-1, 3).T.expand(3, n)
-        zero = g.new_zeros(3, n)
-        base_bl = (zero, zero, -g)
+        base_bl = _gravity_base(model, gravity, batch, q)
     else:
         parts = []
         for name in ("omega", "domega", "proper_acc"):
@@ -222,6 +214,20 @@ def _prepare(model, q, qd, qdd, gravity, base):
             parts.append(flatten_batch(x, batch, 1).T)
         base_bl = tuple(parts)
     return batch, joints, base_bl
+
+
+def _gravity_base(model: RobotModel, gravity, batch: torch.Size, like: Tensor) -> tuple:
+    """Fixed-base root motion, batch-last: ``(omega, domega, a_0) = (0, 0, -g)`` each ``(3, N)``."""
+    n = math.prod(batch)
+    g = gravity if isinstance(gravity, Tensor) else like.new_tensor(gravity)
+    check_input("gravity", g, (3,), model, "(3,) or (*B, 3)")
+    if g.dim() > 1 and g.shape[:-1] != batch:
+        raise ValueError(
+            f"gravity must be (3,) or (*B, 3) with B={tuple(batch)}, got {tuple(g.shape)}"
+        )
+    g = g.reshape(-1, 3).T.expand(3, n)
+    zero = g.new_zeros(3, n)
+    return zero, zero, -g
 
 
 def _forward_bl(model: RobotModel, q, qd, qdd, omega0, domega0, acc0) -> ForwardPass:

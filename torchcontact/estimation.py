@@ -458,11 +458,7 @@ class ContactEstimator:
             dn = dirs.norm(dim=-1, keepdim=True)
             dirs = dirs / torch.where(dn > 0, dn, torch.ones_like(dn))
         if base is None:
-            g = gravity if isinstance(gravity, Tensor) else qf.new_tensor(gravity)
-            check_input("gravity", g, (3,), model, "(3,) or (*B, 3)")
-            g = g.reshape(-1, 3).T.expand(3, n)
-            zero = g.new_zeros(3, n)
-            base_bl = (zero, zero, -g)
+            base_bl = _dyn._gravity_base(model, gravity, batch, qf)
         else:
             base_bl = tuple(clean(x).T for x in base_t)
         meas = None
