@@ -171,7 +171,7 @@ class ContactEstimator:
         >>> est = tc.ContactEstimator(model)  # the arm's base F/T sensor "base_ft"
         >>> q = torch.zeros(2, model.nv, dtype=torch.float64)  # (B, nv), at rest
         >>> pos = torch.zeros(2, 1, 3, dtype=torch.float64)  # (B, K, 3) contact at the patch origin
-        >>> push = torch.tensor([0.0, 0.0, -10.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(2, 1, 6)
+        >>> push = torch.tensor([0, 0, -10.0, 0, 0, 0], dtype=torch.float64).expand(2, 1, 6)
         >>> ft = est.predict_ft(q, q, q, tc.Contacts(["hand_skin"], ["known"], pos, wrenches=push))
         >>> r = est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos))
         >>> r.force.round(decimals=6), r.rank["base_ft"]
