@@ -6,6 +6,7 @@ Example::
         --out tcarm.onnx
     python -m export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
         --slot l_hand:wrench --dtype float32 --out icub_larm.onnx
+    python -m export residual runs/residual-mlp --out residual.onnx
 """
 
 from __future__ import annotations
@@ -45,6 +46,21 @@ def _estimator(args: argparse.Namespace) -> int:
     return 0
 
 
+def _residual(args: argparse.Namespace) -> int:
+    from torchcontact.export import DEFAULT_OPSET, export_residual_checkpoint
+    from torchcontact.residual import CheckpointError
+
+    try:
+        meta = export_residual_checkpoint(
+            args.checkpoint, args.out, opset=args.opset or DEFAULT_OPSET, check=not args.no_check
+        )
+    except (CheckpointError, AssertionError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps({"path": str(args.out), **meta}, indent=1))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m export``."""
     p = argparse.ArgumentParser(prog="python -m export", description=__doc__.splitlines()[0])
@@ -58,8 +74,13 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--opset", type=int, default=None)
     e.add_argument("--rank-rtol", type=float, default=None)
     e.add_argument("--out", required=True, help="output .onnx path")
+    r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
+    r.add_argument("checkpoint", help="checkpoint folder written by python -m training")
+    r.add_argument("--out", required=True, help="output .onnx path")
+    r.add_argument("--opset", type=int, default=None)
+    r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
     args = p.parse_args(argv)
-    return _estimator(args)
+    return _residual(args) if args.cmd == "residual" else _estimator(args)
 
 
 if __name__ == "__main__":

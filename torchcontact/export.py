@@ -50,6 +50,7 @@ __all__ = [
     "check_parity",
     "export_estimator",
     "export_residual",
+    "export_residual_checkpoint",
 ]
 
 #: Input names of an exported estimator, in order.
@@ -376,6 +377,91 @@ def export_residual(
     )
     _set_metadata(path, meta)
     return meta
+
+
+class _ResidualStep(nn.Module):
+    """One step of a recurrent residual with the state as explicit input and output.
+
+    ``forward(features (N, F), h_in (N, L, H)) -> (residual (N, 6), h_out (N, L, H))``.
+    """
+
+    def __init__(self, module: nn.Module) -> None:
+        super().__init__()
+        self.module = module
+
+    def forward(self, features: Tensor, h_in: Tensor) -> tuple[Tensor, Tensor]:
+        """One frame of every batch element."""
+        return self.module(features, h_in)
+
+
+def export_residual_checkpoint(
+    checkpoint: str | os.PathLike,
+    path: str | os.PathLike,
+    opset: int = DEFAULT_OPSET,
+    check: bool = True,
+) -> dict[str, str]:
+    """Export a residual checkpoint directory (``python -m training``) to one ONNX file.
+
+    The graph holds the weights and the feature/target normalisation (buffers of the module), has
+    a dynamic batch axis and runs in float32: ``features (N, F) -> residual (N, 6)`` [N; N m],
+    the F/T wrench ``[force; moment]`` to subtract from the sensor's reading. A GRU runs one frame
+    per call with its state explicit: ``(features, h_in (N, L, H)) -> (residual, h_out)``, zeros
+    for the first frame. ``metadata_props`` carry ``feature_names``, ``joint_names``, ``sensor``,
+    ``units``, ``kind``, ``arch``, ``model_version`` (torchcontact version of the export),
+    ``robot_sha256``, ``data_sha256`` (training data), ``checkpoint_weights_sha256`` and, from
+    :func:`export_residual`, ``opset``, ``sha256_weights`` and ``recurrent``.
+
+    Args:
+        checkpoint: checkpoint directory (verified by :func:`load_residual_model`).
+        path: output ``.onnx`` file.
+        opset: ONNX opset version (the default loads in onnxruntime >= 1.14).
+        check: run onnxruntime against torch on batch sizes 1 and 7 (``atol`` 1e-5).
+
+    Returns:
+        The metadata written.
+
+    Raises:
+        torchcontact.residual.CheckpointError: unreadable or tampered checkpoint.
+        AssertionError: ``check`` found a difference.
+    """
+    from torchcontact import __version__
+    from torchcontact.residual import ResidualGRU, load_residual_model
+
+    module, meta = load_residual_model(checkpoint)
+    F = module.in_features
+    recurrent = isinstance(module, ResidualGRU)
+    graph: nn.Module = _ResidualStep(module) if recurrent else module
+    gen = torch.Generator().manual_seed(0)
+    example = torch.randn(2, F, generator=gen)
+    state = torch.zeros(2, module.layers, module.hidden) if recurrent else None
+    info = {
+        "feature_names": list(meta["features"]),
+        "joint_names": list(meta.get("joint_names", [])),
+        "sensor": meta.get("sensor", ""),
+        "units": {
+            "features": "q.<joint> rad or m, qd.<joint> per s, qdd.<joint> per s^2,"
+            " other columns as logged",
+            "residual": "[N; N m] wrench [force; moment] in the sensor frame, subtracted from the"
+            " reading",
+        },
+        "kind": module.kind,
+        "arch": module.arch,
+        "model_version": __version__,
+        "robot_sha256": meta.get("robot_sha256", ""),
+        "data_sha256": meta.get("data_sha256", ""),
+        "checkpoint_weights_sha256": meta.get("weights_sha256", ""),
+        "dtype": "float32",
+    }
+    if recurrent:
+        info["state_shape"] = ["N", module.layers, module.hidden]
+    out = export_residual(graph, example, path, info, opset, state)
+    if check:
+        for n in (1, 7):
+            ins = [torch.randn(n, F, generator=gen)]
+            if recurrent:
+                ins.append(torch.randn(n, module.layers, module.hidden, generator=gen))
+            check_parity(graph, path, ins, atol=1e-5)
+    return out
 
 
 def check_parity(

@@ -341,12 +341,21 @@ class ResidualCorrection:
         self.meta = dict(meta)
         self.feature_names: list[str] = list(meta["features"])
         self.sensor: str = meta.get("sensor", "")
+        #: where the checkpoint was loaded from ("" when built in memory)
+        self.source: str = ""
         self._h: Tensor | None = None
+
+    @property
+    def recurrent(self) -> bool:
+        """True for a GRU: frames must arrive in time order, the state carries over."""
+        return isinstance(self.module, ResidualGRU)
 
     @classmethod
     def load(cls, directory: str | Path, **kwargs: Any) -> ResidualCorrection:
-        """:func:`load_residual_model` then wrap."""
-        return cls(*load_residual_model(directory, **kwargs))
+        """:func:`load_residual_model` then wrap (``source`` is the resolved directory)."""
+        obj = cls(*load_residual_model(directory, **kwargs))
+        obj.source = str(Path(directory).resolve())
+        return obj
 
     def reset(self) -> None:
         """Forget the recurrent state."""

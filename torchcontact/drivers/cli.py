@@ -167,7 +167,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     from torchcontact.drivers.modbus import parse_hostport
 
     try:
-        estimator = load_estimator(args.estimator)
+        if args.onnx:
+            from torchcontact.drivers.live import OnnxEstimator
+
+            spec = None
+            if args.contacts:
+                with open(args.contacts) as f:
+                    spec = json.load(f)
+            estimator = OnnxEstimator(args.onnx, spec)
+        else:
+            estimator = load_estimator(args.estimator)
         src = _make_source(args)
         src.open()
     except (FTConnectionError, ProfileError, ValueError) as exc:
@@ -230,10 +239,22 @@ def add_parser(subparsers: Any) -> None:
 
     run = subparsers.add_parser("run", help="live loop: sensor + joints -> estimator -> JSON")
     _add_source_args(run)
-    run.add_argument(
+    which = run.add_mutually_exclusive_group()
+    which.add_argument(
         "--estimator",
         default="torchcontact.drivers.live:passthrough_estimator",
         help="module:function called as f(q, qd, qdd, ft) -> dict",
+    )
+    which.add_argument(
+        "--onnx",
+        metavar="FILE.onnx",
+        help="exported contact estimator (python -m export estimator, one sensor) via onnxruntime",
+    )
+    run.add_argument(
+        "--contacts",
+        metavar="SPEC.json",
+        help='with --onnx: {"positions": [[x, y, z], ...] (m, per slot), "active": [1, 0, ...]};'
+        " default every slot inactive",
     )
     run.add_argument("--joints", metavar="udp://HOST:PORT", help="joint-state UDP packets")
     run.add_argument("--require-joints", action="store_true", help="skip frames without joints")

@@ -263,6 +263,107 @@ def passthrough_estimator(
     return {"wrench": ft, "force_norm": float(np.linalg.norm(ft[:3]))}
 
 
+ContactSpec = Callable[[np.ndarray], dict[str, Any]]
+
+
+class OnnxEstimator:
+    """The exported contact estimator (ONNX, onnxruntime) as a live-loop estimator.
+
+    Wraps :class:`torchcontact.runtime.EstimatorRuntime` (numpy and onnxruntime only, no torch):
+    each call estimates one frame from the joint state and the reading of the loop's single F/T
+    sensor. Contact positions and activity come from ``contacts``:
+
+    - ``None``: every slot inactive (no contact; the estimate then explains nothing and the
+      forces are zero, while the F/T residual shows any unexplained load);
+    - a dict with ``positions (K, 3)`` m in each slot's link frame, ``active (K,)`` and optionally
+      ``directions (K, 3)`` (``force_dir`` slots) and ``wrenches (K, 6)`` (``known`` slots);
+    - a callable ``contacts(q) -> dict`` as above, called every frame (e.g. from a tactile skin).
+
+    Args:
+        path: ``.onnx`` file from ``python -m export estimator`` with exactly one F/T sensor.
+        contacts: the contact spec above.
+        expect_joint_names: refuse a graph with another joint order (the joint-state sender's).
+        intra_op_threads: onnxruntime threads (1: lowest single-frame latency).
+
+    Raises:
+        torchcontact.runtime.ModelMismatchError: not an estimator graph or other joints.
+        ValueError: a graph with several F/T sensors, or a contact spec of the wrong shape.
+    """
+
+    def __init__(
+        self,
+        path: str,
+        contacts: dict[str, Any] | ContactSpec | None = None,
+        *,
+        expect_joint_names: Sequence[str] | None = None,
+        intra_op_threads: int = 1,
+    ) -> None:
+        import os
+
+        from torchcontact.runtime import EstimatorRuntime
+
+        if not os.path.isfile(path):
+            raise ValueError(f"--onnx {path}: no such file")
+        self.runtime = EstimatorRuntime(
+            path, expect_joint_names=expect_joint_names, intra_op_threads=intra_op_threads
+        )
+        rt = self.runtime
+        if rt.S != 1:
+            raise ValueError(
+                f"{path} uses sensors {list(rt.sensor_names)}; the live loop reads one F/T sensor:"
+                " export with a single --sensor"
+            )
+        self.contacts = contacts
+        self._fixed = None
+        if contacts is None:
+            self._fixed = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
+        elif not callable(contacts):
+            self._fixed = self._check(contacts)
+
+    def _check(self, spec: dict[str, Any]) -> dict[str, Any]:
+        K = self.runtime.K
+        shapes = {"positions": (K, 3), "active": (K,), "directions": (K, 3), "wrenches": (K, 6)}
+        out = {}
+        for key, value in spec.items():
+            if key not in shapes:
+                raise ValueError(f"contact spec key {key!r} not one of {list(shapes)}")
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape != shapes[key]:
+                raise ValueError(
+                    f"contact spec {key} must have shape {shapes[key]}, got {arr.shape}"
+                )
+            out[key] = arr
+        if "positions" not in out:
+            raise ValueError("contact spec needs positions (K, 3)")
+        out.setdefault("active", np.ones(K))
+        return out
+
+    def __call__(
+        self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, ft: np.ndarray
+    ) -> dict[str, Any]:
+        """Estimate one frame.
+
+        Args:
+            q: ``(nv,)`` joint positions in the graph's joint order, rad or m.
+            qd: ``(nv,)`` joint velocities.
+            qdd: ``(nv,)`` joint accelerations.
+            ft: ``(6,)`` reading ``[N; N m]`` in the sensor frame.
+
+        Returns:
+            ``force (K, 3)`` N and ``moment (K, 3)`` N m in each slot's link frame,
+            ``joint_torques (nv,)``, ``rank``, ``unknowns``, ``residual`` ``(1,)`` and ``status``
+            (0: ok), numpy arrays.
+
+        Raises:
+            ValueError: no joint state (``q`` empty) or the wrong number of joints.
+        """
+        nv = self.runtime.nv
+        if len(q) != nv:
+            raise ValueError(f"joint state has {len(q)} joints, the graph expects {nv}")
+        spec = self._fixed if self._fixed is not None else self._check(self.contacts(q))  # type: ignore[misc]
+        return self.runtime.step(q, qd, qdd, np.asarray(ft).reshape(1, 6), **spec)
+
+
 class LiveLoop:
     """Drive an estimator from an F/T source and a joint-state source.
 

@@ -47,6 +47,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         dtype=_dtype(args.dtype),
         resume=args.resume,
     )
+    if args.residual:
+        kwargs["residual"] = args.residual
     if args.quiet:
         kwargs["progress"] = False
     try:
@@ -212,6 +214,11 @@ def add_parser(subparsers: Any) -> None:
     est.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: default)")
     est.add_argument("--resume", action="store_true", help="finish an interrupted run")
     est.add_argument("--engine", default="local", choices=["local", "ray"])
+    est.add_argument(
+        "--residual",
+        metavar="CHECKPOINT",
+        help="residual checkpoint folder: subtract its learned F/T correction before estimating",
+    )
     est.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     est.add_argument("--quiet", action="store_true", help="no progress bar")
     est.set_defaults(func=cmd_estimate)

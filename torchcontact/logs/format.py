@@ -31,6 +31,7 @@ __all__ = [
     "BASE_COLUMNS",
     "META_DERIVED",
     "META_JOINT_NAMES",
+    "META_RESIDUAL",
     "META_SENSORS",
     "META_URDF_SHA256",
     "META_VERSION",
@@ -47,6 +48,9 @@ META_URDF_SHA256 = b"torchcontact.urdf_sha256"
 META_VERSION = b"torchcontact.version"
 META_SENSORS = b"torchcontact.sensors"
 META_DERIVED = b"torchcontact.derived"
+#: Output logs estimated with a learned F/T correction: JSON ``{"checkpoint", "weights_sha256",
+#: "sensor", "kind"}`` (``torchcontact estimate --residual``).
+META_RESIDUAL = b"torchcontact.residual"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 

@@ -33,6 +33,7 @@ from torchcontact.logs.format import (
     BASE_COLUMNS,
     META_DERIVED,
     META_JOINT_NAMES,
+    META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
     META_VERSION,
@@ -78,10 +79,13 @@ class LogEstimator:
         contact_fields: ``(name, type)`` fields of the input contact struct (output adds
             ``force`` and ``moment``); empty when the log has no ``contacts`` column.
         source: file name used in error messages.
+        derived: ``qd``/``qdd`` when derived from ``q`` (recorded in the output metadata).
+        residual: learned F/T correction (:class:`~torchcontact.residual.ResidualCorrection`)
+            subtracted from its sensor's reading before estimation, or None.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
-            or an unknown sensor.
+            an unknown sensor, or a residual for a sensor or joints not in use.
     """
 
     model: RobotModel
@@ -90,6 +94,7 @@ class LogEstimator:
     contact_fields: Sequence[tuple[str, Any]] = ()
     source: str = ""
     derived: Sequence[str] = ()
+    residual: Any = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
 
@@ -114,6 +119,31 @@ class LogEstimator:
             raise LogError(f"{self.source}: {exc}") from None
         # contact links the estimator can use: known frames inside some sensor's region
         self._link_ok: dict[str, str | None] = {}
+        self._residual_joints = np.zeros(0, np.int64)
+        if self.residual is not None:
+            res = self.residual
+            if res.sensor not in self.sensors:
+                raise LogError(
+                    f"{self.source}: the residual checkpoint corrects sensor {res.sensor!r}, which"
+                    f" is not among the sensors in use {list(self.sensors)}"
+                )
+            rj = list(res.meta.get("joint_names", []))
+            unknown = [j for j in rj if j not in model_names]
+            if unknown:
+                raise LogError(f"{self.source}: residual checkpoint joints {unknown} not in robot")
+            self._residual_joints = np.array([model_names.index(j) for j in rj], dtype=np.int64)
+
+    def residual_columns(self) -> list[str]:
+        """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
+        if self.residual is None:
+            return []
+        joints = set(self.residual.meta.get("joint_names", []))
+        out = []
+        for name in self.residual.feature_names:
+            prefix, _, joint = name.partition(".")
+            if not (prefix in ("q", "qd", "qdd") and joint in joints):
+                out.append(name)
+        return out
 
     # ------------------------------------------------------------------ schema
     def output_schema(self, base_metadata: dict | None = None) -> Any:
@@ -151,6 +181,15 @@ class LogEstimator:
                 }
             ),
         }
+        if self.residual is not None:
+            meta[META_RESIDUAL] = json.dumps(
+                {
+                    "checkpoint": self.residual.source,
+                    "weights_sha256": self.residual.meta.get("weights_sha256"),
+                    "sensor": self.residual.sensor,
+                    "kind": self.residual.meta.get("arch", {}).get("kind"),
+                }
+            )
         return pa.schema(fields, metadata=meta)
 
     # ------------------------------------------------------------------ helpers
@@ -205,6 +244,8 @@ class LogEstimator:
             if bad.any():
                 reasons.append((bad, f"{ft_column(s)} is not 6 floats"))
             ft[s] = vals
+        if self.residual is not None:
+            ft[self.residual.sensor] = self._corrected(table, ft[self.residual.sensor], q, qd, qdd)
         tau = None
         if "tau_measured" in table.column_names:
             tau_raw, bad = vectors(table.column("tau_measured"), nv)
@@ -385,6 +426,22 @@ class LogEstimator:
         out["status"] = pa.array(status.tolist(), pa.string())
         return pa.table(out, schema=schema)
 
+    def _corrected(
+        self, table: Any, ft: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+    ) -> np.ndarray:
+        """``ft (N, 6) - r_hat(features)`` [N; N m]; joints ``(N, nv)`` in the model's order."""
+        res, idx = self.residual, self._residual_joints
+        extra = {}
+        for col in self.residual_columns():
+            arr = table.column(col).combine_chunks()
+            extra[col] = torch.as_tensor(
+                np.array(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
+            )
+        x = res.features(
+            *(torch.as_tensor(np.ascontiguousarray(v[:, idx])) for v in (q, qd, qdd)), extra
+        )
+        return res.correct(torch.tensor(ft), x).numpy()
+
 
 def _base_motion(base: dict, t: Any) -> Any:
     from torchcontact.dynamics import BaseMotion
@@ -467,16 +524,48 @@ def _sensors_of(schema: Any, model: RobotModel, sensors: Sequence[str] | None, s
     return found
 
 
+def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
+    """Load a residual checkpoint for ``model`` (its robot hash must match).
+
+    Args:
+        checkpoint: directory written by ``python -m training`` or
+            :func:`~torchcontact.residual.save_residual_model`.
+        model: the robot the log is estimated with.
+
+    Returns:
+        A :class:`~torchcontact.residual.ResidualCorrection`.
+
+    Raises:
+        LogError: unreadable, tampered or foreign checkpoint, or one trained for another robot.
+    """
+    from torchcontact.residual import CheckpointError, ResidualCorrection
+
+    try:
+        return ResidualCorrection.load(checkpoint, robot_sha256=model.urdf_sha256)
+    except CheckpointError as exc:
+        raise LogError(f"--residual: {exc}") from None
+
+
 def prepare(
-    path: str | Path, model: RobotModel, sensors: Sequence[str] | None = None
+    path: str | Path,
+    model: RobotModel,
+    sensors: Sequence[str] | None = None,
+    residual: Any = None,
 ) -> tuple[Any, LogEstimator, list[str]]:
     """Open a log and build its :class:`LogEstimator`.
+
+    Args:
+        path: the log.
+        model: the robot.
+        sensors: sensors to use (default: those with a column).
+        residual: a loaded :class:`~torchcontact.residual.ResidualCorrection` or None.
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read)``.
 
     Raises:
-        LogError: not Parquet, no joint names, mismatched joints, no sensor column, no ``q``.
+        LogError: not Parquet, no joint names, mismatched joints, no sensor column, no ``q``, a
+            residual whose sensor is not in use or whose feature columns the log lacks.
     """
     import pyarrow as pa
 
@@ -501,10 +590,17 @@ def prepare(
         for need in ("link", "kind", "position"):
             if need not in names:
                 raise LogError(f"{src}: contact struct lacks field {need!r} (has {names})")
-    le = LogEstimator(model, joint_names, used, contact_fields, src, derived)
+    le = LogEstimator(model, joint_names, used, contact_fields, src, derived, residual)
+    for col in le.residual_columns():
+        if col not in schema.names:
+            raise LogError(
+                f"{src}: the residual checkpoint needs column {col!r}, which the log lacks"
+                f" (found {schema.names})"
+            )
     columns = ["t_ns", "q", *[c for c in ("qd", "qdd") if c in schema.names]]
     columns += [ft_column(s) for s in used]
     columns += [c for c in ("tau_measured", *BASE_COLUMNS, "contacts") if c in schema.names]
+    columns += [c for c in le.residual_columns() if c not in columns]
     return pf, le, columns
 
 
@@ -535,6 +631,7 @@ def estimate_file(
     resume: bool = False,
     progress: bool | None = None,
     half_window: int = DEFAULT_HALF_WINDOW,
+    residual: Any = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -549,13 +646,20 @@ def estimate_file(
         resume: finish an interrupted run from its parts (same chunking as recorded).
         progress: show a progress bar (default: when stderr is a terminal).
         half_window: ``h`` of the Savitzky-Golay differentiator when ``qd``/``qdd`` are derived.
+        residual: residual checkpoint directory (or a loaded
+            :class:`~torchcontact.residual.ResidualCorrection`): ``r_hat(features)`` [N; N m] is
+            subtracted from its sensor's reading before estimation and the output metadata
+            ``torchcontact.residual`` names the checkpoint and its weights' sha256. A recurrent
+            (GRU) residual sees the frames in time order across chunks; it cannot ``resume``.
 
     Returns:
         A summary dict: frames, ok, bad, seconds, frames_per_s, sensors, derived, resumed_chunks.
 
     Raises:
         LogError: the input cannot be processed at all (message names the file); an existing
-            ``out.partial`` without ``resume``; a ``resume`` whose input changed.
+            ``out.partial`` without ``resume``; a ``resume`` whose input changed; a residual
+            checkpoint for another robot, an unused sensor or with a column the log lacks;
+            ``resume`` with a recurrent residual.
     """
     from tqdm import tqdm
 
@@ -567,7 +671,16 @@ def estimate_file(
     )
     if isinstance(robot, RobotModel) and (model.dtype != dtype or device != "cpu"):
         model = model.to(resolve_device(device), dtype)
-    pf, le, columns = prepare(path, model, sensors)
+    if residual is not None and not hasattr(residual, "correct"):
+        residual = load_residual(residual, model)
+    if residual is not None:
+        residual.reset()  # a GRU's state starts afresh with each log
+    if residual is not None and residual.recurrent and resume:
+        raise LogError(
+            f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
+            " its state depends on every earlier frame; rerun from the start"
+        )
+    pf, le, columns = prepare(path, model, sensors, residual)
     out = Path(out)
     partial = out.with_name(out.name + ".partial")
     sidecar = out.with_name(out.name + ".progress.json")
@@ -581,8 +694,16 @@ def estimate_file(
         "dtype": str(dtype),
         "half_window": half_window,
     }
+    if residual is not None:
+        ident["residual_weights_sha256"] = residual.meta.get("weights_sha256")
     done = 0
     if partial.exists() or sidecar.exists():
+        if residual is not None and residual.recurrent:
+            # the GRU state after the parts already written is not saved: refuse, do not guess
+            raise LogError(
+                f"{out}: an interrupted run left {partial.name}; a recurrent (GRU) residual needs"
+                " every frame in order and cannot resume: delete it and rerun"
+            )
         if not resume:
             raise LogError(
                 f"{out}: an interrupted run left {partial.name}; pass --resume (resume=True) to"
@@ -700,4 +821,6 @@ def estimate_files(
         dtype=kwargs.get("dtype", torch.float64),
         device=resolve_device(kwargs.pop("device", "cpu")),
     )
+    if kwargs.get("residual") is not None:  # load and verify once for all files
+        kwargs["residual"] = load_residual(kwargs["residual"], model)
     return [estimate_file(f, model, o, **kwargs) for f, o in zip(files, outs, strict=True)]

@@ -5,7 +5,9 @@ actor, ``batch_format="pyarrow"``) -> ``write_parquet`` into ``OUT.partial/``; t
 merged in time order into ``OUT`` with the output schema and metadata, as the local engine does.
 Needs ``qd`` and ``qdd`` in the log: derivatives from ``q`` need neighbouring frames across
 blocks, which only the local engine carries. There is no ``--resume`` (Ray retries failed tasks
-itself; an interrupted run leaves only ``OUT.partial/``).
+itself; an interrupted run leaves only ``OUT.partial/``). A residual checkpoint (``--residual``)
+must be stateless (MLP): blocks run in parallel and in any order, so a recurrent (GRU) residual,
+which needs every frame in time order, is refused; use the local engine for it.
 
 On a small machine limit the actors (``actors``, ``actor_cpus``) so that read tasks still get a
 CPU: with every CPU held by actors the pipeline stalls.
@@ -27,6 +29,7 @@ from torchcontact.logs.pipeline import (
     LogError,
     LogEstimator,
     expand_inputs,
+    load_residual,
     merge_parts,
     output_paths,
     prepare,
@@ -49,11 +52,13 @@ class _EstimateBatches:
         device: str,
         dtype: str,
         threads: int,
+        residual: str | None = None,
     ) -> None:
         if threads:
             torch.set_num_threads(threads)
         model = RobotModel.from_urdf(robot, dtype=getattr(torch, dtype), device=device)
-        self.le = LogEstimator(model, joint_names, sensors, contact_fields, robot)
+        res = None if residual is None else load_residual(residual, model)
+        self.le = LogEstimator(model, joint_names, sensors, contact_fields, robot, (), res)
 
     def __call__(self, batch: Any) -> Any:
         return self.le.process(batch)
@@ -88,6 +93,7 @@ def estimate_file_ray(
     actor_cpus: float = 1.0,
     threads: int = 1,
     num_cpus: int | None = None,
+    residual: str | Path | None = None,
 ) -> dict:
     """Estimate a log with Ray Data; same rows as :func:`torchcontact.logs.estimate_file`.
 
@@ -103,17 +109,26 @@ def estimate_file_ray(
         actor_cpus: CPUs reserved per actor (keep some for the read tasks).
         threads: torch threads per actor.
         num_cpus: CPUs of a local Ray instance started here (default: all).
+        residual: stateless (MLP) residual checkpoint directory, as :func:`estimate_file`; each
+            actor loads it once.
 
     Returns:
         Summary dict as :func:`estimate_file`.
 
     Raises:
-        LogError: as :func:`estimate_file`, or a log without ``qd``/``qdd``.
+        LogError: as :func:`estimate_file`, a log without ``qd``/``qdd``, or a recurrent (GRU)
+            residual.
     """
     t0 = time.perf_counter()
     device = resolve_device(device)
     model = RobotModel.from_urdf(robot, dtype=dtype)
-    pf, le, columns = prepare(path, model, sensors)
+    res = None if residual is None else load_residual(residual, model)
+    if res is not None and res.recurrent:
+        raise LogError(
+            f"{path}: --engine ray cannot use a recurrent (GRU) residual (blocks run in any"
+            " order); use --engine local"
+        )
+    pf, le, columns = prepare(path, model, sensors, res)
     if le.derived:
         raise LogError(
             f"{path}: --engine ray needs qd and qdd columns (missing {list(le.derived)});"
@@ -135,6 +150,7 @@ def estimate_file_ray(
             device=device,
             dtype=str(dtype).removeprefix("torch."),
             threads=threads,
+            residual=None if res is None else res.source,
         ),
         batch_format="pyarrow",
         batch_size=batch_size,
