@@ -22,6 +22,11 @@ def test_step_run_and_refusals(exported):
     model = robot_model("tcarm")
     rt = EstimatorRuntime(exported["tcarm"], expect_robot_sha256=model.urdf_sha256,
                           expect_joint_names=model.joint_names)  # fmt: skip
+    # step runs the static single-frame graph written beside the file, run the dynamic one
+    assert rt.step_session is not rt.session
+    assert all(d == 1 for i in rt.step_session.get_inputs() for d in i.shape[:1])
+    dyn = EstimatorRuntime(exported["tcarm"], step_graph=False)
+    assert dyn.step_session is dyn.session
     _, _, _, _, x, _ = scene("tcarm", 5, seed=5)
     x = {k: v.numpy() for k, v in x.items()}
     batch = rt.run(x["q"], x["qd"], x["qdd"], x["ft"], x["positions"], x["active"])
