@@ -34,7 +34,9 @@ def test_step_run_and_refusals(exported):
         one = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], x["positions"][i],
                       x["active"][i])  # fmt: skip
         assert one["force"].shape == (2, 3)
-        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-5)
+        # two graphs, optimised separately by onnxruntime: float32 rounding differs, most on
+        # rank-deficient frames (both slots active); 1e-4 N is the float32 parity tolerance
+        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-4)
     with pytest.raises(ModelMismatchError, match="sha256"):
         EstimatorRuntime(exported["tcarm"], expect_robot_sha256="0" * 64)
     with pytest.raises(ModelMismatchError, match="joints"):
