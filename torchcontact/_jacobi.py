@@ -81,8 +81,8 @@ def _round_constants(n: int, pairs: list[tuple[int, int]], like: Tensor):
         device=like.device,
     )
     part = torch.tensor(partner, dtype=torch.long, device=like.device)
-    half_sign = like.new_tensor(sign).mul(0.5).reshape(n, 1)
-    unpaired = None if all(paired) else ~torch.tensor(paired, device=like.device).reshape(n, 1)
+    half_sign = like.new_tensor(sign).mul(0.5).reshape(n, 1, 1)
+    unpaired = None if all(paired) else ~torch.tensor(paired, device=like.device).reshape(n, 1, 1)
     return idx, part, half_sign, unpaired
 
 
@@ -113,15 +113,16 @@ def jacobi_eigh_bl(a: Tensor, sweeps: int = DEFAULT_SWEEPS) -> tuple[Tensor, Ten
     for _ in range(sweeps):
         for idx, part, half_sign, unpaired in rounds:
             # rotation angle of every index from a_pp, a_qq, a_pq of its pair
-            app, aqq, apq = m.reshape(n * n, -1).index_select(0, idx).split(n)
+            app, aqq, apq = m.reshape(n * n, 1, -1).index_select(0, idx).split(n)  # (n, 1, B)
             x = apq / ((app - aqq) * half_sign)  # +-tan(2 theta); +-inf when a_pp = a_qq
             off0 = apq == 0 if unpaired is None else (apq == 0) | unpaired
             theta = 0.5 * torch.atan(torch.where(off0, zero, x))  # 0/0 -> no rotation
             c, s = torch.cos(theta), torch.sin(theta)
             # A <- J^T A J (rows, then columns together with V <- V J)
-            m = c.unsqueeze(1) * m + s.unsqueeze(1) * m.index_select(0, part)
+            m = c * m + s * m.index_select(0, part)
             mv = torch.cat((m, v), 0)
-            mv = c.unsqueeze(0) * mv + s.unsqueeze(0) * mv.index_select(1, part)
+            c, s = c.transpose(0, 1), s.transpose(0, 1)  # (1, n, B)
+            mv = c * mv + s * mv.index_select(1, part)
             m, v = mv.split(n, 0)
     diag = torch.arange(n, device=a.device) * (n + 1)
     return m.reshape(n * n, -1).index_select(0, diag), v
