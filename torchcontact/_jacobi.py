@@ -73,10 +73,12 @@ def _round_constants(n: int, pairs: list[tuple[int, int]], like: Tensor):
     for a, b in pairs:
         partner[a], partner[b], sign[b] = b, a, -1.0
         paired[a] = paired[b] = True
-    pp = [a if sign[i] > 0 else partner[i] for i, a in enumerate(range(n))]  # p of i's pair
+    pp = [i if sign[i] > 0 else partner[i] for i in range(n)]  # p of i's pair
     qq = [partner[i] if sign[i] > 0 else i for i in range(n)]  # q of i's pair
     idx = torch.tensor(
-        [p * n + p for p in pp] + [q * n + q for q in qq] + [p * n + q for p, q in zip(pp, qq)],
+        [p * n + p for p in pp]
+        + [q * n + q for q in qq]
+        + [p * n + q for p, q in zip(pp, qq, strict=True)],
         dtype=torch.long,
         device=like.device,
     )

@@ -333,7 +333,9 @@ def export_estimator(
     meta = estimator_metadata(m, est, links, kinds, opset, gravity, rank_rtol, sweeps)
     if step_graph:
         step = step_graph_path(path)
-        _export(graph, _example_inputs(m, S, K, n=1), step, ESTIMATOR_INPUTS, names_out, None, opset)
+        _export(
+            graph, _example_inputs(m, S, K, n=1), step, ESTIMATOR_INPUTS, names_out, None, opset
+        )
         meta["step_graph"] = step.name
         _set_metadata(step, {**meta, "batch": "1"})
     _set_metadata(path, meta)
