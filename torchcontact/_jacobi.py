@@ -9,8 +9,10 @@ torch ops and constant indexing only; ``torch.onnx.export`` turns it into a stra
 pairs are grouped into ``n' - 1`` rounds of ``n'/2`` disjoint pairs (``n'`` = n rounded up to
 even; a padding index is a no-op), and the rotations of one round commute, so each round is one
 orthogonal ``J`` and ``A <- J^T A J``, ``V <- V J``. Each rotation is the symmetric Schur
-rotation that zeroes ``a_pq`` (GVL Alg. 8.5.1), computed in the overflow-safe form
-``t = sign(tau) / (|tau| + sqrt(1 + tau^2))``.
+rotation that zeroes ``a_pq`` (GVL Alg. 8.5.1), the angle ``|theta| <= pi/4`` with
+``tan 2 theta = 2 a_pq / (a_qq - a_pp)`` taken as ``atan(...) / 2`` (``+-inf`` when
+``a_pp = a_qq`` gives ``+-pi/4``; ``a_pq = 0`` no rotation), applied per index without forming
+``J`` (fewer graph nodes than the ``t = sign(tau) / (|tau| + sqrt(1 + tau^2))`` form).
 
 **Convergence.** Cyclic Jacobi converges quadratically once the off-diagonal norm is small
 (Schonhage 1961; Wilkinson 1962: ``off(A_{k+1}) <= c off(A_k)^2 / delta`` with ``delta`` the
