@@ -12,11 +12,12 @@ import tempfile
 import time
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import torch
 
 import torchcontact as tc
-from torchcontact.export import export_estimator
+from torchcontact.export import export_estimator, step_graph_path
 from torchcontact.runtime import EstimatorRuntime
 
 
@@ -49,6 +50,10 @@ def main() -> None:
         lat[i] = (time.perf_counter_ns() - t) / 1e3
     rows = [("runtime.step, 1 frame, p50 / p99 (us)", f"{np.percentile(lat, 50):.0f} / "
              f"{np.percentile(lat, 99):.0f}")]  # fmt: skip
+    nodes = {k: len(onnx.load(str(f)).graph.node) for k, f in
+             (("dynamic", path), ("step (N=1)", step_graph_path(path)))}  # fmt: skip
+    rows.append(("graph nodes as exported: dynamic / step (N=1)",
+                 f"{nodes['dynamic']:,} / {nodes['step (N=1)']:,}"))  # fmt: skip
     est = tc.ContactEstimator(model.to(dtype=torch.float32))
     for n in (1024, 65536):
         x = frames(n)

@@ -9,8 +9,10 @@ torch ops and constant indexing only; ``torch.onnx.export`` turns it into a stra
 pairs are grouped into ``n' - 1`` rounds of ``n'/2`` disjoint pairs (``n'`` = n rounded up to
 even; a padding index is a no-op), and the rotations of one round commute, so each round is one
 orthogonal ``J`` and ``A <- J^T A J``, ``V <- V J``. Each rotation is the symmetric Schur
-rotation that zeroes ``a_pq`` (GVL Alg. 8.5.1), computed in the overflow-safe form
-``t = sign(tau) / (|tau| + sqrt(1 + tau^2))``.
+rotation that zeroes ``a_pq`` (GVL Alg. 8.5.1), the angle ``|theta| <= pi/4`` with
+``tan 2 theta = 2 a_pq / (a_qq - a_pp)`` taken as ``atan(...) / 2`` (``+-inf`` when
+``a_pp = a_qq`` gives ``+-pi/4``; ``a_pq = 0`` no rotation), applied per index without forming
+``J`` (fewer graph nodes than the ``t = sign(tau) / (|tau| + sqrt(1 + tau^2))`` form).
 
 **Convergence.** Cyclic Jacobi converges quadratically once the off-diagonal norm is small
 (Schonhage 1961; Wilkinson 1962: ``off(A_{k+1}) <= c off(A_k)^2 / delta`` with ``delta`` the
@@ -64,22 +66,39 @@ def round_robin(n: int) -> list[list[tuple[int, int]]]:
 
 
 def _round_constants(n: int, pairs: list[tuple[int, int]], like: Tensor):
-    """Gather indices and scatter matrices of one round (model constants of the graph)."""
-    p = torch.tensor([a for a, _ in pairs], dtype=torch.long, device=like.device)
-    q = torch.tensor([b for _, b in pairs], dtype=torch.long, device=like.device)
-    k = len(pairs)
-    # J = I + Mc (c - 1) + Ms s with J_pp = J_qq = c, J_pq = s, J_qp = -s (flattened row-major)
-    Mc = torch.zeros(n * n, k, dtype=like.dtype, device=like.device)
-    Ms = torch.zeros(n * n, k, dtype=like.dtype, device=like.device)
-    for i, (a, b) in enumerate(pairs):
-        Mc[a * n + a, i] = Mc[b * n + b, i] = 1.0
-        Ms[a * n + b, i] = 1.0
-        Ms[b * n + a, i] = -1.0
-    return p * n + p, q * n + q, p * n + q, Mc, Ms
+    """Per-index constants of one round (model constants of the graph).
+
+    Index ``i`` of a pair ``(p, q)`` has partner ``j`` (``q`` for ``p`` and ``p`` for ``q``) and
+    sign ``+1`` (p) or ``-1`` (q); an index in no pair is its own partner and stays put.
+    """
+    partner, sign, paired = list(range(n)), [1.0] * n, [False] * n
+    for a, b in pairs:
+        partner[a], partner[b], sign[b] = b, a, -1.0
+        paired[a] = paired[b] = True
+    pp = [i if sign[i] > 0 else partner[i] for i in range(n)]  # p of i's pair
+    qq = [partner[i] if sign[i] > 0 else i for i in range(n)]  # q of i's pair
+    idx = torch.tensor(
+        [p * n + p for p in pp]
+        + [q * n + q for q in qq]
+        + [p * n + q for p, q in zip(pp, qq, strict=True)],
+        dtype=torch.long,
+        device=like.device,
+    )
+    part = torch.tensor(partner, dtype=torch.long, device=like.device)
+    half_sign = like.new_tensor(sign).mul(0.5).reshape(n, 1, 1)
+    unpaired = None if all(paired) else ~torch.tensor(paired, device=like.device).reshape(n, 1, 1)
+    return idx, part, half_sign, unpaired
 
 
 def jacobi_eigh_bl(a: Tensor, sweeps: int = DEFAULT_SWEEPS) -> tuple[Tensor, Tensor]:
     """Eigen-decomposition of symmetric matrices stored batch-last, by cyclic Jacobi.
+
+    Each rotation of a round is written per index ``i`` of its pair ``(p, q)``: with
+    ``theta_i = sign_i atan(2 a_pq / (a_pp - a_qq)) / 2`` (``sign`` +1 for p, -1 for q; the
+    Schur angle ``|theta| <= pi/4`` of GVL Alg. 8.5.1, ``tan 2 theta = 2 a_pq / (a_qq - a_pp)``
+    up to the sign), row ``i`` of ``J^T A`` is ``cos(theta_i) A_i + sin(theta_i) A_partner(i)``
+    and columns likewise, so one round is a few gathers and elementwise ops on all pairs at
+    once (no rotation matrix is formed).
 
     Args:
         a: ``(n, n, B)`` symmetric matrices (only the symmetric part is used).
@@ -90,35 +109,27 @@ def jacobi_eigh_bl(a: Tensor, sweeps: int = DEFAULT_SWEEPS) -> tuple[Tensor, Ten
         columns, ``a = V diag(lam) V^T``.
     """
     n = a.shape[0]
-    a = 0.5 * (a + a.transpose(0, 1))
-    flat = a.reshape(n * n, -1)  # (n*n, B)
-    eye = torch.eye(n, dtype=a.dtype, device=a.device).reshape(n * n, 1)
-    v = eye.expand_as(flat)
+    m = 0.5 * (a + a.transpose(0, 1))
+    eye = torch.eye(n, dtype=a.dtype, device=a.device).unsqueeze(-1)
+    v = eye.expand_as(m)
     rounds = [_round_constants(n, pairs, a) for pairs in round_robin(n) if pairs]
-    one = a.new_ones(())
+    zero = a.new_zeros(())
     for _ in range(sweeps):
-        for ipp, iqq, ipq, Mc, Ms in rounds:
-            app = flat.index_select(0, ipp)  # (k, B)
-            aqq = flat.index_select(0, iqq)
-            apq = flat.index_select(0, ipq)
-            # symmetric Schur rotation zeroing a_pq (GVL Alg. 8.5.1)
-            nz = apq != 0
-            tau = (aqq - app) / (2 * torch.where(nz, apq, one))
-            sgn = torch.where(tau >= 0, one, -one)
-            t = sgn / (tau.abs() + torch.sqrt(1 + tau * tau))
-            t = torch.where(nz, t, torch.zeros_like(t))
-            c = torch.rsqrt(1 + t * t)
-            s = t * c
-            j = (eye + Mc @ (c - 1) + Ms @ s).reshape(n, n, -1)  # (n, n, B)
-            m = flat.reshape(n, n, -1)
-            # A <- J^T A J; V <- V J (broadcast multiply-sums over the small dims)
-            jta = (j.unsqueeze(2) * m.unsqueeze(1)).sum(0)
-            m = (jta.unsqueeze(2) * j.unsqueeze(0)).sum(1)
-            vm = v.reshape(n, n, -1)
-            vm = (vm.unsqueeze(2) * j.unsqueeze(0)).sum(1)
-            flat, v = m.reshape(n * n, -1), vm.reshape(n * n, -1)
+        for idx, part, half_sign, unpaired in rounds:
+            # rotation angle of every index from a_pp, a_qq, a_pq of its pair
+            app, aqq, apq = m.reshape(n * n, 1, -1).index_select(0, idx).split(n)  # (n, 1, B)
+            x = apq / ((app - aqq) * half_sign)  # +-tan(2 theta); +-inf when a_pp = a_qq
+            off0 = apq == 0 if unpaired is None else (apq == 0) | unpaired
+            theta = 0.5 * torch.atan(torch.where(off0, zero, x))  # 0/0 -> no rotation
+            c, s = torch.cos(theta), torch.sin(theta)
+            # A <- J^T A J (rows, then columns together with V <- V J)
+            m = c * m + s * m.index_select(0, part)
+            mv = torch.cat((m, v), 0)
+            c, s = c.transpose(0, 1), s.transpose(0, 1)  # (1, n, B)
+            mv = c * mv + s * mv.index_select(1, part)
+            m, v = mv.split(n, 0)
     diag = torch.arange(n, device=a.device) * (n + 1)
-    return flat.index_select(0, diag), v.reshape(n, n, -1)
+    return m.reshape(n * n, -1).index_select(0, diag), v
 
 
 def jacobi_eigh(a: Tensor, sweeps: int = DEFAULT_SWEEPS) -> tuple[Tensor, Tensor]:

@@ -161,9 +161,11 @@ class ContactEstimator:
         solver: eigensolver of the Gram matrix ``A A^T``: ``"eigh"`` (``torch.linalg.eigh``,
             LAPACK/cuSOLVER) or ``"jacobi"`` (a fixed number of cyclic Jacobi sweeps in elementwise
             ops, :mod:`torchcontact._jacobi`; exports to ONNX, agrees with ``eigh`` to rounding).
+        jacobi_sweeps: sweeps of the ``"jacobi"`` solver (default
+            :data:`torchcontact._jacobi.DEFAULT_SWEEPS`; fewer suffice in float32, see there).
 
     Raises:
-        ValueError: an unknown sensor name or solver.
+        ValueError: an unknown sensor name or solver, or ``jacobi_sweeps < 1``.
 
     Example:
         >>> import torch, torchcontact as tc
@@ -181,11 +183,19 @@ class ContactEstimator:
     """
 
     def __init__(
-        self, model: RobotModel, sensors: Sequence[str] | None = None, solver: str = "eigh"
+        self,
+        model: RobotModel,
+        sensors: Sequence[str] | None = None,
+        solver: str = "eigh",
+        jacobi_sweeps: int | None = None,
     ) -> None:
         if solver not in ("eigh", "jacobi"):
             raise ValueError(f"unknown solver {solver!r}; expected 'eigh' or 'jacobi'")
         self.solver = solver
+        sweeps = _jacobi.DEFAULT_SWEEPS if jacobi_sweeps is None else int(jacobi_sweeps)
+        if sweeps < 1:
+            raise ValueError(f"jacobi_sweeps must be >= 1, got {jacobi_sweeps}")
+        self.jacobi_sweeps = sweeps
         names = list(model.ft_sensors) if sensors is None else list(sensors)
         unknown = [s for s in names if s not in model.ft_sensors]
         if unknown:
@@ -766,7 +776,7 @@ class ContactEstimator:
         if self.solver == "jacobi":
             n_solved = solved.shape[0]
             Gs = Gm.permute(2, 3, 0, 1).reshape(R_rows, R_rows, -1)  # batch-last (R, R, S'N)
-            lam, V = _jacobi.jacobi_eigh_bl(Gs)
+            lam, V = _jacobi.jacobi_eigh_bl(Gs, self.jacobi_sweeps)
             lam = lam.reshape(R_rows, n_solved, -1).permute(1, 2, 0)  # unsorted
             V = V.reshape(R_rows, R_rows, n_solved, -1).permute(2, 3, 0, 1)
         else:

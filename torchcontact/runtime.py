@@ -2,7 +2,10 @@
 
 The graph and its ``metadata_props`` come from :func:`torchcontact.export.export_estimator`
 (``python -m export estimator ...``). Session options favour single-frame latency: one intra-op
-thread, no spinning, full graph optimisation, CPU execution provider.
+thread, no spinning, full graph optimisation, CPU execution provider. When the export wrote the
+single-frame graph (``<stem>.step.onnx``, static shapes ``N = 1``) beside the file,
+:meth:`EstimatorRuntime.step` runs that one: with its shape arithmetic folded away it has fewer
+nodes and a lower latency; :meth:`EstimatorRuntime.run` keeps the dynamic-batch graph.
 
 Example:
     >>> rt = EstimatorRuntime("tcarm.onnx", expect_joint_names=joint_names)  # doctest: +SKIP
@@ -39,6 +42,8 @@ class EstimatorRuntime:
         expect_sensors: refuse the file unless its F/T sensor names (in order) match.
         expect_slots: refuse the file unless its ``(links, kinds)`` slot layout matches.
         intra_op_threads: onnxruntime intra-op threads (1: best single-frame latency).
+        step_graph: load the single-frame graph named in the metadata for :meth:`step` when it
+            lies beside ``path`` (False: :meth:`step` runs the dynamic graph).
 
     Attributes:
         metadata: the file's ``metadata_props`` (JSON values decoded).
@@ -57,6 +62,7 @@ class EstimatorRuntime:
         expect_sensors: Sequence[str] | None = None,
         expect_slots: tuple[Sequence[str], Sequence[str]] | None = None,
         intra_op_threads: int = 1,
+        step_graph: bool = True,
     ) -> None:
         so = ort.SessionOptions()
         so.intra_op_num_threads = intra_op_threads
@@ -112,6 +118,18 @@ class EstimatorRuntime:
         self.nv, self.S, self.K = len(joints), len(sensors), len(links)
         self.dtype = np.dtype(meta["dtype"])
         self.output_names = [o.name for o in self.session.get_outputs()]
+        # single-frame graph: same export (metadata equal but for the batch), static N = 1
+        self.step_session = self.session
+        name = meta.get("step_graph")
+        step_path = os.path.join(os.path.dirname(os.path.abspath(path)), str(name))
+        if step_graph and name and os.path.exists(step_path):
+            sess = ort.InferenceSession(step_path, so, providers=["CPUExecutionProvider"])
+            smeta = dict(sess.get_modelmeta().custom_metadata_map)
+            if smeta.pop("batch", None) != "1" or smeta != raw:
+                raise ModelMismatchError(
+                    f"{step_path} is not the single-frame graph of {path} (re-export both)"
+                )
+            self.step_session = sess
         self._shapes = {
             "q": (self.nv,),
             "qd": (self.nv,),
@@ -213,5 +231,5 @@ class EstimatorRuntime:
             q=q, qd=qd, qdd=qdd, ft=ft, positions=positions, active=active,
             directions=directions, wrenches=wrenches, ft_residual=ft_residual,
         )  # fmt: skip
-        out = self.session.run(None, self._feed(values, None))
+        out = self.step_session.run(None, self._feed(values, None))
         return {k: v[0] for k, v in zip(self.output_names, out, strict=True)}

@@ -22,6 +22,11 @@ def test_step_run_and_refusals(exported):
     model = robot_model("tcarm")
     rt = EstimatorRuntime(exported["tcarm"], expect_robot_sha256=model.urdf_sha256,
                           expect_joint_names=model.joint_names)  # fmt: skip
+    # step runs the static single-frame graph written beside the file, run the dynamic one
+    assert rt.step_session is not rt.session
+    assert all(d == 1 for i in rt.step_session.get_inputs() for d in i.shape[:1])
+    dyn = EstimatorRuntime(exported["tcarm"], step_graph=False)
+    assert dyn.step_session is dyn.session
     _, _, _, _, x, _ = scene("tcarm", 5, seed=5)
     x = {k: v.numpy() for k, v in x.items()}
     batch = rt.run(x["q"], x["qd"], x["qdd"], x["ft"], x["positions"], x["active"])
@@ -29,7 +34,9 @@ def test_step_run_and_refusals(exported):
         one = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], x["positions"][i],
                       x["active"][i])  # fmt: skip
         assert one["force"].shape == (2, 3)
-        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-5)
+        # two graphs, optimised separately by onnxruntime: float32 rounding differs, most on
+        # rank-deficient frames (both slots active); 1e-4 N is the float32 parity tolerance
+        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-4)
     with pytest.raises(ModelMismatchError, match="sha256"):
         EstimatorRuntime(exported["tcarm"], expect_robot_sha256="0" * 64)
     with pytest.raises(ModelMismatchError, match="joints"):
