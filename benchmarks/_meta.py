@@ -8,14 +8,19 @@ import subprocess
 import torch
 
 
-def metadata() -> str:
-    """One line: commit, torch version, device, threads, CPU."""
+def git_commit() -> str:
+    """Short hash of the checked-out commit, or ``"unknown"`` outside a git checkout."""
     try:
-        commit = subprocess.run(
+        return subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+        return "unknown"
+
+
+def metadata() -> str:
+    """One line: commit, torch version, device, threads, CPU."""
+    commit = git_commit()
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:

@@ -12,7 +12,6 @@ import argparse
 import logging
 import platform
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -20,6 +19,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _meta import git_commit  # noqa: E402
 
 from torchcontact.drivers import ModbusFTSensor, RobotiqFT300  # noqa: E402
 from torchcontact.drivers.live import LiveLoop, UdpPublisher, passthrough_estimator  # noqa: E402
@@ -37,12 +39,7 @@ def metadata():
     import pymodbus
     import serial
 
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+    commit = git_commit()
     return {
         "commit": commit,
         "python": platform.python_version(),

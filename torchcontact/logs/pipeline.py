@@ -287,26 +287,22 @@ class LogEstimator:
         for arr, msg in ((bad, "contact position is not 3 floats"),):
             contact_reason[arr & ~bad_contact] = msg
             bad_contact |= arr
-        dirs = wr = None
         kinds_arr = np.array(kinds, dtype=object)
-        if M and "direction" in cols:
-            dirs, bad = vectors(cols["direction"], 3)
-            need = (kinds_arr == "force_dir") & bad & ~bad_contact
-            contact_reason[need] = "force_dir contact without a 3-float direction"
+        vecs: dict[str, np.ndarray | None] = {"direction": None, "wrench": None}
+        # a field is required only by the kind that uses it: force_dir needs a direction,
+        # known needs a wrench
+        for col, kind, width in (("direction", "force_dir", 3), ("wrench", "known", 6)):
+            if not M:
+                continue
+            if col in cols:
+                vecs[col], bad = vectors(cols[col], width)
+                need = (kinds_arr == kind) & bad & ~bad_contact
+                contact_reason[need] = f"{kind} contact without a {width}-float {col}"
+            else:
+                need = (kinds_arr == kind) & ~bad_contact
+                contact_reason[need] = f"{kind} contact without a {col}"
             bad_contact |= need
-        elif M:
-            need = (kinds_arr == "force_dir") & ~bad_contact
-            contact_reason[need] = "force_dir contact without a direction"
-            bad_contact |= need
-        if M and "wrench" in cols:
-            wr, bad = vectors(cols["wrench"], 6)
-            need = (kinds_arr == "known") & bad & ~bad_contact
-            contact_reason[need] = "known contact without a 6-float wrench"
-            bad_contact |= need
-        elif M:
-            need = (kinds_arr == "known") & ~bad_contact
-            contact_reason[need] = "known contact without a wrench"
-            bad_contact |= need
+        dirs, wr = vecs["direction"], vecs["wrench"]
         frame_contact_bad = np.zeros(N, bool)
         if bad_contact.any():
             for msg in dict.fromkeys(contact_reason[bad_contact]):
