@@ -158,7 +158,15 @@ def estimate_file_ray(
         num_cpus=actor_cpus,
         num_gpus=1 if device == "cuda" else 0,
     )
-    ds.write_parquet(str(partial.resolve()))
+    # Ray Data may reorder blocks between operators unless told not to: keep the input's row order
+    # (the output contract is the local engine's rows, in order), restoring the caller's setting
+    options = ray.data.DataContext.get_current().execution_options
+    preserve = options.preserve_order
+    options.preserve_order = True
+    try:
+        ds.write_parquet(str(partial.resolve()))
+    finally:
+        options.preserve_order = preserve
     parts = sorted(partial.glob("*.parquet"))
     schema = le.output_schema()
     # blocks may finish in any order: order the parts by time, rows are time-ordered inside
