@@ -139,6 +139,12 @@ def estimate_file_ray(
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
         shutil.rmtree(partial)
+    # Ray Data may reorder blocks between operators unless told not to: keep the input's row order
+    # (the output contract is the local engine's rows, in order). The dataset captures the
+    # context when it is created, so set it first; the caller's setting is restored at the end.
+    options = ray.data.DataContext.get_current().execution_options
+    preserve = options.preserve_order
+    options.preserve_order = True
     ds = ray.data.read_parquet(str(Path(path).resolve())).select_columns(columns)
     ds = ds.map_batches(
         _EstimateBatches,
@@ -158,11 +164,6 @@ def estimate_file_ray(
         num_cpus=actor_cpus,
         num_gpus=1 if device == "cuda" else 0,
     )
-    # Ray Data may reorder blocks between operators unless told not to: keep the input's row order
-    # (the output contract is the local engine's rows, in order), restoring the caller's setting
-    options = ray.data.DataContext.get_current().execution_options
-    preserve = options.preserve_order
-    options.preserve_order = True
     try:
         ds.write_parquet(str(partial.resolve()))
     finally:
@@ -172,13 +173,25 @@ def estimate_file_ray(
     # blocks may finish in any order: order the parts by time, rows are time-ordered inside
     import pyarrow.parquet as pq
 
-    first = []
-    for p in parts:
-        t = pq.read_table(p, columns=["t_ns"]).column("t_ns").to_numpy()
-        first.append((int(t[0]) if len(t) else np.iinfo(np.int64).max, p))
-    parts = [p for _, p in sorted(first)]
+    times = {p: pq.read_table(p, columns=["t_ns"]).column("t_ns").to_numpy() for p in parts}
+    parts = sorted(
+        parts, key=lambda p: int(times[p][0]) if len(times[p]) else np.iinfo(np.int64).max
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
-    rows = merge_parts(parts, out, schema)
+    t_all = np.concatenate([times[p] for p in parts]) if parts else np.zeros(0, np.int64)
+    if np.all(np.diff(t_all) >= 0):
+        rows = merge_parts(parts, out, schema)  # streamed: parts are in time order already
+    else:
+        # Ray reordered rows inside the parts despite preserve_order (seen with Ray 2.60 on a
+        # 2-CPU machine): restore the input's time order in memory, stable for equal stamps
+        import pyarrow as pa
+
+        table = pa.concat_tables([pq.read_table(p).cast(schema) for p in parts])
+        table = table.take(np.argsort(t_all, kind="stable"))
+        tmp = out.with_name(out.name + ".tmp")
+        pq.write_table(table, tmp)
+        tmp.replace(out)
+        rows = table.num_rows
     shutil.rmtree(partial)
     seconds = time.perf_counter() - t0
     return {
