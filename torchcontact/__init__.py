@@ -17,12 +17,14 @@ __version__ = "0.1.0"
 
 # public name -> module it lives in (one per line)
 _LAZY = {
-    "KINDS": "torchcontact.estimation",
-    "STATUS": "torchcontact.estimation",
+    "KINDS": "torchcontact.contacts",
+    "STATUS": "torchcontact.status",
+    "InputError": "torchcontact.errors",
+    "TorchContactError": "torchcontact.errors",
     "BaseMotion": "torchcontact.dynamics",
     "ContactEstimate": "torchcontact.estimation",
     "ContactEstimator": "torchcontact.estimation",
-    "Contacts": "torchcontact.estimation",
+    "Contacts": "torchcontact.contacts",
     "FTSensor": "torchcontact.model",
     "ForwardPass": "torchcontact.dynamics",
     "Frame": "torchcontact.model",
@@ -34,7 +36,7 @@ _LAZY = {
     "inverse_dynamics": "torchcontact.dynamics",
     "robots": None,
     "spatial": None,
-    "status_messages": "torchcontact.estimation",
+    "status_messages": "torchcontact.status",
 }
 
 __all__ = [
@@ -47,7 +49,9 @@ __all__ = [
     "FTSensor",
     "ForwardPass",
     "Frame",
+    "InputError",
     "RobotModel",
+    "TorchContactError",
     "URDFError",
     "__version__",
     "body_wrenches",
@@ -69,6 +73,7 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
         forward_pass,
         inverse_dynamics,
     )
+    from torchcontact.errors import InputError, TorchContactError
     from torchcontact.estimation import (
         KINDS,
         STATUS,

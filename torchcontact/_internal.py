@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchcontact.errors import InputError
+
 
 def in_tracing() -> bool:
     """True while tracing for ONNX export, TorchScript or torch.compile (no value checks then)."""
@@ -24,29 +26,29 @@ def check_input(
     batch: torch.Size | None = None,
     finite: bool = True,
 ) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``x`` is a tensor shaped ``(*B, *trailing)``.
+    """Raise :class:`~torchcontact.errors.InputError` unless ``x`` is shaped ``(*B, *trailing)``.
 
     Also checks that dtype and device match the model's and, outside tracing, that all values are
     finite.
     """
     if not isinstance(x, Tensor):
-        raise ValueError(
+        raise InputError(
             f"{name} must be a torch.Tensor of shape {expected}, got {type(x).__name__}"
         )
     if x.dim() < len(trailing) or tuple(x.shape[x.dim() - len(trailing) :]) != trailing:
-        raise ValueError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
+        raise InputError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
     if x.dtype != model.dtype:
-        raise ValueError(
+        raise InputError(
             f"{name} has dtype {x.dtype} but the model is {model.dtype}; use model.to(dtype=...)"
             " or convert the input"
         )
     if x.device != model.device:
-        raise ValueError(
+        raise InputError(
             f"{name} is on {x.device} but the model is on {model.device}; use model.to(device)"
         )
     if finite and not in_tracing() and x.numel() and not bool(torch.isfinite(x).all()):
         bad = (~torch.isfinite(x)).nonzero()[0].tolist()
-        raise ValueError(f"{name} contains NaN or inf (first at index {tuple(bad)})")
+        raise InputError(f"{name} contains NaN or inf (first at index {tuple(bad)})")
 
 
 def flatten_batch(x: Tensor, batch: torch.Size, n_feature_dims: int) -> Tensor:

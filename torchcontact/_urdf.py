@@ -127,6 +127,7 @@ def parse(text: str, source: str) -> dict:
                 "p": origin[:3, 3].copy(),
                 "axis": axis / norm if norm > 0 else axis,
                 "mimic": mimic,
+                "limit": _limit(j.limit),
             }
         )
 
@@ -164,6 +165,21 @@ def parse(text: str, source: str) -> dict:
             }
         )
     return {"name": robot.name, "links": links, "joints": joints, "sensors": sensors}
+
+
+def _limit(limit) -> dict[str, float]:
+    """``<limit>`` as floats; absent attributes are -inf/inf (no limit)."""
+
+    def get(name: str, default: float) -> float:
+        v = None if limit is None else getattr(limit, name, None)
+        return default if v is None else float(v)
+
+    return {
+        "lower": get("lower", -np.inf),
+        "upper": get("upper", np.inf),
+        "velocity": get("velocity", np.inf),
+        "effort": get("effort", np.inf),
+    }
 
 
 def axis_rotation_terms(R0: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

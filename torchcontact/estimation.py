@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -48,79 +47,12 @@ from torch import Tensor
 from torchcontact import _jacobi
 from torchcontact import dynamics as _dyn
 from torchcontact._internal import check_input, flatten_batch
+from torchcontact.contacts import KINDS, Contacts
 from torchcontact.dynamics import BaseMotion
 from torchcontact.model import FTSensor, RobotModel
+from torchcontact.status import STATUS, status_messages
 
 __all__ = ["KINDS", "STATUS", "ContactEstimate", "ContactEstimator", "Contacts", "status_messages"]
-
-#: Contact kinds and their number of unknowns.
-KINDS: dict[str, int] = {"wrench": 6, "force": 3, "force_dir": 1, "known": 0}
-
-#: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok).
-STATUS: dict[int, str] = {
-    1: "non-finite F/T reading",
-    2: "non-finite joint state or base motion",
-    4: "non-finite contact position, direction or wrench",
-    8: "zero-length contact direction",
-    16: "non-finite measured joint torque",
-}
-
-
-def status_messages(code: int) -> str:
-    """Human-readable reason for a status code (``"ok"`` for 0).
-
-    Example:
-        >>> status_messages(0), status_messages(1 | 8)
-        ('ok', 'non-finite F/T reading; zero-length contact direction')
-    """
-    if code == 0:
-        return "ok"
-    return "; ".join(msg for bit, msg in STATUS.items() if code & bit)
-
-
-@dataclass(frozen=True)
-class Contacts:
-    """A batch of contact slots: K slots with fixed links and kinds, per-frame data.
-
-    A tactile skin reporting a changing set of contacts is described by the union of the slots it
-    may use, with ``active`` telling which are in contact in each frame.
-
-    Attributes:
-        links: K link (or joint/fixed frame) names the contacts lie on.
-        kinds: K of ``"wrench"`` (6 unknowns), ``"force"`` (3; the moment about the contact point
-            is zero), ``"force_dir"`` (1: the magnitude along a known direction), ``"known"`` (0: a
-            given wrench, the paper's mu_eKnown).
-        positions: ``(*B, K, 3)`` contact points in the link frame, m.
-        directions: ``(*B, K, 3)`` force directions in the link frame (``force_dir`` slots; any
-            length > 0, normalised internally), or None.
-        wrenches: ``(*B, K, 6)`` ``[force (N); moment about the contact point (N m)]`` in the link
-            frame for ``known`` slots, or None.
-        active: ``(*B, K)`` bool, which slots are in contact in each frame; None means all.
-    """
-
-    links: tuple[str, ...]
-    kinds: tuple[str, ...]
-    positions: Tensor
-    directions: Tensor | None = None
-    wrenches: Tensor | None = None
-    active: Tensor | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "links", tuple(self.links))
-        object.__setattr__(self, "kinds", tuple(self.kinds))
-        if len(self.links) != len(self.kinds):
-            raise ValueError(
-                f"contacts: {len(self.links)} links but {len(self.kinds)} kinds; one kind per slot"
-            )
-        for k in self.kinds:
-            if k not in KINDS:
-                raise ValueError(f"contacts: unknown kind {k!r}; expected one of {list(KINDS)}")
-
-    @property
-    def K(self) -> int:  # noqa: N802 - the paper's and the API's name for the slot count
-        """Number of contact slots."""
-        return len(self.links)
-
 
 class ContactEstimate(NamedTuple):
     """Result of :meth:`ContactEstimator.estimate`; ``*B`` is the input batch shape.

@@ -40,7 +40,8 @@ import torch
 from torch import Tensor, nn
 
 from torchcontact import _jacobi
-from torchcontact.estimation import KINDS, ContactEstimator, Contacts
+from torchcontact.contacts import KINDS, Contacts
+from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
 __all__ = [

@@ -32,14 +32,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcontact.errors import URDFError  # noqa: F401  (re-exported)
+
 __all__ = ["FTSensor", "Frame", "RobotModel", "URDFError"]
 
 _MOVING = ("revolute", "continuous", "prismatic")
 _KNOWN_TYPES = (*_MOVING, "fixed", "floating", "planar")
-
-
-class URDFError(ValueError):
-    """A URDF that cannot describe a robot torchcontact can model; the message names the element."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +140,10 @@ class RobotModel:
         com: ``(nb, 3)`` centre of mass in the body frame, m.
         inertia_com: ``(nb, 3, 3)`` rotational inertia about the centre of mass, body axes, kg m^2.
         urdf_sha256: hash of the URDF text the model was built from.
+        joint_parent_link: joint name -> its URDF parent link.
+        joint_limits: ``"lower"``, ``"upper"`` (rad or m), ``"velocity"`` (rad/s or m/s),
+            ``"effort"`` (N m or N) -> ``(nv,)`` numpy float64 in ``joint_names`` order, from the
+            URDF ``<limit>`` (-inf/inf where absent; a continuous joint has no position limit).
     """
 
     name: str
@@ -169,6 +171,7 @@ class RobotModel:
     inertia_com: Tensor
     urdf_sha256: str = ""
     joint_parent_link: dict[str, str] = field(default_factory=dict)
+    joint_limits: dict[str, np.ndarray] = field(default_factory=dict)
 
     # ------------------------------------------------------------------ basic properties
     @property
@@ -637,4 +640,15 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         inertia_com=t(inertia),
         urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
         joint_parent_link={j["name"]: j["parent"] for j in joints},
+        joint_limits={
+            key: np.array(
+                [
+                    joint_by_name[n]["limit"][key]
+                    if not (key in ("lower", "upper") and joint_by_name[n]["type"] == "continuous")
+                    else (-np.inf if key == "lower" else np.inf)
+                    for n in joint_order
+                ]
+            )
+            for key in ("lower", "upper", "velocity", "effort")
+        },
     )

@@ -31,6 +31,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchcontact.errors import CheckpointError  # noqa: F401  (re-exported)
+
 __all__ = [
     "CHECKPOINT_FORMAT",
     "CheckpointError",
@@ -47,10 +49,6 @@ __all__ = [
 CHECKPOINT_FORMAT = "torchcontact.residual/1"
 WEIGHTS_FILE = "weights.safetensors"
 META_FILE = "checkpoint.json"
-
-
-class CheckpointError(ValueError):
-    """A missing, tampered, foreign or inconsistent checkpoint; the message says why."""
 
 
 def feature_names(joint_names: Sequence[str], extra: Sequence[str] = ()) -> list[str]:

@@ -22,14 +22,12 @@ from collections.abc import Sequence
 import numpy as np
 import onnxruntime as ort
 
+from torchcontact.errors import ModelMismatchError  # noqa: F401  (re-exported)
+
 __all__ = ["EstimatorRuntime", "ModelMismatchError"]
 
 _FORMAT = "torchcontact.estimator/1"
 _INPUTS = ("q", "qd", "qdd", "ft", "positions", "directions", "wrenches", "active", "ft_residual")
-
-
-class ModelMismatchError(ValueError):
-    """The ONNX file does not fit the robot, sensors or contact layout the caller expects."""
 
 
 class EstimatorRuntime:

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from torchcontact.estimation import ContactEstimator, Contacts
+from torchcontact.contacts import Contacts
+from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
 __all__ = ["SimulatedLog", "UnmodeledEffects", "simulate"]

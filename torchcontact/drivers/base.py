@@ -16,13 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-
-class FTError(RuntimeError):
-    """Base class of driver errors."""
-
-
-class FTConnectionError(FTError):
-    """The port or host cannot be opened (raised by :meth:`FTSource.open` only)."""
+from torchcontact.errors import FTConnectionError, FTError  # noqa: F401  (re-exported)
 
 
 class ConnectionLost(FTError):

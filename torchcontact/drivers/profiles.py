@@ -19,6 +19,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from torchcontact.errors import ProfileError  # noqa: F401  (re-exported)
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -28,10 +30,6 @@ CHANNELS = ("fx", "fy", "fz", "mx", "my", "mz")
 #: Registers per value type.
 TYPE_WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
 Order = Literal["big", "little"]
-
-
-class ProfileError(ValueError):
-    """A profile file is missing, malformed, or names an unknown key or value."""
 
 
 @dataclass(frozen=True)

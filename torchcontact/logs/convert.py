@@ -31,15 +31,12 @@ from typing import Any
 
 import numpy as np
 
+from torchcontact.errors import ConvertError  # noqa: F401  (re-exported)
 from torchcontact.logs.format import META_JOINT_NAMES, contact_struct_type, fixed_list, ft_column
 
 __all__ = ["ConvertError", "convert"]
 
 AXES = ("fx", "fy", "fz", "mx", "my", "mz")
-
-
-class ConvertError(ValueError):
-    """An input that cannot be converted (message names the file and what is missing)."""
 
 
 def _stamp(msg: Any, fallback: int) -> int:

@@ -27,7 +27,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchcontact.estimation import KINDS, ContactEstimator, Contacts, status_messages
+from torchcontact.contacts import KINDS, Contacts
+from torchcontact.errors import LogError  # noqa: F401  (re-exported)
+from torchcontact.estimation import ContactEstimator
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, savgol_derivatives
 from torchcontact.logs.format import (
     BASE_COLUMNS,
@@ -43,12 +45,9 @@ from torchcontact.logs.format import (
     vectors,
 )
 from torchcontact.model import RobotModel
+from torchcontact.status import status_messages
 
 __all__ = ["LogError", "LogEstimator", "estimate_file", "estimate_files", "expand_inputs"]
-
-
-class LogError(ValueError):
-    """A log that cannot be processed at all (not Parquet, wrong joints, no sensor column)."""
 
 
 def open_parquet(path: str | Path) -> Any:

@@ -1,0 +1,34 @@
+"""Per-frame status codes: one meaning in Python, in Parquet logs and in exported ONNX graphs.
+
+A frame's status is an int64 bit field; 0 means the frame was estimated and every output is
+finite. Each set bit names one reason. The estimator sets the bits, the log pipeline stores the
+code (``status`` column, text from :func:`status_messages`), and exported graphs return the same
+integer. Frames with a non-zero status have NaN outputs, the rest of a batch is unaffected.
+"""
+
+from __future__ import annotations
+
+__all__ = ["STATUS", "status_messages"]
+
+#: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok).
+STATUS: dict[int, str] = {
+    1: "non-finite F/T reading",
+    2: "non-finite joint state or base motion",
+    4: "non-finite contact position, direction or wrench",
+    8: "zero-length contact direction",
+    16: "non-finite measured joint torque",
+    32: "non-finite output (the inputs were finite but the computation overflowed)",
+    64: "implausible input (joint velocity beyond the URDF limit, or reading beyond sensor range)",
+}
+
+
+def status_messages(code: int) -> str:
+    """Human-readable reason for a status code (``"ok"`` for 0).
+
+    Example:
+        >>> status_messages(0), status_messages(1 | 8)
+        ('ok', 'non-finite F/T reading; zero-length contact direction')
+    """
+    if code == 0:
+        return "ok"
+    return "; ".join(msg for bit, msg in STATUS.items() if code & bit)
