@@ -418,7 +418,7 @@ def inertia_about(mass: float, com: np.ndarray, inertia_com: np.ndarray, point) 
         ``(3, 3)`` ``I_com + m (|d|^2 1 - d d^T)`` with ``d = com - point``.
 
     Example:
-        >>> inertia_about(2.0, np.array([1.0, 0, 0]), np.zeros((3, 3)), np.zeros(3))[2, 2]
+        >>> float(inertia_about(2.0, np.array([1.0, 0, 0]), np.zeros((3, 3)), np.zeros(3))[2, 2])
         2.0
     """
     d = np.asarray(com, float) - np.asarray(point, float)
