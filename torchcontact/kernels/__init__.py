@@ -110,6 +110,18 @@ def _machine_tag() -> str:
     return hashlib.sha256(f"{platform.machine()}|{flags}".encode()).hexdigest()[:12]
 
 
+def _vector_bytes() -> int:
+    """Bytes of one SIMD register: 64 with AVX-512, else 32 (AVX2; other ISAs split it)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return 64 if " avx512f" in line else 32
+    except OSError:
+        pass
+    return 32
+
+
 # --------------------------------------------------------------------------------------- eager
 
 
@@ -147,7 +159,7 @@ def _source(program: Program, dtype: torch.dtype) -> tuple[str, str]:
     from torchcontact.kernels import _cpp
 
     tr, out = program.trace()
-    src = _cpp.emit(tr, out, _DTYPES[dtype])
+    src = _cpp.emit(tr, out, _DTYPES[dtype], vbytes=_vector_bytes())
     h = hashlib.sha256(
         f"{_VERSION}|{torch.__version__}|{_machine_tag()}|{src}".encode()
     ).hexdigest()[:20]
@@ -260,13 +272,9 @@ def compiled(
     device = torch.device(device)
     if dtype not in _DTYPES:
         raise KernelBuildError(f"no kernel for dtype {dtype}; use float32 or float64")
-    if device.type == "cuda":
-        from torchcontact.kernels import _cuda
-
-        return _cuda.compiled(program, dtype, wait)
-    if device.type != "cpu":
+    if device.type not in ("cpu", "cuda"):
         raise KernelBuildError(f"no kernel backend for device {device}")
-    ckey = f"{program.key}|{dtype}"
+    ckey = f"{program.key}|{dtype}|{device.type}"
     with _lock:
         if ckey in _loaded:
             return _loaded[ckey]
@@ -280,25 +288,44 @@ def compiled(
             return None
         thread.join()
         return compiled(program, dtype, device, wait)
-    src, h = _source(program, dtype)
-    name = f"tck_{program.name}_{h}"
-    so = cache_dir() / "kernels" / name / f"{name}.so"
-    if wait or so.exists():
-        return _finish(ckey, program, dtype, src, h, raise_=wait)
+    if device.type == "cuda":
+        from torchcontact.kernels import _cuda
 
-    def work() -> None:
-        _finish(ckey, program, dtype, src, h, raise_=False)
+        if not torch.cuda.is_available():
+            return _finish(ckey, _no_cuda, raise_=wait)
 
-    t = threading.Thread(target=work, name=f"torchcontact-build-{program.name}", daemon=True)
+        def build() -> Callable:
+            return _cuda.build(program, dtype, cache_dir())
+
+        cached = False
+    else:
+        src, h = _source(program, dtype)
+        name = f"tck_{program.name}_{h}"
+        cached = (cache_dir() / "kernels" / name / f"{name}.so").exists()
+
+        def build() -> Callable:
+            return _build(program, dtype, src, h)
+
+    if wait or cached:
+        return _finish(ckey, build, raise_=wait)
+    t = threading.Thread(
+        target=_finish, args=(ckey, build, False), name=f"torchcontact-build-{program.name}",
+        daemon=True,
+    )  # fmt: skip
     with _lock:
         _building[ckey] = t
     t.start()
     return None
 
 
-def _finish(ckey, program, dtype, src, h, raise_: bool) -> Callable | None:
+def _no_cuda() -> Callable:
+    raise KernelBuildError("CUDA kernels need a CUDA device and a CUDA build of torch")
+
+
+def _finish(ckey: str, build: Callable[[], Callable], raise_: bool) -> Callable | None:
+    """Build (or load) a kernel and record the outcome; a failure warns once."""
     try:
-        k = _build(program, dtype, src, h)
+        k = build()
     except KernelBuildError as e:
         with _lock:
             _failed[ckey] = str(e)
@@ -350,7 +377,7 @@ def run(
 
 def _ready(program: Program, like: Tensor) -> bool:
     with _lock:
-        return f"{program.key}|{like.dtype}" in _loaded
+        return f"{program.key}|{like.dtype}|{like.device.type}" in _loaded
 
 
 def _tracing() -> bool:

@@ -1,13 +1,14 @@
 """C++ code generation for a traced physics program (:class:`torchcontact._scalar.Trace`).
 
 The program is straight-line code on scalars. The generated kernel evaluates it on ``W`` frames at
-once: every scalar becomes a GCC/Clang vector-extension value of ``W`` lanes (``W * sizeof(T)`` =
-64 bytes: two AVX2 registers, one AVX-512 register), so each instruction processes ``W`` frames
-and the compiler schedules two independent halves for instruction-level parallelism. Masks are
-the integer vectors comparisons return; ``select`` is the vector ternary. Inputs are read in the
-caller's layout, ``(N, k)`` rows with a row stride, one lane per frame (a short gather per input
-scalar and block, negligible next to the arithmetic); outputs are written the same way. The last,
-partial block is padded with zeros and only its valid lanes are stored.
+once: every scalar becomes a GCC/Clang vector-extension value of ``W`` lanes, one SIMD register
+(``W * sizeof(T)`` = 32 bytes with AVX2, 64 with AVX-512; wider values measured slower, from
+register spills), so each instruction processes ``W`` frames. Masks are the integer vectors
+comparisons return; ``select`` is the vector ternary. Inputs are read in the caller's layout,
+``(N, k)`` rows with a row stride, one lane per frame, by an unrolled gather (a lane loop here
+cost 2x through store-forwarding stalls); outputs are written the same way. The last, partial
+block runs on zero-padded copies of its rows. ``sin``/``cos`` are computed in-kernel
+(``vsincos``), so a joint angle is read once.
 
 No ``-ffast-math``: the kernel keeps IEEE semantics (NaN and inf propagate as in eager torch);
 only ``-ffp-contract=fast`` fuses multiply-adds, which changes results by rounding only.
@@ -136,7 +137,7 @@ def emit(
     trace: Trace,
     outputs: dict[str, list],
     dtype: str,
-    vbytes: int = 64,
+    vbytes: int = 32,
     symbol: str = "tc_kernel",
 ) -> str:
     """C++ source of one kernel.
