@@ -25,15 +25,12 @@ import numpy as np
 
 from torchcontact._scalar import Sym, Trace
 
-__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "ONE"]
+__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "inline"]
 
 #: ONNX opset of the graphs written here (onnxruntime >= 1.14 runs it).
 OPSET = 18
 #: IR version of the files (onnxruntime >= 1.16 loads it).
 IR_VERSION = 9
-
-ONE = "one"  # marker: an operand column holding the constant 1
-
 
 class GraphBuilder:
     """Nodes, constants, inputs and outputs of one ONNX graph.
@@ -352,8 +349,10 @@ def emit_program(
 ) -> None:
     """Emit a :class:`~torchcontact.kernels.Program` as one node per scalar operation.
 
-    Every scalar is a ``(N, 1)`` column, so each node processes all ``N`` frames (throughput);
-    constants of the model are folded at trace time, as in the generated C++ kernels.
+    Every scalar is an ``(N,)`` vector, so each node processes all ``N`` frames (throughput; an
+    ``(N, 1)`` column took onnxruntime's slow broadcasting path, ~100x slower against scalar
+    constants); constants of the model are folded at trace time, as in the generated C++
+    kernels.
 
     Args:
         gb: the graph (its dtype is the program's).
@@ -367,12 +366,12 @@ def emit_program(
     for name, syms in tr.inputs.items():
         if not syms:
             continue
-        if len(syms) == 1:
-            cols = [inputs[name]]
-        else:
-            cols = gb.op("Split", inputs[name], axis=1, num_outputs=len(syms), n_out=len(syms))
+        # Split + Squeeze: per-column Gathers get fused by onnxruntime into a Split whose
+        # (N, 1) outputs take the slow broadcasting path
+        cols = ([inputs[name]] if len(syms) == 1 else
+                gb.op("Split", inputs[name], axis=1, num_outputs=len(syms), n_out=len(syms)))
         for s, c in zip(syms, cols, strict=True):
-            vals[s.index] = c
+            vals[s.index] = gb.op("Squeeze", c, gb.i([1]))
     needed = _live(tr, out)
     binary = {"add": "Add", "sub": "Sub", "mul": "Mul", "div": "Div", "gt": "Greater",
               "and": "And", "or": "Or"}  # fmt: skip
@@ -400,7 +399,6 @@ def emit_program(
         else:
             raise ValueError(f"no ONNX emission for {node.op!r}")
         vals[node.index] = r
-    shape1 = None
     for name, xs in out.items():
         cols = []
         for x in xs:
@@ -409,19 +407,15 @@ def emit_program(
                 if x.mask:
                     col = gb.cast(col)
             else:
-                if shape1 is None:
-                    shape1 = gb.op("Concat", n_name, gb.i([1]), axis=0)
-                col = gb.op("Expand", gb.f([[float(x)]]), shape1)
+                col = gb.op("Expand", gb.f([float(x)]), n_name)
             cols.append(col)
         if not cols:
-            if shape1 is None:
-                shape1 = gb.op("Concat", n_name, gb.i([1]), axis=0)
             zero_shape = gb.op("Concat", n_name, gb.i([0]), axis=0)
             gb.op("Expand", gb.f(np.zeros((1, 0))), zero_shape, out=outputs[name])
-        elif len(cols) == 1:
-            gb.op("Identity", cols[0], out=outputs[name])
         else:
-            gb.op("Concat", *cols, axis=1, out=outputs[name])
+            flat = cols[0] if len(cols) == 1 else gb.op("Concat", *cols, axis=0)
+            rows = gb.op("Reshape", flat, gb.i([len(cols), -1]))
+            gb.op("Transpose", rows, perm=[1, 0], out=outputs[name])
 
 
 def _live(tr: Trace, out: dict[str, list]) -> set[int]:
@@ -436,3 +430,48 @@ def _live(tr: Trace, out: dict[str, list]) -> set[int]:
         if s.op != "in":
             stack.extend(a for a in s.args if isinstance(a, Sym))
     return live
+
+
+def inline(gb: GraphBuilder, model, prefix: str, inputs: dict[str, str]) -> dict[str, str]:
+    """Copy another graph into ``gb`` (names prefixed); returns its outputs' values in ``gb``.
+
+    Args:
+        gb: the graph to extend (same opset as ``model``).
+        model: the ``onnx.ModelProto`` to inline (no control-flow subgraphs).
+        prefix: prepended to its value and initializer names.
+        inputs: its input name -> a value of ``gb`` (of the input's dtype).
+
+    Raises:
+        ValueError: an input without a value, or a control-flow node.
+    """
+    from onnx import AttributeProto, NodeProto, TensorProto
+
+    g = model.graph
+    rename: dict[str, str] = {}
+    for t in g.initializer:
+        new = TensorProto()
+        new.CopyFrom(t)
+        new.name = prefix + t.name
+        gb.initializers.append(new)
+        rename[t.name] = new.name
+    for i in g.input:
+        if i.name in rename:
+            continue
+        if i.name not in inputs:
+            raise ValueError(f"inlined graph input {i.name!r} has no value")
+        rename[i.name] = inputs[i.name]
+    for node in g.node:
+        if any(a.type in (AttributeProto.GRAPH, AttributeProto.GRAPHS) for a in node.attribute):
+            raise ValueError(f"cannot inline control flow ({node.op_type})")
+        n = NodeProto()
+        n.CopyFrom(node)
+        del n.input[:]
+        n.input.extend(rename.get(x, prefix + x) if x else "" for x in node.input)
+        del n.output[:]
+        n.output.extend(prefix + x if x else "" for x in node.output)
+        n.name = prefix + (node.name or node.output[0])
+        for x in node.output:
+            if x:
+                rename[x] = prefix + x
+        gb.nodes.append(n)
+    return {o.name: rename[o.name] for o in g.output}

@@ -66,6 +66,13 @@ _T_R, _T_P, _T_ONE = slice(0, 9), slice(9, 12), 12
 _TP_R, _TP_P, _TP_PR, _TP_PINV, _TP_ONE = 0, 9, 12, 21, 24
 
 
+def gb_type(dtype) -> int:
+    """ONNX element type of a numpy dtype."""
+    from onnx import helper
+
+    return helper.np_dtype_to_tensor_dtype(np.dtype(dtype))
+
+
 def _rows(v: Sequence) -> sp.M3:
     return (tuple(v[0:3]), tuple(v[3:6]), tuple(v[6:9]))
 
@@ -174,10 +181,13 @@ class _Step:
         torque_rows: bool,
         with_cov: bool,
         dtype: np.dtype,
+        residuals: Sequence = (),
     ) -> None:
         self.em, self.tree = em, em.tree
         self.moving_base, self.torque_rows, self.with_cov = moving_base, torque_rows, with_cov
         self.gb = GraphBuilder(dtype, "torchcontact_step")
+        self.residuals = list(residuals)
+        self.extra = list(dict.fromkeys(c for rg, _ in self.residuals for c in rg.extra))
         self.dtype = np.dtype(dtype)
         self.nb = len(self.tree.bodies)
         self.nv = self.tree.nv
@@ -209,6 +219,11 @@ class _Step:
             lay.add("tau_mask", (nv,))
         if self.with_cov:
             lay.add("ft_cov", (S, 6, 6))
+        if self.residuals:
+            lay.add("extra", (len(self.extra),))
+            for rg, _ in self.residuals:
+                if rg.state_shape:
+                    lay.add(f"h_in.{rg.sensor}", tuple(rg.state_shape))
         self.lay = lay
         del em
 
@@ -255,6 +270,9 @@ class _Step:
         gb, lay = self.gb, self.lay
         F = lay.size
         x = gb.input("x", [1, F])
+        self.h_out = []
+        if self.residuals:
+            x = self._chain(x)
         e_aff = _Affine(F)
         self.e_aff = e_aff
         idx = self._plan_affine(e_aff)
@@ -319,6 +337,51 @@ class _Step:
         return self._outputs(fm, tau, ranks, resids, act, status_in)
 
     # -------------------------------------------------------------------------- affine entries
+
+    def _chain(self, x: str) -> str:
+        """Chained residual corrections: ``x`` with each correction subtracted from its reading.
+
+        Each correction graph reads the raw joint state and extra columns of ``x`` (its own
+        dtype, usually float32), and returns ``(1, 6)`` for one sensor (and its next state).
+        """
+        from torchcontact._onnx import inline
+
+        gb, lay, nv = self.gb, self.lay, self.nv
+        F = lay.size
+        names = list(self.em.model.joint_names)
+        sub = np.zeros((0, F))
+        corr_all = None
+        for r, (rg, model) in enumerate(self.residuals):
+            to = gb_type(rg.dtype)
+            feeds = {}
+            for name, cols in rg.inputs:
+                if cols is None:
+                    L, H = rg.state_shape
+                    sel = np.zeros((F, L * H))
+                    o = lay.fields[f"h_in.{rg.sensor}"][0]
+                    sel[o : o + L * H, :] = np.eye(L * H)
+                    h = gb.op("Reshape", gb.op("MatMul", x, gb.f(sel)), gb.i([1, L, H]))
+                    feeds[name] = gb.op("Cast", h, to=to)
+                    continue
+                sel = np.zeros((F, len(cols)))
+                for j, (kind, key) in enumerate(cols):
+                    i = (lay.index("extra", self.extra.index(key)) if kind == "extra" else
+                         lay.index(kind, names.index(key)))  # fmt: skip
+                    sel[i, j] = 1.0
+                feeds[name] = gb.op("Cast", gb.op("MatMul", x, gb.f(sel)), to=to)
+            outs = inline(gb, model, f"res{r}/", feeds)
+            P = np.zeros((6, F))
+            s = list(self.em.sensor_names).index(rg.sensor)
+            for i in range(6):
+                P[i, lay.index("ft", s, i)] = 1.0
+            c = gb.op("MatMul", gb.cast(outs[rg.output]), gb.f(P))
+            corr_all = c if corr_all is None else gb.op("Add", corr_all, c)
+            if rg.state_shape:
+                L, H = rg.state_shape
+                h = gb.op("Reshape", gb.cast(outs[rg.output_names[1]]), gb.i([1, L * H]))
+                self.h_out.append((rg.sensor, (L, H), h))
+        del sub, nv
+        return gb.op("Sub", x, corr_all)
 
     def _plan_affine(self, ea: _Affine) -> dict:
         """Register the entries of ``e``; returns their indices by purpose."""
@@ -1211,7 +1274,9 @@ class _Step:
         nanv = gb.op("Where", gb.op("And", gb.op("Greater", status, gb.f(0.0)),
                                     gb.const(keep == 0, bool)), gb.f(0.0), nanv)  # fmt: skip
         out.add("status", (1,))
-        gb.op("Concat", nanv, status, axis=1, out="out")
+        for sensor, shape, _h in self.h_out:
+            out.add(f"h_out.{sensor}", shape)
+        gb.op("Concat", nanv, status, *(h for _, _, h in self.h_out), axis=1, out="out")
         gb.output("out", [1, out.size])
         return gb.model(), self.lay, out
 
@@ -1234,6 +1299,7 @@ def build_step_graph(
     torque_rows: bool = False,
     with_cov: bool = False,
     dtype=np.float64,
+    residuals: Sequence = (),
 ):
     """The single-frame graph of a layout.
 
@@ -1243,9 +1309,11 @@ def build_step_graph(
         torque_rows: inputs ``tau_measured, tau_mask``: measured joint torques add equations.
         with_cov: input ``ft_cov`` and output ``covariance``.
         dtype: float32 or float64.
+        residuals: ``[(ResidualGraph, onnx.ModelProto)]`` corrections to chain (inputs
+            ``extra``, ``h_in.<sensor>``; outputs ``h_out.<sensor>``).
 
     Returns:
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
-    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype)).build()
+    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype), residuals).build()
