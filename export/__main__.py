@@ -5,8 +5,10 @@ Example::
     python -m export estimator --robot tcarm --slot forearm_skin:force --slot hand_skin:force \\
         --out tcarm.onnx
     python -m export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
-        --slot l_hand:wrench --dtype float32 --out icub_larm.onnx
+        --slot l_hand:wrench --dtype float32 --joints sensed --out icub_larm.onnx
     python -m export residual runs/residual-mlp --out residual.onnx
+    python -m export estimator --robot tcarm --slot hand_skin:force --residual residual.onnx \\
+        --out tcarm_corrected.onnx
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ def _estimator(args: argparse.Namespace) -> int:
     import torch
 
     import torchcontact as tc
-    from torchcontact.export import DEFAULT_OPSET, export_estimator
+    from torchcontact.errors import TorchContactError
+    from torchcontact.export import DEFAULT_OPSET, export_estimator, step_graph_path
 
     if (args.robot is None) == (args.urdf is None):
         print("give exactly one of --robot tcarm or --urdf PATH", file=sys.stderr)
@@ -34,15 +37,22 @@ def _estimator(args: argparse.Namespace) -> int:
     links, kinds = [s[0] for s in slots], [s[1] for s in slots]
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     opset = args.opset or DEFAULT_OPSET
+    joints = args.joints
+    if joints and joints not in ("all", "sensed"):
+        joints = joints.split(",")
     try:
         meta = export_estimator(
             model, args.sensor or None, links, kinds, args.out, dtype=dtype, opset=opset,
-            rank_rtol=args.rank_rtol,
+            rank_rtol=args.rank_rtol, moving_base=args.moving_base, torque_rows=args.torque_rows,
+            covariance=args.covariance, residual=args.residual or None,
+            joints=None if joints in (None, "all") else joints,
+            velocity_margin=args.velocity_margin,
         )  # fmt: skip
-    except ValueError as e:
+    except (ValueError, TorchContactError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(json.dumps({"path": str(args.out), **meta}, indent=1))
+    step = str(step_graph_path(args.out))
+    print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
     return 0
 
 
@@ -73,7 +83,19 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     e.add_argument("--opset", type=int, default=None)
     e.add_argument("--rank-rtol", type=float, default=None)
-    e.add_argument("--out", required=True, help="output .onnx path")
+    e.add_argument("--moving-base", action="store_true",
+                   help="inputs omega, domega, proper_acc (IMU on the root body)")
+    e.add_argument("--torque-rows", action="store_true",
+                   help="inputs tau_measured, tau_mask (joint torque sensors)")
+    e.add_argument("--covariance", action="store_true",
+                   help="input ft_cov, output covariance")
+    e.add_argument("--joints", default=None,
+                   help="joint torques to output: all (default), sensed, or NAME,NAME,...")
+    e.add_argument("--residual", action="append",
+                   help="residual-correction graph to chain (python -m export residual; repeat)")
+    e.add_argument("--velocity-margin", type=float, default=None,
+                   help="status bit 64 beyond this multiple of the URDF velocity limits")
+    e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by python -m training")
     r.add_argument("--out", required=True, help="output .onnx path")

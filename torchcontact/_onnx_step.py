@@ -171,6 +171,96 @@ class _Affine:
         return np.stack(self.cols, 1), np.array(self.off)[None, :]
 
 
+def torque_joints(em: EstimationModel, joints) -> tuple[int, ...]:
+    """Coordinates whose torques a graph outputs: all (None), named ones, or ``"sensed"``.
+
+    ``"sensed"``: the coordinates whose torque the chosen sensors determine, i.e. every body in
+    their joint's subtree, cut at the sensors, is an ancestor of (or in) a sensor region: the
+    joints inside the regions and those between a sensor and the next body outside.
+
+    Raises:
+        InputError: an unknown joint name.
+    """
+    from torchcontact.errors import InputError
+
+    tree, model = em.tree, em.model
+    if joints is None:
+        return tuple(range(tree.nv))
+    if joints == "sensed":
+        need = _region_bodies(em)
+        D = _cut_matrix(em)
+        out = []
+        for c in range(tree.nv):
+            drivers = [i for i, b in enumerate(tree.bodies) if b.coord == c]
+            if drivers and all(set(np.flatnonzero(D[i])) <= need for i in drivers):
+                out.append(c)
+        return tuple(out)
+    names = list(model.joint_names)
+    bad = [j for j in joints if j not in names]
+    if bad:
+        raise InputError(f"unknown joints {bad}; the model has {names}")
+    return tuple(sorted(names.index(j) for j in joints))
+
+
+def _region_bodies(em: EstimationModel) -> set[int]:
+    """Bodies the regions need: every region body and its ancestors."""
+    need: set[int] = set()
+    for b, r in enumerate(em.region_of_body):
+        if r >= 0:
+            while b >= 0 and b not in need:
+                need.add(b)
+                b = em.tree.bodies[b].parent
+    return need
+
+
+def _cut_matrix(em: EstimationModel) -> np.ndarray:
+    """``D[i, j] = 1``: a wrench on body ``j`` reaches body ``i``'s joint (cut at sensors)."""
+    tree = em.tree
+    nb = len(tree.bodies)
+    sensor_child = {reg.child for reg in em.regions}
+    D = np.zeros((nb, nb))
+    for j in range(nb):
+        i = j
+        D[i, j] = 1.0
+        while i not in sensor_child and tree.bodies[i].parent >= 0:
+            i = tree.bodies[i].parent
+            D[i, j] = 1.0
+    return D
+
+
+def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
+    """The layout restricted to the bodies its regions and the torques of ``coords`` need.
+
+    Kept: every region body and its ancestors, and every body in the cut subtree of a joint of
+    ``coords``, with their ancestors. Body indices are renumbered (parents first, as before).
+    """
+    from dataclasses import replace
+
+    tree = em.tree
+    need = _region_bodies(em)
+    D = _cut_matrix(em)
+    for i, b in enumerate(tree.bodies):
+        if b.coord in coords:
+            for j in np.flatnonzero(D[i]):
+                j = int(j)
+                while j >= 0 and j not in need:
+                    need.add(j)
+                    j = tree.bodies[j].parent
+    keep = sorted(need)
+    if len(keep) == len(tree.bodies):
+        return em
+    new = {old: k for k, old in enumerate(keep)}
+    bodies = tuple(replace(tree.bodies[o], parent=new[tree.bodies[o].parent] if o else -1)
+                   for o in keep)  # fmt: skip
+    order = tuple(new[o] for o in tree.order if o in new)
+    t2 = replace(tree, bodies=bodies, order=order,
+                 revolute=tuple(new[o] for o in tree.revolute if o in new))  # fmt: skip
+    slots = tuple(replace(sl, body=new[sl.body]) for sl in em.slots)
+    regions = tuple(replace(r, child=new[r.child]) for r in em.regions)
+    return replace(em, tree=t2, slots=slots, regions=regions,
+                   region_of_body=tuple(em.region_of_body[o] for o in keep), _programs={})  # fmt: skip
+
+
 class _Step:
     """Builder of one step graph (see the module docstring for the stages)."""
 
@@ -182,7 +272,10 @@ class _Step:
         with_cov: bool,
         dtype: np.dtype,
         residuals: Sequence = (),
+        coords: Sequence[int] | None = None,
     ) -> None:
+        self.coords = tuple(range(em.tree.nv)) if coords is None else tuple(coords)
+        em = prune(em, self.coords)
         self.em, self.tree = em, em.tree
         self.moving_base, self.torque_rows, self.with_cov = moving_base, torque_rows, with_cov
         self.gb = GraphBuilder(dtype, "torchcontact_step")
@@ -236,16 +329,7 @@ class _Step:
         return d
 
     def _cut_matrix(self) -> np.ndarray:
-        """``D[i, j] = 1``: a wrench on body ``j`` reaches body ``i``'s joint (cut at sensors)."""
-        sensor_child = {reg.child for reg in self.em.regions}
-        D = np.zeros((self.nb, self.nb))
-        for j in range(self.nb):
-            i = j
-            D[i, j] = 1.0
-            while i not in sensor_child and self.tree.bodies[i].parent >= 0:
-                i = self.tree.bodies[i].parent
-                D[i, j] = 1.0
-        return D
+        return _cut_matrix(self.em)
 
     def _static_pose(self, body: int) -> tuple[np.ndarray, np.ndarray] | None:
         """``T_root_body`` (internal frames) when no joint between the root and ``body`` moves."""
@@ -1225,7 +1309,7 @@ class _Step:
         gb, tree = self.gb, self.tree
         M = np.zeros((self.nb * 6, self.nv))
         for i, b in enumerate(tree.bodies):
-            if b.coord >= 0 and b.kind in ("revolute", "prismatic"):
+            if b.coord in self.coords and b.kind in ("revolute", "prismatic"):
                 M[i * 6 : i * 6 + 6, b.coord] += b.mult
         SF = gb.op("Mul", S0, F)
         return gb.op("MatMul", gb.op("Reshape", SF, gb.i([1, self.nb * 6])), gb.f(M))
@@ -1266,6 +1350,11 @@ class _Step:
         mask = np.zeros((1, out.size))
         mask[0, :n_mask] = 1.0
         badm = gb.op("And", gb.op("Greater", status, gb.f(0.0)), gb.const(mask > 0, bool))
+        if len(self.coords) < self.nv:  # torques the graph does not compute: NaN
+            unsel = np.zeros((1, out.size), dtype=bool)
+            t0 = out.fields["joint_torques"][0]
+            unsel[0, [t0 + c for c in range(self.nv) if c not in self.coords]] = True
+            badm = gb.op("Or", badm, gb.const(unsel, bool))
         nanv = gb.op("Where", badm, gb.f(np.nan), vals)
         # rank is 0 for a frame that was not estimated (as the estimator, which zeroes it)
         rk0 = out.fields["rank"][0]
@@ -1300,6 +1389,7 @@ def build_step_graph(
     with_cov: bool = False,
     dtype=np.float64,
     residuals: Sequence = (),
+    coords: Sequence[int] | None = None,
 ):
     """The single-frame graph of a layout.
 
@@ -1311,9 +1401,12 @@ def build_step_graph(
         dtype: float32 or float64.
         residuals: ``[(ResidualGraph, onnx.ModelProto)]`` corrections to chain (inputs
             ``extra``, ``h_in.<sensor>``; outputs ``h_out.<sensor>``).
+        coords: the joint coordinates whose torques to compute (:func:`torque_joints`; the
+            others are NaN); the graph keeps only the bodies these and the regions need.
 
     Returns:
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
-    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype), residuals).build()
+    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype), residuals,
+                 coords).build()

@@ -184,7 +184,7 @@ def _residual_meta(res: list, files: list[str]) -> list[dict]:
     ]
 
 
-def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list):
+def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list, coords):
     """The batched graph: the estimator program, one node per scalar operation over ``N``."""
     from torchcontact._onnx import GraphBuilder, emit_program, inline
     from torchcontact.estimation.programs import program
@@ -249,7 +249,12 @@ def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: lis
     i64 = _onnx_type(np.int64)
     gb.op("Reshape", cols["force"], gb.i([-1, K, 3]), out="force")
     gb.op("Reshape", cols["moment"], gb.i([-1, K, 3]), out="moment")
-    gb.op("Identity", cols["tau"], out="joint_torques")
+    if len(coords) < nv:  # torques not asked for: NaN
+        nan = np.full(nv, np.nan)
+        nan[list(coords)] = 0.0
+        gb.op("Add", cols["tau"], gb.f(nan), out="joint_torques")
+    else:
+        gb.op("Identity", cols["tau"], out="joint_torques")
     gb.op("Cast", cols["rank"], to=i64, out="rank")
     gb.op("Cast", cols["unknowns"], to=i64, out="unknowns")
     gb.op("Identity", cols["residual"], out="residual")
@@ -305,6 +310,7 @@ def export_estimator(
     velocity_margin: float | None = None,
     ft_range: Mapping[str, float | Sequence[float]] | None = None,
     residual: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    joints: Sequence[str] | str | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -337,6 +343,10 @@ def export_estimator(
         residual: residual-correction graph(s) (``python -m export residual``, or a correction
             stack graph) chained into both graphs: they then take the raw readings plus the
             corrections' ``extra`` inputs (and recurrent states).
+        joints: the joints whose torques to output (the others are NaN): None (all), names, or
+            ``"sensed"``, the joints whose torque the sensors determine (inside the sensors'
+            subtrees, and between a sensor and the next moving joint towards the root). The
+            single-frame graph keeps only the bodies the regions and these torques need.
 
     Returns:
         The metadata written into the files' ``metadata_props``.
@@ -377,7 +387,10 @@ def export_estimator(
     flags = (bool(moving_base), bool(torque_rows), bool(covariance))
     path = Path(path)
     step = step_graph_path(path)
-    gb, shapes = _batched_graph(em, flags, npd, res)
+    from torchcontact._onnx_step import torque_joints
+
+    coords = torque_joints(em, joints)
+    gb, shapes = _batched_graph(em, flags, npd, res, coords)
     files = [Path(rg.path).name for rg, _ in res]
     meta = {
         "format": FORMAT,
@@ -410,6 +423,7 @@ def export_estimator(
                                 for k, v in (ft_range or {}).items()}),  # fmt: skip
         "solver": "pivoted cholesky (torchcontact.solve); step graph: Gauss-Jordan form",
         "rank_rtol": repr(float(em.rank_rtol)),
+        "torque_joints": json.dumps([m.joint_names[c] for c in coords]),
         "residuals": json.dumps(_residual_meta(res, files)),
         "batched_graph": path.name,
         "step_graph": step.name if step_graph else "",
@@ -418,7 +432,7 @@ def export_estimator(
         "opset": str(opset),
     }
     if step_graph:
-        sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res)
+        sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
         meta["step_inputs"] = json.dumps(lin.as_dict())
         meta["step_outputs"] = json.dumps(lout.as_dict())
     else:

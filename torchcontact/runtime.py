@@ -434,9 +434,14 @@ class EstimatorRuntime:
         self._x = np.zeros((1, size), self.dtype)
         self._xv = {k: self._x[0, o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in
                     lay.items()}  # fmt: skip
-        self._lay, self._out = lay, out
+        self._lay = lay
+        self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in out.items()}
         self._fresh: set[str] = set()
         self._in_name = self.step_session.get_inputs()[0].name
+        # the binding's own run (skips the Python wrapper's per-call checks)
+        self._run = self.step_session._sess.run
+        self._out_names = [o.name for o in self.step_session.get_outputs()]
+        self._ro = ort.RunOptions()
 
     def _put(self, name: str, value: Any, default: float | None = 0.0) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
@@ -453,6 +458,9 @@ class EstimatorRuntime:
                 self._fresh.add(name)
             return
         self._fresh.discard(name)
+        if type(value) is np.ndarray and value.shape == view.shape:
+            view[...] = value
+            return
         arr = np.asarray(value)
         if arr.shape != view.shape:
             if arr.size == view.size and arr.ndim <= 1 + view.ndim and arr.squeeze().shape == \
@@ -512,10 +520,11 @@ class EstimatorRuntime:
         Raises:
             InputError: a wrong shape, a missing required input or extra column.
         """
-        if self.step_session is None:
+        if self.step_session is None:  # the batched graph with N = 1
+            ft = np.asarray(self._ft_array(ft), dtype=np.float64).reshape(self.S, 6)
             out = self.run(*(np.asarray(a)[None] if a is not None else None for a in
-                             (q, qd, qdd, self._ft_array(ft), positions, active, directions,
-                              wrenches, ft_residual)),  # fmt: skip
+                             (q, qd, qdd, ft, positions, active, directions, wrenches,
+                              ft_residual)),  # fmt: skip
                            **{k: (np.asarray(v)[None] if v is not None else None) for k, v in
                               dict(omega=omega, domega=domega, proper_acc=proper_acc,
                                    tau_measured=tau_measured, tau_mask=tau_mask,
@@ -532,9 +541,9 @@ class EstimatorRuntime:
         put("ft", ft, None)
         put("positions", positions)
         put("active", active, 1.0)
-        if "directions" in self._xv or directions is not None:
+        if "directions" in self._xv:  # (a layout without such slots does not read them)
             put("directions", directions)
-        if "wrenches" in self._xv or wrenches is not None:
+        if "wrenches" in self._xv:
             put("wrenches", wrenches)
         put("ft_residual", ft_residual)
         if "omega" in self._xv or omega is not None:
@@ -557,19 +566,19 @@ class EstimatorRuntime:
         for r in self._inside:
             if r.get("state_shape"):
                 self._xv[f"h_in.{r['sensor']}"][...] = self._state[r["sensor"]]
-        out = self.step_session.run(None, {self._in_name: self._x})[0][0]
+        out = self._run(self._out_names, {self._in_name: self._x}, self._ro)[0][0]
         lo = self._out
-        o, sh = lo["fm"]
-        fm = out[o : o + sh[0] * sh[1]].reshape(sh)
-        res = {
-            "force": fm[:, 0:3],
-            "moment": fm[:, 3:6],
-            "joint_torques": self._view(out, "joint_torques"),
-            "rank": self._view(out, "rank").astype(np.int64),
-            "unknowns": self._view(out, "unknowns").astype(np.int64),
-            "residual": self._view(out, "residual"),
-            "status": int(out[lo["status"][0]]),
-        }
+        a, b, sh = lo["fm"]
+        fm = out[a:b].reshape(sh)
+        a, b, _ = lo["joint_torques"]
+        res = {"force": fm[:, 0:3], "moment": fm[:, 3:6], "joint_torques": out[a:b]}
+        a, b, _ = lo["rank"]
+        res["rank"] = out[a:b].astype(np.int64)
+        a, b, _ = lo["unknowns"]
+        res["unknowns"] = out[a:b].astype(np.int64)
+        a, b, _ = lo["residual"]
+        res["residual"] = out[a:b]
+        res["status"] = int(out[lo["status"][0]])
         if "covariance" in lo:
             res["covariance"] = self._view(out, "covariance")
         for r in self._inside:
@@ -578,8 +587,8 @@ class EstimatorRuntime:
         return res
 
     def _view(self, out: np.ndarray, name: str) -> np.ndarray:
-        o, sh = self._out[name]
-        return out[o : o + int(np.prod(sh))].reshape(sh)
+        a, b, sh = self._out[name]
+        return out[a:b].reshape(sh)
 
     def _ft_array(self, ft: Any) -> np.ndarray:
         if isinstance(ft, Mapping):

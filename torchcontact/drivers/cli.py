@@ -153,9 +153,70 @@ def cmd_read(args: argparse.Namespace) -> int:
     return 0
 
 
+def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
+    """``run --onnx``: the exported estimator and its F/T source (a group for several sensors).
+
+    The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the graph's first);
+    ``--source NAME=ADDRESS`` adds the others (``tcp://HOST:PORT`` or a serial port, same
+    profile). ``--extra NAME=VALUE`` gives constant extra inputs of the residual corrections.
+    """
+    from torchcontact.drivers.live import OnnxEstimator, SensorGroup
+
+    spec: dict[str, Any] | None = None
+    if args.contacts:
+        with open(args.contacts) as f:
+            spec = json.load(f)
+    if args.extra:
+        extra = {}
+        for item in args.extra:
+            name, sep, value = item.partition("=")
+            try:
+                extra[name] = float(value)
+            except ValueError:
+                raise ValueError(f"--extra takes NAME=VALUE (a number), got {item!r}") from None
+            if not sep or not name:
+                raise ValueError(f"--extra takes NAME=VALUE, got {item!r}")
+        spec = dict(spec or {"positions": None})
+        spec["extra"] = extra
+    est = OnnxEstimator(args.onnx, None, robot=args.robot, residual=args.residual or None)
+    rt = est.runtime
+    if spec is not None:
+        if spec.get("positions") is None:
+            spec["positions"] = [[0.0, 0.0, 0.0]] * rt.K
+            spec.setdefault("active", [0.0] * rt.K)
+        est._fixed = est._check(spec)
+    primary = args.sensor or rt.sensor_names[0]
+    if primary not in rt.sensor_names:
+        raise ValueError(f"--sensor {primary!r} is not one of the graph's {list(rt.sensor_names)}")
+    addresses = {primary: None}
+    for item in args.source or []:
+        name, sep, address = item.partition("=")
+        if not sep or name not in rt.sensor_names:
+            raise ValueError(f"--source takes SENSOR=ADDRESS with SENSOR one of"
+                             f" {list(rt.sensor_names)}, got {item!r}")  # fmt: skip
+        addresses[name] = address
+    missing = [s for s in rt.sensor_names if s not in addresses]
+    if missing:
+        raise ValueError(
+            f"{args.onnx} reads sensors {list(rt.sensor_names)}; give the others with --source"
+            f" NAME=tcp://HOST:PORT (or a serial port): missing {missing}"
+        )
+    sources = []
+    for name in rt.sensor_names:
+        sub = argparse.Namespace(**vars(args))
+        sub.sensor = name
+        if addresses[name] is not None:
+            a = addresses[name]
+            sub.tcp, sub.port = (a.removeprefix("tcp://"), None) if a.startswith("tcp://") else (
+                None, a)  # fmt: skip
+        sources.append(_make_source(sub))
+    return est, sources[0] if len(sources) == 1 else SensorGroup(sources)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
     from torchcontact.drivers.base import FTConnectionError
+    from torchcontact.errors import ModelMismatchError
     from torchcontact.drivers.live import (
         JsonLinesPublisher,
         LiveLoop,
@@ -168,16 +229,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     try:
         if args.onnx:
-            from torchcontact.drivers.live import OnnxEstimator
-
-            spec = None
-            if args.contacts:
-                with open(args.contacts) as f:
-                    spec = json.load(f)
-            estimator = OnnxEstimator(args.onnx, spec)
+            estimator, src = _onnx_estimator(args)
         else:
+            if args.source or args.residual or args.robot or args.extra:
+                raise ValueError("--source, --residual, --robot and --extra go with --onnx")
             estimator = load_estimator(args.estimator)
-        src = _make_source(args)
+            src = _make_source(args)
         src.open()
     except (FTConnectionError, ProfileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -197,6 +254,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints)
     try:
         summary = loop.run(duration=args.duration)
+    except ModelMismatchError as exc:  # the joint states come from another robot: stop
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     finally:
         src.close()
         if log is not None:
@@ -248,8 +308,17 @@ def add_parser(subparsers: Any) -> None:
     which.add_argument(
         "--onnx",
         metavar="FILE.onnx",
-        help="exported contact estimator (python -m export estimator, one sensor) via onnxruntime",
+        help="exported contact estimator (python -m export estimator) via onnxruntime",
     )
+    run.add_argument("--robot", help="with --onnx: URDF (or tcarm) of the robot; refuses a graph"
+                     " exported for another one")  # fmt: skip
+    run.add_argument("--source", action="append", metavar="SENSOR=ADDRESS",
+                     help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial"
+                     " port (repeat)")  # fmt: skip
+    run.add_argument("--residual", action="append", metavar="FILE.onnx",
+                     help="with --onnx: a residual-correction graph to chain (repeat)")
+    run.add_argument("--extra", action="append", metavar="NAME=VALUE",
+                     help="with --onnx: a constant extra input of the corrections (repeat)")
     run.add_argument(
         "--contacts",
         metavar="SPEC.json",
