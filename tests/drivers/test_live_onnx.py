@@ -157,3 +157,161 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
         assert len(r["estimate"]["joint_torques"]) == scene["model"].nv
     assert main(["run", "--tcp", "127.0.0.1:1", "--onnx", str(tmp_path / "none.onnx")]) == 1
     assert "no such file" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- several sensors, residual, robot
+
+TWO_LINKS, TWO_KINDS = ("hand_skin", "tool"), ("force", "wrench")
+TOOL_WRENCH = [0.5, 1.0, -3.0, 0.02, -0.01, 0.03]  # on the tool, in its frame, about its origin
+
+
+@pytest.fixture(scope="module")
+def two_sensors(tmp_path_factory):
+    """The arm with a second sensor on its tool flange: forces on the hand and the tool."""
+    from torchcontact.export import export_estimator
+
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path(), keep_fixed=["tool_joint"])
+    model = model.with_ft_sensor("tool_ft", "tool_joint")
+    path = tmp_path_factory.mktemp("onnx2") / "tcarm2.onnx"
+    export_estimator(model, None, list(TWO_LINKS), list(TWO_KINDS), path)
+    est = tc.ContactEstimator(model)
+    q = np.linspace(0.3, -0.3, model.nv)
+    zero = torch.zeros(model.nv, dtype=torch.float64)
+    pos = torch.tensor([POSITIONS[1], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    given = tc.Contacts(TWO_LINKS, ("known", "known"), pos,
+                        wrenches=torch.tensor([[*FORCE, 0, 0, 0], TOOL_WRENCH],
+                                              dtype=torch.float64))  # fmt: skip
+    ft = est.predict_ft(torch.tensor(q), zero, zero, given)
+    return {"model": model, "path": path, "q": q, "pos": pos.numpy(),
+            "ft": {k: v.numpy() for k, v in ft.items()}}  # fmt: skip
+
+
+def _sender(q, port, stop):
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    z, seq = np.zeros_like(q), 0
+    while not stop.is_set():
+        seq += 1
+        tx.sendto(pack_joint_state(seq, 0, q, z, z), ("127.0.0.1", port))
+        time.sleep(0.01)
+
+
+def _free_udp_port():
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    return port
+
+
+def test_several_sensors_in_one_graph(two_sensors, tcp_sim):
+    from torchcontact.drivers.live import SensorGroup
+
+    s = two_sensors
+    sims = [tcp_sim(profile="generic-float32", signal=constant_signal(s["ft"][n]))
+            for n in ("base_ft", "tool_ft")]  # fmt: skip
+    group = SensorGroup([ModbusFTSensor("generic-float32", host="127.0.0.1", tcp_port=sim.port,
+                                        name=n) for sim, n in zip(sims, ("base_ft", "tool_ft"))])
+    group.open()
+    est = OnnxEstimator(str(s["path"]), {"positions": s["pos"], "active": [1, 1]},
+                        robot=s["model"])  # fmt: skip
+    records = []
+
+    class Keep:
+        def publish(self, r):
+            records.append(r)
+
+    joints = _joints(s["q"])
+    summary = LiveLoop(group, joints, est, [Keep()], require_joints=True).run(
+        max_frames=5, duration=5.0
+    )
+    group.close()
+    joints.close()
+    assert summary["published"] == 5 and summary["estimator_errors"] == 0
+    for r in records:
+        assert len(r["ft"]) == 12  # both readings, the graph's sensor order
+        e = r["estimate"]
+        assert e["status"] == 0 and len(e["rank"]) == 2
+        np.testing.assert_allclose(e["force"][0], FORCE, atol=2e-3)
+        np.testing.assert_allclose(e["force"][1], TOOL_WRENCH[:3], atol=2e-3)
+        np.testing.assert_allclose(e["moment"][1], TOOL_WRENCH[3:], atol=2e-3)
+
+
+def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, capsys):
+    from torchcontact.export import export_residual_checkpoint
+    from torchcontact.residual import ResidualMLP, feature_names, save_residual_model
+
+    s = two_sensors
+    model = s["model"]
+    names = feature_names(model.joint_names, ["temperature"])
+    torch.manual_seed(0)
+    mlp = ResidualMLP(len(names), 8, 1)
+    with torch.no_grad():  # a constant correction of the tool reading: [0, 0, 1 N, 0, 0, 0]
+        for p in mlp.parameters():
+            p.zero_()
+        mlp.set_normalisation(torch.zeros(4, len(names)), torch.tensor([[0.0, 0, 1, 0, 0, 0]] * 4))
+    ckpt = save_residual_model(tmp_path / "ck", mlp, {"features": names, "sensor": "tool_ft",
+                                                      "joint_names": list(model.joint_names),
+                                                      "robot_sha256": model.urdf_sha256})
+    export_residual_checkpoint(ckpt, tmp_path / "res.onnx")
+    offset = np.array([0.0, 0, 1, 0, 0, 0])
+    sims = {n: tcp_sim(profile="generic-float32",
+                       signal=constant_signal(s["ft"][n] + (offset if n == "tool_ft" else 0)))
+            for n in ("base_ft", "tool_ft")}  # fmt: skip
+    spec = tmp_path / "contacts.json"
+    spec.write_text(json.dumps({"positions": s["pos"].tolist(), "active": [1, 1]}))
+    port = _free_udp_port()
+    stop = threading.Event()
+    sender = threading.Thread(target=_sender, args=(s["q"], port, stop), daemon=True)
+    sender.start()
+    try:
+        rc = main(
+            ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sims['base_ft'].port}",
+             "--source", f"tool_ft=tcp://127.0.0.1:{sims['tool_ft'].port}",
+             "--onnx", str(s["path"]), "--contacts", str(spec), "--robot", "tcarm",
+             "--residual", str(tmp_path / "res.onnx"), "--extra", "temperature=31.5",
+             "--joints", f"udp://127.0.0.1:{port}", "--require-joints", "--duration", "1.0"]
+        )  # fmt: skip
+    finally:
+        stop.set()
+        sender.join()
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) > 3
+    for r in lines:  # the correction removed the 1 N the tool sensor adds
+        np.testing.assert_allclose(r["estimate"]["force"][1], TOOL_WRENCH[:3], atol=2e-3)
+        np.testing.assert_allclose(r["estimate"]["force"][0], FORCE, atol=2e-3)
+    # a sensor of the graph without a source: one clear error
+    assert main(["run", "--tcp", f"127.0.0.1:{sims['base_ft'].port}", "--profile",
+                 "generic-float32", "--onnx", str(s["path"])]) == 1  # fmt: skip
+    assert "missing ['tool_ft']" in capsys.readouterr().err
+
+
+def test_run_refuses_another_robot(scene, tcp_sim, tmp_path, capsys):
+    urdf = tmp_path / "pendulum.urdf"
+    urdf.write_text(tc.robots.pendulum_urdf())
+    sim = tcp_sim(profile="generic-float32", signal=constant_signal(scene["ft"]))
+    rc = main(["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}",
+               "--onnx", str(scene["path"]), "--robot", str(urdf), "--duration", "2"])
+    io = capsys.readouterr()
+    assert rc == 1 and io.out == ""
+    assert io.err.count("error:") == 1 and "exported for robot 'tcarm'" in io.err
+
+
+def test_wrong_joint_count_stops_the_loop(scene, tcp_sim, capsys):
+    """Joint states of another robot: one error, the loop stops instead of failing every frame."""
+    sim = tcp_sim(profile="generic-float32", signal=constant_signal(scene["ft"]))
+    port = _free_udp_port()
+    stop = threading.Event()
+    sender = threading.Thread(target=_sender, args=(np.zeros(3), port, stop), daemon=True)
+    sender.start()
+    t0 = time.monotonic()
+    try:
+        rc = main(["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}",
+                   "--onnx", str(scene["path"]), "--joints", f"udp://127.0.0.1:{port}",
+                   "--require-joints", "--duration", "10"])  # fmt: skip
+    finally:
+        stop.set()
+        sender.join()
+    io = capsys.readouterr()
+    assert rc == 1 and time.monotonic() - t0 < 5.0
+    assert io.out == "" and "joint state has 3 joints, the graph expects 7" in io.err

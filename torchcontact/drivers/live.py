@@ -268,10 +268,11 @@ ContactSpec = Callable[[np.ndarray], dict[str, Any]]
 
 
 class SensorGroup(FTSource):
-    """Several F/T sources read as one: each sample of the first carries the newest of all.
+    """Several F/T sources read as one: each sample of the first carries the latest of all.
 
-    The first source sets the pace (one sample of the group per sample of it); the others are
-    drained without waiting and their newest reading is attached. Samples are withheld until
+    The first source sets the pace (one sample of the group per sample of it); each other source
+    is read once without waiting (a polled sensor answers with its current value, a streaming one
+    with its next queued frame) and its latest reading is attached. Samples are withheld until
     every source has delivered once. Its samples' ``wrench`` is ``(6 S,)``, sources in order.
 
     Args:
@@ -315,7 +316,8 @@ class SensorGroup(FTSource):
     def read(self, timeout: float = 0.1) -> FTSample | None:
         """The next sample of the first source with the newest of the others, or None."""
         for i, s in enumerate(self.sources[1:], start=1):
-            while (x := s.read(0.0)) is not None:
+            x = s.read(0.0)
+            if x is not None:
                 self._latest[i] = x.wrench
         first = self.sources[0].read(timeout)
         if first is None:
