@@ -638,24 +638,23 @@ class _Step:
         one = self.e_aff.zero  # cos(0) = 1
         index = [[idx["cos"][i], idx["sin"][i], E + idx["disp"][i], one] for i in range(nb)]
 
-        def local(i: int, a: list, _b: list) -> list:
-            b = tree.bodies[i]
-            if i == 0:
-                return [*_flat(sp.EYE3), 0.0, 0.0, 0.0]
-            c, s, d = a[0], a[1], a[2]
-            if b.kind == "revolute":
-                return [*_flat(sp.m_mul(b.C, sp.rot_z(c, s))), *b.p]
-            if b.kind == "prismatic":
-                axis = tuple(row[2] for row in b.C)
-                return [*_flat(b.C), *sp.v_add(b.p, sp.v_scale(d, axis))]
-            return [*_flat(b.C), *b.p]
+        # the first doubling step directly from the angles: T_parent(i) T_i, bilinear in the
+        # (cos, sin) of the body and of its parent (the root's transform is the identity)
+        par = [max(b.parent, 0) for b in tree.bodies]
 
-        T = bilinear(gb, Operand(src, 4, "vec", one=3, index=np.array(index)), None, nb, local,
-                     12, hint="joint")  # fmt: skip
-        # prefix products along the tree by pointer doubling: T_i <- T_{a(i)} T_i
+        def two(i: int, a: list, b: list) -> list:
+            R, p = sp.pose_compose(self._joint_pose(par[i] if i else 0, a),
+                                   self._joint_pose(i, b))  # fmt: skip
+            return [*_flat(R), *p]
+
+        idx_arr = np.array(index)
+        T = bilinear(gb, Operand(src, 4, "vec", one=3, index=idx_arr[par]),
+                     Operand(src, 4, "vec", one=3, index=idx_arr), nb, two, 12,
+                     hint="pose")  # fmt: skip
+        # further doubling: T_i <- T_{a(i)} T_i with a(i) the 2^k-th ancestor (or the root)
         depth = self._depths()
-        anc = [b.parent if b.parent >= 0 else 0 for b in tree.bodies]
-        hop = 1
+        anc = [par[par[i]] for i in range(nb)]
+        hop = 2
         while hop < max(depth):
             a_k = list(anc)
 
@@ -669,6 +668,19 @@ class _Step:
             anc = [anc[anc[i]] for i in range(nb)]
             hop *= 2
         return T
+
+    def _joint_pose(self, i: int, a: list) -> sp.Pose:
+        """``T_parent_i`` of body ``i`` from ``[cos, sin, displacement, 1]`` (linear in them)."""
+        b = self.tree.bodies[i]
+        if i == 0:
+            return sp.EYE3, sp.ZERO3
+        c, s, d = a[0], a[1], a[2]
+        if b.kind == "revolute":
+            return sp.m_mul(b.C, sp.rot_z(c, s)), b.p
+        if b.kind == "prismatic":
+            axis = tuple(row[2] for row in b.C)
+            return b.C, sp.v_add(b.p, sp.v_scale(d, axis))
+        return b.C, b.p
 
     @staticmethod
     def _tp_stage(_i: int, t: list, _b: list) -> list:
