@@ -51,9 +51,14 @@ def _percentiles(ns: list[int]) -> tuple[float, float]:
 def _frame(model: tc.RobotModel, K: int, seed: int = 0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     nv = model.nv
-    return dict(q=rng.uniform(-1, 1, nv), qd=rng.uniform(-1, 1, nv), qdd=rng.uniform(-1, 1, nv),
-                ft=rng.normal(0, 10, (1, 6)), positions=rng.uniform(-0.03, 0.03, (K, 3)),
-                active=np.ones(K))  # fmt: skip
+    return dict(
+        q=rng.uniform(-1, 1, nv),
+        qd=rng.uniform(-1, 1, nv),
+        qdd=rng.uniform(-1, 1, nv),
+        ft=rng.normal(0, 10, (1, 6)),
+        positions=rng.uniform(-0.03, 0.03, (K, 3)),
+        active=np.ones(K),
+    )
 
 
 def _nodes(path: Path) -> tuple[int, int]:
@@ -71,9 +76,16 @@ def latency(calls: int, d: Path) -> None:
     icub = tc.RobotModel.from_urdf(icub_path())
     names = feature_names(icub.joint_names, ["temperature"])
     torch.manual_seed(0)
-    ckpt = save_residual_model(d / "residual", ResidualMLP(len(names)), {
-        "features": names, "joint_names": list(icub.joint_names), "sensor": "l_arm_ft",
-        "robot_sha256": icub.urdf_sha256})  # fmt: skip
+    ckpt = save_residual_model(
+        d / "residual",
+        ResidualMLP(len(names)),
+        {
+            "features": names,
+            "joint_names": list(icub.joint_names),
+            "sensor": "l_arm_ft",
+            "robot_sha256": icub.urdf_sha256,
+        },
+    )
     export_residual_checkpoint(ckpt, d / "residual.onnx")
     configs = {}  # name -> (runtime, frame, extra, path)
     for dt in (torch.float32, torch.float64):
@@ -82,15 +94,25 @@ def latency(calls: int, d: Path) -> None:
         export_estimator(arm, None, *TCARM, p, dtype=dt)
         configs[f"tcarm, 2 force slots, {tag}"] = (arm, p, {}, 2)
         p = d / f"icub-res-sensed-{tag}.onnx"
-        export_estimator(icub, ["l_arm_ft"], *ICUB, p, dtype=dt, residual=d / "residual.onnx",
-                         joints="sensed")  # fmt: skip
+        export_estimator(
+            icub, ["l_arm_ft"], *ICUB, p, dtype=dt, residual=d / "residual.onnx", joints="sensed"
+        )
         configs[f"iCub l_arm_ft, 4 slots, residual, sensed joints, {tag}"] = (
-            icub, p, {"temperature": 31.0}, 4)
+            icub,
+            p,
+            {"temperature": 31.0},
+            4,
+        )
     p = d / "icub-res-all.onnx"
-    export_estimator(icub, ["l_arm_ft"], *ICUB, p, dtype=torch.float32,
-                     residual=d / "residual.onnx")  # fmt: skip
+    export_estimator(
+        icub, ["l_arm_ft"], *ICUB, p, dtype=torch.float32, residual=d / "residual.onnx"
+    )
     configs["iCub l_arm_ft, 4 slots, residual, all 32 joints, float32"] = (
-        icub, p, {"temperature": 31.0}, 4)
+        icub,
+        p,
+        {"temperature": 31.0},
+        4,
+    )
     p = d / "icub-plain.onnx"
     export_estimator(icub, ["l_arm_ft"], *ICUB, p, dtype=torch.float32, joints="sensed")
     configs["iCub l_arm_ft, 4 slots, no residual, sensed joints, float32"] = (icub, p, {}, 4)
@@ -118,18 +140,20 @@ def latency(calls: int, d: Path) -> None:
         for name, (step, raw, _) in runs.items():
             for _ in range(50):
                 step()
-            for i in range(calls // rounds):
+            for _ in range(calls // rounds):
                 t0 = time.perf_counter_ns()
                 step()
                 times[name][0].append(time.perf_counter_ns() - t0)
-            for i in range(calls // rounds):
+            for _ in range(calls // rounds):
                 t0 = time.perf_counter_ns()
                 raw()
                 times[name][1].append(time.perf_counter_ns() - t0)
     # reference in the same process: one frame through the torch estimator (eager)
     ref = {}
-    for label, model, sensors, (links, kinds) in (("tcarm", arm, None, TCARM),
-                                                  ("iCub l_arm_ft", icub, ["l_arm_ft"], ICUB)):
+    for label, model, sensors, (links, kinds) in (
+        ("tcarm", arm, None, TCARM),
+        ("iCub l_arm_ft", icub, ["l_arm_ft"], ICUB),
+    ):
         est = tc.ContactEstimator(model, sensors, backend="eager")
         f = {k: torch.as_tensor(v)[None] for k, v in _frame(model, len(links)).items()}
         c = tc.Contacts(links, kinds, f["positions"])
@@ -148,11 +172,15 @@ def latency(calls: int, d: Path) -> None:
     for name, (_, _, nodes) in runs.items():
         s50, s99 = _percentiles(times[name][0])
         r50, r99 = _percentiles(times[name][1])
-        print(f"| {name} | {nodes[0]} / {nodes[1]} | {s50:,.0f} / {s99:,.0f} |"
-              f" {r50:,.0f} / {r99:,.0f} |")  # fmt: skip
+        print(
+            f"| {name} | {nodes[0]} / {nodes[1]} | {s50:,.0f} / {s99:,.0f} |"
+            f" {r50:,.0f} / {r99:,.0f} |"
+        )
     for label, (p50, p99) in ref.items():
-        print(f"| reference: torch estimator, eager, 1 frame, {label} | - |"
-              f" {p50:,.0f} / {p99:,.0f} | - |")  # fmt: skip
+        print(
+            f"| reference: torch estimator, eager, 1 frame, {label} | - |"
+            f" {p50:,.0f} / {p99:,.0f} | - |"
+        )
 
 
 def session_choices(calls: int, d: Path) -> None:
@@ -177,19 +205,25 @@ def session_choices(calls: int, d: Path) -> None:
 
     variants = {
         "chosen: 1 thread, sequential, no spinning, ORT_ENABLE_ALL": opts(),
-        "2 intra-op threads, spinning": opts(intra_op_num_threads=2,
-                                             **{"cfg:session.intra_op.allow_spinning": "1"}),
+        "2 intra-op threads, spinning": opts(
+            intra_op_num_threads=2, **{"cfg:session.intra_op.allow_spinning": "1"}
+        ),
         "2 intra-op threads, no spinning": opts(intra_op_num_threads=2),
         "parallel execution, 2 inter-op threads": opts(
-            execution_mode=ort.ExecutionMode.ORT_PARALLEL, inter_op_num_threads=2),
+            execution_mode=ort.ExecutionMode.ORT_PARALLEL, inter_op_num_threads=2
+        ),
         "ORT_ENABLE_BASIC": opts(
-            graph_optimization_level=ort.GraphOptimizationLevel.ORT_ENABLE_BASIC),
+            graph_optimization_level=ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+        ),
         "ORT_DISABLE_ALL": opts(
-            graph_optimization_level=ort.GraphOptimizationLevel.ORT_DISABLE_ALL),
+            graph_optimization_level=ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+        ),
         "no memory pattern": opts(enable_mem_pattern=False),
-    }  # fmt: skip
-    sess = {k: ort.InferenceSession(str(step), v, providers=["CPUExecutionProvider"])
-            for k, v in variants.items()}  # fmt: skip
+    }
+    sess = {
+        k: ort.InferenceSession(str(step), v, providers=["CPUExecutionProvider"])
+        for k, v in variants.items()
+    }
     times = {k: [] for k in sess}
     for _ in range(10):
         for k, s in sess.items():
@@ -220,10 +254,15 @@ def throughput(frames: int, d: Path) -> None:
         export_estimator(arm, None, *TCARM, path, dtype=dt)
         rt = EstimatorRuntime(path)
         f = rt.dtype
-        x = dict(q=rng.uniform(-1, 1, (n, 7)), qd=rng.uniform(-1, 1, (n, 7)),
-                 qdd=rng.uniform(-1, 1, (n, 7)), ft=rng.normal(0, 10, (n, 1, 6)),
-                 positions=rng.uniform(-0.05, 0.05, (n, 2, 3)), active=np.ones((n, 2)))
-        x = {k: v.astype(f) for k, v in x.items()}  # fmt: skip
+        x = dict(
+            q=rng.uniform(-1, 1, (n, 7)),
+            qd=rng.uniform(-1, 1, (n, 7)),
+            qdd=rng.uniform(-1, 1, (n, 7)),
+            ft=rng.normal(0, 10, (n, 1, 6)),
+            positions=rng.uniform(-0.05, 0.05, (n, 2, 3)),
+            active=np.ones((n, 2)),
+        )
+        x = {k: v.astype(f) for k, v in x.items()}
         rt.run(**{k: v[:1000] for k, v in x.items()})
         best = []
         for _ in range(3):
@@ -240,14 +279,22 @@ def throughput(frames: int, d: Path) -> None:
             torch.set_num_threads(1)
             for backend in ("eager", "cpu"):
                 est = tc.ContactEstimator(m, backend=backend)
-                est.estimate(xt["q"][:4096], xt["qd"][:4096], xt["qdd"][:4096],
-                             {"base_ft": xt["ft"][:4096, 0]},
-                             tc.Contacts(*TCARM, xt["positions"][:4096]))  # fmt: skip
+                est.estimate(
+                    xt["q"][:4096],
+                    xt["qd"][:4096],
+                    xt["qdd"][:4096],
+                    {"base_ft": xt["ft"][:4096, 0]},
+                    tc.Contacts(*TCARM, xt["positions"][:4096]),
+                )
                 t0 = time.perf_counter()
                 est.estimate(xt["q"], xt["qd"], xt["qdd"], {"base_ft": xt["ft"][:, 0]}, c)
                 label = "eager torch" if backend == "eager" else "generated C++ kernel"
-                rows.append((f"reference: torch estimator, {label}, {tag}, 1 thread",
-                             n / (time.perf_counter() - t0)))  # fmt: skip
+                rows.append(
+                    (
+                        f"reference: torch estimator, {label}, {tag}, 1 thread",
+                        n / (time.perf_counter() - t0),
+                    )
+                )
             torch.set_num_threads(prev)
     print(f"\n3. batched throughput at {n:,} frames, bundled arm (frames/s)\n")
     print("| estimator | frames/s |\n|---|---|")

@@ -83,18 +83,33 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     e.add_argument("--opset", type=int, default=None)
     e.add_argument("--rank-rtol", type=float, default=None)
-    e.add_argument("--moving-base", action="store_true",
-                   help="inputs omega, domega, proper_acc (IMU on the root body)")
-    e.add_argument("--torque-rows", action="store_true",
-                   help="inputs tau_measured, tau_mask (joint torque sensors)")
-    e.add_argument("--covariance", action="store_true",
-                   help="input ft_cov, output covariance")
-    e.add_argument("--joints", default=None,
-                   help="joint torques to output: all (default), sensed, or NAME,NAME,...")
-    e.add_argument("--residual", action="append",
-                   help="residual-correction graph to chain (python -m export residual; repeat)")
-    e.add_argument("--velocity-margin", type=float, default=None,
-                   help="status bit 64 beyond this multiple of the URDF velocity limits")
+    e.add_argument(
+        "--moving-base",
+        action="store_true",
+        help="inputs omega, domega, proper_acc (IMU on the root body)",
+    )
+    e.add_argument(
+        "--torque-rows",
+        action="store_true",
+        help="inputs tau_measured, tau_mask (joint torque sensors)",
+    )
+    e.add_argument("--covariance", action="store_true", help="input ft_cov, output covariance")
+    e.add_argument(
+        "--joints",
+        default=None,
+        help="joint torques to output: all (default), sensed, or NAME,NAME,...",
+    )
+    e.add_argument(
+        "--residual",
+        action="append",
+        help="residual-correction graph to chain (python -m export residual; repeat)",
+    )
+    e.add_argument(
+        "--velocity-margin",
+        type=float,
+        default=None,
+        help="status bit 64 beyond this multiple of the URDF velocity limits",
+    )
     e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by python -m training")

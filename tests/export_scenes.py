@@ -26,27 +26,42 @@ import torchcontact as tc
 # (moving_base, torque_rows, covariance), joints whose torques are output
 LAYOUTS = {
     "tcarm": dict(
-        robot="tcarm", sensors=None, links=("forearm_skin", "hand_skin"), kinds=("force", "force"),
-        patterns=((1, 0), (0, 1), (1, 1), (0, 0)), flags=(False, False, False), joints=None,
+        robot="tcarm",
+        sensors=None,
+        links=("forearm_skin", "hand_skin"),
+        kinds=("force", "force"),
+        patterns=((1, 0), (0, 1), (1, 1), (0, 0)),
+        flags=(False, False, False),
+        joints=None,
     ),
     "tcarm2": dict(
-        robot="tcarm2", sensors=None, links=("forearm_skin", "hand_skin", "tool", "hand_skin"),
+        robot="tcarm2",
+        sensors=None,
+        links=("forearm_skin", "hand_skin", "tool", "hand_skin"),
         kinds=("force", "force_dir", "wrench", "known"),
         patterns=((1, 0, 1, 1), (0, 1, 1, 0), (1, 1, 0, 1), (1, 1, 1, 1)),
-        flags=(True, False, True), joints=None,
+        flags=(True, False, True),
+        joints=None,
     ),
     "panda": dict(
-        robot="panda", sensors=None, links=("panda_leftfinger", "panda_rightfinger", "panda_hand"),
-        kinds=("force", "force", "force_dir"), patterns=((1, 0, 0), (1, 1, 0), (1, 1, 1), (0, 0, 1)),
-        flags=(True, True, True), joints=None,
+        robot="panda",
+        sensors=None,
+        links=("panda_leftfinger", "panda_rightfinger", "panda_hand"),
+        kinds=("force", "force", "force_dir"),
+        patterns=((1, 0, 0), (1, 1, 0), (1, 1, 1), (0, 0, 1)),
+        flags=(True, True, True),
+        joints=None,
     ),
     "icub": dict(
-        robot="icub", sensors=("l_arm_ft",), links=("l_hand", "l_hand", "l_forearm", "l_forearm"),
+        robot="icub",
+        sensors=("l_arm_ft",),
+        links=("l_hand", "l_hand", "l_forearm", "l_forearm"),
         kinds=("force", "force", "force", "wrench"),
         patterns=((1, 0, 0, 0), (1, 1, 0, 0), (1, 0, 1, 1), (0, 1, 1, 0)),
-        flags=(False, False, False), joints="sensed",
+        flags=(False, False, False),
+        joints="sensed",
     ),
-}  # fmt: skip
+}
 
 
 @functools.cache
@@ -68,8 +83,9 @@ def reference_estimator(name: str, dtype=np.float64, compute=np.float64) -> tc.C
     lay = LAYOUTS[name]
     tdt = torch.float32 if compute == np.float32 else torch.float64
     rtol = tc.solve.RANK_RTOL[torch.float32 if dtype == np.float32 else torch.float64]
-    return tc.ContactEstimator(robot_model(lay["robot"]).to(dtype=tdt), lay["sensors"],
-                               rank_rtol=rtol)  # fmt: skip
+    return tc.ContactEstimator(
+        robot_model(lay["robot"]).to(dtype=tdt), lay["sensors"], rank_rtol=rtol
+    )
 
 
 def scene(
@@ -119,14 +135,22 @@ def scene(
     ft = torch.stack([ft[s] for s in est.sensor_names], 1)  # (N, S, 6)
     ft = ft + r(n, S, 6, scale=noise)
     residual = r(n, S, 6, scale=0.2)
-    x.update(q=q, qd=qd, qdd=qdd, ft=ft + residual, ft_residual=residual, positions=pos,
-             directions=dirs, wrenches=wr * (torch.tensor([k == "known" for k in kinds],
-                                                          dtype=torch.float64)[:, None]),
-             active=active)  # fmt: skip
+    x.update(
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        ft=ft + residual,
+        ft_residual=residual,
+        positions=pos,
+        directions=dirs,
+        wrenches=wr * (torch.tensor([k == "known" for k in kinds], dtype=torch.float64)[:, None]),
+        active=active,
+    )
     if torque:
         given = tc.Contacts(links, ("known",) * K, pos, wrenches=wr, active=active > 0)
-        tau = est.estimate(q, qd, qdd, {s: ft[:, i] for i, s in enumerate(est.sensor_names)},
-                           given, base=base).joint_torques  # fmt: skip
+        tau = est.estimate(
+            q, qd, qdd, {s: ft[:, i] for i, s in enumerate(est.sensor_names)}, given, base=base
+        ).joint_torques
         x["tau_measured"] = tau + r(n, nv, scale=0.05)
         x["tau_mask"] = (torch.rand(n, nv, generator=g) > 0.3).double()
     if cov:
@@ -153,8 +177,14 @@ def reference(
     tdt = torch.float32 if compute == np.float32 else torch.float64
     t = {k: torch.as_tensor(v, dtype=tdt) for k, v in x.items() if k != "truth"}
     ft = {s: t["ft"][:, i] - t["ft_residual"][:, i] for i, s in enumerate(est.sensor_names)}
-    c = tc.Contacts(lay["links"], lay["kinds"], t["positions"], t["directions"], t["wrenches"],
-                    t["active"] > 0.5)  # fmt: skip
+    c = tc.Contacts(
+        lay["links"],
+        lay["kinds"],
+        t["positions"],
+        t["directions"],
+        t["wrenches"],
+        t["active"] > 0.5,
+    )
     kw = {}
     if "omega" in t:
         kw["base"] = tc.BaseMotion(t["omega"], t["domega"], t["proper_acc"])
@@ -163,10 +193,14 @@ def reference(
     if "ft_cov" in t:
         kw["ft_covariance"] = {s: t["ft_cov"][:, i] for i, s in enumerate(est.sensor_names)}
     out = est.estimate(t["q"], t["qd"], t["qdd"], ft, c, backend="eager", **kw)
-    return type(out)(*[{k: v.double() if v.is_floating_point() else v for k, v in f.items()}
-                       if isinstance(f, dict) else (f.double() if f is not None and
-                                                    f.is_floating_point() else f)
-                       for f in out])  # fmt: skip
+    return type(out)(
+        *[
+            {k: v.double() if v.is_floating_point() else v for k, v in f.items()}
+            if isinstance(f, dict)
+            else (f.double() if f is not None and f.is_floating_point() else f)
+            for f in out
+        ]
+    )
 
 
 #: Parity of the exported graphs with the torch estimator (float64, the graph dtype's rank rule),
@@ -211,8 +245,11 @@ def assert_parity(out: dict, ref, sensors, dtype, frames=slice(None), ref32=None
         err = np.nan_to_num(np.abs(got - want)).reshape(n, -1).max(-1)
         allowed = np.full(n, tol * scale)
         if ref32 is not None:  # what float32 rounding costs the torch estimator on each frame
-            base = per_sensor(ref32, name) if name == "residual" else getattr(ref32,
-                                                                              name).numpy()[frames]
+            base = (
+                per_sensor(ref32, name)
+                if name == "residual"
+                else getattr(ref32, name).numpy()[frames]
+            )
             base = np.nan_to_num(np.abs(base.reshape(want.shape) - want)).reshape(n, -1).max(-1)
             allowed = np.maximum(allowed, 2.0 * base)
         bad = np.flatnonzero(err > allowed)
@@ -220,5 +257,6 @@ def assert_parity(out: dict, ref, sensors, dtype, frames=slice(None), ref32=None
     for name in ("rank", "unknowns"):
         want = per_sensor(ref, name)
         np.testing.assert_array_equal(np.asarray(out[name]).reshape(want.shape), want, name)
-    np.testing.assert_array_equal(np.asarray(out["status"]).reshape(-1),
-                                  ref.status.numpy()[frames].reshape(-1))  # fmt: skip
+    np.testing.assert_array_equal(
+        np.asarray(out["status"]).reshape(-1), ref.status.numpy()[frames].reshape(-1)
+    )

@@ -32,6 +32,7 @@ OPSET = 18
 #: IR version of the files (onnxruntime >= 1.16 loads it).
 IR_VERSION = 9
 
+
 class GraphBuilder:
     """Nodes, constants, inputs and outputs of one ONNX graph.
 
@@ -76,8 +77,9 @@ class GraphBuilder:
 
         arr = np.asarray(value)
         if dtype is None:
-            dtype = np.int64 if arr.dtype.kind in "iu" else (bool if arr.dtype == bool else
-                                                             self.dtype)  # fmt: skip
+            dtype = (
+                np.int64 if arr.dtype.kind in "iu" else (bool if arr.dtype == bool else self.dtype)
+            )
         arr = np.ascontiguousarray(arr, dtype=dtype)
         key = (arr.dtype.str, arr.shape, arr.tobytes())
         name = self._consts.get(key)
@@ -287,8 +289,8 @@ def bilinear(
     monos: list = []
     seen: dict = {}
     for polys in per_row:
-        for o, p in enumerate(polys):
-            for m, c in p.items():
+        for p in polys:
+            for m in p:
                 if m == ():
                     continue
                 if m not in seen:
@@ -372,13 +374,23 @@ def emit_program(
             continue
         # Split + Squeeze: per-column Gathers get fused by onnxruntime into a Split whose
         # (N, 1) outputs take the slow broadcasting path
-        cols = ([inputs[name]] if len(syms) == 1 else
-                gb.op("Split", inputs[name], axis=1, num_outputs=len(syms), n_out=len(syms)))
+        cols = (
+            [inputs[name]]
+            if len(syms) == 1
+            else gb.op("Split", inputs[name], axis=1, num_outputs=len(syms), n_out=len(syms))
+        )
         for s, c in zip(syms, cols, strict=True):
             vals[s.index] = gb.op("Squeeze", c, gb.i([1]))
     needed = _live(tr, out)
-    binary = {"add": "Add", "sub": "Sub", "mul": "Mul", "div": "Div", "gt": "Greater",
-              "and": "And", "or": "Or"}  # fmt: skip
+    binary = {
+        "add": "Add",
+        "sub": "Sub",
+        "mul": "Mul",
+        "div": "Div",
+        "gt": "Greater",
+        "and": "And",
+        "or": "Or",
+    }
     unary = {"neg": "Neg", "sqrt": "Sqrt", "sin": "Sin", "cos": "Cos", "not": "Not"}
 
     def v(x) -> str:

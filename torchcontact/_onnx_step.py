@@ -2,9 +2,10 @@
 
 :mod:`torchcontact.export` writes two graphs per layout. The *batched* one is the estimator
 program emitted node by node (:func:`torchcontact._onnx.emit_program`): thousands of nodes, each
-running over ``N`` frames. For one frame, onnxruntime's cost is per node (0.3-0.7 µs), so this
-module builds the *step* graph differently: every stage runs on all bodies (or slots) at once,
-with the tree folded into constant matrices, and the solve works on whole matrices.
+running over ``N`` frames. For one frame, onnxruntime's cost is per node (0.5-1 µs measured
+here, whatever the tensor sizes of this graph), so this module builds the *step* graph
+differently: every stage runs on all bodies (or slots) at once, with the tree folded into
+constant matrices, and the solve works on whole matrices.
 
 Formulation (root frame, about the root origin; Featherstone, *Rigid Body Dynamics Algorithms*,
 2008, Ch. 2 and 5; Del Prete et al., HRI 2012, Sec. 2):
@@ -51,7 +52,7 @@ import numpy as np
 
 from torchcontact import spatial as sp
 from torchcontact._onnx import GraphBuilder, Operand, bilinear
-from torchcontact._scalar import add, mul, neg, sub, sum_
+from torchcontact._scalar import mul, neg, sum_
 from torchcontact.contacts import KINDS
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
@@ -87,8 +88,12 @@ def _skew(v: sp.V3) -> sp.M3:
 
 def _tp(t: Sequence) -> tuple[sp.M3, sp.V3, sp.M3, sp.V3]:
     """``R``, ``p``, ``pR = [p]x R`` and ``-R^T p`` of a pose's feature row."""
-    return (_rows(t[_TP_R : _TP_R + 9]), tuple(t[_TP_P : _TP_P + 3]),
-            _rows(t[_TP_PR : _TP_PR + 9]), tuple(t[_TP_PINV : _TP_PINV + 3]))  # fmt: skip
+    return (
+        _rows(t[_TP_R : _TP_R + 9]),
+        tuple(t[_TP_P : _TP_P + 3]),
+        _rows(t[_TP_PR : _TP_PR + 9]),
+        tuple(t[_TP_PINV : _TP_PINV + 3]),
+    )
 
 
 # The adjoint maps of a pose T = (R, p) written with pR = [p]x R, so that each is bilinear in
@@ -250,15 +255,23 @@ def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
     if len(keep) == len(tree.bodies):
         return em
     new = {old: k for k, old in enumerate(keep)}
-    bodies = tuple(replace(tree.bodies[o], parent=new[tree.bodies[o].parent] if o else -1)
-                   for o in keep)  # fmt: skip
+    bodies = tuple(
+        replace(tree.bodies[o], parent=new[tree.bodies[o].parent] if o else -1) for o in keep
+    )
     order = tuple(new[o] for o in tree.order if o in new)
-    t2 = replace(tree, bodies=bodies, order=order,
-                 revolute=tuple(new[o] for o in tree.revolute if o in new))  # fmt: skip
+    t2 = replace(
+        tree, bodies=bodies, order=order, revolute=tuple(new[o] for o in tree.revolute if o in new)
+    )
     slots = tuple(replace(sl, body=new[sl.body]) for sl in em.slots)
     regions = tuple(replace(r, child=new[r.child]) for r in em.regions)
-    return replace(em, tree=t2, slots=slots, regions=regions,
-                   region_of_body=tuple(em.region_of_body[o] for o in keep), _programs={})  # fmt: skip
+    return replace(
+        em,
+        tree=t2,
+        slots=slots,
+        regions=regions,
+        region_of_body=tuple(em.region_of_body[o] for o in keep),
+        _programs={},
+    )
 
 
 class _Step:
@@ -294,10 +307,17 @@ class _Step:
     # ------------------------------------------------------------------------------ input layout
 
     def _inputs(self) -> None:
-        em, nv, S, K = self.em, self.nv, self.S, self.K
+        nv, S, K = self.nv, self.S, self.K
         lay = StepLayout()
-        fields = (("q", (nv,)), ("qd", (nv,)), ("qdd", (nv,)), ("ft", (S, 6)),
-                  ("ft_residual", (S, 6)), ("positions", (K, 3)), ("active", (K,)))  # fmt: skip
+        fields = (
+            ("q", (nv,)),
+            ("qd", (nv,)),
+            ("qdd", (nv,)),
+            ("ft", (S, 6)),
+            ("ft_residual", (S, 6)),
+            ("positions", (K, 3)),
+            ("active", (K,)),
+        )
         for name, shape in fields:
             lay.add(name, shape)
         if "force_dir" in self.kinds:
@@ -318,7 +338,6 @@ class _Step:
                 if rg.state_shape:
                     lay.add(f"h_in.{rg.sensor}", tuple(rg.state_shape))
         self.lay = lay
-        del em
 
     # ---------------------------------------------------------------------------- tree constants
 
@@ -369,13 +388,13 @@ class _Step:
         e = gb.op("Reshape", gb.op("Gemm", xc, gb.f(M), gb.f(off)), gb.i([M.shape[1]]))
         self.e = e
         act = self._activity(e, idx)  # (K [+ nv], 1) 0/1: slot activity [, torque mask]
-        self.actK = (gb.op("Slice", act, gb.i([0]), gb.i([self.K]), gb.i([0]))
-                     if self.torque_rows else act)  # fmt: skip
+        self.actK = (
+            gb.op("Slice", act, gb.i([0]), gb.i([self.K]), gb.i([0])) if self.torque_rows else act
+        )
         status_in = self._status_inputs(x, bad, act, e, idx)
         # ---- 2. poses
         T = self._poses(e, idx)
-        TP = bilinear(gb, Operand(T, 13, one=_T_ONE), None, self.nb, self._tp_stage, 24,
-                      hint="tp")  # fmt: skip
+        TP = bilinear(gb, Operand(T, 13, one=_T_ONE), None, self.nb, self._tp_stage, 24, hint="tp")
         # ---- 3. motion
         VA = self._motion(TP, e, idx)
         # ---- 4. body wrenches and transmitted wrenches
@@ -409,14 +428,23 @@ class _Step:
             y, rank = self._solve(G_all[r], b_all[r], R, self._min_rank(reg), ncols)
             ys.append(y)
             ranks.append(rank)
-            res = gb.op("Sub", b_all[r], gb.op("MatMul", G_all[r], y if ncols == 1 else
-                                                  gb.op("Slice", y, gb.i([0]), gb.i([1]),
-                                                        gb.i([1]))))  # fmt: skip
+            res = gb.op(
+                "Sub",
+                b_all[r],
+                gb.op(
+                    "MatMul",
+                    G_all[r],
+                    y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1])),
+                ),
+            )
             resids.append(gb.op("ReduceSumSquare", res, keepdims=1))
         # ---- 7. contact wrenches, torques, outputs
         fm, omega0 = self._contact_wrenches(TP, Cg, ys, act, s_rows, e, idx, known_s)
-        F_tot = Fb if omega0 is None else gb.op("Gemm", gb.f(D @ self._slot_body_matrix()),
-                                                   omega0, Fb, alpha=-1.0, beta=1.0)  # fmt: skip
+        F_tot = (
+            Fb
+            if omega0 is None
+            else gb.op("Gemm", gb.f(D @ self._slot_body_matrix()), omega0, Fb, alpha=-1.0, beta=1.0)
+        )
         tau = self._torques(S0, F_tot)
         return self._outputs(fm, tau, ranks, resids, act, status_in)
 
@@ -430,10 +458,9 @@ class _Step:
         """
         from torchcontact._onnx import inline
 
-        gb, lay, nv = self.gb, self.lay, self.nv
+        gb, lay = self.gb, self.lay
         F = lay.size
         names = list(self.em.model.joint_names)
-        sub = np.zeros((0, F))
         corr_all = None
         for r, (rg, model) in enumerate(self.residuals):
             to = gb_type(rg.dtype)
@@ -449,8 +476,11 @@ class _Step:
                     continue
                 sel = np.zeros((F, len(cols)))
                 for j, (kind, key) in enumerate(cols):
-                    i = (lay.index("extra", self.extra.index(key)) if kind == "extra" else
-                         lay.index(kind, names.index(key)))  # fmt: skip
+                    i = (
+                        lay.index("extra", self.extra.index(key))
+                        if kind == "extra"
+                        else lay.index(kind, names.index(key))
+                    )
                     sel[i, j] = 1.0
                 feeds[name] = gb.op("Cast", gb.op("MatMul", x, gb.f(sel)), to=to)
             outs = inline(gb, model, f"res{r}/", feeds)
@@ -464,7 +494,6 @@ class _Step:
                 L, H = rg.state_shape
                 h = gb.op("Reshape", gb.cast(outs[rg.output_names[1]]), gb.i([1, L * H]))
                 self.h_out.append((rg.sensor, (L, H), h))
-        del sub, nv
         return gb.op("Sub", x, corr_all)
 
     def _plan_affine(self, ea: _Affine) -> dict:
@@ -481,8 +510,9 @@ class _Step:
             else:
                 cos_i.append(ea.zero)
                 sin_i.append(ea.zero)
-            disp_i.append(ea.entry({q0 + b.coord: b.mult}, b.offset) if b.kind == "prismatic"
-                          else ea.zero)  # fmt: skip
+            disp_i.append(
+                ea.entry({q0 + b.coord: b.mult}, b.offset) if b.kind == "prismatic" else ea.zero
+            )
             if b.coord >= 0:
                 qd_i.append(ea.entry({qd0 + b.coord: b.mult}))
                 qdd_i.append(ea.entry({qdd0 + b.coord: b.mult}))
@@ -505,8 +535,10 @@ class _Step:
         # the parent side exerts on the region, sensor frame), W_c = W in the child body frame
         W_s, W_c = [], []
         for s, reg in enumerate(em.regions):
-            rows = [{lay.index("ft", s, i): reg.sign, lay.index("ft_residual", s, i): -reg.sign}
-                    for i in range(6)]  # fmt: skip
+            rows = [
+                {lay.index("ft", s, i): reg.sign, lay.index("ft_residual", s, i): -reg.sign}
+                for i in range(6)
+            ]
             W_s.append([ea.entry(r) for r in rows])
             Ad = _const_force_map(lambda f, T=reg.T_child_sensor: sp.force_to_parent(T, f))
             W_c.append([ea.entry(self._combine(Ad[o], rows)) for o in range(6)] + [ea.one])
@@ -515,8 +547,13 @@ class _Step:
         pos_b, acts, dirs, wr = [], [], [], []
         for k, slot in enumerate(em.slots):
             R, p = np.array(slot.R, dtype=float), np.array(slot.p, dtype=float)
-            pos_b.append([ea.entry({lay.index("positions", k, j): R[i, j] for j in range(3)},
-                                   p[i]) for i in range(3)] + [ea.one])  # fmt: skip
+            pos_b.append(
+                [
+                    ea.entry({lay.index("positions", k, j): R[i, j] for j in range(3)}, p[i])
+                    for i in range(3)
+                ]
+                + [ea.one]
+            )
             acts.append(ea.entry({lay.index("active", k): 1.0}))
             if "directions" in lay.fields:
                 dirs.append([ea.entry({lay.index("directions", k, i): 1.0}) for i in range(3)])
@@ -529,8 +566,9 @@ class _Step:
             idx["tau_mask"] = [ea.entry({m0 + c: 1.0}) for c in range(self.nv)]
         if self.with_cov:
             c0 = lay.fields["ft_cov"][0]
-            idx["cov"] = [[ea.entry({c0 + 36 * s + i: 1.0}) for i in range(36)]
-                          for s in range(self.S)]  # fmt: skip
+            idx["cov"] = [
+                [ea.entry({c0 + 36 * s + i: 1.0}) for i in range(36)] for s in range(self.S)
+            ]
         # implausible values (status bit 64): |qd| beyond the velocity limits, readings beyond
         # the sensor ranges
         lim_pos, lims = [], []
@@ -582,8 +620,11 @@ class _Step:
         gate = np.zeros((n_gate, F))
         ungated = np.ones((1, F))
         for k, kind in enumerate(self.kinds):
-            fields = ["positions"] + (["directions"] if kind == "force_dir" else []) + (
-                ["wrenches"] if kind == "known" else [])  # fmt: skip
+            fields = (
+                ["positions"]
+                + (["directions"] if kind == "force_dir" else [])
+                + (["wrenches"] if kind == "known" else [])
+            )
             for name in fields:
                 for i in range(lay.fields[name][1][-1]):
                     j = lay.index(name, k, i)
@@ -607,10 +648,15 @@ class _Step:
             # bit 8: an active force_dir slot whose (finite) direction has zero length
             kd = [k for k, kind in enumerate(self.kinds) if kind == "force_dir"]
             xf = gb.op("Reshape", x, gb.i([F]))
-            d = gb.op("Gather", xf, gb.i([[lay.index("directions", k, i) for i in range(3)]
-                                          for k in kd]), axis=0)  # fmt: skip
-            zero = gb.cast(gb.op("Equal", gb.op("ReduceSumSquare", d, gb.i([1]), keepdims=1),
-                                 gb.f(0.0)))  # fmt: skip
+            d = gb.op(
+                "Gather",
+                xf,
+                gb.i([[lay.index("directions", k, i) for i in range(3)] for k in kd]),
+                axis=0,
+            )
+            zero = gb.cast(
+                gb.op("Equal", gb.op("ReduceSumSquare", d, gb.i([1]), keepdims=1), gb.f(0.0))
+            )
             a = gb.op("Gather", act, gb.i(kd), axis=0)
             parts.append(gb.op("Transpose", gb.op("Mul", zero, a), perm=[1, 0]))
             weights += [8.0] * len(kd)
@@ -643,14 +689,19 @@ class _Step:
         par = [max(b.parent, 0) for b in tree.bodies]
 
         def two(i: int, a: list, b: list) -> list:
-            R, p = sp.pose_compose(self._joint_pose(par[i] if i else 0, a),
-                                   self._joint_pose(i, b))  # fmt: skip
+            R, p = sp.pose_compose(self._joint_pose(par[i] if i else 0, a), self._joint_pose(i, b))
             return [*_flat(R), *p]
 
         idx_arr = np.array(index)
-        T = bilinear(gb, Operand(src, 4, "vec", one=3, index=idx_arr[par]),
-                     Operand(src, 4, "vec", one=3, index=idx_arr), nb, two, 12,
-                     hint="pose")  # fmt: skip
+        T = bilinear(
+            gb,
+            Operand(src, 4, "vec", one=3, index=idx_arr[par]),
+            Operand(src, 4, "vec", one=3, index=idx_arr),
+            nb,
+            two,
+            12,
+            hint="pose",
+        )
         # further doubling: T_i <- T_{a(i)} T_i with a(i) the 2^k-th ancestor (or the root)
         depth = self._depths()
         anc = [par[par[i]] for i in range(nb)]
@@ -659,12 +710,20 @@ class _Step:
             a_k = list(anc)
 
             def compose(_i: int, ta: list, tb: list) -> list:
-                R, p = sp.pose_compose((_rows(ta[0:9]), tuple(ta[9:12])),
-                                       (_rows(tb[0:9]), tuple(tb[9:12])))  # fmt: skip
+                R, p = sp.pose_compose(
+                    (_rows(ta[0:9]), tuple(ta[9:12])), (_rows(tb[0:9]), tuple(tb[9:12]))
+                )
                 return [*_flat(R), *p]
 
-            T = bilinear(gb, Operand(T, 13, "nd", one=_T_ONE, row_of=a_k), Operand(T, 13,
-                         one=_T_ONE), nb, compose, 12, hint="pose")  # fmt: skip
+            T = bilinear(
+                gb,
+                Operand(T, 13, "nd", one=_T_ONE, row_of=a_k),
+                Operand(T, 13, one=_T_ONE),
+                nb,
+                compose,
+                12,
+                hint="pose",
+            )
             anc = [anc[anc[i]] for i in range(nb)]
             hop *= 2
         return T
@@ -688,8 +747,11 @@ class _Step:
         return [*_flat(R), *p, *_flat(sp.m_mul(_skew(p), R)), *sp.v_neg(sp.mT_vec(R, p))]
 
     def _subspace(self, i: int, tp: list) -> tuple:
-        """Body ``i``'s motion subspace in the root frame: ``[p x z; z]`` (revolute, and fixed
-        bodies, whose rates are 0), ``[z; 0]`` (prismatic); ``z = R e_z``, ``p x z = (pR) e_z``."""
+        """Body ``i``'s motion subspace in the root frame, from its pose features.
+
+        ``[p x z; z]`` for revolute bodies (and fixed ones, whose rates are 0), ``[z; 0]`` for
+        prismatic ones, with ``z = R e_z`` and ``p x z = (pR) e_z``.
+        """
         R, _, pR, _ = _tp(tp)
         z = tuple(R[r][2] for r in range(3))
         if self.tree.bodies[i].kind == "prismatic":
@@ -697,9 +759,16 @@ class _Step:
         return (*(pR[r][2] for r in range(3)), *z)
 
     def _subspaces(self, TP: str) -> str:
-        return bilinear(self.gb, Operand(TP, 25, one=_TP_ONE), None, self.nb,
-                        lambda i, tp, _b: list(self._subspace(i, tp)), 6, one=False,
-                        hint="s0")  # fmt: skip
+        return bilinear(
+            self.gb,
+            Operand(TP, 25, one=_TP_ONE),
+            None,
+            self.nb,
+            lambda i, tp, _b: list(self._subspace(i, tp)),
+            6,
+            one=False,
+            hint="s0",
+        )
 
     # ---------------------------------------------------------------------------------- motion
 
@@ -713,28 +782,39 @@ class _Step:
             Sv = self._subspace(i, tp)
             return [mul(s, rate[0]) for s in Sv] + [mul(s, rate[1]) for s in Sv] + [0.0]
 
-        VA = bilinear(gb, Operand(TP, 25, one=_TP_ONE), Operand(e, 3, "vec", one=2, index=index),
-                      nb, joint_rates, 13, one=False, hint="rates")  # fmt: skip
+        VA = bilinear(
+            gb,
+            Operand(TP, 25, one=_TP_ONE),
+            Operand(e, 3, "vec", one=2, index=index),
+            nb,
+            joint_rates,
+            13,
+            one=False,
+            hint="rates",
+        )
         anc = np.zeros((nb, nb))
         for i in range(nb):
             j = i
             while j >= 0:
                 anc[i, j] = 1.0
                 j = tree.bodies[j].parent
-        base = (gb.f(np.array([[self._const_e(k) for k in idx["base"]]]))
-                if not self.moving_base else
-                gb.op("Reshape", gb.op("Gather", e, gb.i(idx["base"]), axis=0),
-                      gb.i([1, 13])))  # fmt: skip
+        base = (
+            gb.f(np.array([[self._const_e(k) for k in idx["base"]]]))
+            if not self.moving_base
+            else gb.op("Reshape", gb.op("Gather", e, gb.i(idx["base"]), axis=0), gb.i([1, 13]))
+        )
         ancVA = gb.op("Gemm", gb.f(anc), VA, base)
 
         def bias(_i: int, v: list, vj: list) -> list:
             # v_j x (S_j qd_j): the acceleration the joint rate adds as the body turns
-            c = sp.motion_cross_motion((tuple(v[0:3]), tuple(v[3:6])),
-                                       (tuple(vj[0:3]), tuple(vj[3:6])))  # fmt: skip
+            c = sp.motion_cross_motion(
+                (tuple(v[0:3]), tuple(v[3:6])), (tuple(vj[0:3]), tuple(vj[3:6]))
+            )
             return [0.0] * 6 + [*c[0], *c[1]] + [0.0]
 
-        cross = bilinear(gb, Operand(ancVA, 13, one=12), Operand(VA, 13), nb, bias, 13,
-                         one=False, hint="bias")  # fmt: skip
+        cross = bilinear(
+            gb, Operand(ancVA, 13, one=12), Operand(VA, 13), nb, bias, 13, one=False, hint="bias"
+        )
         return gb.op("Gemm", gb.f(anc), cross, ancVA)
 
     def _const_e(self, k: int) -> float:
@@ -755,8 +835,9 @@ class _Step:
             a = _motion_to_child(R, pR, (tuple(va[6:9]), tuple(va[9:12])))
             return [*v[0], *v[1], *a[0], *a[1]]
 
-        VAb = bilinear(gb, Operand(TP, 25, one=_TP_ONE), Operand(VA, 13, one=12), nb, to_body,
-                       12, hint="vab")  # fmt: skip
+        VAb = bilinear(
+            gb, Operand(TP, 25, one=_TP_ONE), Operand(VA, 13, one=12), nb, to_body, 12, hint="vab"
+        )
 
         def newton_euler(i: int, va: list, _b: list) -> list:
             b = tree.bodies[i]
@@ -773,8 +854,16 @@ class _Step:
             w = _force_to_parent(R, pR, (tuple(f[0:3]), tuple(f[3:6])))
             return [*w[0], *w[1]]
 
-        return bilinear(gb, Operand(TP, 25, one=_TP_ONE), Operand(fb, 7, one=6), nb, to_root, 6,
-                        one=False, hint="f0")  # fmt: skip
+        return bilinear(
+            gb,
+            Operand(TP, 25, one=_TP_ONE),
+            Operand(fb, 7, one=6),
+            nb,
+            to_root,
+            6,
+            one=False,
+            hint="f0",
+        )
 
     def _readings_root(self, TP: str, e: str, idx: dict) -> str:
         """Each sensor's wrench on its region, root frame about the root origin, ``(S, 6)``."""
@@ -791,16 +880,18 @@ class _Step:
                 out = _force_to_parent(R, pR, (tuple(w[0:3]), tuple(w[3:6])))
             return [*out[0], *out[1]]
 
-        return bilinear(self.gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
-                        Operand(e, 7, "vec", one=6, index=np.array(idx["W_c"])), len(regs),
-                        to_root, 6, one=False, hint="w0")  # fmt: skip
+        return bilinear(
+            self.gb,
+            Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
+            Operand(e, 7, "vec", one=6, index=np.array(idx["W_c"])),
+            len(regs),
+            to_root,
+            6,
+            one=False,
+            hint="w0",
+        )
 
     # -------------------------------------------------------------------------------- regions
-
-    def _sensor_pose_fn(self, r: int):
-        """``(R, pR, pinv)`` of region ``r``'s child body from its TP row, or constants."""
-        static = self._static_pose(self.em.regions[r].child)
-        return static
 
     def _slot_geometry(self, TP: str, e: str, idx: dict) -> str:
         """Per slot ``[c (3), R (9), 1]``: contact point and slot-body rotation, sensor frame.
@@ -827,9 +918,15 @@ class _Step:
                 c = sp.pose_apply((Rs, ps), tuple(pos[0:3]))
                 return [*c, *_flat(Rs)]
 
-            return bilinear(gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_body),
-                            Operand(e, 4, "vec", one=3, index=np.array(idx["pos_b"])),
-                            self.K, geom, 12, hint="slots")  # fmt: skip
+            return bilinear(
+                gb,
+                Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_body),
+                Operand(e, 4, "vec", one=3, index=np.array(idx["pos_b"])),
+                self.K,
+                geom,
+                12,
+                hint="slots",
+            )
 
         # T_sensor_body = T_cs^-1 T_child^-1 T_body, then the contact point
         def rel(k: int, tc: list, tb: list) -> list:
@@ -840,16 +937,29 @@ class _Step:
             R, p = sp.pose_compose(T_sc, sp.pose_compose(T_cinv, (Rb, pb)))
             return [*_flat(R), *p]
 
-        Trel = bilinear(gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_child),
-                        Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_body), self.K, rel, 12,
-                        hint="trel")  # fmt: skip
+        Trel = bilinear(
+            gb,
+            Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_child),
+            Operand(TP, 25, "nd", one=_TP_ONE, row_of=slot_body),
+            self.K,
+            rel,
+            12,
+            hint="trel",
+        )
 
         def geom2(_k: int, t: list, pos: list) -> list:
             R, p = _rows(t[0:9]), tuple(t[9:12])
             return [*sp.pose_apply((R, p), tuple(pos[0:3])), *_flat(R)]
 
-        return bilinear(gb, Operand(Trel, 13, one=12), Operand(e, 4, "vec", one=3,
-                        index=np.array(idx["pos_b"])), self.K, geom2, 12, hint="slots")  # fmt: skip
+        return bilinear(
+            gb,
+            Operand(Trel, 13, one=12),
+            Operand(e, 4, "vec", one=3, index=np.array(idx["pos_b"])),
+            self.K,
+            geom2,
+            12,
+            hint="slots",
+        )
 
     def _slot_body_matrix(self) -> np.ndarray:
         """``B[j, k] = 1`` when slot ``k`` lies on body ``j``."""
@@ -869,16 +979,31 @@ class _Step:
             Rs = sp.m_mul(_rows(g[3:12]), em.slots[k].R)  # link frame in the sensor frame
             return [*sp.m_vec(Rs, tuple(w[0:3])), *sp.m_vec(Rs, tuple(w[3:6]))]
 
-        fn = bilinear(self.gb, Operand(Cg, 13, one=12), Operand(e, 7, "vec", one=6,
-                      index=index), self.K, rotate, 6, hint="known")  # fmt: skip
+        fn = bilinear(
+            self.gb,
+            Operand(Cg, 13, one=12),
+            Operand(e, 7, "vec", one=6, index=index),
+            self.K,
+            rotate,
+            6,
+            hint="known",
+        )
 
         def shift(_k: int, g: list, w: list) -> list:
             # moment about the sensor origin: n + c x f
             f = tuple(w[0:3])
             return [*f, *sp.v_add(tuple(w[3:6]), sp.v_cross(tuple(g[0:3]), f))]
 
-        w = bilinear(self.gb, Operand(Cg, 13, one=12), Operand(fn, 7, one=6), self.K, shift, 6,
-                     one=False, hint="known")  # fmt: skip
+        w = bilinear(
+            self.gb,
+            Operand(Cg, 13, one=12),
+            Operand(fn, 7, one=6),
+            self.K,
+            shift,
+            6,
+            one=False,
+            hint="known",
+        )
         return self.gb.op("Mul", w, self.actK)
 
     def _region_b(self, TP, Fb, S0, e, idx) -> list[str]:
@@ -901,12 +1026,27 @@ class _Step:
 
         F_nd = Operand(Fb, 6, "nd", row_of=childs)
         if all(self._static_pose(c) is not None for c in childs):
-            Fsens = bilinear(gb, F_nd, None, len(regs), lambda r, F, _b: to_sensor(r, None, F),
-                             6, one=False, hint="fs")  # fmt: skip
+            Fsens = bilinear(
+                gb,
+                F_nd,
+                None,
+                len(regs),
+                lambda r, F, _b: to_sensor(r, None, F),
+                6,
+                one=False,
+                hint="fs",
+            )
         else:
-            Fsens = bilinear(gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
-                             Operand(Fb, 6, "nd", row_of=childs), len(regs), to_sensor, 6,
-                             one=False, hint="fs")  # fmt: skip
+            Fsens = bilinear(
+                gb,
+                Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
+                Operand(Fb, 6, "nd", row_of=childs),
+                len(regs),
+                to_sensor,
+                6,
+                one=False,
+                hint="fs",
+            )
         Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
         b6 = gb.op("Sub", Fsens, Ws)
         out = []
@@ -954,11 +1094,10 @@ class _Step:
                 if tree.bodies[b].coord == c:
                     Mp[n, b] += tree.bodies[b].mult
                 b = tree.bodies[b].parent
-        ones = np.zeros((self.nb, 1))
-        S_sum = gb.op("Concat", gb.op("MatMul", gb.f(Mp), S0), gb.f(np.ones((len(pairs), 1))),
-                      axis=1)  # fmt: skip
+        S_sum = gb.op(
+            "Concat", gb.op("MatMul", gb.f(Mp), S0), gb.f(np.ones((len(pairs), 1))), axis=1
+        )
         childs = [em.regions[em.slots[k].region].child for k, _, _ in pairs]
-        del ones
 
         def to_sensor(n: int, tp: list, s: list) -> list:
             reg = em.regions[em.slots[pairs[n][0]].region]
@@ -972,9 +1111,16 @@ class _Step:
             vs = sp.motion_to_child(reg.T_child_sensor, vc)
             return [*vs[0], *vs[1]]
 
-        s = bilinear(gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
-                     Operand(S_sum, 7, one=6), len(pairs), to_sensor, 6, one=False,
-                     hint="srow")  # fmt: skip
+        s = bilinear(
+            gb,
+            Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
+            Operand(S_sum, 7, one=6),
+            len(pairs),
+            to_sensor,
+            6,
+            one=False,
+            hint="srow",
+        )
         mk = gb.op("Gather", e, gb.i([[idx["tau_mask"][c]] for _, _, c in pairs]), axis=0)
         return gb.op("Mul", s, gb.cast(gb.op("Greater", mk, gb.f(0.5))))
 
@@ -996,12 +1142,24 @@ class _Step:
                 u = sp.m_vec(sp.m_mul(_rows(g[3:12]), em.slots[k].R), dk)
                 return [*g[0:12], *u, *dk]
 
-            geo = bilinear(gb, Operand(Cg, 13, one=12), Operand(dsrc, 4, "vec", one=3,
-                           index=index), K, direction, 18, hint="u")  # fmt: skip
-            geo = bilinear(gb, Operand(geo, 19, one=18), None, K,
-                           lambda _k, g, _b: [*g[0:18], *sp.v_cross(tuple(g[0:3]),
-                                                                    tuple(g[12:15]))],
-                           21, hint="cu")  # fmt: skip
+            geo = bilinear(
+                gb,
+                Operand(Cg, 13, one=12),
+                Operand(dsrc, 4, "vec", one=3, index=index),
+                K,
+                direction,
+                18,
+                hint="u",
+            )
+            geo = bilinear(
+                gb,
+                Operand(geo, 19, one=18),
+                None,
+                K,
+                lambda _k, g, _b: [*g[0:18], *sp.v_cross(tuple(g[0:3]), tuple(g[12:15]))],
+                21,
+                hint="cu",
+            )
             self.geo, self.n_geo = geo, 22
         else:
             self.geo, self.n_geo = Cg, 13
@@ -1017,8 +1175,16 @@ class _Step:
                 return [mul(col[i], col[j]) for i in range(6) for j in range(6)]
             return [x for row in stages._gram6(kind, tuple(g[0:3]), None) for x in row]
 
-        G6 = bilinear(gb, Operand(self.geo, self.n_geo, one=self.n_geo - 1), None, self.K,
-                      gram6, 36, one=False, hint="g6")  # fmt: skip
+        G6 = bilinear(
+            gb,
+            Operand(self.geo, self.n_geo, one=self.n_geo - 1),
+            None,
+            self.K,
+            gram6,
+            36,
+            one=False,
+            hint="g6",
+        )
         out = []
         for r, reg in enumerate(em.regions):
             memb = np.zeros((self.K, 1))
@@ -1036,8 +1202,9 @@ class _Step:
         d = gb.op("Gather", self.e, gb.i(np.array(self.idx["dir"])), axis=0)
         n2 = gb.op("ReduceSumSquare", d, gb.i([1]), keepdims=1)
         pos = gb.op("Greater", n2, gb.f(0.0))
-        inv = gb.op("Where", pos, gb.op("Pow", gb.op("Where", pos, n2, gb.f(1.0)), gb.f(-0.5)),
-                    gb.f(0.0))  # fmt: skip
+        inv = gb.op(
+            "Where", pos, gb.op("Pow", gb.op("Where", pos, n2, gb.f(1.0)), gb.f(-0.5)), gb.f(0.0)
+        )
         u = gb.op("Reshape", gb.op("Mul", d, inv), gb.i([3 * K]))
         return gb.op("Concat", u, gb.f([1.0]), axis=0)
 
@@ -1050,18 +1217,33 @@ class _Step:
         rows = [n for n, (k, _, _) in enumerate(self.kt_pairs) if em.slots[k].region == r]
         slot_of = [self.kt_pairs[n][0] for n in rows]
         # Gs[n] = G6_k s_n (6), then s_n'^T G6_k s_n for the pairs of one slot
-        Gs = bilinear(gb, Operand(G6, 36, "nd", row_of=slot_of), Operand(s_rows, 6, "nd",
-                      row_of=rows), len(rows), lambda _n, g, s: [sum_([mul(g[6 * i + j], s[j])
-                                                                     for j in range(6)])
-                                                                for i in range(6)], 6,
-                      one=False, hint="gs")  # fmt: skip
-        trip = [(n1, n2) for i1, n1 in enumerate(rows) for n2 in rows[: i1 + 1]
-                if self.kt_pairs[n1][0] == self.kt_pairs[n2][0]]  # fmt: skip
+        Gs = bilinear(
+            gb,
+            Operand(G6, 36, "nd", row_of=slot_of),
+            Operand(s_rows, 6, "nd", row_of=rows),
+            len(rows),
+            lambda _n, g, s: [sum_([mul(g[6 * i + j], s[j]) for j in range(6)]) for i in range(6)],
+            6,
+            one=False,
+            hint="gs",
+        )
+        trip = [
+            (n1, n2)
+            for i1, n1 in enumerate(rows)
+            for n2 in rows[: i1 + 1]
+            if self.kt_pairs[n1][0] == self.kt_pairs[n2][0]
+        ]
         pos = {n: i for i, n in enumerate(rows)}
-        sGs = bilinear(gb, Operand(Gs, 6, "nd", row_of=[pos[n1] for n1, _ in trip]),
-                       Operand(s_rows, 6, "nd", row_of=[n2 for _, n2 in trip]), len(trip),
-                       lambda _n, g, s: [sum_([mul(g[j], s[j]) for j in range(6)])], 1,
-                       one=False, hint="sgs")  # fmt: skip
+        sGs = bilinear(
+            gb,
+            Operand(Gs, 6, "nd", row_of=[pos[n1] for n1, _ in trip]),
+            Operand(s_rows, 6, "nd", row_of=[n2 for _, n2 in trip]),
+            len(trip),
+            lambda _n, g, s: [sum_([mul(g[j], s[j]) for j in range(6)])],
+            1,
+            one=False,
+            hint="sgs",
+        )
         # scatter into the (R, R) matrix, weighted by activity
         K = self.K
         Pa = np.zeros((len(rows), K))
@@ -1091,8 +1273,11 @@ class _Step:
         for i in range(6):
             for j in range(6):
                 P6[i * R + j, i * 6 + j] = 1.0
-        flat = gb.op("Add", gb.op("MatMul", gb.f(Lt), gb.op("Reshape", Gs_w, gb.i([-1, 1]))),
-                     gb.op("MatMul", gb.f(Ltt), sGs_w))  # fmt: skip
+        flat = gb.op(
+            "Add",
+            gb.op("MatMul", gb.f(Lt), gb.op("Reshape", Gs_w, gb.i([-1, 1]))),
+            gb.op("MatMul", gb.f(Ltt), sGs_w),
+        )
         flat = gb.op("Gemm", gb.f(P6), gb.op("Reshape", G6sum, gb.i([36, 1])), flat)
         return gb.op("Reshape", flat, gb.i([R, R]))
 
@@ -1160,8 +1345,12 @@ class _Step:
         # least squares: (I + C C^T) s = b2 - C b1 over the rejected pivots (they follow the
         # accepted ones); the rejected rows of Wr are [-C, I], so Wr Wr^T holds I + C C^T there
         K2 = gb.op("Gemm", Wr, Wr, transB=1)
-        V = gb.op("Concat", gb.op("Concat", K2, b_all, axis=1),
-                  gb.f(np.concatenate([-eye, np.zeros((R, ncols))], axis=1)), axis=0)
+        V = gb.op(
+            "Concat",
+            gb.op("Concat", K2, b_all, axis=1),
+            gb.f(np.concatenate([-eye, np.zeros((R, ncols))], axis=1)),
+            axis=0,
+        )
         for k in range(max(r_min, 1), R):
             c2 = gb.op("Gather", V, pivots[k], axis=1)
             piv = gb.op("Gather", c2, pivots[k], axis=0)
@@ -1213,31 +1402,46 @@ class _Step:
             yidx, srow = [], []
             for j, k in rows:
                 slot = em.slots[k]
-                R = 6 + len(regs[slot.region].torque_coords)
                 ks = [n for n, (kk, _, _) in enumerate(pairs) if kk == k]
                 yt = [base[slot.region] + (6 + t) * ncols + j for t in range(len(ks))]
                 yidx.append(yt + [one] * (Tmax - len(ks)))
                 srow.append(ks)
-                del R
             # per (row, t): y_t * s_kt summed over t, plus y[:6]
             flat_pairs = [(ri, t) for ri in range(len(rows)) for t in range(Tmax)]
             s_of = [srow[ri][t] if t < len(srow[ri]) else 0 for ri, t in flat_pairs]
             valid = np.array([1.0 if t < len(srow[ri]) else 0.0 for ri, t in flat_pairs])
             yv = Operand(Y, 1, "vec", index=np.array([[yidx[ri][t]] for ri, t in flat_pairs]))
-            zt = bilinear(gb, yv, Operand(s_rows, 6, "nd", row_of=s_of), len(flat_pairs),
-                          lambda n, yy, s: [mul(valid[n], mul(yy[0], s[i])) for i in range(6)],
-                          6, one=False, hint="zt")  # fmt: skip
+            zt = bilinear(
+                gb,
+                yv,
+                Operand(s_rows, 6, "nd", row_of=s_of),
+                len(flat_pairs),
+                lambda n, yy, s: [mul(valid[n], mul(yy[0], s[i])) for i in range(6)],
+                6,
+                one=False,
+                hint="zt",
+            )
             Msum = np.zeros((len(rows), len(flat_pairs)))
             for n, (ri, _t) in enumerate(flat_pairs):
                 Msum[ri, n] = 1.0
-            y6 = gb.op("Gather", Y, gb.i([[base[em.slots[k].region] + i * ncols + j
-                                           for i in range(6)] for j, k in rows]), axis=0)
+            y6 = gb.op(
+                "Gather",
+                Y,
+                gb.i(
+                    [[base[em.slots[k].region] + i * ncols + j for i in range(6)] for j, k in rows]
+                ),
+                axis=0,
+            )
             z = gb.op("Gemm", gb.f(Msum), zt, y6)
             z = gb.op("Concat", z, gb.f(np.ones((len(rows), 1))), axis=1)
             zsrc = Operand(z, 7, one=6)
         else:
-            index = np.array([[base[em.slots[k].region] + i * ncols + j for i in range(6)] + [one]
-                              for j, k in rows])  # fmt: skip
+            index = np.array(
+                [
+                    [base[em.slots[k].region] + i * ncols + j for i in range(6)] + [one]
+                    for j, k in rows
+                ]
+            )
             zsrc = Operand(Y, 7, "vec", one=6, index=index)
         src, n_src = self.geo, self.n_geo
         nslot = len(rows)
@@ -1249,8 +1453,15 @@ class _Step:
             zf, zn = tuple(zz[0:3]), tuple(zz[3:6])
             return [*sp.v_add(zf, sp.v_cross(zn, c)), *zn]
 
-        gz = bilinear(gb, Operand(src, n_src, "nd", one=n_src - 1, row_of=slot_of), zsrc, nslot,
-                      dual, 6, hint="gz")  # fmt: skip
+        gz = bilinear(
+            gb,
+            Operand(src, n_src, "nd", one=n_src - 1, row_of=slot_of),
+            zsrc,
+            nslot,
+            dual,
+            6,
+            hint="gz",
+        )
         a_rows = self.actK if ncols == 1 else gb.op("Gather", self.actK, gb.i(slot_of), axis=0)
         kinds = self.kinds
         has_dir = "force_dir" in kinds
@@ -1271,22 +1482,47 @@ class _Step:
             ns = sp.v_add(sp.v_cross(c, gf), zn if kind == "wrench" else sp.ZERO3)
             return [*force, *moment, *gf, *ns]
 
-        fm = bilinear(gb, Operand(src, n_src, "nd", one=n_src - 1, row_of=slot_of),
-                      Operand(gz, 7, one=6), nslot, out, 12, one=has_dir, hint="fm")  # fmt: skip
+        fm = bilinear(
+            gb,
+            Operand(src, n_src, "nd", one=n_src - 1, row_of=slot_of),
+            Operand(gz, 7, one=6),
+            nslot,
+            out,
+            12,
+            one=has_dir,
+            hint="fm",
+        )
         if has_dir:
+
             def scale(n: int, m: list, g: list) -> list:
                 if kinds[slot_of[n]] != "force_dir":
                     return list(m[0:12])
                 mag = m[0]
-                return [*sp.v_scale(mag, tuple(g[15:18])), 0.0, 0.0, 0.0,
-                        *sp.v_scale(mag, tuple(g[12:15])), *sp.v_scale(mag, tuple(g[18:21]))]
+                return [
+                    *sp.v_scale(mag, tuple(g[15:18])),
+                    0.0,
+                    0.0,
+                    0.0,
+                    *sp.v_scale(mag, tuple(g[12:15])),
+                    *sp.v_scale(mag, tuple(g[18:21])),
+                ]
 
-            fm = bilinear(gb, Operand(fm, 13, one=12), Operand(src, n_src, "nd", one=n_src - 1,
-                          row_of=slot_of), nslot, scale, 12, one=False, hint="fd")  # fmt: skip
+            fm = bilinear(
+                gb,
+                Operand(fm, 13, one=12),
+                Operand(src, n_src, "nd", one=n_src - 1, row_of=slot_of),
+                nslot,
+                scale,
+                12,
+                one=False,
+                hint="fd",
+            )
         if known_s is not None:  # known slots report their given wrench (link frame)
             z = self.e_aff.zero
-            given = [[*(idx["wrench"][k] if j == 0 and kinds[k] == "known" else [z] * 6),
-                      *[z] * 6] for j, k in rows]  # fmt: skip
+            given = [
+                [*(idx["wrench"][k] if j == 0 and kinds[k] == "known" else [z] * 6), *[z] * 6]
+                for j, k in rows
+            ]
             fm = gb.op("Add", fm, gb.op("Gather", e, gb.i(np.array(given)), axis=0))
         fm = gb.op("Mul", fm, a_rows)  # inactive slots: zero
         # wrenches (sensor frame) of the estimate plus the known slots, to the root frame
@@ -1310,11 +1546,26 @@ class _Step:
             return [*o[0], *o[1]]
 
         if all(self._static_pose(c) is not None for c in childs):
-            return bilinear(self.gb, Operand(ws, 6), None, K,
-                            lambda k, w, _b: to_root(k, None, w), 6, one=False,
-                            hint="om0")  # fmt: skip
-        return bilinear(self.gb, Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
-                        Operand(ws, 6), K, to_root, 6, one=False, hint="om0")  # fmt: skip
+            return bilinear(
+                self.gb,
+                Operand(ws, 6),
+                None,
+                K,
+                lambda k, w, _b: to_root(k, None, w),
+                6,
+                one=False,
+                hint="om0",
+            )
+        return bilinear(
+            self.gb,
+            Operand(TP, 25, "nd", one=_TP_ONE, row_of=childs),
+            Operand(ws, 6),
+            K,
+            to_root,
+            6,
+            one=False,
+            hint="om0",
+        )
 
     def _torques(self, S0: str, F: str) -> str:
         """Joint torques ``tau_c = sum_i mult_i S_i . F_i``, ``(1, nv)``."""
@@ -1329,6 +1580,7 @@ class _Step:
     # ---------------------------------------------------------------------------------- outputs
 
     def _outputs(self, fm, tau, ranks, resids, act, status_in):
+        """The packed output: estimates, status; NaN where the status is not 0 (bit 32 added)."""
         gb, K, S = self.gb, self.K, self.S
         out = StepLayout()
         pieces = []
@@ -1345,39 +1597,40 @@ class _Step:
             out.add("covariance", (K, 6, 6))
             pieces.append(self._covariance(fm))
         n_mask = out.size
+        # rank is 0 for a frame that is not estimated (the estimator computes it on zeros)
+        okf = gb.cast(gb.op("Equal", status_in, gb.f(0.0)))
         out.add("rank", (S,))
-        pieces.append(gb.op("Concat", *ranks, axis=1) if S > 1 else ranks[0])
+        pieces.append(gb.op("Mul", gb.op("Concat", *ranks, axis=1) if S > 1 else ranks[0], okf))
         unk = np.zeros((K, S))
-        for k, s in enumerate(self.em.slots):
-            unk[k, s.region] = float(KINDS[s.kind])
-        a = self.actK
+        for k, sl in enumerate(self.em.slots):
+            unk[k, sl.region] = float(KINDS[sl.kind])
         out.add("unknowns", (S,))
-        pieces.append(gb.op("Gemm", a, gb.f(unk), transA=1) if K else gb.f(np.zeros((1, S))))
+        pieces.append(
+            gb.op("Gemm", self.actK, gb.f(unk), transA=1) if K else gb.f(np.zeros((1, S)))
+        )
         vals = gb.op("Concat", *pieces, axis=1)
         # bit 32: a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
         nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
-        ok_in = gb.op("Equal", status_in, gb.f(0.0))
-        s32 = gb.op("Mul", gb.cast(gb.op("And", nonfin, ok_in)), gb.f(32.0))
+        s32 = gb.op("Mul", gb.op("Where", nonfin, gb.f(32.0), gb.f(0.0)), okf)
         status = gb.op("Add", status_in, s32)
-        mask = np.zeros((1, out.size))
-        mask[0, :n_mask] = 1.0
-        badm = gb.op("And", gb.op("Greater", status, gb.f(0.0)), gb.const(mask > 0, bool))
-        if len(self.coords) < self.nv:  # torques the graph does not compute: NaN
-            unsel = np.zeros((1, out.size), dtype=bool)
-            t0 = out.fields["joint_torques"][0]
-            unsel[0, [t0 + c for c in range(self.nv) if c not in self.coords]] = True
-            badm = gb.op("Or", badm, gb.const(unsel, bool))
-        nanv = gb.op("Where", badm, gb.f(np.nan), vals)
-        # rank is 0 for a frame that was not estimated (as the estimator, which zeroes it)
-        rk0 = out.fields["rank"][0]
-        keep = np.ones((1, out.size))
-        keep[0, rk0 : rk0 + S] = 0.0
-        nanv = gb.op("Where", gb.op("And", gb.op("Greater", status, gb.f(0.0)),
-                                    gb.const(keep == 0, bool)), gb.f(0.0), nanv)  # fmt: skip
+        # NaN outputs where the status is not 0; torques the graph does not compute: NaN always
+        always = np.zeros((1, out.size))
+        t0 = out.fields["joint_torques"][0]
+        always[0, [t0 + c for c in range(self.nv) if c not in self.coords]] = np.nan
+        bad = always.copy()
+        bad[0, :n_mask] = np.nan
+        pen = gb.op("Where", gb.op("Greater", status, gb.f(0.0)), gb.f(bad), gb.f(always))
         out.add("status", (1,))
         for sensor, shape, _h in self.h_out:
             out.add(f"h_out.{sensor}", shape)
-        gb.op("Concat", nanv, status, *(h for _, _, h in self.h_out), axis=1, out="out")
+        gb.op(
+            "Concat",
+            gb.op("Add", vals, pen),
+            status,
+            *(h for _, _, h in self.h_out),
+            axis=1,
+            out="out",
+        )
         gb.output("out", [1, out.size])
         return gb.model(), self.lay, out
 
@@ -1387,8 +1640,12 @@ class _Step:
         M = gb.op("Slice", fm, gb.i([K]), gb.i([7 * K]), gb.i([0]))  # rows j K + k
         M = gb.op("Slice", M, gb.i([0]), gb.i([6]), gb.i([1]))  # force, moment
         M = gb.op("Transpose", gb.op("Reshape", M, gb.i([6, K, 6])), perm=[1, 2, 0])  # (K, o, j)
-        sig = gb.op("Gather", self.e, gb.i(np.array([self._cov_idx[s.region]
-                                                      for s in self.em.slots])), axis=0)
+        sig = gb.op(
+            "Gather",
+            self.e,
+            gb.i(np.array([self._cov_idx[s.region] for s in self.em.slots])),
+            axis=0,
+        )
         sig = gb.op("Reshape", sig, gb.i([K, 6, 6]))
         cov = gb.op("MatMul", gb.op("MatMul", M, sig), gb.op("Transpose", M, perm=[0, 2, 1]))
         return gb.op("Reshape", cov, gb.i([1, 36 * K]))
@@ -1420,5 +1677,4 @@ def build_step_graph(
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
-    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype), residuals,
-                 coords).build()
+    return _Step(em, moving_base, torque_rows, with_cov, np.dtype(dtype), residuals, coords).build()

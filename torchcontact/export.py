@@ -90,6 +90,7 @@ FORMAT = "torchcontact.estimator/2"
 DEFAULT_OPSET = 18
 DYNAMO = False
 
+
 def _export(module, args, path, input_names, output_names, dynamic_axes, opset) -> None:
     """``torch.onnx.export`` with the TorchScript-based exporter (``dynamo=False``).
 
@@ -130,7 +131,6 @@ def _export(module, args, path, input_names, output_names, dynamic_axes, opset) 
         onnx.save(m, str(path))
 
 
-
 def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> None:
     import onnx
 
@@ -140,7 +140,6 @@ def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> No
         m.metadata_props.add(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
     onnx.checker.check_model(m)
     onnx.save(m, str(path))
-
 
 
 def _residual_graphs(residual, model: RobotModel, est: ContactEstimator) -> list:
@@ -177,9 +176,14 @@ def _residual_graphs(residual, model: RobotModel, est: ContactEstimator) -> list
 
 def _residual_meta(res: list, files: list[str]) -> list[dict]:
     return [
-        {"sensor": rg.sensor, "format": rg.format, "extra": list(rg.extra),
-         "state_shape": list(rg.state_shape) if rg.state_shape else None, "file": f,
-         "sha256": hashlib.sha256(Path(rg.path).read_bytes()).hexdigest()}  # fmt: skip
+        {
+            "sensor": rg.sensor,
+            "format": rg.format,
+            "extra": list(rg.extra),
+            "state_shape": list(rg.state_shape) if rg.state_shape else None,
+            "file": f,
+            "sha256": hashlib.sha256(Path(rg.path).read_bytes()).hexdigest(),
+        }
         for (rg, _), f in zip(res, files, strict=True)
     ]
 
@@ -192,9 +196,17 @@ def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: lis
     moving_base, torque_rows, with_cov = flags
     gb = GraphBuilder(dtype, "torchcontact_estimator")
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
-    shapes = {"q": ["N", nv], "qd": ["N", nv], "qdd": ["N", nv], "ft": ["N", S, 6],
-              "positions": ["N", K, 3], "directions": ["N", K, 3], "wrenches": ["N", K, 6],
-              "active": ["N", K], "ft_residual": ["N", S, 6]}  # fmt: skip
+    shapes = {
+        "q": ["N", nv],
+        "qd": ["N", nv],
+        "qdd": ["N", nv],
+        "ft": ["N", S, 6],
+        "positions": ["N", K, 3],
+        "directions": ["N", K, 3],
+        "wrenches": ["N", K, 6],
+        "active": ["N", K],
+        "ft_residual": ["N", S, 6],
+    }
     if moving_base:
         shapes.update(omega=["N", 3], domega=["N", 3], proper_acc=["N", 3])
     if torque_rows:
@@ -222,8 +234,9 @@ def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: lis
                     feeds[name] = gb.op("Cast", f"h_in.{rg.sensor}", to=_onnx_type(rg.dtype))
                     continue
                 sel = _selection(cols, em.model.joint_names, extra, nv)
-                feeds[name] = gb.op("Cast", gb.op("MatMul", src, gb.f(sel)),
-                                    to=_onnx_type(rg.dtype))  # fmt: skip
+                feeds[name] = gb.op(
+                    "Cast", gb.op("MatMul", src, gb.f(sel)), to=_onnx_type(rg.dtype)
+                )
             o = inline(gb, m, f"res{r}/", feeds)
             P = np.zeros((6, 6 * S))
             s = list(em.sensor_names).index(rg.sensor)
@@ -259,8 +272,7 @@ def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: lis
     gb.op("Cast", cols["unknowns"], to=i64, out="unknowns")
     gb.op("Identity", cols["residual"], out="residual")
     gb.op("Cast", gb.op("Reshape", cols["status"], gb.i([-1])), to=i64, out="status")
-    for name, sh in (("force", ["N", K, 3]), ("moment", ["N", K, 3]),
-                     ("joint_torques", ["N", nv])):  # fmt: skip
+    for name, sh in (("force", ["N", K, 3]), ("moment", ["N", K, 3]), ("joint_torques", ["N", nv])):
         gb.output(name, sh)
     for name in ("rank", "unknowns"):
         gb.output(name, ["N", S], np.int64)
@@ -379,8 +391,9 @@ def export_estimator(
     m = model.to(dtype=dtype, device="cpu")
     if gravity is not None:
         m = m.with_gravity(gravity)
-    est = ContactEstimator(m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin,
-                           ft_range=ft_range)  # fmt: skip
+    est = ContactEstimator(
+        m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin, ft_range=ft_range
+    )
     em = est.layout(tuple(links), tuple(kinds))
     res = _residual_graphs(residual, m, est)
     npd = np.dtype(str(dtype).removeprefix("torch."))
@@ -397,19 +410,39 @@ def export_estimator(
         "robot": m.name,
         "urdf_sha256": m.urdf_sha256,
         "joint_names": json.dumps(list(m.joint_names)),
-        "sensors": json.dumps([{"name": s.name, "joint": s.joint, "frame": s.frame,
-                                "direction": s.measure_direction} for s in est.sensors]),
+        "sensors": json.dumps(
+            [
+                {
+                    "name": s.name,
+                    "joint": s.joint,
+                    "frame": s.frame,
+                    "direction": s.measure_direction,
+                }
+                for s in est.sensors
+            ]
+        ),
         "slot_links": json.dumps(list(links)),
         "slot_kinds": json.dumps(list(kinds)),
         "inputs": json.dumps(list(shapes)),
         "input_shapes": json.dumps(shapes),
         "outputs": json.dumps([*ESTIMATOR_OUTPUTS, *(["covariance"] if covariance else [])]),
-        "units": json.dumps({
-            "q": "rad or m", "qd": "rad/s or m/s", "qdd": "rad/s^2 or m/s^2",
-            "ft": "[N, N, N, N m, N m, N m]", "positions": "m", "force": "N", "moment": "N m",
-            "joint_torques": "N m or N", "omega": "rad/s", "domega": "rad/s^2",
-            "proper_acc": "m/s^2", "tau_measured": "N m or N", "gravity": "m/s^2",
-        }),  # fmt: skip
+        "units": json.dumps(
+            {
+                "q": "rad or m",
+                "qd": "rad/s or m/s",
+                "qdd": "rad/s^2 or m/s^2",
+                "ft": "[N, N, N, N m, N m, N m]",
+                "positions": "m",
+                "force": "N",
+                "moment": "N m",
+                "joint_torques": "N m or N",
+                "omega": "rad/s",
+                "domega": "rad/s^2",
+                "proper_acc": "m/s^2",
+                "tau_measured": "N m or N",
+                "gravity": "m/s^2",
+            }
+        ),
         "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
         "moments about the contact point; ft: each sensor's declared frame and direction; "
         "omega, domega, proper_acc: the root body's frame",
@@ -419,8 +452,12 @@ def export_estimator(
         "torque_rows": json.dumps(flags[1]),
         "covariance": json.dumps(flags[2]),
         "velocity_margin": json.dumps(velocity_margin),
-        "ft_range": json.dumps({k: np.broadcast_to(np.asarray(v, float), (6,)).tolist()
-                                for k, v in (ft_range or {}).items()}),  # fmt: skip
+        "ft_range": json.dumps(
+            {
+                k: np.broadcast_to(np.asarray(v, float), (6,)).tolist()
+                for k, v in (ft_range or {}).items()
+            }
+        ),
         "solver": "pivoted cholesky (torchcontact.solve); step graph: Gauss-Jordan form",
         "rank_rtol": repr(float(em.rank_rtol)),
         "torque_joints": json.dumps([m.joint_names[c] for c in coords]),
@@ -437,8 +474,10 @@ def export_estimator(
         meta["step_outputs"] = json.dumps(lout.as_dict())
     else:
         meta["step_inputs"] = meta["step_outputs"] = "{}"
-    for gm, p, kind in ((gb.model(), path, "batched"),
-                        *(((sm, step, "step"),) if step_graph else ())):  # fmt: skip
+    for gm, p, kind in (
+        (gb.model(), path, "batched"),
+        *(((sm, step, "step"),) if step_graph else ()),
+    ):
         gm.opset_import[0].version = opset
         del gm.metadata_props[:]
         for k, v in {**meta, "graph": kind}.items():
@@ -452,6 +491,7 @@ def step_graph_path(path: str | os.PathLike) -> Path:
     """The single-frame graph written beside an estimator graph: ``<stem>.step.onnx``."""
     p = Path(path)
     return p.with_name(f"{p.name.removesuffix('.onnx')}.step.onnx")
+
 
 def export_residual(
     module: nn.Module,

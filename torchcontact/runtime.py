@@ -43,7 +43,7 @@ RESIDUAL_FORMATS = ("torchcontact.residual/1", "torchcontact.residual-graph/1")
 
 
 def session_options(intra_op_threads: int = 1) -> ort.SessionOptions:
-    """onnxruntime options for one frame per call (chosen by measurement, benchmarks/runtime.py).
+    """Onnxruntime options for one frame per call (chosen by measurement, benchmarks/runtime.py).
 
     One intra-op thread and sequential execution (a single frame has no parallel work worth a
     thread hand-off; more threads measured slower), no spinning (a spinning pool competes with the
@@ -126,8 +126,13 @@ class ResidualGraph:
         output: the correction's output name.
     """
 
-    def __init__(self, path: str | os.PathLike, metadata: Mapping[str, Any],
-                 input_names: Sequence[str], output_names: Sequence[str]) -> None:  # fmt: skip
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        metadata: Mapping[str, Any],
+        input_names: Sequence[str],
+        output_names: Sequence[str],
+    ) -> None:
         self.path = str(path)
         fmt = metadata.get("format")
         if fmt not in RESIDUAL_FORMATS:
@@ -179,10 +184,15 @@ class ResidualGraph:
         """
         if not os.path.isfile(path):
             raise ModelMismatchError(f"residual graph {path}: no such file")
-        sess = ort.InferenceSession(str(path), session_options(intra_op_threads),
-                                    providers=["CPUExecutionProvider"])  # fmt: skip
-        obj = cls(path, _metadata(sess), [i.name for i in sess.get_inputs()],
-                  [o.name for o in sess.get_outputs()])  # fmt: skip
+        sess = ort.InferenceSession(
+            str(path), session_options(intra_op_threads), providers=["CPUExecutionProvider"]
+        )
+        obj = cls(
+            path,
+            _metadata(sess),
+            [i.name for i in sess.get_inputs()],
+            [o.name for o in sess.get_outputs()],
+        )
         obj.session = sess
         return obj
 
@@ -304,11 +314,13 @@ class EstimatorRuntime:
         # batched graph (thousands of nodes, seconds to optimise) loads on the first run()
         step_file = path.with_name(f"{path.name.removesuffix('.onnx')}.step.onnx")
         if step_graph and not path.name.endswith(".step.onnx") and step_file.is_file():
-            first = ort.InferenceSession(str(step_file), self._so,
-                                         providers=["CPUExecutionProvider"])  # fmt: skip
+            first = ort.InferenceSession(
+                str(step_file), self._so, providers=["CPUExecutionProvider"]
+            )
             if _metadata(first).get("batched_graph") != path.name:
-                first = ort.InferenceSession(str(path), self._so,
-                                             providers=["CPUExecutionProvider"])  # fmt: skip
+                first = ort.InferenceSession(
+                    str(path), self._so, providers=["CPUExecutionProvider"]
+                )
         else:
             first = ort.InferenceSession(str(path), self._so, providers=["CPUExecutionProvider"])
         meta = _metadata(first)
@@ -325,8 +337,9 @@ class EstimatorRuntime:
         self.step_session: ort.InferenceSession | None = first if graph == "step" else None
         other = path.parent / str(meta.get("step_graph"))
         if graph == "batched" and step_graph and meta.get("step_graph") and other.is_file():
-            self.step_session = ort.InferenceSession(str(other), self._so,
-                                                     providers=["CPUExecutionProvider"])  # fmt: skip
+            self.step_session = ort.InferenceSession(
+                str(other), self._so, providers=["CPUExecutionProvider"]
+            )
             smeta = _metadata(self.step_session)
             if {k: v for k, v in smeta.items() if k != "graph"} != {
                 k: v for k, v in meta.items() if k != "graph"
@@ -337,7 +350,11 @@ class EstimatorRuntime:
         self.joint_names = tuple(meta["joint_names"])
         self.sensor_names = tuple(s["name"] for s in meta["sensors"])
         self.slot_links, self.slot_kinds = tuple(meta["slot_links"]), tuple(meta["slot_kinds"])
-        self.nv, self.S, self.K = len(self.joint_names), len(self.sensor_names), len(self.slot_links)
+        self.nv, self.S, self.K = (
+            len(self.joint_names),
+            len(self.sensor_names),
+            len(self.slot_links),
+        )
         self.dtype = np.dtype(meta["dtype"])
         self._check(robot, expect_robot_sha256, expect_joint_names, expect_sensors, expect_slots)
         # chained corrections: inside the graphs (export --residual) or run here
@@ -426,14 +443,19 @@ class EstimatorRuntime:
         if self.step_session is None:
             self._x = None
             return
-        lay = {k: (int(o), tuple(int(s) for s in sh))
-               for k, (o, sh) in self.metadata["step_inputs"].items()}  # fmt: skip
-        out = {k: (int(o), tuple(int(s) for s in sh))
-               for k, (o, sh) in self.metadata["step_outputs"].items()}  # fmt: skip
+        lay = {
+            k: (int(o), tuple(int(s) for s in sh))
+            for k, (o, sh) in self.metadata["step_inputs"].items()
+        }
+        out = {
+            k: (int(o), tuple(int(s) for s in sh))
+            for k, (o, sh) in self.metadata["step_outputs"].items()
+        }
         size = max(o + int(np.prod(sh)) for o, sh in lay.values())
         self._x = np.zeros((1, size), self.dtype)
-        self._xv = {k: self._x[0, o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in
-                    lay.items()}  # fmt: skip
+        self._xv = {
+            k: self._x[0, o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in lay.items()
+        }
         self._lay = lay
         self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in out.items()}
         self._fresh: set[str] = set()
@@ -463,8 +485,11 @@ class EstimatorRuntime:
             return
         arr = np.asarray(value)
         if arr.shape != view.shape:
-            if arr.size == view.size and arr.ndim <= 1 + view.ndim and arr.squeeze().shape == \
-                    view.squeeze().shape:  # fmt: skip
+            if (
+                arr.size == view.size
+                and arr.ndim <= 1 + view.ndim
+                and arr.squeeze().shape == view.squeeze().shape
+            ):
                 arr = arr.reshape(view.shape)
             else:
                 raise InputError(f"{name} must have shape {view.shape}, got {arr.shape}")
@@ -522,14 +547,24 @@ class EstimatorRuntime:
         """
         if self.step_session is None:  # the batched graph with N = 1
             ft = np.asarray(self._ft_array(ft), dtype=np.float64).reshape(self.S, 6)
-            out = self.run(*(np.asarray(a)[None] if a is not None else None for a in
-                             (q, qd, qdd, ft, positions, active, directions, wrenches,
-                              ft_residual)),  # fmt: skip
-                           **{k: (np.asarray(v)[None] if v is not None else None) for k, v in
-                              dict(omega=omega, domega=domega, proper_acc=proper_acc,
-                                   tau_measured=tau_measured, tau_mask=tau_mask,
-                                   ft_cov=ft_cov).items()},
-                           extra={k: np.atleast_1d(v) for k, v in (extra or {}).items()})  # fmt: skip
+            out = self.run(
+                *(
+                    np.asarray(a)[None] if a is not None else None
+                    for a in (q, qd, qdd, ft, positions, active, directions, wrenches, ft_residual)
+                ),
+                **{
+                    k: (np.asarray(v)[None] if v is not None else None)
+                    for k, v in dict(
+                        omega=omega,
+                        domega=domega,
+                        proper_acc=proper_acc,
+                        tau_measured=tau_measured,
+                        tau_mask=tau_mask,
+                        ft_cov=ft_cov,
+                    ).items()
+                },
+                extra={k: np.atleast_1d(v) for k, v in (extra or {}).items()},
+            )
             return {k: (v[0] if k != "status" else int(v[0])) for k, v in out.items()}
         ft = self._ft_array(ft)
         if self.residuals:
@@ -595,8 +630,9 @@ class EstimatorRuntime:
             missing = [s for s in self.sensor_names if s not in ft]
             if missing:
                 raise InputError(f"ft is missing readings of sensors {missing}")
-            return np.stack([np.asarray(ft[s], dtype=np.float64).reshape(6)
-                             for s in self.sensor_names])  # fmt: skip
+            return np.stack(
+                [np.asarray(ft[s], dtype=np.float64).reshape(6) for s in self.sensor_names]
+            )
         return np.asarray(ft)
 
     def _correct(self, q, qd, qdd, extra, batch: bool) -> np.ndarray:
@@ -625,8 +661,9 @@ class EstimatorRuntime:
         if self._batched is None:
             if not self._batched_path.is_file():
                 raise ModelMismatchError(f"the batched graph {self._batched_path} is missing")
-            self._batched = ort.InferenceSession(str(self._batched_path), self._so,
-                                                 providers=["CPUExecutionProvider"])  # fmt: skip
+            self._batched = ort.InferenceSession(
+                str(self._batched_path), self._so, providers=["CPUExecutionProvider"]
+            )
         return self._batched
 
     def run(
@@ -684,10 +721,23 @@ class EstimatorRuntime:
         n = int(np.shape(q)[0])
         if self.residuals:
             ft = np.asarray(ft, dtype=np.float64) - self._correct(q, qd, qdd, extra, batch=True)
-        given = dict(q=q, qd=qd, qdd=qdd, ft=ft, positions=positions, active=active,
-                     directions=directions, wrenches=wrenches, ft_residual=ft_residual,
-                     omega=omega, domega=domega, proper_acc=proper_acc,
-                     tau_measured=tau_measured, tau_mask=tau_mask, ft_cov=ft_cov)  # fmt: skip
+        given = dict(
+            q=q,
+            qd=qd,
+            qdd=qdd,
+            ft=ft,
+            positions=positions,
+            active=active,
+            directions=directions,
+            wrenches=wrenches,
+            ft_residual=ft_residual,
+            omega=omega,
+            domega=domega,
+            proper_acc=proper_acc,
+            tau_measured=tau_measured,
+            tau_mask=tau_mask,
+            ft_cov=ft_cov,
+        )
         if tau_measured is not None and tau_mask is None:
             given["tau_mask"] = np.isfinite(np.asarray(tau_measured, dtype=float))
         feed = {}
@@ -699,8 +749,11 @@ class EstimatorRuntime:
                 missing = [c for c in self.extra if c not in vals]
                 if missing:
                     raise InputError(f"extra inputs {missing} are required by the corrections")
-                x = np.stack([np.asarray(vals[c], dtype=float).reshape(n) for c in self.extra],
-                             -1) if self.extra else np.zeros((n, 0))  # fmt: skip
+                x = (
+                    np.stack([np.asarray(vals[c], dtype=float).reshape(n) for c in self.extra], -1)
+                    if self.extra
+                    else np.zeros((n, 0))
+                )
             elif name.startswith("h_in."):
                 x = (h_in or {}).get(name[5:])
                 if x is None:
@@ -708,10 +761,21 @@ class EstimatorRuntime:
             else:
                 x = given.get(name)
                 if x is None:
-                    if name in ("q", "qd", "qdd", "ft", "omega", "domega", "proper_acc",
-                                "tau_measured", "ft_cov"):  # fmt: skip
-                        raise InputError(f"{name} is required by this graph, shape (N, "
-                                         f"{', '.join(map(str, trailing))})")  # fmt: skip
+                    if name in (
+                        "q",
+                        "qd",
+                        "qdd",
+                        "ft",
+                        "omega",
+                        "domega",
+                        "proper_acc",
+                        "tau_measured",
+                        "ft_cov",
+                    ):
+                        raise InputError(
+                            f"{name} is required by this graph, shape (N, "
+                            f"{', '.join(map(str, trailing))})"
+                        )
                     x = np.ones((n, *trailing)) if name == "active" else np.zeros((n, *trailing))
             x = np.asarray(x, dtype=self.dtype)
             if x.shape != (n, *trailing):
@@ -720,7 +784,11 @@ class EstimatorRuntime:
                 )
             feed[name] = x
         names = [o.name for o in sess.get_outputs()]
-        parts = [sess.run(None, {k: v[s : s + chunk_size] for k, v in feed.items()})
-                 for s in range(0, max(n, 1), chunk_size)]  # fmt: skip
-        return {k: np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i]
-                for i, k in enumerate(names)}  # fmt: skip
+        parts = [
+            sess.run(None, {k: v[s : s + chunk_size] for k, v in feed.items()})
+            for s in range(0, max(n, 1), chunk_size)
+        ]
+        return {
+            k: np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i]
+            for i, k in enumerate(names)
+        }

@@ -142,10 +142,23 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
     sender.start()
     try:
         rc = main(
-            ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}",
-             "--onnx", str(scene["path"]), "--contacts", str(spec),
-             "--joints", f"udp://127.0.0.1:{port}", "--require-joints", "--duration", "1.0"]
-        )  # fmt: skip
+            [
+                "run",
+                "--profile",
+                "generic-float32",
+                "--tcp",
+                f"127.0.0.1:{sim.port}",
+                "--onnx",
+                str(scene["path"]),
+                "--contacts",
+                str(spec),
+                "--joints",
+                f"udp://127.0.0.1:{port}",
+                "--require-joints",
+                "--duration",
+                "1.0",
+            ]
+        )
     finally:
         stop.set()
         sender.join()
@@ -178,12 +191,20 @@ def two_sensors(tmp_path_factory):
     q = np.linspace(0.3, -0.3, model.nv)
     zero = torch.zeros(model.nv, dtype=torch.float64)
     pos = torch.tensor([POSITIONS[1], [0.0, 0.0, 0.0]], dtype=torch.float64)
-    given = tc.Contacts(TWO_LINKS, ("known", "known"), pos,
-                        wrenches=torch.tensor([[*FORCE, 0, 0, 0], TOOL_WRENCH],
-                                              dtype=torch.float64))  # fmt: skip
+    given = tc.Contacts(
+        TWO_LINKS,
+        ("known", "known"),
+        pos,
+        wrenches=torch.tensor([[*FORCE, 0, 0, 0], TOOL_WRENCH], dtype=torch.float64),
+    )
     ft = est.predict_ft(torch.tensor(q), zero, zero, given)
-    return {"model": model, "path": path, "q": q, "pos": pos.numpy(),
-            "ft": {k: v.numpy() for k, v in ft.items()}}  # fmt: skip
+    return {
+        "model": model,
+        "path": path,
+        "q": q,
+        "pos": pos.numpy(),
+        "ft": {k: v.numpy() for k, v in ft.items()},
+    }
 
 
 def _sender(q, port, stop):
@@ -207,13 +228,18 @@ def test_several_sensors_in_one_graph(two_sensors, tcp_sim):
     from torchcontact.drivers.live import SensorGroup
 
     s = two_sensors
-    sims = [tcp_sim(profile="generic-float32", signal=constant_signal(s["ft"][n]))
-            for n in ("base_ft", "tool_ft")]  # fmt: skip
-    group = SensorGroup([ModbusFTSensor("generic-float32", host="127.0.0.1", tcp_port=sim.port,
-                                        name=n) for sim, n in zip(sims, ("base_ft", "tool_ft"))])
+    sims = [
+        tcp_sim(profile="generic-float32", signal=constant_signal(s["ft"][n]))
+        for n in ("base_ft", "tool_ft")
+    ]
+    group = SensorGroup(
+        [
+            ModbusFTSensor("generic-float32", host="127.0.0.1", tcp_port=sim.port, name=n)
+            for sim, n in zip(sims, ("base_ft", "tool_ft"), strict=True)
+        ]
+    )
     group.open()
-    est = OnnxEstimator(str(s["path"]), {"positions": s["pos"], "active": [1, 1]},
-                        robot=s["model"])  # fmt: skip
+    est = OnnxEstimator(str(s["path"]), {"positions": s["pos"], "active": [1, 1]}, robot=s["model"])
     records = []
 
     class Keep:
@@ -249,14 +275,25 @@ def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, ca
         for p in mlp.parameters():
             p.zero_()
         mlp.set_normalisation(torch.zeros(4, len(names)), torch.tensor([[0.0, 0, 1, 0, 0, 0]] * 4))
-    ckpt = save_residual_model(tmp_path / "ck", mlp, {"features": names, "sensor": "tool_ft",
-                                                      "joint_names": list(model.joint_names),
-                                                      "robot_sha256": model.urdf_sha256})
+    ckpt = save_residual_model(
+        tmp_path / "ck",
+        mlp,
+        {
+            "features": names,
+            "sensor": "tool_ft",
+            "joint_names": list(model.joint_names),
+            "robot_sha256": model.urdf_sha256,
+        },
+    )
     export_residual_checkpoint(ckpt, tmp_path / "res.onnx")
     offset = np.array([0.0, 0, 1, 0, 0, 0])
-    sims = {n: tcp_sim(profile="generic-float32",
-                       signal=constant_signal(s["ft"][n] + (offset if n == "tool_ft" else 0)))
-            for n in ("base_ft", "tool_ft")}  # fmt: skip
+    sims = {
+        n: tcp_sim(
+            profile="generic-float32",
+            signal=constant_signal(s["ft"][n] + (offset if n == "tool_ft" else 0)),
+        )
+        for n in ("base_ft", "tool_ft")
+    }
     spec = tmp_path / "contacts.json"
     spec.write_text(json.dumps({"positions": s["pos"].tolist(), "active": [1, 1]}))
     port = _free_udp_port()
@@ -265,12 +302,31 @@ def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, ca
     sender.start()
     try:
         rc = main(
-            ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sims['base_ft'].port}",
-             "--source", f"tool_ft=tcp://127.0.0.1:{sims['tool_ft'].port}",
-             "--onnx", str(s["path"]), "--contacts", str(spec), "--robot", "tcarm",
-             "--residual", str(tmp_path / "res.onnx"), "--extra", "temperature=31.5",
-             "--joints", f"udp://127.0.0.1:{port}", "--require-joints", "--duration", "1.0"]
-        )  # fmt: skip
+            [
+                "run",
+                "--profile",
+                "generic-float32",
+                "--tcp",
+                f"127.0.0.1:{sims['base_ft'].port}",
+                "--source",
+                f"tool_ft=tcp://127.0.0.1:{sims['tool_ft'].port}",
+                "--onnx",
+                str(s["path"]),
+                "--contacts",
+                str(spec),
+                "--robot",
+                "tcarm",
+                "--residual",
+                str(tmp_path / "res.onnx"),
+                "--extra",
+                "temperature=31.5",
+                "--joints",
+                f"udp://127.0.0.1:{port}",
+                "--require-joints",
+                "--duration",
+                "1.0",
+            ]
+        )
     finally:
         stop.set()
         sender.join()
@@ -281,8 +337,20 @@ def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, ca
         np.testing.assert_allclose(r["estimate"]["force"][1], TOOL_WRENCH[:3], atol=2e-3)
         np.testing.assert_allclose(r["estimate"]["force"][0], FORCE, atol=2e-3)
     # a sensor of the graph without a source: one clear error
-    assert main(["run", "--tcp", f"127.0.0.1:{sims['base_ft'].port}", "--profile",
-                 "generic-float32", "--onnx", str(s["path"])]) == 1  # fmt: skip
+    assert (
+        main(
+            [
+                "run",
+                "--tcp",
+                f"127.0.0.1:{sims['base_ft'].port}",
+                "--profile",
+                "generic-float32",
+                "--onnx",
+                str(s["path"]),
+            ]
+        )
+        == 1
+    )
     assert "missing ['tool_ft']" in capsys.readouterr().err
 
 
@@ -290,8 +358,21 @@ def test_run_refuses_another_robot(scene, tcp_sim, tmp_path, capsys):
     urdf = tmp_path / "pendulum.urdf"
     urdf.write_text(tc.robots.pendulum_urdf())
     sim = tcp_sim(profile="generic-float32", signal=constant_signal(scene["ft"]))
-    rc = main(["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}",
-               "--onnx", str(scene["path"]), "--robot", str(urdf), "--duration", "2"])
+    rc = main(
+        [
+            "run",
+            "--profile",
+            "generic-float32",
+            "--tcp",
+            f"127.0.0.1:{sim.port}",
+            "--onnx",
+            str(scene["path"]),
+            "--robot",
+            str(urdf),
+            "--duration",
+            "2",
+        ]
+    )
     io = capsys.readouterr()
     assert rc == 1 and io.out == ""
     assert io.err.count("error:") == 1 and "exported for robot 'tcarm'" in io.err
@@ -306,9 +387,22 @@ def test_wrong_joint_count_stops_the_loop(scene, tcp_sim, capsys):
     sender.start()
     t0 = time.monotonic()
     try:
-        rc = main(["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}",
-                   "--onnx", str(scene["path"]), "--joints", f"udp://127.0.0.1:{port}",
-                   "--require-joints", "--duration", "10"])  # fmt: skip
+        rc = main(
+            [
+                "run",
+                "--profile",
+                "generic-float32",
+                "--tcp",
+                f"127.0.0.1:{sim.port}",
+                "--onnx",
+                str(scene["path"]),
+                "--joints",
+                f"udp://127.0.0.1:{port}",
+                "--require-joints",
+                "--duration",
+                "10",
+            ]
+        )
     finally:
         stop.set()
         sender.join()

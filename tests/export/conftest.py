@@ -11,6 +11,7 @@ import pytest
 import torch
 from export_scenes import LAYOUTS, robot_model
 
+
 class Exports:
     """Lazily exported graphs and their runtimes, keyed by (layout, dtype[, variant])."""
 
@@ -28,11 +29,18 @@ class Exports:
             moving, torque, cov = lay["flags"]
             path = self.root / f"{name}-{np.dtype(dtype).name}-{len(self.paths)}.onnx"
             export_estimator(
-                robot_model(lay["robot"]), lay["sensors"], lay["links"], lay["kinds"], path,
+                robot_model(lay["robot"]),
+                lay["sensors"],
+                lay["links"],
+                lay["kinds"],
+                path,
                 dtype=torch.float32 if dtype == np.float32 else torch.float64,
-                moving_base=moving, torque_rows=torque, covariance=cov, joints=lay["joints"],
+                moving_base=moving,
+                torque_rows=torque,
+                covariance=cov,
+                joints=lay["joints"],
                 **kw,
-            )  # fmt: skip
+            )
             self.paths[key] = path
         return self.paths[key]
 

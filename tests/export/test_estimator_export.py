@@ -31,8 +31,19 @@ from export_scenes import (
 import torchcontact as tc
 from torchcontact.errors import InputError
 
-STEP_INPUTS = ("positions", "active", "directions", "wrenches", "ft_residual", "omega", "domega",
-               "proper_acc", "tau_measured", "tau_mask", "ft_cov")  # fmt: skip
+STEP_INPUTS = (
+    "positions",
+    "active",
+    "directions",
+    "wrenches",
+    "ft_residual",
+    "omega",
+    "domega",
+    "proper_acc",
+    "tau_measured",
+    "tau_mask",
+    "ft_cov",
+)
 
 
 def _kwargs(x: dict, i: int | None = None) -> dict:
@@ -53,8 +64,10 @@ def _only_torques(ref, rt):
 
 def _step_all(rt, x: dict) -> dict:
     """``rt.step`` over every frame, stacked like ``rt.run``'s outputs."""
-    outs = [rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], **_kwargs(x, i))
-            for i in range(len(x["q"]))]  # fmt: skip
+    outs = [
+        rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], **_kwargs(x, i))
+        for i in range(len(x["q"]))
+    ]
     return {k: np.stack([np.asarray(o[k]) for o in outs]) for k in outs[0]}
 
 
@@ -96,34 +109,63 @@ def test_status_bits_and_nan_frames(tmp_path, graph):
     model = robot_model("tcarm2")
     limits = dict(velocity_margin=1.5, ft_range={"base_ft": [300, 300, 300, 60, 60, 60]})
     path = tmp_path / "limits.onnx"
-    export_estimator(model, None, lay["links"], lay["kinds"], path, dtype=torch.float64,
-                     moving_base=True, covariance=True, **limits)  # fmt: skip
+    export_estimator(
+        model,
+        None,
+        lay["links"],
+        lay["kinds"],
+        path,
+        dtype=torch.float64,
+        moving_base=True,
+        covariance=True,
+        **limits,
+    )
     rt = EstimatorRuntime(path, step_graph=graph == "step")
     x = scene("tcarm2", 20, seed=4, patterns=[(1, 1, 1, 1)])
     nan, inf = float("nan"), float("inf")
-    for key, idx, v in [("ft", (1, 0, 2), nan), ("ft_residual", (2, 1, 4), inf),
-                        ("q", (3, 1), nan), ("omega", (4, 0), inf),
-                        ("positions", (5, 0, 1), nan), ("directions", (6, 1, 0), nan),
-                        ("wrenches", (7, 3, 3), nan), ("positions", (8, 1, 1), nan),
-                        ("qd", (10, 3), 4.0), ("ft", (11, 0, 3), 80.0), ("qd", (12, 3), 4.0),
-                        ("q", (12, 0), nan), ("directions", (14, 1), 0.0),
-                        ("directions", (16, 1), 0.0)]:  # fmt: skip
+    for key, idx, v in [
+        ("ft", (1, 0, 2), nan),
+        ("ft_residual", (2, 1, 4), inf),
+        ("q", (3, 1), nan),
+        ("omega", (4, 0), inf),
+        ("positions", (5, 0, 1), nan),
+        ("directions", (6, 1, 0), nan),
+        ("wrenches", (7, 3, 3), nan),
+        ("positions", (8, 1, 1), nan),
+        ("qd", (10, 3), 4.0),
+        ("ft", (11, 0, 3), 80.0),
+        ("qd", (12, 3), 4.0),
+        ("q", (12, 0), nan),
+        ("directions", (14, 1), 0.0),
+        ("directions", (16, 1), 0.0),
+    ]:
         x[key][idx] = v
     x["active"][8, 1] = 0.0  # an inactive slot's NaN position is no error
     x["active"][16, 1] = 0.0  # nor an inactive slot's zero-length direction
     est = tc.ContactEstimator(model, None, **limits)
     t = {k: torch.as_tensor(v) for k, v in x.items() if k != "truth"}
     ref = est.estimate(
-        t["q"], t["qd"], t["qdd"],
+        t["q"],
+        t["qd"],
+        t["qdd"],
         {s: t["ft"][:, i] - t["ft_residual"][:, i] for i, s in enumerate(est.sensor_names)},
-        tc.Contacts(lay["links"], lay["kinds"], t["positions"], t["directions"], t["wrenches"],
-                    t["active"] > 0.5),
+        tc.Contacts(
+            lay["links"],
+            lay["kinds"],
+            t["positions"],
+            t["directions"],
+            t["wrenches"],
+            t["active"] > 0.5,
+        ),
         base=tc.BaseMotion(t["omega"], t["domega"], t["proper_acc"]),
         ft_covariance={s: t["ft_cov"][:, i] for i, s in enumerate(est.sensor_names)},
-    )  # fmt: skip
+    )
     assert set(ref.status.tolist()) >= {0, 1, 2, 4, 8, 64}
-    out = _step_all(rt, x) if graph == "step" else rt.run(x["q"], x["qd"], x["qdd"], x["ft"],
-                                                           **_kwargs(x))  # fmt: skip
+    out = (
+        _step_all(rt, x)
+        if graph == "step"
+        else rt.run(x["q"], x["qd"], x["qdd"], x["ft"], **_kwargs(x))
+    )
     assert_parity(out, ref, est.sensor_names, np.float64)
     # a bad frame's rank is 0, as the estimator's (it computes on zeros)
     assert (np.asarray(out["rank"])[ref.status.numpy() > 0] == 0).all()
@@ -145,11 +187,45 @@ def test_graphs_load_and_use_no_linear_algebra(exports, dtype):
     """float64 and float32 graphs load in onnxruntime; only elementwise, gather and matrix ops."""
     path = exports.path("panda", dtype)
     step = path.with_name(path.name.replace(".onnx", ".step.onnx"))
-    allowed = {"Add", "Sub", "Mul", "Div", "Neg", "Sqrt", "Sin", "Cos", "Pow", "Where", "Greater",
-               "Equal", "And", "Or", "Not", "IsNaN", "Abs", "Min", "Max", "Gather",
-               "GatherElements", "MatMul", "Gemm", "Concat", "Split", "Squeeze", "Reshape",
-               "Slice", "Transpose", "Cast", "Shape", "Expand", "Identity", "ArgMax",
-               "ReduceMax", "ReduceSum", "ReduceSumSquare"}  # fmt: skip
+    allowed = {
+        "Add",
+        "Sub",
+        "Mul",
+        "Div",
+        "Neg",
+        "Sqrt",
+        "Sin",
+        "Cos",
+        "Pow",
+        "Where",
+        "Greater",
+        "Equal",
+        "And",
+        "Or",
+        "Not",
+        "IsNaN",
+        "Abs",
+        "Min",
+        "Max",
+        "Gather",
+        "GatherElements",
+        "MatMul",
+        "Gemm",
+        "Concat",
+        "Split",
+        "Squeeze",
+        "Reshape",
+        "Slice",
+        "Transpose",
+        "Cast",
+        "Shape",
+        "Expand",
+        "Identity",
+        "ArgMax",
+        "ReduceMax",
+        "ReduceSum",
+        "ReduceSumSquare",
+    }
     for p in (path, step):
         m = onnx.load(str(p))
         onnx.checker.check_model(m)
@@ -163,8 +239,9 @@ def test_single_frame_graph_is_vectorised(exports):
     sizes = {}
     for name in ("tcarm", "icub"):
         p = exports.path(name)
-        sizes[name] = len(onnx.load(str(p.with_name(p.name.replace(".onnx", ".step.onnx"))))
-                          .graph.node)  # fmt: skip
+        sizes[name] = len(
+            onnx.load(str(p.with_name(p.name.replace(".onnx", ".step.onnx")))).graph.node
+        )
     assert sizes["tcarm"] <= 260 and sizes["icub"] <= 300, sizes
     p = exports.path("tcarm")
     assert len(onnx.load(str(p)).graph.node) > 10 * sizes["tcarm"]  # the batched graph
@@ -173,9 +250,10 @@ def test_single_frame_graph_is_vectorised(exports):
 def test_metadata(exports):
     p = exports.path("panda")
     meta = {q.key: q.value for q in onnx.load(str(p)).metadata_props}
-    step = {q.key: q.value for q in onnx.load(str(p.with_name(p.name.replace(".onnx",
-                                                                               ".step.onnx"))))
-            .metadata_props}  # fmt: skip
+    step = {
+        q.key: q.value
+        for q in onnx.load(str(p.with_name(p.name.replace(".onnx", ".step.onnx")))).metadata_props
+    }
     model = robot_model("panda")
     assert meta["format"] == "torchcontact.estimator/2" and meta["graph"] == "batched"
     assert step["graph"] == "step" and {**step, "graph": "batched"} == meta
@@ -191,9 +269,14 @@ def test_metadata(exports):
     assert json.loads(meta["torque_joints"]) == list(model.joint_names)
     icub = {q.key: q.value for q in onnx.load(str(exports.path("icub"))).metadata_props}
     assert json.loads(icub["torque_joints"]) == [
-        "l_shoulder_pitch", "l_shoulder_roll", "l_shoulder_yaw", "l_elbow", "l_wrist_prosup",
-        "l_wrist_pitch", "l_wrist_yaw",
-    ]  # fmt: skip
+        "l_shoulder_pitch",
+        "l_shoulder_roll",
+        "l_shoulder_yaw",
+        "l_elbow",
+        "l_wrist_prosup",
+        "l_wrist_pitch",
+        "l_wrist_yaw",
+    ]
 
 
 def test_layout_errors_name_the_problem(tmp_path):
@@ -207,20 +290,40 @@ def test_layout_errors_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="unknown link"):
         export_estimator(model, None, ["hand_skn"], ["force"], tmp_path / "a.onnx")
     with pytest.raises(ValueError, match="unknown joints"):
-        export_estimator(model, None, ["hand_skin"], ["force"], tmp_path / "a.onnx",
-                         joints=["elbow"])  # fmt: skip
+        export_estimator(
+            model, None, ["hand_skin"], ["force"], tmp_path / "a.onnx", joints=["elbow"]
+        )
     assert not (tmp_path / "a.onnx").exists()
 
 
 def test_cli_exports(tmp_path):
     path = tmp_path / "tcarm.onnx"
     r = subprocess.run(
-        [sys.executable, "-m", "export", "estimator", "--robot", "tcarm", "--slot",
-         "hand_skin:force", "--slot", "forearm_skin:force_dir", "--dtype", "float64",
-         "--moving-base", "--torque-rows", "--covariance", "--joints", "sensed",
-         "--out", str(path)],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "export",
+            "estimator",
+            "--robot",
+            "tcarm",
+            "--slot",
+            "hand_skin:force",
+            "--slot",
+            "forearm_skin:force_dir",
+            "--dtype",
+            "float64",
+            "--moving-base",
+            "--torque-rows",
+            "--covariance",
+            "--joints",
+            "sensed",
+            "--out",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     printed = json.loads(r.stdout)
     meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
@@ -229,7 +332,21 @@ def test_cli_exports(tmp_path):
     assert json.loads(meta["slot_links"]) == ["hand_skin", "forearm_skin"]
     assert json.loads(meta["moving_base"]) and json.loads(meta["covariance"])
     assert path.with_name("tcarm.step.onnx").is_file()
-    bad = subprocess.run([sys.executable, "-m", "export", "estimator", "--robot", "tcarm",
-                          "--slot", "hand_skin:push", "--out", str(tmp_path / "b.onnx")],
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "export",
+            "estimator",
+            "--robot",
+            "tcarm",
+            "--slot",
+            "hand_skin:push",
+            "--out",
+            str(tmp_path / "b.onnx"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 2 and "unknown kind" in bad.stderr

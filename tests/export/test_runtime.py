@@ -27,11 +27,25 @@ def test_step_equals_run_and_loads_lazily(exports):
     rt = EstimatorRuntime(exports.path("tcarm"), robot="tcarm")
     assert rt._batched is None  # the batched graph loads on the first run()
     x = scene("tcarm", 6, seed=5)
-    batch = rt.run(x["q"], x["qd"], x["qdd"], x["ft"], x["positions"], x["active"],
-                   ft_residual=x["ft_residual"])  # fmt: skip
+    batch = rt.run(
+        x["q"],
+        x["qd"],
+        x["qdd"],
+        x["ft"],
+        x["positions"],
+        x["active"],
+        ft_residual=x["ft_residual"],
+    )
     for i in range(6):
-        one = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], x["positions"][i],
-                      x["active"][i], ft_residual=x["ft_residual"][i])  # fmt: skip
+        one = rt.step(
+            x["q"][i],
+            x["qd"][i],
+            x["qdd"][i],
+            x["ft"][i],
+            x["positions"][i],
+            x["active"][i],
+            ft_residual=x["ft_residual"][i],
+        )
         np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-9)
         np.testing.assert_allclose(one["joint_torques"], batch["joint_torques"][i], atol=1e-9)
         assert one["status"] == batch["status"][i] and one["rank"].dtype == np.int64
@@ -85,26 +99,47 @@ def test_refuses_another_robot_or_layout(exports, tmp_path):
 def test_input_errors_name_the_input(exports):
     rt = exports.runtime("panda")  # moving base, torque rows, covariance
     x = scene("panda", 1, seed=6)
-    kw = {k: x[k][0] for k in ("omega", "domega", "proper_acc", "tau_measured", "ft_cov",
-                               "directions")}  # fmt: skip
+    kw = {
+        k: x[k][0]
+        for k in ("omega", "domega", "proper_acc", "tau_measured", "ft_cov", "directions")
+    }
     ok = rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0], **kw)
     assert ok["covariance"].shape == (3, 6, 6) and ok["status"] == 0
-    zero = rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0],
-                   **{**kw, "directions": None})  # fmt: skip
+    zero = rt.step(
+        x["q"][0],
+        x["qd"][0],
+        x["qdd"][0],
+        x["ft"][0],
+        x["positions"][0],
+        **{**kw, "directions": None},
+    )
     assert zero["status"] == 8  # the active force_dir slot has no direction
     with pytest.raises(InputError, match=r"positions must have shape \(3, 3\)"):
         rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], np.zeros((2, 3)), **kw)
     with pytest.raises(InputError, match="omega is required"):
-        rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0],
-                **{k: v for k, v in kw.items() if k != "omega"})  # fmt: skip
+        rt.step(
+            x["q"][0],
+            x["qd"][0],
+            x["qdd"][0],
+            x["ft"][0],
+            x["positions"][0],
+            **{k: v for k, v in kw.items() if k != "omega"},
+        )
     with pytest.raises(InputError, match="tau_measured must have shape"):
-        rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0],
-                **{**kw, "tau_measured": np.zeros(3)})  # fmt: skip
+        rt.step(
+            x["q"][0],
+            x["qd"][0],
+            x["qdd"][0],
+            x["ft"][0],
+            x["positions"][0],
+            **{**kw, "tau_measured": np.zeros(3)},
+        )
     with pytest.raises(InputError, match="ft is missing readings"):
         rt.step(x["q"][0], x["qd"][0], x["qdd"][0], {"other": np.zeros(6)}, x["positions"][0])
     with pytest.raises(InputError, match=r"q must have shape \(1, 8\)"):
-        rt.run(np.zeros((1, 3)), x["qd"], x["qdd"], x["ft"], x["positions"],
-               **{k: x[k] for k in kw})  # fmt: skip
+        rt.run(
+            np.zeros((1, 3)), x["qd"], x["qdd"], x["ft"], x["positions"], **{k: x[k] for k in kw}
+        )
     plain = exports.runtime("tcarm")
     with pytest.raises(InputError, match="no input 'omega'"):
         plain.step(*(np.zeros(7),) * 3, np.zeros((1, 6)), np.zeros((2, 3)), omega=np.zeros(3))
@@ -124,8 +159,12 @@ def residuals(tmp_path_factory):
         torch.manual_seed(3)
         mod = ResidualMLP(len(names), 16, 2) if kind == "mlp" else ResidualGRU(len(names), 8, 1)
         mod.set_normalisation(torch.randn(64, len(names)) * 2, torch.randn(64, 6) * 3)
-        meta = {"features": names, "joint_names": list(model.joint_names), "sensor": "base_ft",
-                "robot_sha256": model.urdf_sha256}  # fmt: skip
+        meta = {
+            "features": names,
+            "joint_names": list(model.joint_names),
+            "sensor": "base_ft",
+            "robot_sha256": model.urdf_sha256,
+        }
         ckpt = save_residual_model(d / kind, mod, meta)
         export_residual_checkpoint(ckpt, d / f"{kind}.onnx")
         out[kind] = (ckpt, d / f"{kind}.onnx")
@@ -150,8 +189,14 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
     # estimator in float64; a GRU keeps its state from frame to frame
     sess = ort.InferenceSession(str(graph), providers=["CPUExecutionProvider"])
     corr = ResidualCorrection.load(ckpt)
-    feats = corr.features(*(torch.as_tensor(x[k]) for k in ("q", "qd", "qdd")),
-                          {"temperature": torch.as_tensor(temp)}).numpy().astype(np.float32)
+    feats = (
+        corr.features(
+            *(torch.as_tensor(x[k]) for k in ("q", "qd", "qdd")),
+            {"temperature": torch.as_tensor(temp)},
+        )
+        .numpy()
+        .astype(np.float32)
+    )
     h = np.zeros((1, 1, 8), np.float32)
     fixed = dict(x)
     fixed["ft"] = x["ft"].copy()
@@ -167,17 +212,33 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
     for rt in (inside, chained):
         rt.reset()
         for i in range(8):
-            out = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], x["positions"][i],
-                          x["active"][i], ft_residual=x["ft_residual"][i],
-                          extra={"temperature": temp[i]})  # fmt: skip
+            out = rt.step(
+                x["q"][i],
+                x["qd"][i],
+                x["qdd"][i],
+                x["ft"][i],
+                x["positions"][i],
+                x["active"][i],
+                ft_residual=x["ft_residual"][i],
+                extra={"temperature": temp[i]},
+            )
             np.testing.assert_allclose(out["force"], ref.force[i].numpy(), atol=1e-9)
-            np.testing.assert_allclose(out["joint_torques"], ref.joint_torques[i].numpy(),
-                                       atol=1e-9)  # fmt: skip
+            np.testing.assert_allclose(
+                out["joint_torques"], ref.joint_torques[i].numpy(), atol=1e-9
+            )
         with pytest.raises(InputError, match="temperature"):
             rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0])
     if kind == "mlp":  # the batched graph takes the correction too
-        b = inside.run(x["q"], x["qd"], x["qdd"], x["ft"], x["positions"], x["active"],
-                       ft_residual=x["ft_residual"], extra={"temperature": temp})  # fmt: skip
+        b = inside.run(
+            x["q"],
+            x["qd"],
+            x["qdd"],
+            x["ft"],
+            x["positions"],
+            x["active"],
+            ft_residual=x["ft_residual"],
+            extra={"temperature": temp},
+        )
         np.testing.assert_allclose(b["force"], ref.force.numpy(), atol=1e-9)
 
 
@@ -195,7 +256,13 @@ def test_residual_for_another_robot_or_sensor_is_refused(exports, residuals, tmp
         EstimatorRuntime(exports.path("tcarm"), residual=tmp_path / "wrist.onnx")
     lay = LAYOUTS["panda"]
     with pytest.raises(ModelMismatchError, match="trained on a robot"):
-        export_estimator(robot_model("panda"), None, lay["links"], lay["kinds"],
-                         tmp_path / "p.onnx", residual=graph)  # fmt: skip
+        export_estimator(
+            robot_model("panda"),
+            None,
+            lay["links"],
+            lay["kinds"],
+            tmp_path / "p.onnx",
+            residual=graph,
+        )
     with pytest.raises(ModelMismatchError, match="already holds"):
         EstimatorRuntime(exports.path("tcarm", residual=str(graph)), residual=graph)

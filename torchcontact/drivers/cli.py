@@ -192,8 +192,10 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
     for item in args.source or []:
         name, sep, address = item.partition("=")
         if not sep or name not in rt.sensor_names:
-            raise ValueError(f"--source takes SENSOR=ADDRESS with SENSOR one of"
-                             f" {list(rt.sensor_names)}, got {item!r}")  # fmt: skip
+            raise ValueError(
+                f"--source takes SENSOR=ADDRESS with SENSOR one of"
+                f" {list(rt.sensor_names)}, got {item!r}"
+            )
         addresses[name] = address
     missing = [s for s in rt.sensor_names if s not in addresses]
     if missing:
@@ -207,8 +209,9 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
         sub.sensor = name
         if addresses[name] is not None:
             a = addresses[name]
-            sub.tcp, sub.port = (a.removeprefix("tcp://"), None) if a.startswith("tcp://") else (
-                None, a)  # fmt: skip
+            sub.tcp, sub.port = (
+                (a.removeprefix("tcp://"), None) if a.startswith("tcp://") else (None, a)
+            )
         sources.append(_make_source(sub))
     return est, sources[0] if len(sources) == 1 else SensorGroup(sources)
 
@@ -216,7 +219,6 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
     from torchcontact.drivers.base import FTConnectionError
-    from torchcontact.errors import ModelMismatchError
     from torchcontact.drivers.live import (
         JsonLinesPublisher,
         LiveLoop,
@@ -226,6 +228,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     from torchcontact.drivers.log import FTLogWriter
     from torchcontact.drivers.modbus import parse_hostport
+    from torchcontact.errors import ModelMismatchError
 
     try:
         if args.onnx:
@@ -310,15 +313,28 @@ def add_parser(subparsers: Any) -> None:
         metavar="FILE.onnx",
         help="exported contact estimator (python -m export estimator) via onnxruntime",
     )
-    run.add_argument("--robot", help="with --onnx: URDF (or tcarm) of the robot; refuses a graph"
-                     " exported for another one")  # fmt: skip
-    run.add_argument("--source", action="append", metavar="SENSOR=ADDRESS",
-                     help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial"
-                     " port (repeat)")  # fmt: skip
-    run.add_argument("--residual", action="append", metavar="FILE.onnx",
-                     help="with --onnx: a residual-correction graph to chain (repeat)")
-    run.add_argument("--extra", action="append", metavar="NAME=VALUE",
-                     help="with --onnx: a constant extra input of the corrections (repeat)")
+    run.add_argument(
+        "--robot",
+        help="with --onnx: URDF (or tcarm) of the robot; refuses a graph exported for another one",
+    )
+    run.add_argument(
+        "--source",
+        action="append",
+        metavar="SENSOR=ADDRESS",
+        help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial port (repeat)",
+    )
+    run.add_argument(
+        "--residual",
+        action="append",
+        metavar="FILE.onnx",
+        help="with --onnx: a residual-correction graph to chain (repeat)",
+    )
+    run.add_argument(
+        "--extra",
+        action="append",
+        metavar="NAME=VALUE",
+        help="with --onnx: a constant extra input of the corrections (repeat)",
+    )
     run.add_argument(
         "--contacts",
         metavar="SPEC.json",

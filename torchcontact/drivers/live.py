@@ -376,9 +376,12 @@ class OnnxEstimator:
         if not os.path.isfile(path):
             raise ModelMismatchError(f"--onnx {path}: no such file")
         self.runtime = EstimatorRuntime(
-            path, robot, residual=residual, expect_joint_names=expect_joint_names,
+            path,
+            robot,
+            residual=residual,
+            expect_joint_names=expect_joint_names,
             intra_op_threads=intra_op_threads,
-        )  # fmt: skip
+        )
         rt = self.runtime
         self.contacts = contacts
         self._fixed = None
@@ -387,15 +390,35 @@ class OnnxEstimator:
         elif not callable(contacts):
             self._fixed = self._check(contacts)
 
-    _KEYS = ("positions", "active", "directions", "wrenches", "omega", "domega", "proper_acc",
-             "tau_measured", "tau_mask", "ft_cov", "extra")  # fmt: skip
+    _KEYS = (
+        "positions",
+        "active",
+        "directions",
+        "wrenches",
+        "omega",
+        "domega",
+        "proper_acc",
+        "tau_measured",
+        "tau_mask",
+        "ft_cov",
+        "extra",
+    )
 
     def _check(self, spec: dict[str, Any]) -> dict[str, Any]:
         rt = self.runtime
         K, S, nv = rt.K, rt.S, rt.nv
-        shapes = {"positions": (K, 3), "active": (K,), "directions": (K, 3), "wrenches": (K, 6),
-                  "omega": (3,), "domega": (3,), "proper_acc": (3,), "tau_measured": (nv,),
-                  "tau_mask": (nv,), "ft_cov": (S, 6, 6)}  # fmt: skip
+        shapes = {
+            "positions": (K, 3),
+            "active": (K,),
+            "directions": (K, 3),
+            "wrenches": (K, 6),
+            "omega": (3,),
+            "domega": (3,),
+            "proper_acc": (3,),
+            "tau_measured": (nv,),
+            "tau_mask": (nv,),
+            "ft_cov": (S, 6, 6),
+        }
         out: dict[str, Any] = {}
         for key, value in spec.items():
             if key not in self._KEYS:
