@@ -1,15 +1,15 @@
 """Robot model built once from a URDF into plain tensors.
 
 The model is a frozen value: :meth:`RobotModel.to` returns a copy, algorithms are functions of
-``(model, q, qd, qdd, ...)``. The URDF is read with ``yourdfpy`` (kinematic tree, inertials,
-mimic tags); the F/T sensor extension that iDynTree and Gazebo read (``<sensor
-type="force_torque">`` as a child of ``<robot>``) is read beside it, since no URDF parser keeps it.
+``(model, q, qd, qdd, ...)``. The URDF is read with the standard library's XML parser
+(kinematic tree, inertials, limits, mimic tags, and the F/T sensor extension that iDynTree and
+Gazebo read, ``<sensor type="force_torque">`` as a child of ``<robot>``, which URDF libraries drop).
 
 Bodies. Links joined by fixed joints are rigidly attached and are merged into one *body* (their
 inertias combined), except across fixed joints that carry an F/T sensor or that the caller names in
 ``keep_fixed``: those stay body boundaries, because a sensor splits the tree there. Bodies are
-numbered breadth-first, so the bodies of one tree depth form a contiguous range and every parent
-lies in the previous range; the dynamics process a whole depth at once.
+numbered breadth-first (parents before children; the bodies of one tree depth form a contiguous
+range, ``levels``).
 
 Joints. ``joint_names`` lists the independent joint coordinates (revolute, continuous, prismatic),
 depth-first in URDF order like pinocchio, and fixes the order of every joint-space vector
