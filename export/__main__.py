@@ -37,7 +37,7 @@ def _estimator(args: argparse.Namespace) -> int:
     try:
         meta = export_estimator(
             model, args.sensor or None, links, kinds, args.out, dtype=dtype, opset=opset,
-            rank_rtol=args.rank_rtol, sweeps=args.sweeps,
+            rank_rtol=args.rank_rtol,
         )  # fmt: skip
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -73,7 +73,6 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     e.add_argument("--opset", type=int, default=None)
     e.add_argument("--rank-rtol", type=float, default=None)
-    e.add_argument("--sweeps", type=int, default=None, help="Jacobi sweeps (default: per dtype)")
     e.add_argument("--out", required=True, help="output .onnx path")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by python -m training")

@@ -209,14 +209,23 @@ def test_compiled_path_agrees_with_eager():
     )
 
 
-def test_gravity_per_frame_and_autograd_gradcheck():
+def test_gravity_on_the_model_and_autograd_gradcheck():
     model = tc.RobotModel.from_urdf(io.StringIO(CONTINUOUS_URDF))
     q, qd, qdd = (x.requires_grad_() for x in random_state(model, 3, seed=12))
+    torch.autograd.gradcheck(lambda q, qd, qdd: tc.inverse_dynamics(model, q, qd, qdd), (q, qd, qdd))
+    # gravity lives on the model; a per-frame gravity is a base acceleration of -g (at rest)
     grav = torch.tensor([[0.0, 0, -9.81], [0, -9.81, 0], [1.0, 2, 3]], dtype=torch.float64)
-    torch.autograd.gradcheck(
-        lambda q, qd, qdd, g: tc.inverse_dynamics(model, q, qd, qdd, gravity=g),
-        (q, qd, qdd, grav.requires_grad_()),
-    )
+    q, qd, qdd = (x.detach() for x in (q, qd, qdd))
+    zero = torch.zeros(3, 3, dtype=torch.float64)
+    per_frame = tc.inverse_dynamics(model, q, qd, qdd, base=tc.BaseMotion(zero, zero, -grav))
+    for k in range(3):
+        m = model.with_gravity(grav[k])
+        torch.testing.assert_close(
+            m.inverse_dynamics(q[k], qd[k], qdd[k]), per_frame[k], atol=1e-12, rtol=0
+        )
+    assert model.gravity.tolist() == [0.0, 0.0, -9.81]  # with_gravity returned copies
+    with pytest.raises(ValueError, match="gravity must be 3 finite numbers"):
+        model.with_gravity((0.0, float("nan"), 1.0))
 
 
 def test_bad_inputs_name_the_argument():

@@ -71,6 +71,18 @@ class IDynTreeRef:
             idt.Vector3.FromPython(list(gravity)),
         )
 
+    def kinematics_floating(self, q, qd, qdd, omega, domega, proper_acc):
+        """The floating-base update: an IMU on root_link (its frame), as torchcontact's base."""
+        assert self.est.updateKinematicsFromFloatingBase(
+            idt.JointPosDoubleArray.FromPython(np.asarray(q, float)),
+            idt.JointDOFsDoubleArray.FromPython(np.asarray(qd, float)),
+            idt.JointDOFsDoubleArray.FromPython(np.asarray(qdd, float)),
+            self.root,
+            idt.Vector3.FromPython(np.asarray(proper_acc, float)),
+            idt.Vector3.FromPython(np.asarray(omega, float)),
+            idt.Vector3.FromPython(np.asarray(domega, float)),
+        )
+
     def unknowns(self, contacts):
         """``contacts``: list of (link, kind, point (3,), direction (3,) or None, wrench or None)."""
         u = idt.LinkUnknownWrenchContacts(self.m)
@@ -219,13 +231,15 @@ def stack_ft(est, ft):
 
 
 # ---------------------------------------------------------------------------------- a. forward
-def test_predicted_ft_matches_idyntree(icub):
+@pytest.mark.parametrize("backend", ["eager", "cpu"])
+def test_predicted_ft_matches_idyntree(icub, backend):
     model, est, ref = icub
     links = ["l_forearm", "l_hand", "r_lower_leg", "l_foot", "r_upper_arm", "l_upper_leg"]
     n = 4
     q, qd, qdd = random_state(model, n, seed=10)
     pos, _, wr = random_contacts(links, ["wrench"] * len(links), n, seed=11)
-    ours = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr))
+    c = tc.Contacts(links, ["known"] * len(links), pos, wrenches=wr)
+    ours = est.predict_ft(q, qd, qdd, c, backend=backend)
     assert set(ours) == set(ref.ft_names)
     assert not np.allclose(ours["l_arm_ft"][0], ours["l_arm_ft"][1])
     for i in range(n):
@@ -247,15 +261,18 @@ B_LINKS = ["l_hand", "r_lower_leg", *["l_foot"] * 6, "r_forearm", "l_upper_leg",
 B_KINDS = ["wrench", "force", *["force_dir"] * 6, "force", "force_dir", "force_dir"]
 
 
-def test_estimate_matches_idyntree_pinocchio_and_truth(icub):
+@pytest.mark.parametrize("backend", ["eager", "cpu"])
+def test_estimate_matches_idyntree_pinocchio_and_truth(icub, backend):
     model, est, ref = icub
     pinrobot = PinRobot(ROBOTS["icub"](), model)
     n = 3
     q, qd, qdd = random_state(model, n, seed=20)
     pos, dirs, wr = random_contacts(B_LINKS, B_KINDS, n, seed=21)
     K = len(B_LINKS)
-    ft = est.predict_ft(q, qd, qdd, tc.Contacts(B_LINKS, ["known"] * K, pos, wrenches=wr))
-    out = est.estimate(q, qd, qdd, ft, tc.Contacts(B_LINKS, B_KINDS, pos, directions=dirs))
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(B_LINKS, ["known"] * K, pos, wrenches=wr),
+                        backend=backend)  # fmt: skip
+    out = est.estimate(q, qd, qdd, ft, tc.Contacts(B_LINKS, B_KINDS, pos, directions=dirs),
+                       backend=backend)  # fmt: skip
     w_est = torch.cat((out.force, out.moment), -1)
     assert (out.status == 0).all()
     for s in est.sensor_names:
@@ -285,6 +302,46 @@ def test_estimate_matches_idyntree_pinocchio_and_truth(icub):
     # the contacts change the torques: the comparison is not gravity alone
     tau0 = model.inverse_dynamics(q, qd, qdd)
     assert (tau0 - out.joint_torques).abs().max() > 1.0
+
+
+@pytest.mark.parametrize("backend", ["eager", "cpu"])
+def test_moving_base_matches_idyntree_floating_base(icub, backend):
+    """An IMU on the base: iDynTree's estimator after updateKinematicsFromFloatingBase."""
+    model, est, ref = icub
+    n = 3
+    q, qd, qdd = random_state(model, n, seed=25)
+    g = torch.Generator().manual_seed(26)
+    base = tc.BaseMotion(
+        torch.randn(n, 3, generator=g, dtype=DT),  # omega, rad/s
+        torch.randn(n, 3, generator=g, dtype=DT) * 2,  # domega, rad/s^2
+        torch.randn(n, 3, generator=g, dtype=DT) * 3 + torch.tensor([0, 0, 9.81], dtype=DT),
+    )
+    pos, dirs, wr = random_contacts(B_LINKS, B_KINDS, n, seed=27)
+    K = len(B_LINKS)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(B_LINKS, ["known"] * K, pos, wrenches=wr),
+                        base=base, backend=backend)  # fmt: skip
+    out = est.estimate(q, qd, qdd, ft, tc.Contacts(B_LINKS, B_KINDS, pos, directions=dirs),
+                       base=base, backend=backend)  # fmt: skip
+    assert (out.status == 0).all()
+    w_est = torch.cat((out.force, out.moment), -1)
+    np.testing.assert_allclose(w_est.numpy(), wr.numpy(), atol=ATOL, rtol=0)
+    for i in range(n):
+        ref.kinematics_floating(q[i], qd[i], qdd[i], *(x[i].numpy() for x in base))
+        theirs = ref.predict(
+            [(lk, "known", pos[i, k].numpy(), None, wr[i, k].numpy()) for k, lk in enumerate(B_LINKS)]
+        )
+        for s in ref.ft_names:
+            np.testing.assert_allclose(ft[s][i].numpy(), theirs[s], atol=ATOL, rtol=0)
+        spec = [
+            (lk, kd, pos[i, k].numpy(), dirs[i, k].numpy() if kd == "force_dir" else None, None)
+            for k, (lk, kd) in enumerate(zip(B_LINKS, B_KINDS, strict=True))
+        ]
+        w_idt, tau_idt = ref.estimate({s: ft[s][i].numpy() for s in est.sensor_names}, spec)
+        np.testing.assert_allclose(w_est[i].numpy(), w_idt, atol=ATOL, rtol=0)
+        np.testing.assert_allclose(out.joint_torques[i].numpy(), tau_idt, atol=ATOL, rtol=0)
+    # the base motion matters: the fixed-base estimate of the same readings differs
+    fixed = est.estimate(q, qd, qdd, ft, tc.Contacts(B_LINKS, B_KINDS, pos, directions=dirs))
+    assert (fixed.joint_torques - out.joint_torques).abs().max() > 1e-2
 
 
 def region_blocks(est, links, col_slot):

@@ -1,50 +1,62 @@
-"""Batched recursive Newton-Euler algorithm (RNEA): forward kinematics pass and inverse dynamics.
+"""Batched recursive Newton-Euler algorithm (RNEA): the physics program and its public API.
 
-Formulation (Featherstone, *Rigid Body Dynamics Algorithms*, 2008, Sec. 5.3, in the "spatial
-vectors at the base origin" form). Every twist, acceleration and wrench is expressed in the root
-(base) frame, about the root's origin. Then the motion of a body is its parent's plus its own
-joint's term, and the wrench a joint carries is the plain sum of the body wrenches of its subtree.
-Only the poses need a product along the tree. The passes run one tree depth at a time (bodies are
-numbered breadth-first, see :mod:`torchcontact.model`), batched over frames and over the bodies of
-that depth:
+Formulation (Featherstone, *Rigid Body Dynamics Algorithms*, 2008, Sec. 5.3; body-frame form, as
+in pinocchio). Every twist, acceleration and wrench of body ``i`` is expressed in the body's own
+frame about its origin. The tree is unrolled at trace time into straight-line code on scalars
+(:mod:`torchcontact._scalar`), so the same source runs eagerly in torch and as a generated kernel
+(:mod:`torchcontact.kernels`):
 
-1. joint transforms ``T_parent_body(q)`` for all bodies at once (Rodrigues' formula folded into
-   constant matrices);
-2. poses ``T_root_body`` by depth;
-3. joint motion subspaces ``S`` in the root frame; twists ``v_i = v_parent + S_i qd_i`` and
-   accelerations ``a_i = a_parent + S_i qdd_i + v_i x (S_i qd_i)`` by depth (Featherstone
-   eq. 5.7-5.8);
-4. body wrenches ``f_i = I_i a_i + v_i x* I_i v_i - f_ext_i`` (eq. 5.9) for all bodies at once;
-5. subtree sums of ``f`` by depth, leaves first, and ``tau_i = S_i^T F_i`` (eq. 5.10-5.11).
+1. **joint placements** ``T_parent_i(q)``: each body frame is turned (by a constant rotation
+   ``Q_i``, :class:`BodyConstants`) so that its joint axis is +z; then the joint rotation is a
+   constant times ``Rz(q)`` and the motion subspace is ``S = e_6`` (revolute) or ``e_3``
+   (prismatic), and the exact zeros and ones of the model fold away;
+2. **forward pass**, kinematics (eq. 5.7-5.8) ``v_i = X_i v_parent + S qd_i``,
+   ``a_i = X_i a_parent + S qdd_i + v_i x S qd_i``, and
+3. body wrenches (eq. 5.9) ``f_i = I_i a_i + v_i x* I_i v_i`` (minus external wrenches), body by
+   body in depth-first order;
+4. **backward pass** (eq. 5.10-5.11): ``F_parent += X_i^* F_i``, ``tau_i = S^T F_i``, with mimic
+   torques folded onto their leaders.
 
-Gravity enters as a fictitious upward acceleration of the root (``a_0 = -g``), so the
-accelerations here are pinocchio's ``a_gf``. A moving base measured by an IMU enters the same way:
-``v_0 = [0; omega]`` and ``a_0 = [proper acceleration; domega]`` (a Galilean shift of the base's
-linear velocity changes no force, so the IMU's missing linear velocity is not needed).
-
-All code is elementwise torch with constant indexing: differentiable, exportable with
-``torch.onnx.export``, no Python branching on tensor values.
+Gravity lives on the model (``model.gravity``) and enters as a fictitious upward acceleration of
+the root, ``a_0 = -g``, so the accelerations are pinocchio's ``a_gf``. A moving base measured by an
+IMU enters the same way: ``v_0 = [0; omega]`` and ``a_0 = [proper acceleration; domega]`` (a
+Galilean shift of the base's linear velocity changes no force, so the IMU's missing linear
+velocity is not needed).
 """
 
 from __future__ import annotations
 
-import math
+import hashlib
+import weakref
+from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from torchcontact import kernels
+from torchcontact import spatial as sp
 from torchcontact._internal import check_input, flatten_batch, in_tracing
+from torchcontact._scalar import Scalar, add, cos, mul, sin
+from torchcontact.errors import InputError
 from torchcontact.model import RobotModel
 
 __all__ = [
     "BaseMotion",
+    "BodyConstants",
     "ForwardPass",
+    "Tree",
+    "backward_pass",
     "body_wrenches",
     "compiled_inverse_dynamics",
     "forward_pass",
     "inverse_dynamics",
-    "subtree_sum",
+    "joint_placements",
+    "body_wrench",
+    "forward_step",
+    "rnea_forward",
+    "tree_of",
 ]
 
 
@@ -84,69 +96,446 @@ class ForwardPass(NamedTuple):
     S: Tensor
 
 
-# Internally every per-frame quantity is stored batch-last, ``(bodies, features..., N)``, so that
-# each elementwise op runs over long contiguous vectors of frames (SIMD-friendly, and what
-# ``torch.compile`` turns into one vectorised loop). ``_bl`` marks these tensors.
+# ------------------------------------------------------------------------ constants of the program
 
 
-def _cross_bl(a: Tensor, b: Tensor) -> Tensor:
-    """Cross product over dim -2 of batch-last vectors ``(..., 3, N)``."""
-    a0, a1, a2 = a.unbind(-2)
-    b0, b1, b2 = b.unbind(-2)
-    return torch.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), dim=-2)
+@dataclass(frozen=True)
+class BodyConstants:
+    """Constants of one body in its *internal* frame (the link frame turned so the axis is +z).
 
-
-def _mv_bl(m: Tensor, v: Tensor) -> Tensor:
-    """``m @ v``: batch-last ``m (..., r, c, N)`` or constant ``(..., r, c, 1)``, ``v (..., c, N)``.
-
-    Written as a broadcast multiply-sum: for 3x3 blocks this beats batched GEMM on CPU and fuses
-    under compilation.
+    Attributes:
+        parent: parent body index (-1 for the root).
+        kind: ``"root"``, ``"revolute"``, ``"prismatic"`` or ``"fixed"``.
+        coord: index of the joint coordinate driving the body (the leader for a mimic joint), -1.
+        mult: mimic multiplier (1 otherwise): the body's joint angle is ``mult * q[coord] +
+            offset``.
+        offset: mimic offset, rad or m.
+        C: rotation of the internal frame in the parent's internal frame at ``q = 0``.
+        p: origin of the body in the parent's internal frame at ``q = 0``, m.
+        Q: ``(3, 3)`` numpy rotation ``R_link_internal`` (its third column is the joint axis).
+        mass: kg.
+        com: centre of mass, internal frame, m.
+        inertia: rotational inertia about the centre of mass, internal axes, kg m^2.
     """
-    return (m * v.unsqueeze(-3)).sum(-2)
+
+    parent: int
+    kind: str
+    coord: int
+    mult: float
+    offset: float
+    C: sp.M3
+    p: sp.V3
+    Q: np.ndarray
+    mass: float
+    com: sp.V3
+    inertia: sp.M3
 
 
-def _levels_forward(model: RobotModel, first: Tensor, local: Tensor, step) -> Tensor:
-    """Propagate a per-body quantity from the root down, one depth at a time.
+@dataclass(frozen=True, eq=False)
+class Tree:
+    """The robot as constants of the physics program (float64), derived once from a model.
 
-    ``first`` is the root's value ``(1, ..., N)``; ``step(parent_value, local_slice)`` gives the
-    bodies of one depth from their parents' values. Returns ``(nb, ..., N)``.
+    Attributes:
+        bodies: per body, :class:`BodyConstants` (breadth-first order of the model: parents
+            first).
+        nv: number of joint coordinates.
+        gravity: gravity in the root frame, m/s^2.
+        order: body indices in depth-first preorder (parents first, one branch at a time): the
+            order the passes visit bodies in, which keeps the generated code's live values few.
+        key: hash of every constant (identifies generated kernels).
     """
-    out = [first]
-    prev = first
-    for (s, e), parent in zip(model.levels[1:], model.level_parent, strict=True):
-        prev = step(prev.index_select(0, parent), local[s:e])
-        out.append(prev)
-    return torch.cat(out, dim=0)
+
+    bodies: tuple[BodyConstants, ...]
+    nv: int
+    gravity: sp.V3
+    order: tuple[int, ...]
+    key: str
 
 
-def _cumulate_down(model: RobotModel, root_value: Tensor, increments: Tensor) -> Tensor:
-    """``x_i = x_parent + increment_i`` from the root down; ``root_value`` is ``(1, k, N)``."""
-    return _levels_forward(model, root_value + increments[:1], increments, lambda p, inc: p + inc)
+def _axis_frame(axis: np.ndarray) -> np.ndarray:
+    """A rotation ``Q`` with ``Q e_z = axis``, as sparse as possible (signed permutations)."""
+    a = axis / np.linalg.norm(axis)
+    k = int(np.argmin(np.abs(a)))  # the coordinate axis least aligned with ``a``
+    e = np.zeros(3)
+    e[k] = 1.0
+    x = e - (e @ a) * a
+    x /= np.linalg.norm(x)
+    y = np.cross(a, x)
+    Q = np.stack([x, y, a], axis=1)
+    return np.where(np.abs(Q) < 1e-15, 0.0, Q)
 
 
-def subtree_sum(model: RobotModel, x: Tensor) -> Tensor:
-    """Sum a per-body quantity over each body's subtree (itself included).
+_TREES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def tree_of(model: RobotModel) -> Tree:
+    """The :class:`Tree` of ``model`` (cached per model object).
+
+    Built from the model's tensors, so a model edited with ``dataclasses.replace`` (new inertias,
+    another gravity) gets its own constants and its own kernels.
+    """
+    tree = _TREES.get(model)
+    if tree is None:
+        tree = _build_tree(model)
+        _TREES[model] = tree
+    return tree
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().to("cpu", torch.float64).numpy()
+
+
+def _build_tree(model: RobotModel) -> Tree:
+    C0, p0, axis = _np(model.C0), _np(model.p0), _np(model.axis)
+    mass, com, inertia = _np(model.mass), _np(model.com), _np(model.inertia_com)
+    is_rev, is_pri = _np(model.is_revolute), _np(model.is_prismatic)
+    q_to_body, q_offset = _np(model.q_to_body), _np(model.q_offset)
+    bodies: list[BodyConstants] = []
+    Qs: list[np.ndarray] = []
+    for b in range(model.nb):
+        parent = model.body_parent[b]
+        if b == 0:
+            kind = "root"
+        elif is_rev[b]:
+            kind = "revolute"
+        elif is_pri[b]:
+            kind = "prismatic"
+        else:
+            kind = "fixed"
+        Q = _axis_frame(axis[b]) if kind in ("revolute", "prismatic") else np.eye(3)
+        Qs.append(Q)
+        coord, mult = -1, 1.0
+        if kind in ("revolute", "prismatic"):
+            nz = np.flatnonzero(q_to_body[:, b])
+            coord, mult = int(nz[0]), float(q_to_body[nz[0], b])
+        Qp = Qs[parent] if parent >= 0 else np.eye(3)
+        C = Qp.T @ C0[b] @ Q if b else np.eye(3)
+        p = Qp.T @ p0[b] if b else np.zeros(3)
+        bodies.append(
+            BodyConstants(
+                parent=parent,
+                kind=kind,
+                coord=coord,
+                mult=mult,
+                offset=float(q_offset[b]),
+                C=sp.const_mat(C),
+                p=sp.const_vec(p),
+                Q=Q,
+                mass=float(mass[b]),
+                com=sp.const_vec(Q.T @ com[b]),
+                inertia=sp.const_mat(Q.T @ inertia[b] @ Q),
+            )
+        )
+    gravity = sp.const_vec(_np(model.gravity))
+    children: list[list[int]] = [[] for _ in bodies]
+    for b, body in enumerate(bodies[1:], start=1):
+        children[body.parent].append(b)
+    order: list[int] = []
+    stack = [0]
+    while stack:
+        b = stack.pop()
+        order.append(b)
+        stack.extend(reversed(children[b]))
+    h = hashlib.sha256(repr((model.urdf_sha256, model.nv, bodies, gravity)).encode())
+    return Tree(
+        bodies=tuple(bodies),
+        nv=model.nv,
+        gravity=gravity,
+        order=tuple(order),
+        key=h.hexdigest()[:24],
+    )
+
+
+def internal_frame(tree: Tree, body: int, R_body_frame: np.ndarray, p_body_frame: np.ndarray):
+    """A frame fixed on ``body`` (given in the body's link frame) in the body's internal frame."""
+    Q = tree.bodies[body].Q
+    return Q.T @ np.asarray(R_body_frame, float), Q.T @ np.asarray(p_body_frame, float)
+
+
+# ------------------------------------------------------------------------------- physics program
+
+
+def joint_placements(tree: Tree, q: list[Scalar]) -> list[sp.Pose | None]:
+    """Stage 1: ``T_parent_i(q)`` of every body in internal frames (None for the root).
 
     Args:
-        model: the robot.
-        x: ``(nb, ...)`` per-body values, bodies first (any trailing shape).
+        tree: the robot's constants.
+        q: ``nv`` joint coordinates, rad or m.
+    """
+    X: list[sp.Pose | None] = [None]
+    for body in tree.bodies[1:]:
+        d = add(mul(body.mult, q[body.coord]), body.offset) if body.coord >= 0 else 0.0
+        if body.kind == "revolute":
+            X.append((sp.m_mul(body.C, sp.rot_z(cos(d), sin(d))), body.p))
+        elif body.kind == "prismatic":
+            axis = tuple(row[2] for row in body.C)
+            X.append((body.C, sp.v_add(body.p, sp.v_scale(d, axis))))
+        else:
+            X.append((body.C, body.p))
+    return X
+
+
+def _joint_motion(body: BodyConstants, rate: Scalar) -> sp.Motion:
+    """``S x`` for a joint rate or acceleration ``x`` (already multiplied for mimic joints)."""
+    if body.kind == "revolute":
+        return (sp.ZERO3, (0.0, 0.0, rate))
+    if body.kind == "prismatic":
+        return ((0.0, 0.0, rate), sp.ZERO3)
+    return (sp.ZERO3, sp.ZERO3)
+
+
+def root_motion(tree: Tree, base: dict[str, list[Scalar]] | None) -> tuple[sp.Motion, sp.Motion]:
+    """Twist and acceleration of the root: ``(0, -g)`` on a fixed base, the IMU's otherwise."""
+    if base is None:
+        return (sp.ZERO3, sp.ZERO3), (sp.v_neg(tree.gravity), sp.ZERO3)
+    return (sp.ZERO3, tuple(base["omega"])), (tuple(base["proper_acc"]), tuple(base["domega"]))
+
+
+def forward_step(
+    tree: Tree,
+    i: int,
+    X_i: sp.Pose,
+    v_parent: sp.Motion,
+    a_parent: sp.Motion,
+    qd: list[Scalar],
+    qdd: list[Scalar],
+) -> tuple[sp.Motion, sp.Motion]:
+    """Twist and acceleration of body ``i`` from its parent's (Featherstone eq. 5.7-5.8)."""
+    body = tree.bodies[i]
+    vJ = _joint_motion(body, mul(body.mult, qd[body.coord]) if body.coord >= 0 else 0.0)
+    aJ = _joint_motion(body, mul(body.mult, qdd[body.coord]) if body.coord >= 0 else 0.0)
+    vp = sp.motion_to_child(X_i, v_parent)
+    ap = sp.motion_to_child(X_i, a_parent)
+    vi = (sp.v_add(vp[0], vJ[0]), sp.v_add(vp[1], vJ[1]))
+    vxs = sp.motion_cross_motion(vi, vJ)
+    return vi, tuple(sp.v_add(sp.v_add(ap[k], aJ[k]), vxs[k]) for k in range(2))
+
+
+def body_wrench(tree: Tree, i: int, v: sp.Motion, a: sp.Motion) -> sp.Force:
+    """``I_i a_i + v_i x* I_i v_i`` (eq. 5.9), internal frame of body ``i``, about its origin."""
+    b = tree.bodies[i]
+    if b.mass == 0.0 and all(x == 0.0 for row in b.inertia for x in row):
+        return (sp.ZERO3, sp.ZERO3)
+    Ia = sp.inertia_apply(b.mass, b.com, b.inertia, a)
+    Iv = sp.inertia_apply(b.mass, b.com, b.inertia, v)
+    vxIv = sp.motion_cross_force(v, Iv)
+    return sp.v_add(Ia[0], vxIv[0]), sp.v_add(Ia[1], vxIv[1])
+
+
+def rnea_forward(
+    tree: Tree,
+    X: list[sp.Pose | None],
+    qd: list[Scalar],
+    qdd: list[Scalar],
+    root: tuple[sp.Motion, sp.Motion],
+    wrenches: bool = True,
+) -> tuple[list[sp.Motion], list[sp.Motion], list[sp.Force | None]]:
+    """Stages 2-3, the forward pass: twists, accelerations and body wrenches of every body.
+
+    Bodies are visited depth-first; each body's wrench is formed as soon as its motion is known,
+    which keeps few values alive in generated code.
+
+    Args:
+        tree: the robot's constants.
+        X: joint placements from :func:`joint_placements`.
+        qd: ``nv`` joint velocities.
+        qdd: ``nv`` joint accelerations.
+        root: the root's twist and acceleration (:func:`root_motion`).
+        wrenches: also compute the body wrenches (else ``f`` is all None).
 
     Returns:
-        ``(nb, ...)`` with ``out[i] = sum of x[j]`` for ``j`` in the subtree of ``i``.
+        ``v, a, f`` per body (model order), internal frames about the body origins; ``a``
+        includes gravity.
     """
-    # Leaves first: each depth adds its accumulated values into the previous depth's parents.
-    acc = x[model.levels[-1][0] : model.levels[-1][1]]
-    parts = [acc]
-    for d in range(len(model.levels) - 1, 0, -1):
-        s, e = model.levels[d - 1]
-        acc = x[s:e].index_add(0, model.level_parent[d - 1], acc)
-        parts.append(acc)
-    return torch.cat(parts[::-1], dim=0)
+    nb = len(tree.bodies)
+    v: list = [None] * nb
+    a: list = [None] * nb
+    f: list = [None] * nb
+    v[0], a[0] = root
+    for i in tree.order:
+        if i:
+            p = tree.bodies[i].parent
+            v[i], a[i] = forward_step(tree, i, X[i], v[p], a[p], qd, qdd)
+        if wrenches:
+            f[i] = body_wrench(tree, i, v[i], a[i])
+    return v, a, f
 
 
-def _c(t: Tensor) -> Tensor:
-    """A model constant ``(nb, ...)`` broadcast against batch-last tensors ``(nb, ..., N)``."""
-    return t.unsqueeze(-1)
+def backward_pass(
+    tree: Tree,
+    X: list[sp.Pose | None],
+    f: list[sp.Force | None],
+    transmitted: dict[int, sp.Force] | None = None,
+) -> tuple[list[sp.Force], list[Scalar]]:
+    """Stage 4: wrench each joint transmits, ``F_i = f_i + sum_children X^* F_c``, and torques.
+
+    Args:
+        tree: the robot's constants.
+        X: joint placements from :func:`joint_placements`.
+        f: per body, the net wrench it needs (body wrench minus external wrenches).
+        transmitted: body -> the wrench its parent joint transmits, when known (an F/T sensor's
+            reading in the body's internal frame): it replaces the computed sum for the
+            parent side, so joints nearer the root see the measurement (Del Prete et al. 2012,
+            Sec. 2.3).
+
+    Returns:
+        ``F``: per body, the wrench its parent side exerts on its subtree (internal frame, body
+        origin); ``tau``: ``nv`` joint torques (N m or N), mimic torques folded onto leaders.
+    """
+    nb = len(tree.bodies)
+    F: list[sp.Force] = [f[i] if f[i] is not None else (sp.ZERO3, sp.ZERO3) for i in range(nb)]
+    children: list[list[sp.Force]] = [[] for _ in range(nb)]
+    for i in reversed(tree.order[1:]):  # children before parents
+        Fi = sp.add_forces([F[i], *children[i]]) if children[i] else F[i]
+        F[i] = Fi
+        up = transmitted[i] if transmitted and i in transmitted else Fi
+        children[tree.bodies[i].parent].append(sp.force_to_parent(X[i], up))
+    if children[0]:
+        F[0] = sp.add_forces([F[0], *children[0]])
+    tau: list[Scalar] = [0.0] * tree.nv
+    for i, body in enumerate(tree.bodies):
+        if body.kind == "revolute":
+            t = F[i][1][2]
+        elif body.kind == "prismatic":
+            t = F[i][0][2]
+        else:
+            continue
+        tau[body.coord] = add(tau[body.coord], mul(body.mult, t))
+    return F, tau
+
+
+def poses(tree: Tree, X: list[sp.Pose | None]) -> list[sp.Pose]:
+    """``T_root_i`` of every body, internal frames, composed along the tree."""
+    T: list[sp.Pose] = [(sp.EYE3, sp.ZERO3)]
+    for i, body in enumerate(tree.bodies[1:], start=1):
+        T.append(sp.pose_compose(T[body.parent], X[i]))
+    return T
+
+
+# ---------------------------------------------------------------------------------- programs
+
+
+def _sub_force(f: sp.Force, g: sp.Force) -> sp.Force:
+    return sp.v_sub(f[0], g[0]), sp.v_sub(f[1], g[1])
+
+
+def _id_program(model: RobotModel, moving_base: bool, with_fext: bool) -> kernels.Program:
+    tree = tree_of(model)
+    inputs = {"q": tree.nv, "qd": tree.nv, "qdd": tree.nv}
+    if moving_base:
+        inputs.update(omega=3, domega=3, proper_acc=3)
+    if with_fext:
+        inputs["f_ext"] = 6 * len(tree.bodies)
+
+    def fn(x: dict[str, list]) -> dict[str, list]:
+        X = joint_placements(tree, x["q"])
+        base = {k: x[k] for k in ("omega", "domega", "proper_acc")} if moving_base else None
+        v, a, f = rnea_forward(tree, X, x["qd"], x["qdd"], root_motion(tree, base))
+        if with_fext:
+            fe = x["f_ext"]
+            for i, body in enumerate(tree.bodies):  # link frame -> internal frame (same origin)
+                w = [fe[6 * i + k] for k in range(6)]
+                ext = (tuple(sp.cmat_vec(body.Q.T, w[:3])), tuple(sp.cmat_vec(body.Q.T, w[3:])))
+                f[i] = _sub_force(f[i], ext)
+        _, tau = backward_pass(tree, X, f)
+        return {"tau": tau}
+
+    key = f"id|{tree.key}|{moving_base}|{with_fext}"
+    return kernels.Program("rnea", fn, inputs, {"tau": tree.nv}, key)
+
+
+def _fp_program(model: RobotModel, moving_base: bool) -> kernels.Program:
+    tree = tree_of(model)
+    nb = len(tree.bodies)
+    inputs = {"q": tree.nv, "qd": tree.nv, "qdd": tree.nv}
+    if moving_base:
+        inputs.update(omega=3, domega=3, proper_acc=3)
+
+    def fn(x: dict[str, list]) -> dict[str, list]:
+        X = joint_placements(tree, x["q"])
+        base = {k: x[k] for k in ("omega", "domega", "proper_acc")} if moving_base else None
+        v, a, _ = rnea_forward(tree, X, x["qd"], x["qdd"], root_motion(tree, base), False)
+        T = poses(tree, X)
+        out: dict[str, list] = {"R": [], "p": [], "v": [], "a": [], "S": []}
+        for i, body in enumerate(tree.bodies):
+            R, p = T[i]
+            # internal frame -> link frame: R_root_link = R_root_internal Q^T
+            out["R"] += [x for row in R for x in sp.cmat_vec(body.Q, row)]
+            out["p"] += list(p)
+            for name, m in (("v", v[i]), ("a", a[i]), ("S", _joint_motion(body, 1.0))):
+                lin, ang = sp.motion_to_parent(T[i], m)
+                out[name] += [*lin, *ang]
+        return out
+
+    key = f"fp|{tree.key}|{moving_base}"
+    outs = {"R": 9 * nb, "p": 3 * nb, "v": 6 * nb, "a": 6 * nb, "S": 6 * nb}
+    return kernels.Program("fpass", fn, inputs, outs, key)
+
+
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def program(model: RobotModel, name: str, *flags) -> kernels.Program:
+    """The cached program ``name`` (``"id"``, ``"fp"``) of a model."""
+    cache = _PROGRAMS.setdefault(model, {})
+    key = (name, *flags)
+    if key not in cache:
+        cache[key] = {"id": _id_program, "fp": _fp_program}[name](model, *flags)
+    return cache[key]
+
+
+# ------------------------------------------------------------------------------------ public API
+
+
+def _prepare(model: RobotModel, q: Tensor, qd: Tensor, qdd: Tensor, base: BaseMotion | None):
+    """Validate; return the batch shape and ``(N, k)`` input tensors of the programs."""
+    nv = model.nv
+    for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
+        check_input(name, x, (nv,), model, f"(*B, {nv})")
+    batch = q.shape[:-1]
+    if qd.shape[:-1] != batch or qdd.shape[:-1] != batch:
+        raise InputError(
+            f"q, qd, qdd must share their batch shape; got {tuple(q.shape)}, {tuple(qd.shape)},"
+            f" {tuple(qdd.shape)}"
+        )
+    tensors = {k: flatten_batch(x, batch, 1) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
+    if base is not None:
+        for name in ("omega", "domega", "proper_acc"):
+            x = getattr(base, name)
+            check_input(f"base.{name}", x, (3,), model, "(*B, 3)")
+            if x.shape[:-1] != batch:
+                raise InputError(
+                    f"base.{name} must be (*B, 3) with B={tuple(batch)}, got {tuple(x.shape)}"
+                )
+            tensors[name] = flatten_batch(x, batch, 1)
+    return batch, tensors
+
+
+def _chunked(fn, tensors: dict[str, Tensor], chunk_size: int | None) -> dict[str, Tensor]:
+    n = next(iter(tensors.values())).shape[0]
+    if chunk_size is None or n <= chunk_size or in_tracing():
+        return fn(tensors)
+    parts = [fn({k: x[s : s + chunk_size] for k, x in tensors.items()})
+             for s in range(0, n, chunk_size)]  # fmt: skip
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+def _run(prog: kernels.Program, tensors: dict[str, Tensor], backend: str, chunk_size):
+    """Run a program; the eager backend in cache-sized chunks, kernels in one call."""
+    first = next(iter(tensors.values()))
+    if backend in ("cpu", "cuda"):
+        return kernels.run(prog, tensors, backend)
+    if backend == "auto" and not first.requires_grad and not in_tracing():
+        k = None
+        if first.shape[0] >= kernels.AUTO_BUILD_MIN_FRAMES or kernels._ready(prog, first):
+            if first.dtype in (torch.float32, torch.float64) and first.device.type in (
+                "cpu",
+                "cuda",
+            ):
+                k = kernels.compiled(prog, first.dtype, first.device, wait=False)
+        if k is not None:
+            return k(tensors)
+    return _chunked(lambda t: kernels.run_eager(prog, t), tensors, chunk_size)
 
 
 def forward_pass(
@@ -154,25 +543,26 @@ def forward_pass(
     q: Tensor,
     qd: Tensor,
     qdd: Tensor,
-    gravity: Tensor | tuple[float, float, float] = (0.0, 0.0, -9.81),
     base: BaseMotion | None = None,
+    backend: str = "eager",
 ) -> ForwardPass:
-    """Forward pass of the RNEA: poses, twists and accelerations of every body.
+    """Forward pass of the RNEA: poses, twists and accelerations of every body, root frame.
 
     Args:
         model: the robot.
         q: ``(*B, nv)`` joint positions in ``model.joint_names`` order, rad or m.
         qd: ``(*B, nv)`` joint velocities, rad/s or m/s.
         qdd: ``(*B, nv)`` joint accelerations, rad/s^2 or m/s^2.
-        gravity: ``(3,)`` or ``(*B, 3)`` gravity in the root frame, m/s^2 (fixed base only).
-        base: IMU measurement of a moving base; when given, ``gravity`` is ignored (the proper
-            acceleration already contains it).
+        base: IMU measurement of a moving base; when given, ``model.gravity`` is not used (the
+            proper acceleration already contains it).
+        backend: ``"eager"`` (default), ``"auto"``, ``"cpu"`` or ``"cuda"``
+            (:mod:`torchcontact.kernels`).
 
     Returns:
         :class:`ForwardPass` with ``(*B, nb, ...)`` fields.
 
     Raises:
-        ValueError: a wrong shape, dtype or device, or a NaN/inf input; the message names it.
+        InputError: a wrong shape, dtype or device, or a NaN/inf input; the message names it.
 
     Example:
         >>> import io, torchcontact
@@ -182,117 +572,17 @@ def forward_pass(
         >>> fp.R.shape, fp.v.shape
         (torch.Size([5, 2, 3, 3]), torch.Size([5, 2, 6]))
     """
-    batch, (q, qd, qdd), base_bl = _prepare(model, q, qd, qdd, gravity, base)
-    fp = _forward_bl(model, q, qd, qdd, *base_bl)
-    # batch-last (nb, ..., N) -> (*B, nb, ...)
-    return ForwardPass(*(t.movedim(-1, 0).reshape(*batch, *t.shape[:-1]) for t in fp))
-
-
-def _prepare(model, q, qd, qdd, gravity, base):
-    """Validate inputs; return batch shape, batch-last ``(nv, N)`` joint vectors, base terms."""
-    nv = model.nv
-    for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
-        check_input(name, x, (nv,), model, f"(*B, {nv})")
-    batch = q.shape[:-1]
-    if qd.shape[:-1] != batch or qdd.shape[:-1] != batch:
-        raise ValueError(
-            f"q, qd, qdd must share their batch shape; got {tuple(q.shape)}, {tuple(qd.shape)},"
-            f" {tuple(qdd.shape)}"
-        )
-    joints = [flatten_batch(x, batch, 1).T for x in (q, qd, qdd)]
-    if base is None:
-        base_bl = _gravity_base(model, gravity, batch, q)
-    else:
-        parts = []
-        for name in ("omega", "domega", "proper_acc"):
-            x = getattr(base, name)
-            check_input(f"base.{name}", x, (3,), model, "(*B, 3)")
-            if x.shape[:-1] != batch:
-                raise ValueError(
-                    f"base.{name} must be (*B, 3) with B={tuple(batch)}, got {tuple(x.shape)}"
-                )
-            parts.append(flatten_batch(x, batch, 1).T)
-        base_bl = tuple(parts)
-    return batch, joints, base_bl
-
-
-def _gravity_base(model: RobotModel, gravity, batch: torch.Size, like: Tensor) -> tuple:
-    """Fixed-base root motion, batch-last: ``(omega, domega, a_0) = (0, 0, -g)`` each ``(3, N)``."""
-    n = math.prod(batch)
-    g = gravity if isinstance(gravity, Tensor) else like.new_tensor(gravity)
-    check_input("gravity", g, (3,), model, "(3,) or (*B, 3)")
-    if g.dim() > 1 and g.shape[:-1] != batch:
-        raise ValueError(
-            f"gravity must be (3,) or (*B, 3) with B={tuple(batch)}, got {tuple(g.shape)}"
-        )
-    g = g.reshape(-1, 3).T.expand(3, n)
-    zero = g.new_zeros(3, n)
-    return zero, zero, -g
-
-
-def _forward_bl(model: RobotModel, q, qd, qdd, omega0, domega0, acc0) -> ForwardPass:
-    """Forward pass on batch-last inputs ``(nv, N)`` and ``(3, N)``; fields ``(nb, ..., N)``."""
-    n = q.shape[-1]
-    # 1. joint transforms T_parent_body(q) for every body at once
-    qb = (model.q_to_body.T @ q + _c(model.q_offset)).unsqueeze(1)  # (nb, 1, N)
-    s, c1 = qb.sin().unsqueeze(1), (1 - qb.cos()).unsqueeze(1)
-    R_loc = _c(model.C0) + s * _c(model.C1) + c1 * _c(model.C2)  # (nb, 3, 3, N)
-    p_loc = _c(model.p0) + qb * _c(model.prismatic_dir)  # (nb, 3, N)
-
-    # 2. poses T_root_body, depth by depth, as [R | p] blocks (nb, 3, 4, N)
-    pose_loc = torch.cat((R_loc, p_loc.unsqueeze(2)), dim=2)
-    pose0 = torch.eye(3, 4, dtype=q.dtype, device=q.device).unsqueeze(-1).expand(1, 3, 4, n)
-
-    def compose(parent: Tensor, loc: Tensor) -> Tensor:
-        # [R_p | p_p] [R_l | p_l] = [R_p R_l | R_p p_l + p_p]
-        prod = (parent[:, :, :3].unsqueeze(3) * loc.unsqueeze(1)).sum(2)
-        return prod + torch.nn.functional.pad(parent[:, :, 3:], (0, 0, 3, 0))
-
-    pose = _levels_forward(model, pose0, pose_loc, compose)
-    R, p = pose[:, :, :3], pose[:, :, 3]
-    # 3. motion subspaces in the root frame: revolute [p x a; a], prismatic [a; 0]
-    a_w = _mv_bl(R, _c(model.axis))
-    rev, pri = _c(model.is_revolute).unsqueeze(1), _c(model.is_prismatic).unsqueeze(1)
-    S = torch.cat((rev * _cross_bl(p, a_w) + pri * a_w, rev * a_w), dim=1)  # (nb, 6, N)
-    Sqd = S * (model.q_to_body.T @ qd).unsqueeze(1)
-    Sqdd = S * (model.q_to_body.T @ qdd).unsqueeze(1)
-    v0 = torch.cat((omega0.new_zeros(3, n), omega0), dim=0).unsqueeze(0)
-    v = _cumulate_down(model, v0, Sqd)
-    # Featherstone 5.8: a_i = a_parent + S qdd + v_i x S qd (spatial motion cross product)
-    a0 = torch.cat((acc0, domega0), dim=0).unsqueeze(0)
-    a = _cumulate_down(model, a0, Sqdd + _motion_cross_bl(v, Sqd))
-    return ForwardPass(R, p, v, a, S)
-
-
-def _motion_cross_bl(v: Tensor, m: Tensor) -> Tensor:
-    """Spatial motion cross product ``v x m``, batch-last ``[linear; angular]`` ``(..., 6, N)``."""
-    vl, w = v[..., :3, :], v[..., 3:, :]
-    ml, mw = m[..., :3, :], m[..., 3:, :]
-    return torch.cat((_cross_bl(w, ml) + _cross_bl(vl, mw), _cross_bl(w, mw)), dim=-2)
-
-
-def _body_wrenches_bl(model: RobotModel, fp: ForwardPass) -> Tensor:
-    """``I a + v x* I v`` per body, batch-last ``(nb, 6, N)``, root frame at the root origin."""
-    R, p, v, a = fp.R, fp.p, fp.v, fp.a
-    m = _c(model.mass).unsqueeze(1)
-    c = p + _mv_bl(R, _c(model.com))  # centre of mass in the root frame
-    # rotational inertia about the centre of mass in root axes: R I R^T
-    RI = (R.unsqueeze(3) * _c(model.inertia_com).unsqueeze(1)).sum(2)
-    Iw = (RI.unsqueeze(2) * R.unsqueeze(1)).sum(3)
-
-    def apply_inertia(x: Tensor) -> tuple[Tensor, Tensor]:
-        # spatial inertia at the root origin: h_lin = m (x_lin + w x c), h_ang = I_c w + c x h_lin
-        lin, w = x[:, :3], x[:, 3:]
-        h_lin = m * (lin + _cross_bl(w, c))
-        return h_lin, _mv_bl(Iw, w) + _cross_bl(c, h_lin)
-
-    f_lin, f_ang = apply_inertia(a)
-    h_lin, h_ang = apply_inertia(v)
-    vl, w = v[:, :3], v[:, 3:]
-    # force cross product v x* h = [w x h_lin; w x h_ang + vl x h_lin]
-    f_lin = f_lin + _cross_bl(w, h_lin)
-    f_ang = f_ang + _cross_bl(w, h_ang) + _cross_bl(vl, h_lin)
-    return torch.cat((f_lin, f_ang), dim=1)
+    batch, tensors = _prepare(model, q, qd, qdd, base)
+    tree_of(model)
+    out = _run(program(model, "fp", base is not None), tensors, backend, 16384)
+    nb = model.nb
+    return ForwardPass(
+        out["R"].reshape(*batch, nb, 3, 3),
+        out["p"].reshape(*batch, nb, 3),
+        out["v"].reshape(*batch, nb, 6),
+        out["a"].reshape(*batch, nb, 6),
+        out["S"].reshape(*batch, nb, 6),
+    )
 
 
 def body_wrenches(model: RobotModel, fp: ForwardPass) -> Tensor:
@@ -306,16 +596,21 @@ def body_wrenches(model: RobotModel, fp: ForwardPass) -> Tensor:
         ``(*B, nb, 6)`` ``[force (N); moment about the root origin (N m)]``, gravity included
         (``fp.a`` contains the fictitious upward acceleration).
     """
-    batch = fp.p.shape[:-2]
-    bl = ForwardPass(*(flatten_batch(t, batch, t.dim() - len(batch)).movedim(0, -1) for t in fp))
-    f = _body_wrenches_bl(model, bl)
-    return f.movedim(-1, 0).reshape(*batch, model.nb, 6)
-
-
-def _wrench_to_root_bl(fp: ForwardPass, f_body: Tensor) -> Tensor:
-    """Body-frame wrenches ``(nb, 6, N)`` (moment about the body origin) to the root frame."""
-    f = _mv_bl(fp.R, f_body[:, :3])
-    return torch.cat((f, _mv_bl(fp.R, f_body[:, 3:]) + _cross_bl(fp.p, f)), dim=1)
+    R, p = fp.R, fp.p
+    nb = model.nb
+    mass, com, inertia = model.mass, model.com, model.inertia_com
+    out = []
+    for i in range(nb):
+        T = (sp._unbind33(R[..., i, :, :]), sp._unbind3(p[..., i, :]))
+        v = sp.motion_to_child(T, (sp._unbind3(fp.v[..., i, :3]), sp._unbind3(fp.v[..., i, 3:])))
+        a = sp.motion_to_child(T, (sp._unbind3(fp.a[..., i, :3]), sp._unbind3(fp.a[..., i, 3:])))
+        c, Ic = sp._unbind3(com[i]), sp._unbind33(inertia[i])
+        Ia = sp.inertia_apply(mass[i], c, Ic, a)
+        Iv = sp.inertia_apply(mass[i], c, Ic, v)
+        vxIv = sp.motion_cross_force(v, Iv)
+        f = (sp.v_add(Ia[0], vxIv[0]), sp.v_add(Ia[1], vxIv[1]))
+        out.append(sp._stack6(sp.force_to_parent(T, f), p[..., i, 0]))
+    return torch.stack(out, -2)
 
 
 def inverse_dynamics(
@@ -323,30 +618,33 @@ def inverse_dynamics(
     q: Tensor,
     qd: Tensor,
     qdd: Tensor,
-    gravity: Tensor | tuple[float, float, float] = (0.0, 0.0, -9.81),
     base: BaseMotion | None = None,
     f_ext: Tensor | None = None,
+    backend: str = "auto",
     chunk_size: int | None = 16384,
 ) -> Tensor:
     """Joint torques of the RNEA, ``tau = M(q) qdd + C(q, qd) qd + g(q) - J^T f_ext``.
 
     Args:
-        model: the robot (fixed base, or moving base through ``base``).
+        model: the robot (fixed base with ``model.gravity``, or moving base through ``base``).
         q: ``(*B, nv)`` joint positions in ``model.joint_names`` order, rad or m.
         qd: ``(*B, nv)`` joint velocities, rad/s or m/s.
         qdd: ``(*B, nv)`` joint accelerations, rad/s^2 or m/s^2.
-        gravity: ``(3,)`` or ``(*B, 3)`` gravity in the root frame, m/s^2 (fixed base).
-        base: IMU measurement of a moving base (:class:`BaseMotion`); ``gravity`` is then unused.
+        base: IMU measurement of a moving base (:class:`BaseMotion`); gravity is then unused.
         f_ext: ``(*B, nb, 6)`` external wrenches acting on each body (``model.body_names``
             order), ``[force (N); moment about the body origin (N m)]`` in the body frame, like
             pinocchio's ``rnea(..., fext)``.
-        chunk_size: frames processed at once (keeps the working set in cache); None for one go.
+        backend: ``"auto"`` (a generated kernel when built, else eager torch while it builds in
+            the background), ``"eager"`` (differentiable), ``"cpu"`` or ``"cuda"`` (build the
+            kernel now), see :mod:`torchcontact.kernels`. Inputs that require grad always run
+            eagerly under ``"auto"``.
+        chunk_size: frames per eager call (keeps the working set in cache); None for one go.
 
     Returns:
         ``(*B, nv)`` joint torques (N m) or forces (N) in ``model.joint_names`` order.
 
     Raises:
-        ValueError: a wrong shape, dtype or device, or a NaN/inf input; the message names it.
+        InputError: a wrong shape, dtype or device, or a NaN/inf input; the message names it.
 
     Example:
         >>> import io, torchcontact
@@ -359,75 +657,37 @@ def inverse_dynamics(
                 [4.9050],
                 [4.9050]], dtype=torch.float64)
     """
-    batch, (q, qd, qdd), base_bl = _prepare(model, q, qd, qdd, gravity, base)
+    batch, tensors = _prepare(model, q, qd, qdd, base)
     if f_ext is not None:
         check_input("f_ext", f_ext, (model.nb, 6), model, f"(*B, {model.nb}, 6)")
         if f_ext.shape[:-2] != batch:
-            raise ValueError(
+            raise InputError(
                 f"f_ext must be (*B, {model.nb}, 6) with B={tuple(batch)}, got {tuple(f_ext.shape)}"
             )
-        f_ext = flatten_batch(f_ext, batch, 2).permute(1, 2, 0)  # (nb, 6, N)
-    n = q.shape[-1]
-    if chunk_size is None or n <= chunk_size or in_tracing():
-        tau = _inverse_dynamics_bl(model, q, qd, qdd, base_bl, f_ext)
-    else:
-        outs = []
-        for s in range(0, n, chunk_size):
-            sl = slice(s, s + chunk_size)
-            outs.append(
-                _inverse_dynamics_bl(
-                    model, q[:, sl], qd[:, sl], qdd[:, sl], tuple(t[:, sl] for t in base_bl),
-                    None if f_ext is None else f_ext[..., sl],
-                )
-            )  # fmt: skip
-        tau = torch.cat(outs, dim=-1)
-    return tau.T.reshape(*batch, model.nv)
+        tensors["f_ext"] = flatten_batch(f_ext, batch, 2).reshape(-1, 6 * model.nb)
+    prog = program(model, "id", base is not None, f_ext is not None)
+    out = _run(prog, tensors, backend, chunk_size)
+    return out["tau"].reshape(*batch, model.nv)
 
 
-def _inverse_dynamics_bl(model, q, qd, qdd, base_bl, f_ext) -> Tensor:
-    """RNEA on batch-last inputs; returns ``(nv, N)``."""
-    fp = _forward_bl(model, q, qd, qdd, *base_bl)
-    f = _body_wrenches_bl(model, fp)
-    if f_ext is not None:
-        f = f - _wrench_to_root_bl(fp, f_ext)
-    F = subtree_sum(model, f)
-    tau_body = (fp.S * F).sum(1)  # (nb, N): S_i . F_i
-    return model.q_to_body @ tau_body
+def compiled_inverse_dynamics(model: RobotModel, chunk_size: int | None = None):
+    """Inverse dynamics through the generated CPU (or CUDA) kernel, built now.
 
-
-def compiled_inverse_dynamics(model: RobotModel, chunk_size: int = 4096):
-    """Inverse dynamics compiled with ``torch.compile`` for throughput on large batches.
-
-    The core runs on fixed-size chunks of ``chunk_size`` frames (the last chunk is padded), so it
-    compiles exactly once per model, dtype and device. Compilation happens on the first call and
-    takes roughly 15-30 s on a 2-core CPU the first time; inductor caches the kernels on disk and
-    later processes start in about 3 s. Results equal :func:`inverse_dynamics` to rounding.
+    Kept for code written against earlier versions; ``inverse_dynamics(..., backend="cpu")`` is
+    the same. The kernel is built once per model and dtype (a few seconds; cached on disk).
 
     Args:
-        model: the robot (fixed base; moving base through the ``base`` argument).
-        chunk_size: frames per compiled call.
+        model: the robot.
+        chunk_size: ignored (the kernel streams any batch).
 
     Returns:
-        A function ``(q, qd, qdd, gravity=..., base=None) -> tau`` with the signature and shapes
-        of :func:`inverse_dynamics` (no ``f_ext``).
+        A function ``(q, qd, qdd, base=None) -> tau`` with the shapes of
+        :func:`inverse_dynamics`.
     """
+    del chunk_size
+    backend = "cuda" if model.device.type == "cuda" else "cpu"
 
-    def core(q, qd, qdd, omega0, domega0, acc0):
-        return _inverse_dynamics_bl(model, q, qd, qdd, (omega0, domega0, acc0), None)
-
-    compiled = torch.compile(core, dynamic=False)
-
-    def run(q, qd, qdd, gravity=(0.0, 0.0, -9.81), base=None):
-        batch, joints, base_bl = _prepare(model, q, qd, qdd, gravity, base)
-        n = joints[0].shape[-1]
-        out = joints[0].new_empty(n, model.nv)
-        for s in range(0, n, chunk_size):
-            # one cache-sized chunk at a time, made contiguous batch-last; the last one padded
-            e = min(n, s + chunk_size)
-            ins = [x[:, s:e] for x in (*joints, *base_bl)]
-            if e - s < chunk_size:
-                ins = [torch.nn.functional.pad(x, (0, chunk_size - (e - s))) for x in ins]
-            out[s:e] = compiled(*(x.contiguous() for x in ins))[:, : e - s].T
-        return out.reshape(*batch, model.nv)
+    def run(q: Tensor, qd: Tensor, qdd: Tensor, base: BaseMotion | None = None) -> Tensor:
+        return inverse_dynamics(model, q, qd, qdd, base=base, backend=backend)
 
     return run

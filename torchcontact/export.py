@@ -3,9 +3,9 @@
 :func:`export_estimator` writes the *whole* estimator of one robot, sensor set and contact-slot
 layout as a single ONNX graph, traced from the same torch code as
 :meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` (RNEA forward pass,
-``b`` assembly, the residual correction of the readings, the pseudo-inverse solve with the
-exportable Jacobi eigensolver of :mod:`torchcontact._jacobi`, and the backward pass). The graph
-runs with onnxruntime alone through :mod:`torchcontact.runtime`.
+``b`` assembly, the residual correction of the readings, the minimum-norm solve by pivoted
+Cholesky of :mod:`torchcontact.solve`, and the backward pass). The graph runs with onnxruntime
+alone through :mod:`torchcontact.runtime`.
 
 :func:`export_residual` writes any ``nn.Module`` mapping features ``(N, F)`` to an F/T residual
 ``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``); :func:`check_parity` compares
@@ -39,7 +39,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchcontact import _jacobi
 from torchcontact.contacts import KINDS, Contacts
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
@@ -80,10 +79,6 @@ ESTIMATOR_OUTPUTS = (
 FORMAT = "torchcontact.estimator/1"
 DEFAULT_OPSET = 18
 DYNAMO = False
-#: Jacobi sweeps of an exported graph per dtype: float32 agrees with float64 ``eigh`` (ranks
-#: equal, forces to float32 rounding) from 5 sweeps on the test scenes (4 leave 3e-3 N on
-#: rank-deficient frames); float64 keeps the estimator's default.
-EXPORT_SWEEPS = {torch.float32: 5, torch.float64: _jacobi.DEFAULT_SWEEPS}
 
 
 class EstimatorGraph(nn.Module):
@@ -92,28 +87,20 @@ class EstimatorGraph(nn.Module):
     Holds no parameters; the robot model's tensors become constants of the traced graph.
 
     Args:
-        estimator: a :class:`ContactEstimator` (its solver should be ``"jacobi"`` to export).
+        estimator: a :class:`ContactEstimator` (its model's gravity and rank tolerance are baked
+            into the graph).
         links: K link (or frame) names of the contact slots.
         kinds: K slot kinds (see :data:`torchcontact.KINDS`).
-        gravity: ``(3,)`` gravity in the root frame, m/s^2, baked into the graph.
-        rank_rtol: eigenvalue tolerance of the rank (None: the estimator's default).
     """
 
     def __init__(
-        self,
-        estimator: ContactEstimator,
-        links: Sequence[str],
-        kinds: Sequence[str],
-        gravity: Sequence[float] = (0.0, 0.0, -9.81),
-        rank_rtol: float | None = None,
+        self, estimator: ContactEstimator, links: Sequence[str], kinds: Sequence[str]
     ) -> None:
         super().__init__()
         self.est = estimator
         self.links, self.kinds = tuple(links), tuple(kinds)
-        self.gravity = tuple(float(g) for g in gravity)
-        self.rank_rtol = rank_rtol
         # validate the layout now (unknown links, slots outside every sensor's subtree)
-        estimator._layout(Contacts(self.links, self.kinds, torch.zeros(0, len(self.links), 3)))
+        estimator.layout(self.links, self.kinds)
 
     def forward(
         self,
@@ -136,8 +123,7 @@ class EstimatorGraph(nn.Module):
             qdd,
             {s: readings[:, i] for i, s in enumerate(est.sensor_names)},
             Contacts(self.links, self.kinds, positions, directions, wrenches, active),
-            gravity=q.new_tensor(self.gravity),
-            rank_rtol=self.rank_rtol,
+            backend="eager",
         )
         names = est.sensor_names
         return (
@@ -179,9 +165,7 @@ def estimator_metadata(
     links: Sequence[str],
     kinds: Sequence[str],
     opset: int,
-    gravity: Sequence[float],
     rank_rtol: float | None,
-    sweeps: int,
 ) -> dict[str, str]:
     """The ``metadata_props`` of an exported estimator (all values are strings, JSON inside)."""
     import torchcontact
@@ -228,9 +212,9 @@ def estimator_metadata(
         ),
         "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
         "moments about the contact point; ft: each sensor's declared frame and direction",
-        "gravity": json.dumps(list(gravity)),
+        "gravity": json.dumps([float(g) for g in model.gravity]),
         "dtype": str(model.dtype).removeprefix("torch."),
-        "solver": f"jacobi, {sweeps} sweeps",
+        "solver": "pivoted cholesky",
         "rank_rtol": "default" if rank_rtol is None else repr(float(rank_rtol)),
         "torchcontact_version": torchcontact.__version__,
         "torch_version": torch.__version__,
@@ -242,8 +226,13 @@ def _export(module, args, path, input_names, output_names, dynamic_axes, opset) 
     """``torch.onnx.export`` with the TorchScript-based exporter (``dynamo=False``).
 
     The estimator is straight-line elementwise code, which the tracing exporter handles without
-    extra dependencies; constant folding removes the model-constant arithmetic.
+    extra dependencies; constant folding removes the model-constant arithmetic. Inputs a layout
+    does not read (directions without ``force_dir`` slots, wrenches without ``known`` slots) are
+    pruned by the exporter and put back, unused, so every graph has the same inputs.
     """
+    import onnx
+    from onnx import helper
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # deprecation notice of the TorchScript exporter
         torch.onnx.export(
@@ -257,6 +246,20 @@ def _export(module, args, path, input_names, output_names, dynamic_axes, opset) 
             dynamo=DYNAMO,
             do_constant_folding=True,
         )
+    m = onnx.load(str(path))
+    present = {i.name: i for i in m.graph.input}
+    if [n for n in input_names if n in present] != list(input_names):
+        elem = helper.np_dtype_to_tensor_dtype(args[0].numpy().dtype)
+        inputs = []
+        for name, x in zip(input_names, args, strict=True):
+            if name in present:
+                inputs.append(present[name])
+                continue
+            dims = [("N" if dynamic_axes and d == 0 else int(n)) for d, n in enumerate(x.shape)]
+            inputs.append(helper.make_tensor_value_info(name, elem, dims))
+        del m.graph.input[:]
+        m.graph.input.extend(inputs)
+        onnx.save(m, str(path))
 
 
 def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> None:
@@ -278,9 +281,8 @@ def export_estimator(
     path: str | os.PathLike,
     dtype: torch.dtype = torch.float32,
     opset: int = DEFAULT_OPSET,
-    gravity: Sequence[float] = (0.0, 0.0, -9.81),
+    gravity: Sequence[float] | None = None,
     rank_rtol: float | None = None,
-    sweeps: int | None = None,
     step_graph: bool = True,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as one ONNX graph.
@@ -299,10 +301,10 @@ def export_estimator(
         path: output ``.onnx`` file (weights and constants inside).
         dtype: ``torch.float32`` or ``torch.float64`` computation (and input/output) dtype.
         opset: ONNX opset version.
-        gravity: ``(3,)`` gravity in the root frame, m/s^2 (fixed base; baked in).
-        rank_rtol: rank tolerance on the eigenvalues of ``A A^T`` (None: ``rows * eps(dtype)``,
-            as :meth:`ContactEstimator.estimate`).
-        sweeps: Jacobi sweeps (None: :data:`EXPORT_SWEEPS` of ``dtype``).
+        gravity: ``(3,)`` gravity in the root frame, m/s^2 (fixed base; baked in); None keeps
+            ``model.gravity``.
+        rank_rtol: rank tolerance of the solve (None: :data:`torchcontact.solve.RANK_RTOL` of
+            ``dtype``).
         step_graph: also write the single-frame graph ``<path stem>.step.onnx``.
 
     Returns:
@@ -324,15 +326,16 @@ def export_estimator(
     for k in kinds:
         if k not in KINDS:
             raise ValueError(f"unknown kind {k!r}; expected one of {list(KINDS)}")
-    sweeps = EXPORT_SWEEPS[dtype] if sweeps is None else int(sweeps)
     m = model.to(dtype=dtype, device="cpu")
-    est = ContactEstimator(m, sensors, solver="jacobi", jacobi_sweeps=sweeps)
-    graph = EstimatorGraph(est, links, kinds, gravity, rank_rtol).eval()
+    if gravity is not None:
+        m = m.with_gravity(gravity)
+    est = ContactEstimator(m, sensors, rank_rtol=rank_rtol)
+    graph = EstimatorGraph(est, links, kinds).eval()
     S, K = len(est.sensor_names), len(links)
     names_out = list(ESTIMATOR_OUTPUTS)
     dyn = {k: {0: "N"} for k in (*ESTIMATOR_INPUTS, *names_out)}
     _export(graph, _example_inputs(m, S, K), path, ESTIMATOR_INPUTS, names_out, dyn, opset)
-    meta = estimator_metadata(m, est, links, kinds, opset, gravity, rank_rtol, sweeps)
+    meta = estimator_metadata(m, est, links, kinds, opset, rank_rtol)
     if step_graph:
         step = step_graph_path(path)
         _export(

@@ -1,15 +1,15 @@
 """Robot model built once from a URDF into plain tensors.
 
 The model is a frozen value: :meth:`RobotModel.to` returns a copy, algorithms are functions of
-``(model, q, qd, qdd, ...)``. The URDF is read with ``yourdfpy`` (kinematic tree, inertials,
-mimic tags); the F/T sensor extension that iDynTree and Gazebo read (``<sensor
-type="force_torque">`` as a child of ``<robot>``) is read beside it, since no URDF parser keeps it.
+``(model, q, qd, qdd, ...)``. The URDF is read with the standard library's XML parser
+(kinematic tree, inertials, limits, mimic tags, and the F/T sensor extension that iDynTree and
+Gazebo read, ``<sensor type="force_torque">`` as a child of ``<robot>``, which URDF libraries drop).
 
 Bodies. Links joined by fixed joints are rigidly attached and are merged into one *body* (their
 inertias combined), except across fixed joints that carry an F/T sensor or that the caller names in
 ``keep_fixed``: those stay body boundaries, because a sensor splits the tree there. Bodies are
-numbered breadth-first, so the bodies of one tree depth form a contiguous range and every parent
-lies in the previous range; the dynamics process a whole depth at once.
+numbered breadth-first (parents before children; the bodies of one tree depth form a contiguous
+range, ``levels``).
 
 Joints. ``joint_names`` lists the independent joint coordinates (revolute, continuous, prismatic),
 depth-first in URDF order like pinocchio, and fixes the order of every joint-space vector
@@ -32,7 +32,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcontact.errors import URDFError  # noqa: F401  (re-exported)
+from torchcontact.errors import InputError, URDFError
+from torchcontact.spatial import combine_inertias
 
 __all__ = ["FTSensor", "Frame", "RobotModel", "URDFError"]
 
@@ -102,6 +103,7 @@ _TENSOR_FIELDS = (
     "mass",
     "com",
     "inertia_com",
+    "gravity",
 )
 
 
@@ -139,6 +141,9 @@ class RobotModel:
         mass: ``(nb,)`` kg.
         com: ``(nb, 3)`` centre of mass in the body frame, m.
         inertia_com: ``(nb, 3, 3)`` rotational inertia about the centre of mass, body axes, kg m^2.
+        gravity: ``(3,)`` gravity acceleration in the root frame, m/s^2 (default ``(0, 0, -9.81)``;
+            :meth:`with_gravity` changes it). Used by every algorithm on a fixed base; a moving base
+            measured by an IMU brings its own proper acceleration instead.
         urdf_sha256: hash of the URDF text the model was built from.
         joint_parent_link: joint name -> its URDF parent link.
         joint_limits: ``"lower"``, ``"upper"`` (rad or m), ``"velocity"`` (rad/s or m/s),
@@ -169,6 +174,7 @@ class RobotModel:
     mass: Tensor
     com: Tensor
     inertia_com: Tensor
+    gravity: Tensor
     urdf_sha256: str = ""
     joint_parent_link: dict[str, str] = field(default_factory=dict)
     joint_limits: dict[str, np.ndarray] = field(default_factory=dict)
@@ -213,6 +219,26 @@ class RobotModel:
         }
         changes["level_parent"] = tuple(t.to(device=device) for t in self.level_parent)
         return replace(self, **changes)
+
+    def with_gravity(self, gravity: Sequence[float] | Tensor) -> RobotModel:
+        """Return a copy with another gravity vector.
+
+        Args:
+            gravity: ``(3,)`` gravity acceleration in the root frame, m/s^2.
+
+        Returns:
+            A new :class:`RobotModel`; ``self`` is unchanged.
+
+        Example:
+            >>> import torchcontact as tc
+            >>> m = tc.RobotModel.from_urdf(tc.robots.tcarm_path()).with_gravity((0, 0, -1.62))
+            >>> m.gravity.tolist()
+            [0.0, 0.0, -1.62]
+        """
+        g = torch.as_tensor(gravity, dtype=self.dtype).to(self.device).reshape(-1)
+        if g.shape != (3,) or not bool(torch.isfinite(g).all()):
+            raise InputError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        return replace(self, gravity=g)
 
     def body_of(self, name: str) -> int:
         """Index of the body a link or joint frame named ``name`` is attached to.
@@ -394,19 +420,6 @@ def _reading_frame(frame: str, R_pc, p_pc, R_origin, p_origin):
     return np.eye(3), np.zeros(3)
 
 
-def _spatial_inertia_sum(parts: Sequence[tuple[float, np.ndarray, np.ndarray]]):
-    """Combine (mass, com, inertia about com) parts expressed in one frame."""
-    m = sum(p[0] for p in parts)
-    if m <= 0.0:
-        return 0.0, np.zeros(3), np.zeros((3, 3))
-    c = sum(p[0] * p[1] for p in parts) / m
-    inertia = np.zeros((3, 3))
-    for mi, ci, Ii in parts:  # parallel-axis theorem to the combined centre of mass
-        d = ci - c
-        inertia += Ii + mi * (d @ d * np.eye(3) - np.outer(d, d))
-    return m, c, inertia
-
-
 def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     from torchcontact._urdf import axis_rotation_terms
 
@@ -555,7 +568,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     com = np.zeros((nb, 3))
     inertia = np.zeros((nb, 3, 3))
     for b in range(nb):
-        mass[b], com[b], inertia[b] = _spatial_inertia_sum(parts[b])
+        mass[b], com[b], inertia[b] = combine_inertias(parts[b])
 
     # Joint placement and motion per body.
     nv = len(joint_order)
@@ -638,6 +651,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         mass=t(mass),
         com=t(com),
         inertia_com=t(inertia),
+        gravity=t([0.0, 0.0, -9.81]),
         urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
         joint_parent_link={j["name"]: j["parent"] for j in joints},
         joint_limits={

@@ -1,0 +1,324 @@
+"""The estimator's public façade: :class:`ContactEstimator` and its result :class:`ContactEstimate`.
+
+The façade checks shapes, names the offending argument of a malformed call, and hands views of the
+inputs to the layout's program (:mod:`torchcontact.estimation.programs`), which does the per-frame
+work, value checks included, eagerly or as a generated kernel.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchcontact import dynamics as _dyn
+from torchcontact import kernels
+from torchcontact._internal import check_input, flatten_batch
+from torchcontact.contacts import Contacts
+from torchcontact.dynamics import BaseMotion
+from torchcontact.errors import InputError
+from torchcontact.estimation.layout import EstimationModel
+from torchcontact.estimation.programs import program
+from torchcontact.model import RobotModel
+
+__all__ = ["ContactEstimate", "ContactEstimator"]
+
+
+class ContactEstimate(NamedTuple):
+    """Result of :meth:`ContactEstimator.estimate`; ``*B`` is the input batch shape.
+
+    Attributes:
+        force: ``(*B, K, 3)`` contact forces in each contact's link frame, N (0 where inactive;
+            the given force for ``known`` slots).
+        moment: ``(*B, K, 3)`` contact moments about the contact point, link frame, N m.
+        rank: sensor -> ``(*B,)`` int64 rank of A.
+        unknowns: sensor -> ``(*B,)`` int64 number of unknowns.
+        residual: sensor -> ``(*B,)`` ``|A x* - b|`` (N and N m mixed, as the paper's b).
+        identifiable: sensor -> ``(*B,)`` bool, ``rank == unknowns`` (every unknown determined).
+        joint_torques: ``(*B, nv)`` joint torques in ``model.joint_names`` order, N m or N.
+        status: ``(*B,)`` int64, 0 if ok, else bits of :data:`torchcontact.STATUS`; outputs of
+            such frames are NaN.
+        covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` from the F/T
+            noise covariance, or None when not asked for.
+    """
+
+    force: Tensor
+    moment: Tensor
+    rank: dict[str, Tensor]
+    unknowns: dict[str, Tensor]
+    residual: dict[str, Tensor]
+    identifiable: dict[str, Tensor]
+    joint_torques: Tensor
+    status: Tensor
+    covariance: Tensor | None = None
+
+
+class ContactEstimator:
+    """Estimate contact wrenches and joint torques from F/T readings, batched over frames.
+
+    Args:
+        model: the robot; its dtype and device are those of the computation, ``model.gravity``
+            its gravity on a fixed base.
+        sensors: names of F/T sensors of ``model.ft_sensors`` to use (default: all of them).
+            Sensors not used do not cut the tree.
+        rank_rtol: rank tolerance of the solve, relative to the largest diagonal entry of
+            ``A A^T`` (default :data:`torchcontact.solve.RANK_RTOL` of the model's dtype).
+        velocity_margin: a frame whose ``|qd|`` exceeds ``velocity_margin`` times a joint's URDF
+            velocity limit gets status bit 64 (implausible input); None (default) disables the
+            check (the log CLI enables it).
+        ft_range: sensor name -> its measuring range, a number or 6 numbers ``[N; N m]``: a
+            reading beyond it gets status bit 64.
+        backend: ``"auto"``, ``"eager"``, ``"cpu"`` or ``"cuda"`` (:mod:`torchcontact.kernels`):
+            the default runs a generated kernel once it is built (in the background, a few
+            seconds; cached on disk) and eager torch until then.
+
+    Raises:
+        InputError: an unknown sensor name, a robot without F/T sensors, a bad ``ft_range``.
+
+    Example:
+        >>> import torch, torchcontact as tc
+        >>> model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+        >>> est = tc.ContactEstimator(model)  # the arm's base F/T sensor "base_ft"
+        >>> q = torch.zeros(2, model.nv, dtype=torch.float64)  # (B, nv), at rest
+        >>> pos = torch.zeros(2, 1, 3, dtype=torch.float64)  # (B, K, 3) contact at the patch origin
+        >>> push = torch.tensor([0, 0, -10.0, 0, 0, 0], dtype=torch.float64).expand(2, 1, 6)
+        >>> ft = est.predict_ft(q, q, q, tc.Contacts(["hand_skin"], ["known"], pos, wrenches=push))
+        >>> r = est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos))
+        >>> r.force.round(decimals=6), r.rank["base_ft"]
+        (tensor([[[  0.,   0., -10.]],
+        <BLANKLINE>
+                [[  0.,   0., -10.]]], dtype=torch.float64), tensor([3, 3]))
+    """
+
+    def __init__(
+        self,
+        model: RobotModel,
+        sensors: Sequence[str] | None = None,
+        *,
+        rank_rtol: float | None = None,
+        velocity_margin: float | None = None,
+        ft_range: Mapping[str, float | Sequence[float]] | None = None,
+        backend: str = "auto",
+    ) -> None:
+        names = list(model.ft_sensors) if sensors is None else list(sensors)
+        if backend not in kernels.BACKENDS:
+            raise InputError(f"unknown backend {backend!r}; expected one of {kernels.BACKENDS}")
+        self.model = model
+        self.sensor_names = tuple(names)
+        self.rank_rtol = rank_rtol
+        self.velocity_margin = velocity_margin
+        self.ft_range = dict(ft_range or {})
+        self.backend = backend
+        self._layouts: dict = {}
+        base = self.layout((), ())  # validates the sensors and the checks' settings
+        self.sensors = base.sensors
+
+    @property
+    def region(self) -> tuple[int, ...]:
+        """Per body, the index (in ``sensor_names``) of the region it lies in, -1 for the root."""
+        return self.layout((), ()).region_of_body
+
+    def layout(self, links: Sequence[str], kinds: Sequence[str]) -> EstimationModel:
+        """The :class:`~torchcontact.estimation.EstimationModel` of a slot layout (cached).
+
+        Raises:
+            InputError: an unknown kind or link, or a link outside every sensor's subtree.
+        """
+        key = (tuple(links), tuple(kinds))
+        if key not in self._layouts:
+            self._layouts[key] = EstimationModel.build(
+                self.model, self.sensor_names, key[0], key[1], self.rank_rtol,
+                self.velocity_margin, self.ft_range,
+            )  # fmt: skip
+        return self._layouts[key]
+
+    def estimate(
+        self,
+        q: Tensor,
+        qd: Tensor,
+        qdd: Tensor,
+        ft: Mapping[str, Tensor],
+        contacts: Contacts,
+        *,
+        base: BaseMotion | None = None,
+        tau_measured: Tensor | None = None,
+        tau_mask: Tensor | None = None,
+        ft_covariance: Mapping[str, Tensor] | None = None,
+        chunk_size: int | None = 8192,
+        backend: str | None = None,
+    ) -> ContactEstimate:
+        """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
+
+        Args:
+            q: ``(*B, nv)`` joint positions, rad or m, ``model.joint_names`` order.
+            qd: ``(*B, nv)`` joint velocities.
+            qdd: ``(*B, nv)`` joint accelerations.
+            ft: sensor name -> ``(*B, 6)`` reading ``[force (N); moment (N m)]`` in the sensor's
+                declared frame and measure direction.
+            contacts: the contact slots (:class:`~torchcontact.Contacts`), ``(*B, K, ...)`` data.
+            base: IMU measurement of a moving base (:class:`~torchcontact.BaseMotion`); without
+                it the base is fixed and ``model.gravity`` applies.
+            tau_measured: ``(*B, nv)`` measured joint torques (joint torque sensors), N m or N;
+                each measured coordinate inside a sensor region adds an equation.
+            tau_mask: ``(nv,)`` or ``(*B, nv)`` bool, which joints have a torque measurement
+                (default: all finite entries of ``tau_measured``).
+            ft_covariance: sensor name -> ``(6, 6)`` or ``(*B, 6, 6)`` covariance of its reading
+                noise; when given, ``covariance`` of the result is filled with the first-order
+                propagation of each region's own sensor noise (noise of nested sensors and of
+                measured joint torques is not included).
+            chunk_size: frames per eager call (bounds memory); None for one go. Kernels stream
+                any batch in one call.
+            backend: overrides the estimator's backend for this call.
+
+        Returns:
+            :class:`ContactEstimate`.
+
+        Raises:
+            InputError: wrong shapes/dtype/device, a missing sensor reading, a contact on an
+                unknown link or outside every sensor's subtree. Non-finite values, zero-length
+                directions and implausible inputs do not raise: the frame gets a ``status`` and
+                NaN outputs, the other frames are unaffected.
+        """
+        model, S, K, nv = self.model, len(self.sensor_names), contacts.K, self.model.nv
+        dtype, device = model.dtype, model.device
+        em = self.layout(contacts.links, contacts.kinds)
+        for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
+            check_input(name, x, (nv,), model, f"(*B, {nv})", finite=False)
+        batch = q.shape[:-1]
+        if qd.shape[:-1] != batch or qdd.shape[:-1] != batch:
+            raise InputError("q, qd, qdd must share their batch shape")
+        n = math.prod(batch)
+        missing = [s for s in self.sensor_names if s not in ft]
+        if missing:
+            raise InputError(f"ft is missing readings of sensors {missing} (keys: {list(ft)})")
+        extra = [s for s in ft if s not in self.sensor_names]
+        if extra:
+            raise InputError(f"ft has readings of unknown or unused sensors {extra}")
+
+        def per_frame(name: str, x: Tensor | None, trailing: tuple[int, ...]) -> Tensor | None:
+            if x is None:
+                return None
+            shape = f"(*B, {', '.join(map(str, trailing))})"
+            check_input(name, x, trailing, model, shape, finite=False)
+            if x.shape[: x.dim() - len(trailing)] != batch:
+                raise InputError(
+                    f"{name} must be {shape} with B={tuple(batch)}, got {tuple(x.shape)}"
+                )
+            return flatten_batch(x, batch, len(trailing)).reshape(n, -1)
+
+        tensors = {k: flatten_batch(x, batch, 1) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
+        for i, s in enumerate(self.sensor_names):
+            tensors[f"ft{i}"] = per_frame(f"ft[{s!r}]", ft[s], (6,))
+        tensors["pos"] = per_frame("contacts.positions", contacts.positions, (K, 3))
+        if "force_dir" in em.kinds:
+            if contacts.directions is None:
+                raise InputError("contacts.directions is required for force_dir slots")
+            tensors["dir"] = per_frame("contacts.directions", contacts.directions, (K, 3))
+        if "known" in em.kinds:
+            if contacts.wrenches is None:
+                raise InputError("contacts.wrenches is required for known slots")
+            tensors["wrench"] = per_frame("contacts.wrenches", contacts.wrenches, (K, 6))
+        if contacts.active is not None:
+            act = contacts.active
+            if not isinstance(act, Tensor) or act.shape != (*batch, K):
+                raise InputError(
+                    f"contacts.active must be a (*B, {K}) tensor, got {getattr(act, 'shape', act)}"
+                )
+            tensors["active"] = act.reshape(n, K).to(device=device, dtype=dtype)
+        else:
+            tensors["active"] = torch.ones(n, K, dtype=dtype, device=device)
+        if base is not None:
+            for k in BaseMotion._fields:
+                tensors[k] = per_frame(f"base.{k}", getattr(base, k), (3,))
+        if tau_measured is not None:
+            tensors["tau_meas"] = per_frame("tau_measured", tau_measured, (nv,))
+            if tau_mask is None:
+                mask = torch.isfinite(tensors["tau_meas"])
+            else:
+                mask = tau_mask.to(device=device, dtype=torch.bool).expand(*batch, nv)
+            tensors["tau_mask"] = mask.reshape(n, nv).to(dtype)
+        if ft_covariance is not None:
+            cov = torch.zeros(n, S, 6, 6, dtype=dtype, device=device)
+            for i, s in enumerate(self.sensor_names):
+                if s in ft_covariance:
+                    c = ft_covariance[s]
+                    check_input(f"ft_covariance[{s!r}]", c, (6, 6), model, "(6, 6) or (*B, 6, 6)")
+                    cov[:, i] = c.expand(*batch, 6, 6).reshape(n, 6, 6)
+            tensors["ft_cov"] = cov.reshape(n, 36 * S)
+        prog = program(em, "estimate", base is not None, tau_measured is not None,
+                       ft_covariance is not None)  # fmt: skip
+        out = _dyn._run(prog, tensors, self.backend if backend is None else backend, chunk_size)
+        rank = out["rank"].round().to(torch.long)
+        unknowns = out["unknowns"].round().to(torch.long)
+        ident = rank == unknowns
+        names = self.sensor_names
+        return ContactEstimate(
+            force=out["force"].reshape(*batch, K, 3),
+            moment=out["moment"].reshape(*batch, K, 3),
+            rank={s: rank[:, i].reshape(batch) for i, s in enumerate(names)},
+            unknowns={s: unknowns[:, i].reshape(batch) for i, s in enumerate(names)},
+            residual={s: out["residual"][:, i].reshape(batch) for i, s in enumerate(names)},
+            identifiable={s: ident[:, i].reshape(batch) for i, s in enumerate(names)},
+            joint_torques=out["tau"].reshape(*batch, nv),
+            status=out["status"][:, 0].round().to(torch.long).reshape(batch),
+            covariance=None if ft_covariance is None else out["cov"].reshape(*batch, K, 6, 6),
+        )
+
+    def predict_ft(
+        self,
+        q: Tensor,
+        qd: Tensor,
+        qdd: Tensor,
+        contacts: Contacts,
+        *,
+        base: BaseMotion | None = None,
+        backend: str | None = None,
+    ) -> dict[str, Tensor]:
+        """F/T readings the model predicts for known contact wrenches (forward model, simulation).
+
+        Every active slot's ``contacts.wrenches`` is applied, whatever its kind; with no active
+        slot this is the contact-free prediction that calibration and residual learning use.
+
+        Args:
+            q: ``(*B, nv)`` joint positions.
+            qd: ``(*B, nv)`` joint velocities.
+            qdd: ``(*B, nv)`` joint accelerations.
+            contacts: slots with ``wrenches`` ``(*B, K, 6)`` (link frame, moment about the point).
+            base: IMU measurement of a moving base.
+            backend: overrides the estimator's backend for this call.
+
+        Returns:
+            sensor name -> ``(*B, 6)`` reading ``[force; moment]`` in its frame and direction.
+
+        Raises:
+            InputError: wrong shapes, dtype or device, non-finite inputs, missing wrenches.
+        """
+        model, K = self.model, contacts.K
+        batch, tensors = _dyn._prepare(model, q, qd, qdd, base)
+        n = math.prod(batch)
+        em = self.layout(contacts.links, ("known",) * K)
+        if K and contacts.wrenches is None:
+            raise InputError("predict_ft needs contacts.wrenches")
+        like = tensors["q"]
+        if K:
+            for name, x, feat in (("positions", contacts.positions, 3),
+                                  ("wrenches", contacts.wrenches, 6)):  # fmt: skip
+                check_input(f"contacts.{name}", x, (K, feat), model, f"(*B, {K}, {feat})")
+                if x.shape[:-2] != batch:
+                    raise InputError(f"contacts.{name} must be (*B, {K}, {feat}) with B={batch}")
+            tensors["pos"] = flatten_batch(contacts.positions, batch, 2).reshape(n, 3 * K)
+            tensors["wrench"] = flatten_batch(contacts.wrenches, batch, 2).reshape(n, 6 * K)
+            act = contacts.active
+            tensors["active"] = (act.reshape(n, K).to(like) if act is not None
+                                 else like.new_ones(n, K))  # fmt: skip
+        else:
+            tensors.update(pos=like.new_zeros(n, 0), wrench=like.new_zeros(n, 0),
+                           active=like.new_zeros(n, 0))  # fmt: skip
+        prog = program(em, "predict", base is not None)
+        out = _dyn._run(prog, tensors, self.backend if backend is None else backend, 16384)
+        ft = out["ft"]
+        return {s: ft[:, 6 * i : 6 * i + 6].reshape(*batch, 6)
+                for i, s in enumerate(self.sensor_names)}  # fmt: skip

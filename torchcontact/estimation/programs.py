@@ -1,0 +1,255 @@
+"""The estimator's stages chained into whole-frame programs, one per layout.
+
+:func:`estimate_program` is everything :meth:`ContactEstimator.estimate` computes for a frame,
+input checks included, so that a generated kernel (:mod:`torchcontact.kernels`) reads the raw
+inputs once and writes every output once:
+
+1. **status** (:data:`torchcontact.STATUS`): non-finite inputs, zero-length directions and
+   implausible values set bits; such a frame computes on zeros and returns NaN;
+2. the stages of :mod:`torchcontact.estimation.stages`;
+3. outputs that come out non-finite from valid inputs (overflow) set bit 32 and become NaN.
+
+:func:`predict_program` is the forward model (the readings known contacts would cause).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from torchcontact import dynamics as _dyn
+from torchcontact import kernels
+from torchcontact import spatial as sp
+from torchcontact._scalar import (
+    Scalar,
+    add,
+    gt,
+    isfinite,
+    logical_and,
+    logical_not,
+    logical_or,
+    mul,
+    neg,
+    select,
+    sqrt,
+    sum_,
+)
+from torchcontact.contacts import KINDS
+from torchcontact.estimation import stages
+from torchcontact.estimation.layout import EstimationModel
+from torchcontact.solve import solve_program
+
+__all__ = ["estimate_program", "predict_program", "program"]
+
+_NAN = float("nan")
+
+
+def _all(masks: Sequence[Scalar]) -> Scalar:
+    out: Scalar = True
+    for m in masks:
+        out = logical_and(out, m)
+    return out
+
+
+def _any(masks: Sequence[Scalar]) -> Scalar:
+    out: Scalar = False
+    for m in masks:
+        out = logical_or(out, m)
+    return out
+
+
+def _finite(xs: Sequence[Scalar]) -> Scalar:
+    return _all([isfinite(x) for x in xs])
+
+
+def _bit(m: Scalar, value: float) -> Scalar:
+    return select(m, value, 0.0)
+
+
+def estimate_program(
+    em: EstimationModel, moving_base: bool, torque_rows: bool, with_cov: bool
+) -> kernels.Program:
+    """The whole estimator of a layout as one program.
+
+    Inputs (per frame): ``q, qd, qdd`` (nv), ``ft0 ... ft{S-1}`` (6 each), ``pos`` (3K),
+    ``active`` (K, 0/1), ``dir`` (3K, with ``force_dir`` slots), ``wrench`` (6K, with ``known``
+    slots), ``omega, domega, proper_acc`` (3 each, moving base), ``tau_meas, tau_mask`` (nv each,
+    torque rows), ``ft_cov`` (36 S, covariance). Outputs: ``force, moment`` (3K), ``tau`` (nv),
+    ``rank, unknowns, residual`` (S), ``status`` (1), ``cov`` (36 K).
+    """
+    S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
+    kinds = em.kinds
+    has_dir = "force_dir" in kinds
+    has_known = "known" in kinds
+    inputs = {"q": nv, "qd": nv, "qdd": nv}
+    inputs.update({f"ft{i}": 6 for i in range(S)})
+    inputs.update(pos=3 * K, active=K)
+    if has_dir:
+        inputs["dir"] = 3 * K
+    if has_known:
+        inputs["wrench"] = 6 * K
+    if moving_base:
+        inputs.update(omega=3, domega=3, proper_acc=3)
+    if torque_rows:
+        inputs.update(tau_meas=nv, tau_mask=nv)
+    if with_cov:
+        inputs["ft_cov"] = 36 * S
+    outputs = {"force": 3 * K, "moment": 3 * K, "tau": nv, "rank": S, "unknowns": S,
+               "residual": S, "status": 1}  # fmt: skip
+    if with_cov:
+        outputs["cov"] = 36 * K
+
+    def fn(x: dict[str, list]) -> dict[str, list]:
+        readings = [x[f"ft{i}"] for i in range(S)]
+        act_in = [gt(a, 0.5) for a in x["active"]]
+        pos = [x["pos"][3 * k : 3 * k + 3] for k in range(K)]
+        dirs = [x["dir"][3 * k : 3 * k + 3] for k in range(K)] if has_dir else None
+        wr = [x["wrench"][6 * k : 6 * k + 6] for k in range(K)] if has_known else None
+        base_keys = ("omega", "domega", "proper_acc") if moving_base else ()
+        # ---- status of the inputs (STATUS bits)
+        b1 = logical_not(_finite([v for r in readings for v in r]))
+        joint = [*x["q"], *x["qd"], *x["qdd"], *(v for k in base_keys for v in x[k])]
+        b2 = logical_not(_finite(joint))
+        bad_field, zero_dir = [], []
+        for k, kind in enumerate(kinds):
+            fields = list(pos[k])
+            if kind == "force_dir":
+                fields += list(dirs[k])
+                n2 = sum_([mul(v, v) for v in dirs[k]])
+                zero = logical_and(isfinite(n2), logical_not(gt(n2, 0.0)))
+                zero_dir.append(logical_and(act_in[k], zero))
+            if kind == "known":
+                fields += list(wr[k])
+            bad_field.append(logical_and(act_in[k], logical_not(_finite(fields))))
+        b4, b8 = _any(bad_field), _any(zero_dir)
+        b16: Scalar = False
+        if torque_rows:
+            b16 = _any([logical_and(gt(m, 0.5), logical_not(isfinite(t)))
+                        for t, m in zip(x["tau_meas"], x["tau_mask"], strict=True)])  # fmt: skip
+        implausible = []
+        if em.velocity_limit is not None:
+            for v, lim in zip(x["qd"], em.velocity_limit, strict=True):
+                if lim != float("inf"):
+                    implausible += [gt(v, lim), gt(neg(v), lim)]
+        for r, rng in zip(readings, em.ft_range, strict=True):
+            if rng is not None:
+                for v, lim in zip(r, rng, strict=True):
+                    implausible += [gt(v, lim), gt(neg(v), lim)]
+        before = _any([b1, b2, b4, b8, b16])
+        b64 = logical_and(logical_not(before), _any(implausible))
+        ok = logical_not(logical_or(before, b64))
+        status = sum_([_bit(b1, 1.0), _bit(b2, 2.0), _bit(b4, 4.0), _bit(b8, 8.0),
+                       _bit(b16, 16.0), _bit(b64, 64.0)])  # fmt: skip
+
+        # a bad frame computes on zeros (its outputs become NaN below)
+        def clean(v: Scalar) -> Scalar:
+            return select(logical_and(ok, isfinite(v)), v, 0.0)
+
+        act = [select(logical_and(ok, a), 1.0, 0.0) for a in act_in]
+        q, qd, qdd = ([clean(v) for v in x[k]] for k in ("q", "qd", "qdd"))
+        readings = [[clean(v) for v in r] for r in readings]
+        pos = [[clean(v) for v in p] for p in pos]
+        dirs = [[clean(v) for v in d] for d in dirs] if has_dir else None
+        wr = [[clean(v) for v in w] for w in wr] if has_known else None
+        base = {k: [clean(v) for v in x[k]] for k in base_keys} if moving_base else None
+        tau_meas = tau_mask = None
+        if torque_rows:
+            tau_meas = [clean(v) for v in x["tau_meas"]]
+            tau_mask = [select(logical_and(ok, gt(m, 0.5)), 1.0, 0.0) for m in x["tau_mask"]]
+
+        # ---- the stages
+        X, _, _, f = stages.forward(em, q, qd, qdd, base)
+        known: dict[int, list] = {}
+        for k, slot in enumerate(em.slots):
+            if slot.kind == "known":
+                w = (tuple(mul(act[k], v) for v in wr[k][:3]),
+                     tuple(mul(act[k], v) for v in wr[k][3:]))  # fmt: skip
+                known.setdefault(slot.body, []).append(
+                    stages.wrench_on_body(slot, stages.contact_point(slot, pos[k]), w)
+                )
+        _, tau_b, b = stages.region_rhs(em, X, f, readings, known, tau_meas, tau_mask)
+        maps, grams = stages.contact_maps(em, X, pos, dirs, act, tau_mask)
+        ys, ranks, resid, factors = [], [], [], []
+        for r, reg in enumerate(em.regions):
+            if all(em.slots[k].kind == "known" for k in reg.slots):  # nothing to solve
+                ys.append([0.0] * len(b[r]))
+                ranks.append(0.0)
+                resid.append(sqrt(sum_([mul(v, v) for v in b[r]])))
+                factors.append(None)
+                continue
+            y, rank, res, fac = solve_program(grams[r], b[r], em.rank_rtol)
+            ys += [y]
+            ranks += [rank]
+            resid += [res]
+            factors += [fac]
+        w = stages.contact_wrenches(em, maps, ys, wr, act)
+        tau = stages.backward(em, X, tau_b, pos, w)
+        force = [v for wk in w for v in wk[0]]
+        moment = [v for wk in w for v in wk[1]]
+        cov = None
+        if with_cov:
+            sig = [[clean(v) for v in x["ft_cov"][36 * i : 36 * i + 36]] for i in range(S)]
+            cov = [v for c in stages.covariance(em, maps, factors, sig) for v in c]
+
+        # ---- outputs: non-finite from valid inputs is bit 32; bad frames give NaN
+        b32 = logical_and(ok, logical_not(_finite([*force, *moment, *tau, *resid])))
+        bad = logical_not(logical_and(ok, logical_not(b32)))
+
+        def out(v: Scalar) -> Scalar:
+            return select(bad, _NAN, v)
+
+        n_unk = [sum_([select(act_in[k], float(KINDS[em.slots[k].kind]), 0.0)
+                       for k in reg.slots]) for reg in em.regions]  # fmt: skip
+        result = {
+            "force": [out(v) for v in force],
+            "moment": [out(v) for v in moment],
+            "tau": [out(v) for v in tau],
+            "rank": ranks,
+            "unknowns": n_unk,
+            "residual": [out(v) for v in resid],
+            "status": [add(status, _bit(b32, 32.0))],
+        }
+        if with_cov:
+            result["cov"] = [out(v) for v in cov]
+        return result
+
+    key = f"est|{em.key}|{moving_base}|{torque_rows}|{with_cov}"
+    return kernels.Program("estimator", fn, inputs, outputs, key)
+
+
+def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:
+    """The forward model: every sensor's reading for given contact wrenches.
+
+    Inputs: ``q, qd, qdd`` (nv), ``pos`` (3K), ``wrench`` (6K, link frame, about the point),
+    ``active`` (K), base motion (moving base). Output: ``ft`` (6 S), sensor frames and directions.
+    """
+    S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
+    inputs = {"q": nv, "qd": nv, "qdd": nv, "pos": 3 * K, "wrench": 6 * K, "active": K}
+    if moving_base:
+        inputs.update(omega=3, domega=3, proper_acc=3)
+
+    def fn(x: dict[str, list]) -> dict[str, list]:
+        base = {k: x[k] for k in ("omega", "domega", "proper_acc")} if moving_base else None
+        X, _, _, f = stages.forward(em, x["q"], x["qd"], x["qdd"], base)
+        f = list(f)
+        for k, slot in enumerate(em.slots):
+            wk = [mul(x["active"][k], v) for v in x["wrench"][6 * k : 6 * k + 6]]
+            point = stages.contact_point(slot, x["pos"][3 * k : 3 * k + 3])
+            wb = stages.wrench_on_body(slot, point, (tuple(wk[:3]), tuple(wk[3:])))
+            f[slot.body] = (sp.v_sub(f[slot.body][0], wb[0]), sp.v_sub(f[slot.body][1], wb[1]))
+        F, _ = _dyn.backward_pass(em.tree, X, f)
+        out = []
+        for reg in em.regions:
+            Fs = sp.force_to_child(reg.T_child_sensor, F[reg.child])
+            out += [mul(reg.sign, v) for v in (*Fs[0], *Fs[1])]
+        return {"ft": out}
+
+    return kernels.Program("predict", fn, inputs, {"ft": 6 * S}, f"pred|{em.key}|{moving_base}")
+
+
+def program(em: EstimationModel, name: str, *flags) -> kernels.Program:
+    """The cached program ``name`` (``"estimate"`` or ``"predict"``) of a layout."""
+    key = (name, *flags)
+    if key not in em._programs:
+        make = {"estimate": estimate_program, "predict": predict_program}[name]
+        em._programs[key] = make(em, *flags)
+    return em._programs[key]

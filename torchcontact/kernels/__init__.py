@@ -1,0 +1,391 @@
+"""Per-robot kernels generated from one Python source of the physics.
+
+A :class:`Program` is a physics function written on scalars (:mod:`torchcontact._scalar`): it
+maps named input arrays (``k`` scalars per frame each) to named output arrays. One program runs on
+three backends:
+
+* ``"eager"``: the function runs on torch tensors, one ``(N,)`` tensor per scalar. Always
+  available, differentiable, any device and dtype; the reference the others are tested against.
+* ``"cpu"``: the function runs once on symbols (:class:`torchcontact._scalar.Trace`); the SSA
+  graph becomes straight-line C++ on vectors of frames (:mod:`torchcontact.kernels._cpp`), built
+  with torch's extension builder (``torch.utils.cpp_extension.load``) and called through ctypes,
+  the frames split over ``torch.get_num_threads()`` threads.
+* ``"cuda"``: the same graph as a CUDA kernel, one thread per frame
+  (:mod:`torchcontact.kernels._cuda`).
+
+Builds are cached on disk by the hash of the generated source, the compiler and the CPU, under
+``$TORCHCONTACT_CACHE`` (default ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``), so
+a later process loads a kernel in milliseconds. ``backend="auto"`` uses a compiled kernel when one
+is loaded or cached, and otherwise runs eagerly while the kernel builds in a background thread
+(large batches only); a build failure or a missing compiler warns once and stays eager.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import threading
+import warnings
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchcontact._scalar import Sym, Trace, float_dtype
+from torchcontact.errors import KernelBuildError
+
+__all__ = ["BACKENDS", "Program", "cache_dir", "compiled", "run"]
+
+#: Accepted ``backend`` arguments.
+BACKENDS = ("auto", "eager", "cpu", "cuda")
+
+#: Batches at least this large start a background build under ``backend="auto"``.
+AUTO_BUILD_MIN_FRAMES = 2048
+
+_VERSION = "1"  # bump when the generated code's calling convention changes
+
+
+@dataclass(frozen=True, eq=False)
+class Program:
+    """A physics program on scalars with its input and output layout.
+
+    Attributes:
+        name: short name (used in file names and messages).
+        fn: ``fn(inputs: dict[str, list[Scalar]]) -> dict[str, list[Scalar]]``.
+        inputs: input name -> scalars per frame, in calling order.
+        outputs: output name -> scalars per frame, in order.
+        key: a string that identifies the program's constants (model hash, layout, gravity...);
+            two programs with one key must compute the same function.
+    """
+
+    name: str
+    fn: Callable[[dict[str, list]], dict[str, list]]
+    inputs: dict[str, int]
+    outputs: dict[str, int]
+    key: str
+    _traced: dict = field(default_factory=dict, repr=False)
+
+    def trace(self) -> tuple[Trace, dict[str, list]]:
+        """Run the program on symbols (once; cached)."""
+        if "t" not in self._traced:
+            tr = Trace()
+            syms = {k: tr.input(k, n) for k, n in self.inputs.items()}
+            out = self.fn(syms)
+            self._check_outputs(out)
+            self._traced["t"] = (tr, out)
+        return self._traced["t"]
+
+    def _check_outputs(self, out: Mapping[str, list]) -> None:
+        got = {k: len(v) for k, v in out.items()}
+        if got != self.outputs:
+            raise ValueError(f"program {self.name}: outputs {got}, declared {self.outputs}")
+
+
+def cache_dir() -> Path:
+    """Root of the on-disk kernel cache."""
+    env = os.environ.get("TORCHCONTACT_CACHE")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchcontact"
+
+
+def _machine_tag() -> str:
+    """CPU model and flags: a ``-march=native`` build only runs where it was built."""
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "model name")):
+                    flags += line
+                if line.startswith("flags"):
+                    break
+    except OSError:
+        flags = platform.processor()
+    return hashlib.sha256(f"{platform.machine()}|{flags}".encode()).hexdigest()[:12]
+
+
+def _vector_bytes() -> int:
+    """Bytes of one SIMD register: 64 with AVX-512, else 32 (AVX2; other ISAs split it)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return 64 if " avx512f" in line else 32
+    except OSError:
+        pass
+    return 32
+
+
+# --------------------------------------------------------------------------------------- eager
+
+
+def run_eager(program: Program, tensors: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """Run ``program`` on torch tensors ``(N, k)`` per input; returns ``(N, k)`` per output."""
+    like = next(iter(tensors.values()))
+    cols = {k: list(tensors[k].T.unbind(0)) for k in program.inputs}
+    with float_dtype(like.dtype):
+        out = program.fn(cols)
+    program._check_outputs(out)
+    n = like.shape[0]
+    res = {}
+    for k, xs in out.items():
+        if not xs:
+            res[k] = like.new_zeros(n, 0)
+            continue
+        res[k] = torch.stack(
+            [x if isinstance(x, Tensor) else like.new_full((n,), float(x)) for x in xs], 1
+        )
+    return res
+
+
+# ------------------------------------------------------------------------------------- compiled
+
+_DTYPES = {torch.float64: "double", torch.float32: "float"}
+_lock = threading.Lock()
+_loaded: dict[str, Callable] = {}
+_failed: dict[str, str] = {}
+_building: dict[str, threading.Thread] = {}
+_warned: set[str] = set()
+_pool: ThreadPoolExecutor | None = None
+
+
+def _source(program: Program, dtype: torch.dtype) -> tuple[str, str]:
+    from torchcontact.kernels import _cpp
+
+    tr, out = program.trace()
+    src = _cpp.emit(tr, out, _DTYPES[dtype], vbytes=_vector_bytes())
+    h = hashlib.sha256(
+        f"{_VERSION}|{torch.__version__}|{_machine_tag()}|{src}".encode()
+    ).hexdigest()[:20]
+    return src, h
+
+
+def _build(program: Program, dtype: torch.dtype, src: str, h: str) -> Callable:
+    """Compile (or load from the cache) and wrap the kernel of ``program``."""
+    from torch.utils import cpp_extension
+
+    name = f"tck_{program.name}_{h}"
+    d = cache_dir() / "kernels" / name
+    so = d / f"{name}.so"
+    if not so.exists():
+        d.mkdir(parents=True, exist_ok=True)
+        cpp = d / f"{name}.cpp"
+        if not cpp.exists() or cpp.read_text() != src:
+            tmp = cpp.with_suffix(".tmp")
+            tmp.write_text(src)
+            tmp.replace(cpp)
+        try:
+            cpp_extension.load(
+                name,
+                [str(cpp)],
+                extra_cflags=[
+                    "-O2",
+                    "-march=native",
+                    "-fno-math-errno",
+                    "-fno-trapping-math",
+                    "-ffp-contract=fast",
+                    "-fno-semantic-interposition",
+                ],
+                build_directory=str(d),
+                is_python_module=False,
+                verbose=False,
+            )
+        except Exception as e:  # compiler missing, internal compiler error, ...
+            raise KernelBuildError(f"building kernel {name} failed: {e}") from e
+    lib = ctypes.CDLL(str(so))
+    return _wrap(lib.tc_kernel, program, dtype)
+
+
+def _wrap(fn, program: Program, dtype: torch.dtype) -> Callable:
+    fn.restype = None
+    fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                   ctypes.c_void_p]  # fmt: skip
+    names_in, names_out = list(program.inputs), list(program.outputs)
+
+    def call(tensors: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        first = tensors[names_in[0]]
+        n = first.shape[0]
+        ins = [tensors[k].contiguous() for k in names_in]
+        for k, x in zip(names_in, ins, strict=True):
+            if x.dtype != dtype or x.device.type != "cpu" or x.dim() != 2 or x.shape[0] != n:
+                raise ValueError(f"kernel input {k}: expected ({n}, k) {dtype} on cpu")
+        outs = {k: torch.empty(n, m, dtype=dtype) for k, m in program.outputs.items()}
+        outl = [outs[k] for k in names_out]
+        nthreads = max(1, torch.get_num_threads())
+        if n < 512 or nthreads == 1:
+            _invoke(fn, 0, n, ins, outl)
+        else:
+            pool = _get_pool(nthreads)
+            step = -(-n // nthreads)
+            step = -(-step // 16) * 16  # whole vector blocks per thread
+            futs = [pool.submit(_invoke, fn, s, min(n, s + step), ins, outl)
+                    for s in range(0, n, step)]  # fmt: skip
+            for f in futs:
+                f.result()
+        return outs
+
+    return call
+
+
+def _get_pool(n: int) -> ThreadPoolExecutor:
+    global _pool
+    with _lock:
+        if _pool is None or _pool._max_workers < n:
+            _pool = ThreadPoolExecutor(n, thread_name_prefix="torchcontact-kernel")
+        return _pool
+
+
+def _invoke(fn, s: int, e: int, ins: list[Tensor], outs: list[Tensor]) -> None:
+    """Call the kernel on frames ``[s, e)`` (row offsets into each array; ctypes drops the GIL)."""
+    if e <= s:
+        return
+    ptr = ctypes.c_void_p
+    in_p = (ptr * len(ins))(*[x.data_ptr() + s * x.stride(0) * x.element_size() for x in ins])
+    in_s = (ctypes.c_int64 * len(ins))(*[x.stride(0) for x in ins])
+    out_p = (ptr * len(outs))(*[x.data_ptr() + s * x.stride(0) * x.element_size() for x in outs])
+    out_s = (ctypes.c_int64 * len(outs))(*[x.stride(0) for x in outs])
+    fn(e - s, in_p, in_s, out_p, out_s)
+
+
+def compiled(
+    program: Program, dtype: torch.dtype, device: torch.device | str = "cpu", wait: bool = True
+) -> Callable | None:
+    """The compiled kernel of ``program`` for ``dtype`` on ``device``.
+
+    Args:
+        program: the program.
+        dtype: float32 or float64.
+        device: ``cpu`` (generated C++) or ``cuda`` (generated CUDA).
+        wait: build now and return the kernel (raises :class:`KernelBuildError` on failure); with
+            False, return the kernel if it is loaded or in the disk cache, else start a background
+            build and return None.
+
+    Returns:
+        ``call(tensors: dict[str, (N, k) Tensor]) -> dict[str, (N, k) Tensor]`` or None.
+    """
+    device = torch.device(device)
+    if dtype not in _DTYPES:
+        raise KernelBuildError(f"no kernel for dtype {dtype}; use float32 or float64")
+    if device.type not in ("cpu", "cuda"):
+        raise KernelBuildError(f"no kernel backend for device {device}")
+    ckey = f"{program.key}|{dtype}|{device.type}"
+    with _lock:
+        if ckey in _loaded:
+            return _loaded[ckey]
+        if ckey in _failed:
+            if wait:
+                raise KernelBuildError(_failed[ckey])
+            return None
+        thread = _building.get(ckey)
+    if thread is not None:
+        if not wait:
+            return None
+        thread.join()
+        return compiled(program, dtype, device, wait)
+    if device.type == "cuda":
+        from torchcontact.kernels import _cuda
+
+        if not torch.cuda.is_available():
+            return _finish(ckey, _no_cuda, raise_=wait)
+
+        def build() -> Callable:
+            return _cuda.build(program, dtype, cache_dir())
+
+        cached = False
+    else:
+        src, h = _source(program, dtype)
+        name = f"tck_{program.name}_{h}"
+        cached = (cache_dir() / "kernels" / name / f"{name}.so").exists()
+
+        def build() -> Callable:
+            return _build(program, dtype, src, h)
+
+    if wait or cached:
+        return _finish(ckey, build, raise_=wait)
+    t = threading.Thread(
+        target=_finish, args=(ckey, build, False), name=f"torchcontact-build-{program.name}",
+        daemon=True,
+    )  # fmt: skip
+    with _lock:
+        _building[ckey] = t
+    t.start()
+    return None
+
+
+def _no_cuda() -> Callable:
+    raise KernelBuildError("CUDA kernels need a CUDA device and a CUDA build of torch")
+
+
+def _finish(ckey: str, build: Callable[[], Callable], raise_: bool) -> Callable | None:
+    """Build (or load) a kernel and record the outcome; a failure warns once."""
+    try:
+        k = build()
+    except KernelBuildError as e:
+        with _lock:
+            _failed[ckey] = str(e)
+            _building.pop(ckey, None)
+        if ckey not in _warned:
+            _warned.add(ckey)
+            warnings.warn(f"{e}; using the eager torch backend", RuntimeWarning, stacklevel=3)
+        if raise_:
+            raise
+        return None
+    with _lock:
+        _loaded[ckey] = k
+        _building.pop(ckey, None)
+    return k
+
+
+def run(
+    program: Program, tensors: Mapping[str, Tensor], backend: str = "auto"
+) -> dict[str, Tensor]:
+    """Run ``program`` on ``(N, k)`` tensors with the chosen backend.
+
+    Args:
+        program: the program.
+        tensors: input name -> ``(N, k)`` tensor (one dtype and device).
+        backend: ``"auto"`` (compiled if ready, else eager while it builds), ``"eager"``,
+            ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure).
+
+    Returns:
+        Output name -> ``(N, k)`` tensor.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
+    first = next(iter(tensors.values()))
+    if backend == "eager" or (backend == "auto" and (first.requires_grad or _tracing())):
+        return run_eager(program, tensors)
+    if backend in ("cpu", "cuda"):
+        if first.device.type != backend:
+            raise ValueError(f"backend {backend!r} needs inputs on {backend}, got {first.device}")
+        return compiled(program, first.dtype, first.device, wait=True)(tensors)
+    if first.dtype not in _DTYPES or first.device.type not in ("cpu", "cuda"):
+        return run_eager(program, tensors)
+    k = compiled(program, first.dtype, first.device, wait=False) if (
+        first.shape[0] >= AUTO_BUILD_MIN_FRAMES or _ready(program, first)
+    ) else None  # fmt: skip
+    if k is None:
+        return run_eager(program, tensors)
+    return k(tensors)
+
+
+def _ready(program: Program, like: Tensor) -> bool:
+    with _lock:
+        return f"{program.key}|{like.dtype}|{like.device.type}" in _loaded
+
+
+def _tracing() -> bool:
+    from torchcontact._internal import in_tracing
+
+    return in_tracing()
+
+
+def is_symbolic(x) -> bool:
+    """True for a traced scalar."""
+    return isinstance(x, Sym)

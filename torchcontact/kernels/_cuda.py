@@ -1,0 +1,189 @@
+"""CUDA code generation for a traced physics program: one GPU thread per frame.
+
+The SSA graph of :class:`torchcontact._scalar.Trace` becomes straight-line scalar CUDA C in a
+``__global__`` kernel; a thread reads its frame's rows of the ``(N, k)`` inputs, computes every
+output and writes its rows (the same calling convention as :mod:`torchcontact.kernels._cpp`).
+``sin``/``cos`` use CUDA's ``sincos`` (1 ulp in double), masks are ``bool`` and selects ternaries;
+no fast-math flags. The host entry ``tc_launch`` takes device pointers and a stream, so the
+kernel runs on torch's current stream. It is built with ``torch.utils.cpp_extension.load`` (nvcc)
+and cached on disk like the CPU kernels.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchcontact._scalar import Sym, Trace
+from torchcontact.errors import KernelBuildError
+
+_BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
+
+
+def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_launch") -> str:
+    """CUDA source of one kernel and its host launcher.
+
+    Args:
+        trace: the traced program; its ``inputs`` fix the input order.
+        outputs: output name -> scalars, in the caller's output order.
+        dtype: ``"double"`` or ``"float"``.
+        symbol: name of the exported host function ``symbol(n, in, in_stride, out, out_stride,
+            stream)``; the pointer arrays are host arrays of device pointers.
+    """
+    from torchcontact.kernels._cpp import live_nodes
+
+    flat = [x for xs in outputs.values() for x in xs]
+    nodes = live_nodes(trace, flat)
+    in_index = {k: i for i, k in enumerate(trace.inputs)}
+    n_in, n_out = len(trace.inputs), len(outputs)
+    lines: list[str] = []
+
+    def ref(a) -> str:
+        if isinstance(a, Sym):
+            return f"t{a.index}"
+        c = float(a)
+        if c != c:
+            return "(T)CUDART_NAN"
+        if c in (float("inf"), float("-inf")):
+            return f"({'-' if c < 0 else ''}(T)CUDART_INF)"
+        return f"(T){c!r}"
+
+    done_sincos: dict[str, tuple[str, str]] = {}
+    for s in nodes:
+        v = f"t{s.index}"
+        if s.op == "in":
+            arr, j = s.args
+            a = in_index[arr]
+            lines.append(f"  const T {v} = p.in[{a}][f * p.in_stride[{a}] + {j}];")
+        elif s.op in _BINARY:
+            x, y = s.args
+            lines.append(f"  const T {v} = {ref(x)} {_BINARY[s.op]} {ref(y)};")
+        elif s.op == "neg":
+            lines.append(f"  const T {v} = -{ref(s.args[0])};")
+        elif s.op == "sqrt":
+            lines.append(f"  const T {v} = sqrt({ref(s.args[0])});")
+        elif s.op in ("sin", "cos"):
+            x = ref(s.args[0])
+            if x not in done_sincos:
+                sn, cs = f"sn{s.index}", f"cs{s.index}"
+                done_sincos[x] = (sn, cs)
+                lines.append(f"  T {sn}, {cs}; sincos({x}, &{sn}, &{cs});")
+            sn, cs = done_sincos[x]
+            lines.append(f"  const T {v} = {sn if s.op == 'sin' else cs};")
+        elif s.op == "gt":
+            lines.append(f"  const bool {v} = {ref(s.args[0])} > {ref(s.args[1])};")
+        elif s.op == "finite":
+            lines.append(f"  const bool {v} = isfinite({ref(s.args[0])});")
+        elif s.op == "and":
+            lines.append(f"  const bool {v} = {ref(s.args[0])} && {ref(s.args[1])};")
+        elif s.op == "or":
+            lines.append(f"  const bool {v} = {ref(s.args[0])} || {ref(s.args[1])};")
+        elif s.op == "not":
+            lines.append(f"  const bool {v} = !{ref(s.args[0])};")
+        elif s.op == "sel":
+            m, x, y = s.args
+            lines.append(f"  const T {v} = {ref(m)} ? {ref(x)} : {ref(y)};")
+        else:  # pragma: no cover - every op of _scalar is handled above
+            raise ValueError(f"no CUDA for op {s.op!r}")
+    for k, xs in enumerate(outputs.values()):
+        for j, x in enumerate(xs):
+            lines.append(f"  p.out[{k}][f * p.out_stride[{k}] + {j}] = {ref(x)};")
+    body = "\n".join(lines)
+    return f"""#include <cstdint>
+#include <cuda_runtime.h>
+#include <math_constants.h>
+typedef {dtype} T;
+struct Params {{
+  const T* in[{max(n_in, 1)}];
+  int64_t in_stride[{max(n_in, 1)}];
+  T* out[{max(n_out, 1)}];
+  int64_t out_stride[{max(n_out, 1)}];
+}};
+
+__global__ void __launch_bounds__(128) tc_kernel(int64_t n, const Params p) {{
+  const int64_t f = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (f >= n) return;
+{body}
+}}
+
+extern "C" int {symbol}(int64_t n, const T* const* in, const int64_t* in_stride,
+                         T* const* out, const int64_t* out_stride, void* stream) {{
+  Params p;
+  for (int a = 0; a < {n_in}; ++a) {{ p.in[a] = in[a]; p.in_stride[a] = in_stride[a]; }}
+  for (int a = 0; a < {n_out}; ++a) {{ p.out[a] = out[a]; p.out_stride[a] = out_stride[a]; }}
+  if (n <= 0) return 0;
+  const int threads = 128;
+  const int64_t blocks = (n + threads - 1) / threads;
+  tc_kernel<<<(unsigned)blocks, threads, 0, (cudaStream_t)stream>>>(n, p);
+  return (int)cudaGetLastError();
+}}
+"""
+
+
+def source(program, dtype: torch.dtype) -> str:
+    """The CUDA source of ``program`` for ``dtype`` (also usable without a GPU, e.g. to check)."""
+    tr, out = program.trace()
+    return emit(tr, out, {torch.float64: "double", torch.float32: "float"}[dtype])
+
+
+def build(program, dtype: torch.dtype, cache: Path) -> Callable:
+    """Build (or load from ``cache``) the CUDA kernel of ``program``; returns its caller.
+
+    Raises:
+        KernelBuildError: nvcc is missing or fails.
+    """
+    from torch.utils import cpp_extension
+
+    src = source(program, dtype)
+    cap = torch.cuda.get_device_capability()
+    h = hashlib.sha256(f"{torch.__version__}|{cap}|{src}".encode()).hexdigest()[:20]
+    name = f"tckc_{program.name}_{h}"
+    d = cache / "kernels" / name
+    so = d / f"{name}.so"
+    if not so.exists():
+        d.mkdir(parents=True, exist_ok=True)
+        cu = d / f"{name}.cu"
+        cu.write_text(src)
+        try:
+            cpp_extension.load(
+                name,
+                [str(cu)],
+                extra_cuda_cflags=["-O3", "--fmad=true"],
+                build_directory=str(d),
+                is_python_module=False,
+                with_cuda=True,
+                verbose=False,
+            )
+        except Exception as e:
+            raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e
+    fn = ctypes.CDLL(str(so)).tc_launch
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                   ctypes.c_void_p, ctypes.c_void_p]  # fmt: skip
+    names_in, names_out = list(program.inputs), list(program.outputs)
+
+    def call(tensors: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        first = tensors[names_in[0]]
+        n, dev = first.shape[0], first.device
+        ins = [tensors[k].contiguous() for k in names_in]
+        outs = {k: torch.empty(n, m, dtype=dtype, device=dev) for k, m in program.outputs.items()}
+        outl = [outs[k] for k in names_out]
+        ptr = ctypes.c_void_p
+        rc = fn(
+            n,
+            (ptr * len(ins))(*[x.data_ptr() for x in ins]),
+            (ctypes.c_int64 * len(ins))(*[x.stride(0) for x in ins]),
+            (ptr * len(outl))(*[x.data_ptr() for x in outl]),
+            (ctypes.c_int64 * len(outl))(*[x.stride(0) for x in outl]),
+            ptr(torch.cuda.current_stream(dev).cuda_stream),
+        )
+        if rc:
+            raise KernelBuildError(f"CUDA kernel {name} failed to launch (cudaError {rc})")
+        return outs
+
+    return call
