@@ -64,6 +64,7 @@ __all__ = [
     "output_schema",
     "read_contacts",
     "read_log_columns",
+    "read_rows",
     "struct_list",
     "vectors",
     "write_table",
@@ -463,6 +464,32 @@ def iter_chunks(
             buf, have = rest.to_batches(), rest.num_rows
     if have:
         yield pa.Table.from_batches(buf).combine_chunks()
+
+
+def read_rows(path: str | Path, start: int, stop: int, columns: Sequence[str]) -> Any:
+    """Rows ``[start, stop)`` of a log (only the row groups that hold them are read).
+
+    Raises:
+        LogError: an unreadable file, missing columns or rows outside the log.
+    """
+    import pyarrow as pa
+
+    pf = open_log(path)
+    missing = [c for c in columns if c not in pf.schema_arrow.names]
+    if missing:
+        raise LogError(f"{path}: missing columns {missing} (found {pf.schema_arrow.names})")
+    n = pf.metadata.num_rows
+    if not 0 <= start <= stop <= n:
+        raise LogError(f"{path}: rows {start}-{stop - 1} are outside the log's {n} rows")
+    sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+    bounds = np.cumsum([0, *sizes])
+    groups = [g for g in range(len(sizes)) if bounds[g] < stop and bounds[g + 1] > start]
+    try:
+        tab = pf.read_row_groups(groups, columns=list(columns))
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{path}: corrupted data ({exc})") from None
+    first = int(bounds[groups[0]]) if groups else start
+    return tab.slice(start - first, stop - start)
 
 
 def read_log_columns(
