@@ -120,7 +120,7 @@ class Contacts:
             data zeros), and ``slot`` ``(M,)`` int64, each record's slot (-1: none).
 
         Raises:
-            InputError: a record's frame outside ``[0, frames)``.
+            InputError: a record's frame outside ``[0, frames)`` (see :meth:`SlotLayout.fill`).
 
         Example:
             >>> rec = ContactRecords(
@@ -133,30 +133,8 @@ class Contacts:
         import torch
 
         dtype = torch.float64 if dtype is None else dtype
-        if len(records) and (records.frame.min() < 0 or records.frame.max() >= frames):
-            raise InputError(f"contact records: frames must lie in [0, {frames})")
         layout = SlotLayout.covering(records) if layout is None else layout
-        slot = layout.assign(records)
-        K = layout.K
-        ok = np.flatnonzero(slot >= 0)
-        f, k = records.frame[ok], slot[ok]
-        P = np.zeros((frames, K, 3))
-        A = np.zeros((frames, K), bool)
-        P[f, k] = records.positions[ok]
-        A[f, k] = True
-        kinds = records.kinds[ok]
-        D = W = None
-        if "force_dir" in layout.kinds:
-            D = np.zeros((frames, K, 3))
-            D[..., 2] = 1.0  # inactive force_dir slots: any nonzero direction
-            sel = kinds == "force_dir"
-            dirs = records.directions
-            D[f[sel], k[sel]] = np.nan if dirs is None else dirs[ok[sel]]
-        if "known" in layout.kinds:
-            W = np.zeros((frames, K, 6))
-            sel = kinds == "known"
-            wr = records.wrenches
-            W[f[sel], k[sel]] = np.nan if wr is None else wr[ok[sel]]
+        arrays, slot = layout.fill(records, frames)
 
         def t(x: np.ndarray | None) -> Tensor | None:
             return None if x is None else torch.tensor(x, dtype=dtype, device=device)
@@ -164,10 +142,10 @@ class Contacts:
         contacts = cls(
             layout.links,
             layout.kinds,
-            t(P),  # type: ignore[arg-type]
-            directions=t(D),
-            wrenches=t(W),
-            active=torch.as_tensor(A, device=device),
+            t(arrays["positions"]),  # type: ignore[arg-type]
+            directions=t(arrays.get("directions")),
+            wrenches=t(arrays.get("wrenches")),
+            active=torch.as_tensor(arrays["active"], device=device),
         )
         return contacts, slot
 
@@ -354,6 +332,47 @@ class SlotLayout:
         start = np.array([first[k] for k in keys] + [0], np.int64)[key_id]
         mult = np.array([count[k] for k in keys] + [0], np.int64)[key_id]
         return np.where((key_id >= 0) & (rank < mult), start + rank, -1)
+
+    def fill(
+        self, records: ContactRecords, frames: int
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Per-slot arrays of B frames from records (numpy; :meth:`Contacts.from_records` wraps it).
+
+        Args:
+            records: M records of frames ``0 .. frames - 1``.
+            frames: number of frames B.
+
+        Returns:
+            ``(arrays, slot)``: ``positions (B, K, 3)``, ``active (B, K)`` bool, and, when the
+            layout has such slots, ``directions (B, K, 3)`` (inactive ``force_dir`` slots get +z)
+            and ``wrenches (B, K, 6)``; ``slot (M,)`` from :meth:`assign` (-1: record left out).
+            A ``force_dir`` or ``known`` record without its vector gets NaN there.
+
+        Raises:
+            InputError: a record's frame outside ``[0, frames)``.
+        """
+        if len(records) and (records.frame.min() < 0 or records.frame.max() >= frames):
+            raise InputError(f"contact records: frames must lie in [0, {frames})")
+        slot = self.assign(records)
+        K = self.K
+        ok = np.flatnonzero(slot >= 0)
+        f, k = records.frame[ok], slot[ok]
+        out = {"positions": np.zeros((frames, K, 3)), "active": np.zeros((frames, K), bool)}
+        out["positions"][f, k] = records.positions[ok]
+        out["active"][f, k] = True
+        kinds = records.kinds[ok]
+        if "force_dir" in self.kinds:
+            D = out["directions"] = np.zeros((frames, K, 3))
+            D[..., 2] = 1.0  # inactive force_dir slots: any nonzero direction
+            sel = kinds == "force_dir"
+            dirs = records.directions
+            D[f[sel], k[sel]] = np.nan if dirs is None else dirs[ok[sel]]
+        if "known" in self.kinds:
+            W = out["wrenches"] = np.zeros((frames, K, 6))
+            sel = kinds == "known"
+            wr = records.wrenches
+            W[f[sel], k[sel]] = np.nan if wr is None else wr[ok[sel]]
+        return out, slot
 
 
 def _key_ids(records: ContactRecords) -> tuple[list[tuple[str, str]], np.ndarray]:
