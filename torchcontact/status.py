@@ -3,8 +3,9 @@
 A frame's status is an int64 bit field; 0 means the frame was estimated and every output is
 finite. Each set bit names one reason. The estimator sets the bits, the log pipeline stores the
 code (``status_code`` column) and its text (``status`` column, :func:`status_messages`), and
-exported graphs return the same integer. Bit 128 is set by the log pipeline only: in Python and
-ONNX a contact on an unknown link is an error when the :class:`~torchcontact.Contacts` are built. Frames with a non-zero status have NaN outputs, the rest of a batch is unaffected.
+exported graphs return the same integer. Frames with a non-zero status have NaN outputs, the rest
+of a batch is unaffected. Bit 128 is set by the log pipeline only: in Python and ONNX a contact on
+an unknown link is an error when the estimate is called.
 """
 
 from __future__ import annotations

@@ -257,7 +257,7 @@ def add_parser(subparsers: Any) -> None:
     sim.add_argument("--disconnect-every", type=float, default=0.0, help="unplug every S s")
     sim.add_argument("--disconnect-for", type=float, default=0.3, help="unplugged for S s")
     sim.add_argument("--streaming-at-start", action="store_true", help="start in stream mode")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=int, default=0, help="seed of the fault injection")
     sim.set_defaults(func=cmd_simulate)
 
     read = sensor_sub.add_parser("read", help="read a sensor, show values, log to Parquet")

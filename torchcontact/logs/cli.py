@@ -281,12 +281,16 @@ def add_parser(subparsers: Any) -> None:
         "--out", required=True, help="output file (one input) or folder; never an input"
     )
     est.add_argument("--sensor", action="append", help="F/T sensor to use (repeatable)")
-    est.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    est.add_argument("--dtype", default="float64", choices=list(DTYPES))
+    est.add_argument(
+        "--device", default="auto", choices=["auto", "cpu", "cuda"], help="torch device"
+    )
+    est.add_argument("--dtype", default="float64", choices=list(DTYPES), help="computation dtype")
     est.add_argument("--batch-size", type=int, default=8192, help="frames per chunk")
     est.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: default)")
     est.add_argument("--resume", action="store_true", help="finish an interrupted run")
-    est.add_argument("--engine", default="local", choices=["local", "ray"])
+    est.add_argument(
+        "--engine", default="local", choices=["local", "ray"], help="local process or Ray"
+    )
     est.add_argument("--workers", type=int, default=1, help="Ray tasks at once (--engine ray)")
     est.add_argument(
         "--residual",
