@@ -99,7 +99,6 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
         print(f"warning: {_one_line(message)}", file=sys.stderr)
 
     with warnings.catch_warnings():
-        warnings.simplefilter("default")
         warnings.showwarning = warn
         try:
             return int(run() or 0)

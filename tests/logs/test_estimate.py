@@ -121,7 +121,9 @@ def test_bad_frames_get_a_status_and_the_rest_is_processed(model, sim_log, tmp_p
     assert code[10] == 1 and detail[10] is None  # NaN reading: the estimator's own bit
     assert code[20] == 1 and detail[20] == "ft.base_ft is not 6 floats"
     assert code[30] == 128 and detail[30] == "unknown link 'no_such_link'"
-    assert code[40] == 128 and detail[40] == "link 'base_link' is outside every F/T sensor's subtree"
+    assert (
+        code[40] == 128 and detail[40] == "link 'base_link' is outside every F/T sensor's subtree"
+    )
     assert code[50] == 4 and detail[50] == "force_dir contact without a 3-float direction"
     bad = [10, 20, 30, 40, 50]
     assert np.count_nonzero(code) == 5 and set(np.flatnonzero(code)) == set(bad)

@@ -508,7 +508,8 @@ def _base_motion(base: dict, t: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- streaming
-def _t_q(chunk: Any, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def times_and_positions(chunk: Any, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a chunk."""
     q, _ = vectors(chunk.column("q"), len(perm))
     return chunk.column("t_ns").to_numpy().astype(np.int64), q[:, perm]
 
@@ -541,9 +542,9 @@ def chunks_with_derivatives(
     cur = next(chunks, None)
     while cur is not None:
         nxt = next(chunks, None)
-        t_c, q_c = _t_q(cur, perm)
+        t_c, q_c = times_and_positions(cur, perm)
         if nxt is not None:
-            t_n, q_n = _t_q(nxt.slice(0, h), perm)
+            t_n, q_n = times_and_positions(nxt.slice(0, h), perm)
         else:
             t_n, q_n = after if after is not None else empty
         t_all = np.concatenate([prev_t, t_c, t_n[:h]])

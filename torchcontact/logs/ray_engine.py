@@ -1,7 +1,7 @@
 """``--engine ray``: the same per-chunk estimation (:class:`LogEstimator`) on a Ray cluster.
 
-The log is cut into *units*: runs of whole Parquet row groups of at least ``task_rows`` frames
-(unit ``u`` starts at a known row, so every row's index is ``unit start + offset``). A Ray Data
+The log is cut into *units* of ``task_rows`` consecutive frames (unit ``u`` holds rows
+``[u * task_rows, (u + 1) * task_rows)``, so every row's index is known). A Ray Data
 dataset of unit indices goes through ``map_batches`` (Ray tasks; each worker process builds the
 model and estimator once): a task reads its unit's rows straight from the Parquet file, estimates
 them in chunks of ``batch_size`` and writes ``OUT.partial/part-<u>.parquet`` (temporary name,
@@ -24,6 +24,7 @@ import logging
 import os
 import sys
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ import torch
 
 from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, iter_chunks, open_log, vectors
+from torchcontact.logs.format import check_outputs, open_log
 from torchcontact.logs.pipeline import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
@@ -48,52 +49,35 @@ from torchcontact.logs.pipeline import (
     resolve_device,
     run_ident,
     summary,
+    times_and_positions,
     write_part,
 )
 
 __all__ = ["estimate_file_ray", "estimate_files_ray", "plan_units"]
 
 
-def plan_units(row_groups: Sequence[int], task_rows: int) -> list[tuple[int, int]]:
-    """Cut row groups into units of whole row groups holding at least ``task_rows`` rows each.
-
-    Args:
-        row_groups: rows of each row group, in file order.
-        task_rows: rows a unit should reach (the last unit may have fewer).
-
-    Returns:
-        ``[(first group, one past the last group), ...]`` covering every group once, in order.
+def plan_units(rows: int, task_rows: int) -> list[tuple[int, int]]:
+    """Cut ``rows`` frames into units of ``task_rows`` consecutive frames (the last shorter).
 
     Example:
-        >>> plan_units([100, 100, 100, 50], 150)
-        [(0, 2), (2, 4)]
+        >>> plan_units(250, 100)
+        [(0, 100), (100, 200), (200, 250)]
     """
-    units, start, rows = [], 0, 0
-    for g, n in enumerate(row_groups):
-        rows += n
-        if rows >= task_rows:
-            units.append((start, g + 1))
-            start, rows = g + 1, 0
-    if start < len(row_groups):
-        units.append((start, len(row_groups)))
-    return units
+    return [(a, min(a + task_rows, rows)) for a in range(0, rows, task_rows)]
 
 
-def _context(pf: Any, perm: np.ndarray, groups: range, h: int, tail: bool) -> tuple:
-    """``(t_ns, q)`` of the ``h`` frames at the tail (or head) of ``groups`` (model order)."""
-    ts, qs, have = [], [], 0
-    for g in groups:
-        tab = pf.read_row_group(g, columns=["t_ns", "q"])
-        ts.append(tab.column("t_ns").to_numpy().astype(np.int64))
-        qs.append(vectors(tab.column("q"), len(perm))[0][:, perm])
-        have += tab.num_rows
-        if have >= h:
-            break
-    if tail:
-        ts, qs = ts[::-1], qs[::-1]
-    t = np.concatenate(ts) if ts else np.zeros(0, np.int64)
-    q = np.concatenate(qs) if qs else np.zeros((0, len(perm)))
-    return (t[-h:], q[-h:]) if tail else (t[:h], q[:h])
+def _read_unit(pf: Any, columns: list[str], lo: int, hi: int, source: str) -> Any:
+    """Rows ``[lo, hi)`` of the log: the row groups holding them are read, then sliced."""
+    import pyarrow as pa
+
+    sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+    bounds = np.cumsum([0, *sizes])
+    groups = [g for g in range(len(sizes)) if bounds[g] < hi and bounds[g + 1] > lo]
+    try:
+        tab = pf.read_row_groups(groups, columns=columns)
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{source}: corrupted data in rows {lo}-{hi - 1}: {exc}") from None
+    return tab.slice(lo - int(bounds[groups[0]]), hi - lo)
 
 
 #: Per worker process: (path, robot, LogEstimator arguments, job) -> (LogEstimator, file, schema).
@@ -119,21 +103,26 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
     path, robot, le_args, job = config
     le, pf, schema = _worker_state(path, robot, le_args, job)
     h, derive = job["half_window"], bool(le.derived)
+    n, bs = pf.metadata.num_rows, job["batch_size"]
     rows, ok = [], []
     for u in batch["unit"]:
-        g0, g1 = job["units"][int(u)]
-        chunks = iter_chunks(pf, job["columns"], job["batch_size"], path, range(g0, g1))
+        start, stop = job["units"][int(u)]
+        # h frames of context across the unit's edges, as the local engine has
+        lo, hi = (max(0, start - h), min(n, stop + h)) if derive else (start, stop)
+        tab = _read_unit(pf, job["columns"], lo, hi, path)
+        unit = tab.slice(start - lo, stop - start)
         before = after = None
-        if derive:  # h frames of context across the unit's edges, as the local engine has
-            before = _context(pf, le.perm, range(g0 - 1, -1, -1), h, tail=True)
-            after = _context(pf, le.perm, range(g1, pf.num_row_groups), h, tail=False)
+        if derive:
+            before = times_and_positions(tab.slice(0, start - lo), le.perm)
+            after = times_and_positions(tab.slice(stop - lo), le.perm)
+        chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
         tables = estimate_chunks(
             le, chunks_with_derivatives(chunks, le.perm, derive, h, before, after)
         )
         part = Path(job["partial"]) / f"part-{int(u):08d}.parquet"
-        n, k = write_part(part, tables, schema)
-        rows.append(n)
-        ok.append(k)
+        n_rows, n_ok = write_part(part, tables, schema)
+        rows.append(n_rows)
+        ok.append(n_ok)
     return {"unit": batch["unit"], "rows": np.array(rows), "ok": np.array(ok)}
 
 
@@ -209,8 +198,7 @@ def estimate_file_ray(
         out: output Parquet file.
         sensors: sensors to use (default: those with a column).
         batch_size: frames per estimator call inside a unit.
-        task_rows: frames a unit (one Ray task) should reach, whole row groups (default
-            ``8 * batch_size``).
+        task_rows: frames of a unit (one Ray task; default ``8 * batch_size``).
         device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per actor).
         dtype: computation dtype.
         resume: finish an interrupted Ray run from its parts.
@@ -252,9 +240,8 @@ def estimate_file_ray(
             " order); use --engine local"
         )
     pf, le, columns = prepare(path, model, sensors, res, velocity_margin, ft_range)
-    units = plan_units(
-        [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)], task_rows
-    )
+    total = pf.metadata.num_rows
+    units = plan_units(total, task_rows)
     ident = run_ident(
         path,
         model,
@@ -268,62 +255,63 @@ def estimate_file_ray(
     run = RunState(out, *RunState.side_paths(out)[:2], ident)
     run.start(resume)
     todo = [u for u in range(len(units)) if u not in run.done]
-    starts = np.cumsum([0] + [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)])
-    total = int(starts[-1])
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(total=total, unit="frames", disable=not show, desc=f"{Path(path).name} (ray)")
-    bar.update(int(total - sum(starts[units[u][1]] - starts[units[u][0]] for u in todo)))
+    bar.update(total - sum(units[u][1] - units[u][0] for u in todo))
     counts = {"ok": 0, "bad": 0}
     if todo:
-        ray = _ensure_ray(num_cpus)
-        job = {
-            "units": units,
-            "columns": columns,
-            "batch_size": batch_size,
-            "half_window": half_window,
-            "partial": str(run.partial.resolve()),
-            "threads": threads,
-            "device": device,
-            "dtype": str(dtype).removeprefix("torch."),
-            "residual": None if res is None else res.source,
-        }
-        le_args = {
-            "input_joint_names": list(le.input_joint_names),
-            "sensors": list(le.sensors),
-            "contact_fields": list(le.contact_fields),
-            "source": str(path),
-            "derived": list(le.derived),
-            "velocity_margin": velocity_margin,
-            "ft_range": ft_range,
-        }
-        ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
-        config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
-        ds = ds.map_batches(
-            _estimate_units,
-            fn_kwargs={"config": config},
-            batch_format="numpy",
-            batch_size=1,
-            compute=ray.data.TaskPoolStrategy(size=workers),
-            num_cpus=worker_cpus,
-            num_gpus=1 if device.startswith("cuda") else 0,
-        )
-        try:
-            for b in ds.iter_batches(batch_size=1, batch_format="numpy", prefetch_batches=0):
-                for u, n, k in zip(b["unit"], b["rows"], b["ok"], strict=True):
-                    run.done.add(int(u))
-                    counts["ok"] += int(k)
-                    counts["bad"] += int(n - k)
-                    bar.update(int(n))
-                run.record()
-        except Exception as exc:
-            err = _user_error(exc)
-            if isinstance(err, TorchContactError):
-                raise type(err)(
-                    f"{err}; {len(run.done)} of {len(units)} units are estimated in {run.partial}"
-                ) from None
-            raise
-        finally:
-            bar.close()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+            ray = _ensure_ray(num_cpus)
+            job = {
+                "units": units,
+                "columns": columns,
+                "batch_size": batch_size,
+                "half_window": half_window,
+                "partial": str(run.partial.resolve()),
+                "threads": threads,
+                "device": device,
+                "dtype": str(dtype).removeprefix("torch."),
+                "residual": None if res is None else res.source,
+            }
+            le_args = {
+                "input_joint_names": list(le.input_joint_names),
+                "sensors": list(le.sensors),
+                "contact_fields": list(le.contact_fields),
+                "source": str(path),
+                "derived": list(le.derived),
+                "velocity_margin": velocity_margin,
+                "ft_range": ft_range,
+            }
+            ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
+            config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
+            ds = ds.map_batches(
+                _estimate_units,
+                fn_kwargs={"config": config},
+                batch_format="numpy",
+                batch_size=1,
+                compute=ray.data.TaskPoolStrategy(size=workers),
+                num_cpus=worker_cpus,
+                num_gpus=1 if device.startswith("cuda") else 0,
+            )
+            try:
+                for b in ds.iter_batches(batch_size=1, batch_format="numpy", prefetch_batches=0):
+                    for u, n, k in zip(b["unit"], b["rows"], b["ok"], strict=True):
+                        run.done.add(int(u))
+                        counts["ok"] += int(k)
+                        counts["bad"] += int(n - k)
+                        bar.update(int(n))
+                    run.record()
+            except Exception as exc:
+                err = _user_error(exc)
+                if isinstance(err, TorchContactError):
+                    raise type(err)(
+                        f"{err}; {len(run.done)} of {len(units)} units are estimated in"
+                        f" {run.partial}"
+                    ) from None
+                raise
+            finally:
+                bar.close()
     else:
         bar.close()
     rows = run.finish(len(units), le.output_schema())
