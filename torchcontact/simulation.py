@@ -96,6 +96,7 @@ def _trajectory(rng, n, nv, dt, speed):
     q = np.zeros((n, nv))
     qd = np.zeros((n, nv))
     qdd = np.zeros((n, nv))
+    center = np.zeros(nv)
     for j in range(nv):
         for _ in range(3):
             a = rng.uniform(0.1, 0.5) * speed
@@ -104,8 +105,41 @@ def _trajectory(rng, n, nv, dt, speed):
             q[:, j] += a * np.sin(w * t + phi)
             qd[:, j] += a * w * np.cos(w * t + phi)
             qdd[:, j] += -a * w * w * np.sin(w * t + phi)
-        q[:, j] += rng.uniform(-0.8, 0.8)
-    return t, q, qd, qdd
+        center[j] = rng.uniform(-0.8, 0.8)
+        q[:, j] += center[j]
+    return t, q, qd, qdd, center
+
+
+def _within_limits(model: RobotModel, q, qd, qdd, center) -> None:
+    """Keep each joint's motion inside the URDF's position and velocity limits (in place).
+
+    A joint that would leave them has its motion about its centre shrunk and its centre moved
+    into the range; joints within their limits are unchanged. Any robot can then be simulated:
+    a gripper finger (0.04 m of travel, 0.2 m/s) moves within its range instead of being
+    flagged as implausible (status bit 64).
+    """
+    nv = model.nv
+    lim = model.joint_limits
+    lower, upper, vel = (
+        np.asarray(lim.get(k, np.full(nv, np.inf))) for k in ("lower", "upper", "velocity")
+    )
+    lower = np.where(np.isfinite(lower), lower, -np.inf)
+    for j in range(nv):
+        dev = q[:, j] - center[j]
+        s, c = 1.0, center[j]
+        vmax = np.abs(qd[:, j]).max(initial=0.0)
+        if np.isfinite(vel[j]) and vmax > vel[j]:
+            s = 0.9 * vel[j] / vmax
+        lo, hi = lower[j], upper[j]
+        if (c + s * dev).min(initial=c) < lo or (c + s * dev).max(initial=c) > hi:
+            span = hi - lo
+            margin = 0.05 * span if np.isfinite(span) else 0.0
+            c = float(np.clip(c, lo + margin, hi - margin))
+            room = min(c - lo, hi - c)
+            s *= min(1.0, 0.9 * room / max(np.abs(dev).max(initial=0.0), 1e-12))
+        q[:, j] = c + s * dev
+        qd[:, j] *= s
+        qdd[:, j] *= s
 
 
 def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotModel:
@@ -233,7 +267,8 @@ def simulate(
     sensor, links = contact_setup(model, sensor, links)
     est = ContactEstimator(model, [sensor])
     K, nv, dt = max_contacts, model.nv, 1.0 / rate_hz
-    t, q, qd, qdd = _trajectory(rng, frames, nv, dt, speed)
+    t, q, qd, qdd, center = _trajectory(rng, frames, nv, dt, speed)
+    _within_limits(model, q, qd, qdd, center)
 
     # contact segments: alternate free and contact stretches of 0.3-3 s
     contact_link = -np.ones((frames, K), dtype=np.int64)
