@@ -35,7 +35,9 @@ def panda_with_sensor(tmp_path):
 
 def _single_contact_errors(est):
     rows = pq.read_table(est).column("contacts").to_pylist()
-    errs = [np.abs(np.subtract(r[0]["force"], r[0]["true_force"])).max() for r in rows if len(r) == 1]
+    errs = [
+        np.abs(np.subtract(r[0]["force"], r[0]["true_force"])).max() for r in rows if len(r) == 1
+    ]
     return np.asarray(errs)
 
 
