@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -189,6 +189,8 @@ class Contacts:
 
 
 def _object_array(values: Any, M: int, name: str) -> np.ndarray:
+    if isinstance(values, np.ndarray) and values.dtype == object and values.shape == (M,):
+        return values
     out = np.empty(M, dtype=object)
     values = list(values)
     if len(values) != M:
@@ -210,6 +212,10 @@ class ContactRecords:
             missing), or None when no record has one.
         wrenches: ``(M, 6)`` float64 ``[force (N); moment (N m)]`` of ``known`` records, link
             frame, or None.
+        names: optional ``(link names, link codes, kind names, kind codes)`` with
+            ``links == link_names[link_codes]`` (likewise kinds): the distinct names and each
+            record's index among them, when the reader has them (Arrow dictionary encoding);
+            :meth:`name_codes` computes them otherwise.
 
     Raises:
         InputError: arrays of inconsistent lengths or widths.
@@ -221,6 +227,9 @@ class ContactRecords:
     positions: np.ndarray
     directions: np.ndarray | None = None
     wrenches: np.ndarray | None = None
+    names: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         frame = np.asarray(self.frame, dtype=np.int64).reshape(-1)
@@ -242,6 +251,16 @@ class ContactRecords:
     def __len__(self) -> int:
         return len(self.frame)
 
+    def name_codes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The records' names as codes: ``(link names, link codes, kind names, kind codes)``.
+
+        Distinct names are object arrays (None included when a record has none); codes are each
+        record's index among them. Computed once (or given by the reader).
+        """
+        if self.names is None:
+            object.__setattr__(self, "names", (*_factorize(self.links), *_factorize(self.kinds)))
+        return self.names  # type: ignore[return-value]
+
     @classmethod
     def empty(cls) -> ContactRecords:
         """No records."""
@@ -253,6 +272,10 @@ class ContactRecords:
         def pick(x: np.ndarray | None) -> np.ndarray | None:
             return None if x is None else x[index]
 
+        names = None
+        if self.names is not None:
+            ln, lc, kn, kc = self.names
+            names = (ln, lc[index], kn, kc[index])
         return ContactRecords(
             self.frame[index],
             self.links[index],
@@ -260,6 +283,7 @@ class ContactRecords:
             self.positions[index],
             pick(self.directions),
             pick(self.wrenches),
+            names,
         )
 
 
@@ -299,7 +323,7 @@ class SlotLayout:
             >>> SlotLayout.covering(rec).links
             ('a', 'b', 'b')
         """
-        keys, key_id = _key_ids(records)
+        keys, key_id = _pair_codes(records)
         rank = _rank_in_frame(records.frame, key_id)
         mult = np.zeros(len(keys), np.int64)
         ok = key_id >= 0
@@ -321,16 +345,11 @@ class SlotLayout:
         for i, key in enumerate(zip(self.links, self.kinds, strict=True)):
             first.setdefault(key, i)
             count[key] = count.get(key, 0) + 1
-        keys = list(first)
-        lookup = {k: j for j, k in enumerate(keys)}
-        key_id = np.fromiter(
-            (lookup.get(k, -1) for k in zip(records.links, records.kinds, strict=True)),
-            np.int64,
-            len(records),
-        )
+        keys, key_id = _pair_codes(records)
         rank = _rank_in_frame(records.frame, key_id)
-        start = np.array([first[k] for k in keys] + [0], np.int64)[key_id]
-        mult = np.array([count[k] for k in keys] + [0], np.int64)[key_id]
+        # per distinct pair of the records (few): its first slot and slot count in the layout
+        start = np.array([first.get(k, 0) for k in keys] + [0], np.int64)[key_id]
+        mult = np.array([count.get(k, 0) for k in keys] + [0], np.int64)[key_id]
         return np.where((key_id >= 0) & (rank < mult), start + rank, -1)
 
     def fill(
@@ -375,12 +394,39 @@ class SlotLayout:
         return out, slot
 
 
-def _key_ids(records: ContactRecords) -> tuple[list[tuple[str, str]], np.ndarray]:
-    """Sorted distinct valid ``(link, kind)`` pairs and each record's index among them (-1)."""
-    pairs = list(zip(records.links, records.kinds, strict=True))
-    keys = sorted({p for p in pairs if isinstance(p[0], str) and p[1] in KINDS})
-    lookup = {k: j for j, k in enumerate(keys)}
-    return keys, np.fromiter((lookup.get(p, -1) for p in pairs), np.int64, len(pairs))
+def _factorize(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct values (object array; None last when present) and each value's index."""
+    none = np.equal(values, None)
+    uniq, codes = np.unique(np.where(none, "", values).astype(str), return_inverse=True)
+    names, codes = uniq.astype(object), codes.reshape(-1)
+    if none.any():
+        names = np.append(names, None)
+        codes = np.where(none, len(names) - 1, codes)
+    return names, codes
+
+
+def _pair_codes(records: ContactRecords) -> tuple[list[tuple[str, str]], np.ndarray]:
+    """Sorted distinct valid ``(link, kind)`` pairs and each record's index among them.
+
+    Returns:
+        ``(pairs, code)``: ``code`` ``(M,)`` int64, -1 for a record without a link or with an
+        unknown kind. Vectorized over records (a Python loop over the distinct names only).
+    """
+    M = len(records)
+    code = np.full(M, -1, np.int64)
+    if M == 0:
+        return [], code
+    ln, lc, kn, kc = records.name_codes()
+    ok_link = np.array([isinstance(n, str) for n in ln], bool)
+    ok_kind = np.array([k in KINDS for k in kn], bool)
+    valid = ok_link[lc] & ok_kind[kc]
+    uc, ci = np.unique(lc[valid] * len(kn) + kc[valid], return_inverse=True)
+    pairs = [(str(ln[c // len(kn)]), str(kn[c % len(kn)])) for c in uc]
+    order = sorted(range(len(pairs)), key=pairs.__getitem__)
+    rank = np.empty(len(pairs), np.int64)
+    rank[order] = np.arange(len(pairs))
+    code[valid] = rank[ci.reshape(-1)]
+    return [pairs[i] for i in order], code
 
 
 def _rank_in_frame(frame: np.ndarray, key_id: np.ndarray) -> np.ndarray:

@@ -74,7 +74,7 @@ def test_ray_engine_resumes(model, small_groups, tmp_path, local_ray, monkeypatc
         estimate_file_ray(small_groups, tcarm_path(), out, **kw)
     monkeypatch.undo()
     partial = tmp_path / "r.parquet.partial"
-    (partial / "part-00000001.parquet").unlink()  # as if that unit had not finished
+    (partial / "part-00000001.arrow").unlink()  # as if that unit had not finished
     with pytest.raises(LogError, match="pass --resume"):
         estimate_file_ray(small_groups, tcarm_path(), out, **kw)
     with pytest.raises(LogError, match="other inputs or options"):

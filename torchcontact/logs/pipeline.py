@@ -4,11 +4,12 @@
 :mod:`torchcontact.logs.format`) into output rows; it is shared by the local engine
 (:func:`estimate_file`) and the Ray engine (:mod:`torchcontact.logs.ray_engine`).
 
-Crash safety: chunk ``k`` is written to ``OUT.partial/part-<k>.parquet`` (through a temporary name
-and an atomic rename) and ``OUT.progress.json`` records the progress. Only when every chunk is done
-are the parts merged into ``OUT`` (again via a rename), so an interrupted run never leaves a file
-named ``OUT``. ``resume=True`` keeps the parts already written and processes the rest with the
-same chunking, so no frame is missing or duplicated. An output that is, or contains, an input is
+Crash safety: the output is written to ``OUT.tmp`` and renamed to ``OUT`` when every chunk is
+done, so an interrupted run never leaves a file named ``OUT``. Each estimated chunk ``k`` is also
+journalled to ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
+``OUT.progress.json`` records the progress. ``resume=True`` writes the journalled chunks into a
+fresh ``OUT.tmp`` and processes the rest with the same chunking, so no frame is missing or
+duplicated. An output that is, or contains, an input is
 refused before anything is written.
 
 Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
@@ -55,8 +56,10 @@ from torchcontact.logs.format import (
     open_log,
     output_schema,
     read_contacts,
+    read_journal,
     struct_list,
     vectors,
+    write_journal,
 )
 from torchcontact.model import RobotModel
 from torchcontact.status import status_messages
@@ -306,14 +309,14 @@ class LogEstimator:
     ) -> np.ndarray:
         """Per-record problems -> frame issues (bit 128 or 4); returns the bad-record mask."""
         M = len(records)
-        reason = np.full(M, None, dtype=object)
         bit = np.zeros(M, np.int64)
-        for i, (link, kind) in enumerate(zip(records.links, records.kinds, strict=True)):
-            msg = self._link_problem(link)
-            if msg is None and kind not in KINDS:
-                msg = f"unknown contact kind {kind!r}"
-            if msg is not None:
-                reason[i], bit[i] = msg, 128
+        # per distinct link and kind (few), mapped back to the records
+        ln, lc, kn, kc = records.name_codes()
+        link_msg = [self._link_problem(None if n is None else str(n)) for n in ln]
+        kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
+        reason = np.array(link_msg, dtype=object)[lc]
+        reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
+        bit[~np.equal(reason, None)] = 128
         # a vector field is required only by the kind that uses it
         kinds = records.kinds
         for need, col, width, kind in (
@@ -696,12 +699,10 @@ def prepare(
 
 
 def merge_parts(parts: Sequence[Path], out: Path, schema: Any) -> int:
-    """Concatenate Parquet parts (in order) into ``out`` through ``out.tmp`` and a rename."""
+    """Write journal parts (in order) into ``out`` through ``out.tmp`` and a rename."""
     with LogWriter(out, schema) as w:
         for p in parts:
-            pf = open_log(p)
-            for g in range(pf.num_row_groups):
-                w.write(pf.read_row_group(g))
+            w.write(read_journal(p))
     return w.rows
 
 
@@ -711,7 +712,7 @@ class RunState:
 
     Attributes:
         out: the final output file.
-        partial: ``OUT.partial/``, one part per chunk.
+        partial: ``OUT.partial/``, the journal: one part per chunk (or Ray unit).
         sidecar: ``OUT.progress.json``.
         ident: what the run is (input, robot, options); a resume must match it.
         done: parts already written by an interrupted run.
@@ -730,7 +731,7 @@ class RunState:
 
     def part(self, k: int) -> Path:
         """Path of part ``k``."""
-        return self.partial / f"part-{k:08d}.parquet"
+        return self.partial / f"part-{k:08d}.arrow"
 
     def start(self, resume: bool, recurrent: bool = False) -> None:
         """Create the folder, or take over an interrupted run's parts (``resume``).
@@ -764,7 +765,7 @@ class RunState:
             for tmp in self.partial.glob("*.tmp"):
                 tmp.unlink()
             self.done = {
-                int(p.stem.removeprefix("part-")) for p in self.partial.glob("part-*.parquet")
+                int(p.stem.removeprefix("part-")) for p in self.partial.glob("part-*.arrow")
             }
         else:
             self.out.parent.mkdir(parents=True, exist_ok=True)
@@ -784,22 +785,29 @@ class RunState:
                 f"{self.out}: parts {missing[:3]} missing; delete {self.partial} and rerun"
             )
         rows = merge_parts(parts, self.out, schema)
-        shutil.rmtree(self.partial)
-        self.sidecar.unlink()
+        self.clean()
         return rows
 
+    def clean(self) -> None:
+        """Remove the journal and the sidecar (the output is complete)."""
+        shutil.rmtree(self.partial)
+        self.sidecar.unlink()
 
-def write_part(path: Path, tables: Iterator[Any] | Sequence[Any], schema: Any) -> tuple[int, int]:
-    """Write one part from output tables (atomically); returns ``(rows, rows with status 0)``."""
+
+def write_part(path: Path, tables: Iterator[Any] | Sequence[Any]) -> tuple[int, int]:
+    """Journal output tables as one part; returns ``(rows, rows with status 0)``."""
     import pyarrow.compute as pc
 
-    rows = ok = 0
-    with LogWriter(path, schema) as w:
+    counts = [0, 0]
+
+    def counted() -> Iterator[Any]:
         for tab in tables:
-            w.write(tab)
-            rows += tab.num_rows
-            ok += int(pc.sum(pc.equal(tab.column("status_code"), 0)).as_py() or 0)
-    return rows, ok
+            counts[0] += tab.num_rows
+            counts[1] += int(pc.sum(pc.equal(tab.column("status_code"), 0)).as_py() or 0)
+            yield tab
+
+    write_journal(counted(), path)
+    return counts[0], counts[1]
 
 
 def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: Any) -> dict:
@@ -950,23 +958,36 @@ def estimate_file(
         stream = enumerate(
             estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, True, half_window))
         )
+    writer = LogWriter(out, schema)  # the output itself, renamed into place when complete
     try:
+        for k in range(done):  # chunks of the interrupted run, from its journal
+            writer.write(read_journal(run.part(k)))
         for k, res in stream:
             if k < done:
                 continue
-            rows, ok = write_part(run.part(k), [res], schema)
+            writer.write(res)
+            rows, ok = write_part(run.part(k), [res])
             counts["ok"] += ok
             counts["bad"] += rows - ok
             run.done.add(k)
             run.record()
             bar.update(rows)
+        if len(run.done) != n_chunks:
+            missing = n_chunks - len(run.done)
+            raise LogError(f"{out}: {missing} chunks missing; delete {run.partial} and rerun")
+        rows = writer.rows
+        writer.close()
     except LogError as exc:
+        writer.abort()
         raise LogError(
             f"{exc}; {len(run.done)} of {n_chunks} chunks are estimated in {run.partial}"
         ) from None
+    except BaseException:
+        writer.abort()
+        raise
     finally:
         bar.close()
-    rows = run.finish(n_chunks, schema)
+    run.clean()
     return summary(
         path, out, rows, counts, t0, le, resumed_chunks=done, chunks=n_chunks, engine="local"
     )

@@ -4,7 +4,7 @@ The log is cut into *units* of ``task_rows`` consecutive frames (unit ``u`` hold
 ``[u * task_rows, (u + 1) * task_rows)``, so every row's index is known). A Ray Data
 dataset of unit indices goes through ``map_batches`` (Ray tasks; each worker process builds the
 model and estimator once): a task reads its unit's rows straight from the Parquet file, estimates
-them in chunks of ``batch_size`` and writes ``OUT.partial/part-<u>.parquet`` (temporary name,
+them in chunks of ``batch_size`` and writes ``OUT.partial/part-<u>.arrow`` (temporary name,
 atomic rename). The driver shows a progress bar as units finish and then merges the parts in unit
 order, which is the row order: no sort, and memory does not grow with the log.
 
@@ -119,8 +119,8 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
         tables = estimate_chunks(
             le, chunks_with_derivatives(chunks, le.perm, derive, h, before, after)
         )
-        part = Path(job["partial"]) / f"part-{int(u):08d}.parquet"
-        n_rows, n_ok = write_part(part, tables, schema)
+        part = Path(job["partial"]) / f"part-{int(u):08d}.arrow"
+        n_rows, n_ok = write_part(part, tables)
         rows.append(n_rows)
         ok.append(n_ok)
     return {"unit": batch["unit"], "rows": np.array(rows), "ok": np.array(ok)}
