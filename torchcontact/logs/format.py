@@ -540,7 +540,7 @@ def read_log_columns(
         >>> import tempfile, pyarrow as pa
         >>> path = f"{tempfile.mkdtemp()}/log.parquet"
         >>> q = fixed_list(np.array([[1.0, 2.0]]))
-        >>> write_table(pa.table({"t_ns": [0], "q": q}).replace_schema_metadata(
+        >>> _ = write_table(pa.table({"t_ns": [0], "q": q}).replace_schema_metadata(
         ...     {META_JOINT_NAMES: '["a", "b"]'}), path)
         >>> read_log_columns(path, ["q"], joint_names=["b", "a"])["q"].tolist()
         [[2.0, 1.0]]
