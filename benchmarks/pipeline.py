@@ -6,7 +6,7 @@ python benchmarks/pipeline.py [--mem 1000000 10000000] [--ray 200000 --workers 1
 Bundled tcarm, base F/T sensor, exactly two force contacts per frame (forearm_skin, hand_skin),
 chunks of 8192 frames, one torch thread. Long logs are a simulated block of 50 000 frames tiled
 with shifted ``t_ns`` (streamed writes). Every measurement runs in its own process, so each peak
-RSS (``ru_maxrss``) is that run's alone:
+RSS (``VmHWM``) is that run's alone:
 
 - ``e2e N``: ``estimate_file`` on an N-frame log (Parquet -> estimate -> Parquet, parts merged).
 - ``inmem N``: the same N frames' columns loaded into tensors first (not timed), then
@@ -83,6 +83,12 @@ def write_tiled(model, frames, path, block=50_000):
 
 
 def _rss_mb():
+    """Peak RSS of this process: VmHWM (ru_maxrss keeps the parent's peak across fork and exec,
+    so it would report the writer of the logs, not this run)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
