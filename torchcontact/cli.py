@@ -109,7 +109,8 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
             print("interrupted", file=sys.stderr)
             return 130
         except OSError as exc:
-            show(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
+            where = f"{exc.filename}: " if exc.filename else ""
+            show(f"{where}{exc.strerror or exc}")
             return 1
         except Exception as exc:  # a bug: say so, one line unless --debug
             show(

@@ -54,6 +54,7 @@ from torchcontact.status import STATUS, status_messages
 
 __all__ = ["KINDS", "STATUS", "ContactEstimate", "ContactEstimator", "Contacts", "status_messages"]
 
+
 class ContactEstimate(NamedTuple):
     """Result of :meth:`ContactEstimator.estimate`; ``*B`` is the input batch shape.
 

@@ -53,8 +53,15 @@ def _seed(seed: int) -> None:
     torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def _config_path(config: str) -> Path:
+    """A TOML file, or the name of a bundled config (``example``: ``configs/example.toml``)."""
+    bundled = Path(__file__).resolve().parent / "configs" / f"{config}.toml"
+    return bundled if not Path(config).exists() and bundled.is_file() else Path(config)
+
+
 def cmd_train(args) -> int:
     """Train one residual model from a TOML config; write the checkpoint directory."""
+    args.config = str(_config_path(args.config))
     try:
         data_cfg, train_cfg, raw = load_config(args.config)
     except (OSError, TypeError, ValueError) as exc:  # unreadable file, unknown key, bad value
@@ -158,7 +165,11 @@ def main(argv=None, prog: str = "python -m training") -> int:
     p = Parser(prog=prog, description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True, metavar="{fit,benchmark}")
     t = sub.add_parser("fit", aliases=["train"], help="train a residual model from a TOML config")
-    t.add_argument("--config", required=True, help="TOML config ([data], [model], [train])")
+    t.add_argument(
+        "--config",
+        required=True,
+        help="TOML config ([data], [model], [train]), or a bundled one by name: example",
+    )
     t.add_argument("--out", required=True, help="checkpoint directory")
     t.add_argument("--urdf", default=None, help="robot URDF (default: the bundled tcarm)")
     t.add_argument("--device", default="cpu", help="torch device")

@@ -59,21 +59,22 @@ def test_ray_engine_same_rows_and_summary_as_local(model, small_groups, tmp_path
 
 def test_ray_engine_resumes(model, small_groups, tmp_path, local_ray, monkeypatch):
     from torchcontact.logs import LogError, estimate_file
-    from torchcontact.logs import pipeline as pl
+    from torchcontact.logs import format as pl
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
     out = tmp_path / "r.parquet"
 
-    def crash(self, *a, **k):  # interrupted after the parts, before the merge
+    def crash(self, *a, **k):  # killed after every unit, before the output is complete
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pl.RunState, "finish", crash)
+    monkeypatch.setattr(pl.LogWriter, "close", crash)
     kw = dict(batch_size=64, task_rows=250)
     with pytest.raises(KeyboardInterrupt):
         estimate_file_ray(small_groups, tcarm_path(), out, **kw)
     monkeypatch.undo()
     partial = tmp_path / "r.parquet.partial"
+    assert not out.exists() and not (tmp_path / "r.parquet.tmp").exists()
     (partial / "part-00000001.arrow").unlink()  # as if that unit had not finished
     with pytest.raises(LogError, match="pass --resume"):
         estimate_file_ray(small_groups, tcarm_path(), out, **kw)

@@ -698,14 +698,6 @@ def prepare(
     return pf, le, columns
 
 
-def merge_parts(parts: Sequence[Path], out: Path, schema: Any) -> int:
-    """Write journal parts (in order) into ``out`` through ``out.tmp`` and a rename."""
-    with LogWriter(out, schema) as w:
-        for p in parts:
-            w.write(read_journal(p))
-    return w.rows
-
-
 @dataclass
 class RunState:
     """The files of one output while it is being written, and the progress already made.
@@ -775,18 +767,6 @@ class RunState:
     def record(self) -> None:
         """Write the sidecar (atomically)."""
         _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
-
-    def finish(self, n_parts: int, schema: Any) -> int:
-        """Merge parts ``0 .. n_parts - 1`` into ``out``; remove the side files."""
-        parts = [self.part(k) for k in range(n_parts)]
-        missing = [p.name for p in parts if not p.exists()]
-        if missing:
-            raise LogError(
-                f"{self.out}: parts {missing[:3]} missing; delete {self.partial} and rerun"
-            )
-        rows = merge_parts(parts, self.out, schema)
-        self.clean()
-        return rows
 
     def clean(self) -> None:
         """Remove the journal and the sidecar (the output is complete)."""

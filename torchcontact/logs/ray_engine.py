@@ -34,7 +34,7 @@ import torch
 
 from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, open_log
+from torchcontact.logs.format import LogWriter, check_outputs, open_log, read_journal
 from torchcontact.logs.pipeline import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
@@ -169,6 +169,50 @@ def _user_error(exc: BaseException) -> BaseException:
     return exc
 
 
+def _unit_dataset(
+    ray: Any,
+    todo: list[int],
+    path: str | Path,
+    robot: str | Path,
+    le: LogEstimator,
+    run: RunState,
+    units: list[tuple[int, int]],
+    columns: list[str],
+    res: Any,
+    workers: int,
+    worker_cpus: float,
+    options: dict,
+) -> Any:
+    """The Ray Data pipeline: unit indices -> ``_estimate_units`` tasks -> per-unit counts."""
+    job = {
+        "units": units,
+        "columns": columns,
+        "partial": str(run.partial.resolve()),
+        "residual": None if res is None else res.source,
+        **options,
+    }
+    le_args = {
+        "input_joint_names": list(le.input_joint_names),
+        "sensors": list(le.sensors),
+        "contact_fields": list(le.contact_fields),
+        "source": str(path),
+        "derived": list(le.derived),
+        "velocity_margin": le.velocity_margin,
+        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
+    }
+    ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
+    config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
+    return ds.map_batches(
+        _estimate_units,
+        fn_kwargs={"config": config},
+        batch_format="numpy",
+        batch_size=1,
+        compute=ray.data.TaskPoolStrategy(size=workers),
+        num_cpus=worker_cpus,
+        num_gpus=1 if options["device"].startswith("cuda") else 0,
+    )
+
+
 def estimate_file_ray(
     path: str | Path,
     robot: str | Path,
@@ -259,62 +303,57 @@ def estimate_file_ray(
     bar = tqdm(total=total, unit="frames", disable=not show, desc=f"{Path(path).name} (ray)")
     bar.update(total - sum(units[u][1] - units[u][0] for u in todo))
     counts = {"ok": 0, "bad": 0}
-    if todo:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-            ray = _ensure_ray(num_cpus)
-            job = {
-                "units": units,
-                "columns": columns,
-                "batch_size": batch_size,
-                "half_window": half_window,
-                "partial": str(run.partial.resolve()),
-                "threads": threads,
-                "device": device,
-                "dtype": str(dtype).removeprefix("torch."),
-                "residual": None if res is None else res.source,
-            }
-            le_args = {
-                "input_joint_names": list(le.input_joint_names),
-                "sensors": list(le.sensors),
-                "contact_fields": list(le.contact_fields),
-                "source": str(path),
-                "derived": list(le.derived),
-                "velocity_margin": velocity_margin,
-                "ft_range": ft_range,
-            }
-            ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
-            config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
-            ds = ds.map_batches(
-                _estimate_units,
-                fn_kwargs={"config": config},
-                batch_format="numpy",
-                batch_size=1,
-                compute=ray.data.TaskPoolStrategy(size=workers),
-                num_cpus=worker_cpus,
-                num_gpus=1 if device.startswith("cuda") else 0,
-            )
-            try:
-                for b in ds.iter_batches(batch_size=1, batch_format="numpy", prefetch_batches=0):
-                    for u, n, k in zip(b["unit"], b["rows"], b["ok"], strict=True):
-                        run.done.add(int(u))
-                        counts["ok"] += int(k)
-                        counts["bad"] += int(n - k)
-                        bar.update(int(n))
-                    run.record()
-            except Exception as exc:
-                err = _user_error(exc)
-                if isinstance(err, TorchContactError):
-                    raise type(err)(
-                        f"{err}; {len(run.done)} of {len(units)} units are estimated in"
-                        f" {run.partial}"
-                    ) from None
-                raise
-            finally:
-                bar.close()
-    else:
+    writer = LogWriter(out, le.output_schema())  # the output, renamed into place when complete
+    written = 0  # units written to the output: 0 .. written - 1, in order
+
+    def drain() -> None:
+        """Write the units that are done and next in order (journal -> output)."""
+        nonlocal written
+        while written < len(units) and written in run.done:
+            writer.write(read_journal(run.part(written)))
+            written += 1
+
+    try:
+        drain()  # units journalled by an interrupted run
+        if todo:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+                ray = _ensure_ray(num_cpus)
+                ds = _unit_dataset(
+                    ray, todo, path, robot, le, run, units, columns, res, workers, worker_cpus,
+                    dict(batch_size=batch_size, half_window=half_window, threads=threads,
+                         device=device, dtype=str(dtype).removeprefix("torch.")),
+                )  # fmt: skip
+                try:
+                    batches = ds.iter_batches(
+                        batch_size=1, batch_format="numpy", prefetch_batches=0
+                    )
+                    for b in batches:
+                        for u, n, k in zip(b["unit"], b["rows"], b["ok"], strict=True):
+                            run.done.add(int(u))
+                            counts["ok"] += int(k)
+                            counts["bad"] += int(n - k)
+                            bar.update(int(n))
+                        run.record()
+                        drain()  # overlaps writing the output with the estimation
+                except Exception as exc:
+                    err = _user_error(exc)
+                    if isinstance(err, TorchContactError):
+                        raise type(err)(
+                            f"{err}; {len(run.done)} of {len(units)} units are estimated in"
+                            f" {run.partial}"
+                        ) from None
+                    raise
+        if written != len(units):
+            raise LogError(f"{out}: units {written}.. missing; delete {run.partial} and rerun")
+        rows = writer.rows
+        writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+    finally:
         bar.close()
-    rows = run.finish(len(units), le.output_schema())
+    run.clean()
     return summary(
         path,
         out,
