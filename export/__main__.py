@@ -110,9 +110,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--contacts", help="contact-spec file (TOML/JSON): one slot per contact, instead of --slot"
     )
-    e.add_argument(
-        "--dtype", choices=["float32", "float64"], default="float32", help="graph dtype"
-    )
+    e.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="graph dtype")
     e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")
     e.add_argument("--sweeps", type=int, default=None, help="Jacobi sweeps (default: per dtype)")
