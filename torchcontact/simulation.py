@@ -18,10 +18,11 @@ import numpy as np
 import torch
 
 from torchcontact.contacts import Contacts
+from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
-__all__ = ["SimulatedLog", "UnmodeledEffects", "simulate"]
+__all__ = ["SimulatedLog", "UnmodeledEffects", "contact_setup", "simulate"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,7 @@ def _trajectory(rng, n, nv, dt, speed):
     q = np.zeros((n, nv))
     qd = np.zeros((n, nv))
     qdd = np.zeros((n, nv))
+    center = np.zeros(nv)
     for j in range(nv):
         for _ in range(3):
             a = rng.uniform(0.1, 0.5) * speed
@@ -103,8 +105,41 @@ def _trajectory(rng, n, nv, dt, speed):
             q[:, j] += a * np.sin(w * t + phi)
             qd[:, j] += a * w * np.cos(w * t + phi)
             qdd[:, j] += -a * w * w * np.sin(w * t + phi)
-        q[:, j] += rng.uniform(-0.8, 0.8)
-    return t, q, qd, qdd
+        center[j] = rng.uniform(-0.8, 0.8)
+        q[:, j] += center[j]
+    return t, q, qd, qdd, center
+
+
+def _within_limits(model: RobotModel, q, qd, qdd, center) -> None:
+    """Keep each joint's motion inside the URDF's position and velocity limits (in place).
+
+    A joint that would leave them has its motion about its centre shrunk and its centre moved
+    into the range; joints within their limits are unchanged. Any robot can then be simulated:
+    a gripper finger (0.04 m of travel, 0.2 m/s) moves within its range instead of being
+    flagged as implausible (status bit 64).
+    """
+    nv = model.nv
+    lim = model.joint_limits
+    lower, upper, vel = (
+        np.asarray(lim.get(k, np.full(nv, np.inf))) for k in ("lower", "upper", "velocity")
+    )
+    lower = np.where(np.isfinite(lower), lower, -np.inf)
+    for j in range(nv):
+        dev = q[:, j] - center[j]
+        s, c = 1.0, center[j]
+        vmax = np.abs(qd[:, j]).max(initial=0.0)
+        if np.isfinite(vel[j]) and vmax > vel[j]:
+            s = 0.9 * vel[j] / vmax
+        lo, hi = lower[j], upper[j]
+        if (c + s * dev).min(initial=c) < lo or (c + s * dev).max(initial=c) > hi:
+            span = hi - lo
+            margin = 0.05 * span if np.isfinite(span) else 0.0
+            c = float(np.clip(c, lo + margin, hi - margin))
+            room = min(c - lo, hi - c)
+            s *= min(1.0, 0.9 * room / max(np.abs(dev).max(initial=0.0), 1e-12))
+        q[:, j] = c + s * dev
+        qd[:, j] *= s
+        qdd[:, j] *= s
 
 
 def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotModel:
@@ -126,6 +161,65 @@ def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotM
     mass_t, com_t, in_t = model.mass.clone(), model.com.clone(), model.inertia_com.clone()
     mass_t[b], com_t[b], in_t[b] = m1, c1, inertia
     return replace(model, mass=mass_t, com=com_t, inertia_com=in_t)
+
+
+def contact_setup(
+    model: RobotModel, sensor: str | None = None, links: Sequence[str] | None = None
+) -> tuple[str, tuple[str, ...]]:
+    """The F/T sensor and contact links a simulation of ``model`` uses.
+
+    Args:
+        model: the robot.
+        sensor: an F/T sensor of the robot (default: its first).
+        links: contact links or frames, each in the sensor's subtree (default: the skin frames of
+            the bundled arm when the robot has them, else every link of the sensor's subtree).
+
+    Returns:
+        ``(sensor, links)``.
+
+    Raises:
+        InputError: a robot without F/T sensor, an unknown sensor, an unknown link, or a link the
+            sensor does not see (outside its subtree).
+
+    Example:
+        >>> import torchcontact as tc
+        >>> contact_setup(tc.RobotModel.from_urdf(tc.robots.tcarm_path()))
+        ('base_ft', ('upper_arm_skin', 'forearm_skin', 'hand_skin'))
+    """
+    from torchcontact.robots import TCARM_SKIN_FRAMES
+
+    if not model.ft_sensors:
+        raise InputError(
+            f'{model.name} declares no F/T sensor; add a <sensor type="force_torque"> to its URDF'
+        )
+    if sensor is None:
+        sensor = next(iter(model.ft_sensors))
+    elif sensor not in model.ft_sensors:
+        raise InputError(
+            f"--sensor {sensor}: not an F/T sensor of {model.name} ({list(model.ft_sensors)})"
+        )
+    region = ContactEstimator(model, [sensor]).region
+    if links is None:
+        if all(f in model.frames and region[model.frame(f).body] == 0 for f in TCARM_SKIN_FRAMES):
+            return sensor, TCARM_SKIN_FRAMES
+        links = [n for b, n in enumerate(model.body_names) if region[b] == 0]
+        if not links:
+            raise InputError(f"sensor {sensor!r} of {model.name} has no link in its subtree")
+        return sensor, tuple(links)
+    links = tuple(links)
+    if not links:
+        raise InputError("--contact-links: name at least one link")
+    unknown = [n for n in links if n not in model.frames]
+    if unknown:
+        raise InputError(f"--contact-links {unknown}: not links or frames of {model.name}")
+    outside = [n for n in links if region[model.frame(n).body] != 0]
+    if outside:
+        inside = [n for b, n in enumerate(model.body_names) if region[b] == 0]
+        raise InputError(
+            f"--contact-links {outside}: outside the subtree of sensor {sensor!r}, which sees"
+            f" {inside}"
+        )
+    return sensor, links
 
 
 def simulate(
@@ -150,7 +244,7 @@ def simulate(
         frames: number of frames.
         sensor: F/T sensor to simulate (default: the model's first).
         links: contact frames (default: the skin frames of the bundled arm when present, else the
-            links of the sensor's region).
+            links of the sensor's subtree; see :func:`contact_setup`).
         rate_hz: frame rate, Hz.
         seed: random seed (the log is a deterministic function of the arguments).
         contact_fraction: share of frames inside contact segments.
@@ -169,23 +263,12 @@ def simulate(
         >>> log.ft.shape, log.contact_force.shape
         ((50, 6), (50, 2, 3))
     """
-    from torchcontact.robots import TCARM_SKIN_FRAMES
-
     rng = np.random.default_rng(seed)
-    sensor = sensor or next(iter(model.ft_sensors))
+    sensor, links = contact_setup(model, sensor, links)
     est = ContactEstimator(model, [sensor])
-    if links is None:
-        if all(f in model.frames for f in TCARM_SKIN_FRAMES):
-            links = TCARM_SKIN_FRAMES
-        else:
-            links = tuple(
-                n
-                for n, f in model.frames.items()
-                if est.region[f.body] == 0 and n in model.body_names
-            )
-    links = tuple(links)
     K, nv, dt = max_contacts, model.nv, 1.0 / rate_hz
-    t, q, qd, qdd = _trajectory(rng, frames, nv, dt, speed)
+    t, q, qd, qdd, center = _trajectory(rng, frames, nv, dt, speed)
+    _within_limits(model, q, qd, qdd, center)
 
     # contact segments: alternate free and contact stretches of 0.3-3 s
     contact_link = -np.ones((frames, K), dtype=np.int64)
@@ -213,11 +296,20 @@ def simulate(
         i = e
 
     fx = effects or UnmodeledEffects()
+    for used, link, what in (
+        (fx.cable_force, fx.cable_link, "cable_link"),
+        (fx.payload_mass, fx.payload_link, "payload_link"),
+    ):
+        if used and link not in model.frames:
+            raise InputError(
+                f"effects.{what} {link!r} is not a link of {model.name}; name one of its links"
+            )
     true_model = model
     if fx.payload_mass:
         true_model = _with_payload(model, fx.payload_link, fx.payload_mass, fx.payload_com)
     true_est = ContactEstimator(true_model, [sensor])
-    slots = (*links, fx.cable_link)  # one slot per contact frame, plus the cable
+    # one slot per contact frame, plus the cable's when there is one
+    slots = (*links, fx.cable_link) if fx.cable_force else links
     ft_true = np.zeros((frames, 6))
     ft_ideal = np.zeros((frames, 6))
     for s in range(0, frames, chunk):

@@ -1,4 +1,8 @@
-"""Command line: ``python -m training train --config CFG --out DIR`` or ``benchmark --out DIR``."""
+"""Command line: ``torchcontact train fit --config CFG --out DIR`` or ``... benchmark --out DIR``.
+
+The same parser runs as ``python -m training`` from the repository root (``train`` is an alias of
+``fit``).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +14,8 @@ from pathlib import Path
 import torch
 
 import torchcontact as tc
+from torchcontact.cli import Parser, guarded
+from torchcontact.errors import InputError
 
 from .fit import TrainConfig
 from .pipeline import (
@@ -47,9 +53,19 @@ def _seed(seed: int) -> None:
     torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def _config_path(config: str) -> Path:
+    """A TOML file, or the name of a bundled config (``example``: ``configs/example.toml``)."""
+    bundled = Path(__file__).resolve().parent / "configs" / f"{config}.toml"
+    return bundled if not Path(config).exists() and bundled.is_file() else Path(config)
+
+
 def cmd_train(args) -> int:
     """Train one residual model from a TOML config; write the checkpoint directory."""
-    data_cfg, train_cfg, raw = load_config(args.config)
+    args.config = str(_config_path(args.config))
+    try:
+        data_cfg, train_cfg, raw = load_config(args.config)
+    except (OSError, TypeError, ValueError) as exc:  # unreadable file, unknown key, bad value
+        raise InputError(f"--config {args.config}: {exc}") from None
     _seed(train_cfg.seed)
     model = tc.RobotModel.from_urdf(args.urdf or tc.robots.tcarm_path())
     ds = make_dataset(model, data_cfg)
@@ -144,22 +160,26 @@ def cmd_benchmark(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    """Entry point of ``python -m training``."""
-    p = argparse.ArgumentParser(prog="python -m training", description=__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train", help="train a residual model from a TOML config")
-    t.add_argument("--config", required=True)
+def main(argv=None, prog: str = "python -m training") -> int:
+    """Entry point of ``torchcontact train`` and ``python -m training``; returns the exit code."""
+    p = Parser(prog=prog, description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="{fit,benchmark}")
+    t = sub.add_parser("fit", aliases=["train"], help="train a residual model from a TOML config")
+    t.add_argument(
+        "--config",
+        required=True,
+        help="TOML config ([data], [model], [train]), or a bundled one by name: example",
+    )
     t.add_argument("--out", required=True, help="checkpoint directory")
     t.add_argument("--urdf", default=None, help="robot URDF (default: the bundled tcarm)")
-    t.add_argument("--device", default="cpu")
+    t.add_argument("--device", default="cpu", help="torch device")
     b = sub.add_parser("benchmark", help="synthetic benchmark of corrections (a)-(d)")
-    b.add_argument("--out", required=True)
-    b.add_argument("--frames", type=int, default=24000)
-    b.add_argument("--seed", type=int, default=0)
-    b.add_argument("--gru", action=argparse.BooleanOptionalAction, default=True)
-    b.add_argument("--gru-epochs", type=int, default=40)
-    b.add_argument("--device", default="cpu")
+    b.add_argument("--out", required=True, help="output folder")
+    b.add_argument("--frames", type=int, default=24000, help="frames per condition")
+    b.add_argument("--seed", type=int, default=0, help="random seed")
+    b.add_argument("--gru", action=argparse.BooleanOptionalAction, default=True, help="train GRUs")
+    b.add_argument("--gru-epochs", type=int, default=40, help="GRU epochs")
+    b.add_argument("--device", default="cpu", help="torch device")
     for sp in (t, b):
         sp.add_argument(
             "--threads",
@@ -167,9 +187,13 @@ def main(argv=None) -> int:
             default=1,
             help="torch CPU threads (1 is fastest for these small models)",
         )
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    return {"train": cmd_train, "benchmark": cmd_benchmark}[args.cmd](args)
+
+    def run() -> int:
+        args = p.parse_args(argv)
+        torch.set_num_threads(args.threads)
+        return cmd_benchmark(args) if args.cmd == "benchmark" else cmd_train(args)
+
+    return guarded(run, debug="--debug" in (sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

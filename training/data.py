@@ -126,51 +126,34 @@ def load_parquet(
     Raises:
         ValueError: missing columns, or files with different joint names.
     """
-    import pyarrow.parquet as pq
+    from torchcontact.logs.format import ft_column, joint_names_of, open_log, read_log_columns
 
     parts: list[dict] = []
     joint_names = None
     for i, p in enumerate(paths):
-        table = pq.read_table(p)
-        md = table.schema.metadata or {}
-        names = md.get(b"torchcontact.joint_names")
-        if names is None:
-            raise ValueError(f"{p}: schema metadata 'torchcontact.joint_names' missing")
-        names = tuple(json.loads(names))
+        # the log format's reader: page checksums verified, joint columns matched by name
+        names = tuple(joint_names_of(open_log(p).schema_arrow, p))
         if joint_names is not None and names != joint_names:
             raise ValueError(f"{p}: joint names {names} differ from the first file's")
         joint_names = names
-        col = f"ft.{sensor}"
+        col = ft_column(sensor)
         need = ["t_ns", "q", "qd", "qdd", col] + [e for e in extra if e != "time"]
         if contact_free_mask is None:
             need.append("contacts")
-        missing = [c for c in need if c not in table.column_names]
-        if missing:
-            raise ValueError(f"{p}: missing columns {missing} (has {table.column_names})")
-
-        def mat(name, width, table=table, p=p):
-            a = np.asarray(table.column(name).combine_chunks().flatten(), float)
-            if a.size != table.num_rows * width:
-                raise ValueError(f"{p}: column {name} is not {width} values per row")
-            return a.reshape(table.num_rows, width)
-
-        nv = len(names)
-        t = np.asarray(table.column("t_ns"), np.int64)
+        cols = read_log_columns(p, need, joint_names=names)
+        t = cols["t_ns"]
         if contact_free_mask is None:
-            lengths = table.column("contacts").combine_chunks().value_lengths()
-            free = np.asarray(lengths.fill_null(0)) == 0
+            free = np.bincount(cols["contacts"].frame, minlength=len(t)) == 0
         else:
             free = np.asarray(contact_free_mask[i], bool)
-        ex = {}
-        for e in extra:
-            ex[e] = (t - t[0]) * 1e-9 if e == "time" else np.asarray(table.column(e), float)
+        ex = {e: (t - t[0]) * 1e-9 if e == "time" else cols[e] for e in extra}
         parts.append(
             {
                 "t_ns": t,
-                "q": mat("q", nv),
-                "qd": mat("qd", nv),
-                "qdd": mat("qdd", nv),
-                "ft": mat(col, 6),
+                "q": cols["q"],
+                "qd": cols["qd"],
+                "qdd": cols["qdd"],
+                "ft": cols[col],
                 "contact_free": free,
                 "extra": ex,
                 "file_id": np.full(len(t), i, np.int64),

@@ -48,7 +48,10 @@ class DataConfig:
 
 def load_config(path: str | Path) -> tuple[DataConfig, TrainConfig, dict]:
     """Read a TOML config with ``[data]``, ``[data.effects]``, ``[model]`` and ``[train]``."""
-    import tomllib
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
 
     raw = tomllib.loads(Path(path).read_text())
     unknown = set(raw) - {"data", "model", "train"}

@@ -126,8 +126,8 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    spec = tmp_path / "contacts.json"
-    spec.write_text(json.dumps({"positions": POSITIONS, "active": [0, 1]}))
+    spec = tmp_path / "contacts.json"  # the contact-spec format of every command
+    spec.write_text(json.dumps({"contact": [{"link": "hand_skin", "position": POSITIONS[1]}]}))
     stop = threading.Event()
 
     def send():
@@ -155,5 +155,9 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
     for r in lines:
         np.testing.assert_allclose(r["estimate"]["force"][1], FORCE, atol=2e-3)
         assert len(r["estimate"]["joint_torques"]) == scene["model"].nv
-    assert main(["run", "--tcp", "127.0.0.1:1", "--onnx", str(tmp_path / "none.onnx")]) == 1
+    assert main(["run", "--tcp", "127.0.0.1:1", "--onnx", str(tmp_path / "none.onnx")]) == 2
     assert "no such file" in capsys.readouterr().err
+    spec.write_text(json.dumps({"contact": [{"link": "upper_arm_skin", "position": [0, 0, 0]}]}))
+    args = ["run", "--tcp", "127.0.0.1:1", "--onnx", str(scene["path"]), "--contacts", str(spec)]
+    assert main(args) == 2  # a contact the graph has no slot for
+    assert "['upper_arm_skin:force'] find no free slot" in capsys.readouterr().err
