@@ -41,9 +41,10 @@ batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of fram
   ``C_k^T J C_k`` are formed once per frame.
 * **Branch-free.** Step lengths to the cone boundaries have closed forms; every choice is a
   ``select``. A frame stops moving once its duality gap reaches rounding level
-  (:data:`FREEZE_GAP`), and a step that would make the iterate non-finite is not taken. Each Mehrotra step is
-  compared with the same step without the second-order term and the one that lowers the gap more
-  is kept: Mehrotra's term alone cycled on frames whose solution is at the cones' apexes.
+  (:data:`FREEZE_GAP`), and a step that would make the iterate non-finite is not taken. Each
+  Mehrotra step is compared with the same step without the second-order term and the one that
+  lowers the gap more is kept: Mehrotra's term alone cycled on frames whose solution is at the
+  cones' apexes.
 
 **Warm start.** ``x0`` is the starting point (the pseudo-inverse solution by default, or the
 previous frame's estimate); the slacks start at ``C_k x0`` moved inside the cones and the duals at
