@@ -47,9 +47,12 @@ batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of fram
   cones' apexes.
 
 **Warm start.** ``x0`` is the starting point (the pseudo-inverse solution by default, or the
-previous frame's estimate); the slacks start at ``C_k x0`` moved inside the cones and the duals at
-a multiple of the cone's centre, as interior-point methods require (the dual of the previous
-frame is not reused: a point on the cone boundary is a poor start).
+previous frame's estimate). When it lies inside every cone it is returned as it is: the
+pseudo-inverse solution is the ``eps -> 0`` limit of the unconstrained problem, which the
+iterates approach only to rounding / ``eps`` along ``null(A)``. The slacks start at ``C_k x0``
+moved inside the cones and the duals at a multiple of the cone's centre, as interior-point
+methods require (the dual of the previous frame is not reused: a point on the cone boundary is
+a poor start).
 
 **Status per frame.** ``converged`` (the residuals and the duality gap meet ``tol``),
 ``iterations`` (the iteration at which they first did; the budget otherwise) and per cone
@@ -430,6 +433,10 @@ def solve_cones(
     st = [_cx(c, x) for c in cones]
     scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
     margin = mul(0.1, scale)
+    inside0: Scalar = True
+    for o, v in zip(on, st, strict=True):
+        ok0 = logical_or(logical_not(o), logical_not(gt(0.0, _eig_min(v))))
+        inside0 = logical_and(inside0, ok0)
     s, z = [], []
     for o, v in zip(on, st, strict=True):
         shift = _max(sub(margin, _eig_min(v)), 0.0)
@@ -533,7 +540,16 @@ def solve_cones(
     # the least-squares set
     active = [logical_and(o, logical_not(gt(_eig_min(sk), mul(10.0 * tol, add(sk[0], 1e-300)))))
               for o, sk in zip(on, s, strict=True)]  # fmt: skip
-    return ConeSolution(x, _converged(P, q, qq, cones, on, x, s, z, tol), it_done, active)
+    # x0 inside every cone (e.g. the pseudo-inverse solution, the eps -> 0 limit of the
+    # unconstrained problem): it is the answer. Returned exactly, since along null(A) the
+    # iterate is pinned only by eps, i.e. to rounding / eps.
+    conv = _converged(P, q, qq, cones, on, x, s, z, tol)
+    return ConeSolution(
+        [select(inside0, a, b_) for a, b_ in zip(x0, x, strict=True)],
+        logical_or(inside0, conv),
+        select(inside0, 0.0, it_done),
+        [logical_and(logical_not(inside0), a) for a in active],
+    )
 
 
 def _converged(P, q, qq, cones, on, x, s, z, tol: float) -> Scalar:
