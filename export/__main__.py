@@ -6,7 +6,7 @@ Example::
         --out tcarm.onnx
     python -m export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
         --slot l_hand:wrench --dtype float32 --out icub_larm.onnx
-    python -m export residual runs/residual-mlp --out residual.onnx
+    python -m export residual runs/correction --urdf arm.urdf --out correction.onnx
 """
 
 from __future__ import annotations
@@ -47,12 +47,18 @@ def _estimator(args: argparse.Namespace) -> int:
 
 
 def _residual(args: argparse.Namespace) -> int:
+    import torchcontact as tc
     from torchcontact.export import DEFAULT_OPSET, export_residual_checkpoint
     from torchcontact.residual import CheckpointError
 
+    robot = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
     try:
         meta = export_residual_checkpoint(
-            args.checkpoint, args.out, opset=args.opset or DEFAULT_OPSET, check=not args.no_check
+            args.checkpoint,
+            args.out,
+            robot,
+            opset=args.opset or DEFAULT_OPSET,
+            check=not args.no_check,
         )
     except (CheckpointError, AssertionError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -77,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", required=True, help="output .onnx path")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by python -m training")
+    r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
+    r.add_argument("--urdf", help="URDF of the robot (default: the one recorded at training)")
     r.add_argument("--out", required=True, help="output .onnx path")
     r.add_argument("--opset", type=int, default=None)
     r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
