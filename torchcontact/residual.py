@@ -924,10 +924,12 @@ class ResidualCorrection:
         bodies: list[str] = []
         if "inertial" in layers:
             bodies = list(meta.get("inertial", {}).get("bodies", []))
-            missing = [b for b in bodies if b not in model.body_names]
+            carried = [model.body_names[b] for b in subtree_bodies(model, sensor)]
+            missing = [b for b in bodies if b not in carried]
             if not bodies or missing:
                 raise CheckpointError(
-                    f"{d}: inertial layer bodies {missing or bodies} not in robot"
+                    f"{d}: inertial layer bodies {missing or bodies} are not bodies that"
+                    f" {model.name}'s sensor {sensor!r} carries"
                 )
             expected["inertial.delta"] = ((10 * len(bodies),), torch.float64)
         if "mlp" in layers or "gru" in layers:

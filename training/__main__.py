@@ -295,6 +295,7 @@ def cmd_heldout(args) -> int:
             args.seed,
             args.device,
             name,
+            new_session=args.new_session,
         )
         results[name], timing[name] = metrics, trained.seconds
         chosen[name] = trained.final.chosen

@@ -264,7 +264,7 @@ def test_wrong_robot_and_inconsistent_structure_refused(tmp_path, arm):
     refused(lambda m: m["learned"]["arch"].update(hidden=5), "do not fit the recorded layers")
     refused(lambda m: m.update(layers=["offset", "mlp"]), "do not fit the recorded layers")
     refused(lambda m: m.update(layers=["offset", "mlp", "gru"]), "bad layer list")
-    refused(lambda m: m["inertial"].update(bodies=["nowhere", "hand"]), "not in robot")
+    refused(lambda m: m["inertial"].update(bodies=["nowhere", "hand"]), "not bodies that")
     refused(lambda m: m.update(sensor="wrist_ft"), "does not have")
     refused(lambda m: m["learned"]["features"].update(joints=["elbow_pitch"]), "features")
     refused(lambda m: m["learned"]["features"].update(angles="quaternion"), "bad feature spec")

@@ -103,3 +103,19 @@ def test_benchmark_runs_on_any_robot(tmp_path, robot, sensor, capsys):
     assert rows["stack"]["force_rmse"] < 1.5 * rows["oracle"]["force_rmse"]
     assert rows["offset"]["force_rmse"] > 3 * rows["oracle"]["force_rmse"]
     assert "payload: stack/oracle" in capsys.readouterr().out
+
+
+def test_heldout_scores_frames_never_trained_on(tmp_path, capsys):
+    base = ["heldout", "--robot", "tcarm", "--conditions", "payload", "--epochs", "2"]
+    base += ["--train-frames", "3000", "--test-frames", "1000"]
+    results = {}
+    for flag in ([], ["--new-session"]):
+        out = tmp_path / ("new" if flag else "next")
+        assert main([*base, *flag, "--out", str(out)]) == 0
+        results[bool(flag)] = json.loads((out / "heldout.json").read_text())["results"]["payload"]
+    capsys.readouterr()
+    for rows in results.values():
+        assert rows["stack"]["force_rmse"] < 1.5 * rows["oracle"]["force_rmse"]
+        assert rows["offset"]["force_rmse"] > 3 * rows["oracle"]["force_rmse"]
+    # another session is other test frames
+    assert results[True]["none"]["force_rmse"] != results[False]["none"]["force_rmse"]
