@@ -30,6 +30,7 @@ class TrainConfig:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     patience: int = 15
+    min_improvement: float = 1e-6
     seq_len: int = 200
     seed: int = 0
 
@@ -172,7 +173,7 @@ def fit_residual(
         res.train_loss.append(total / max(count, 1))
         res.val_loss.append(v)
         sched.step(v)
-        if v < best - 1e-6:
+        if v < best * (1 - cfg.min_improvement):
             best, best_state, bad, res.best_epoch = v, copy.deepcopy(module.state_dict()), 0, epoch
         else:
             bad += 1

@@ -32,7 +32,7 @@ from torchcontact.simulation import UnmodeledEffects, simulate
 from .baselines import RegressorBlocks, fit_inertial, fit_offset, predict_free
 from .data import ResidualDataset, Split, fold_splits, load_parquet, split_blocks, time_blocks
 from .evaluate import AXES, contact_metrics, residual_rmse
-from .fit import FitResult, TrainConfig, fit_residual
+from .fit import FitResult, TrainConfig, fit_residual, predict_residual
 
 #: Report labels of the methods (a stack is named by its layers joined with "+").
 METHODS = {
@@ -366,6 +366,13 @@ def score(prep: Prepared, pred: np.ndarray, frames: np.ndarray) -> float:
     return float(np.mean(err**2)) if len(frames) else float("nan")
 
 
+def _mask(n: int, blocks: list[tuple[int, int]]) -> np.ndarray:
+    out = np.zeros(n, bool)
+    for s, e in blocks:
+        out[s:e] = True
+    return out
+
+
 def _frames(prep: Prepared, blocks: list[tuple[int, int]]) -> np.ndarray:
     idx = np.concatenate([np.arange(s, e) for s, e in blocks]) if blocks else np.zeros(0, int)
     return idx[prep.ds.targets[idx]]
@@ -444,7 +451,11 @@ def fit_split(
             features=prep.spec,
             meta={"inertial": inertial} if b is not None and b.delta is not None else {},
         )
-        pred[name] = predict(corr[name], ds, held)
+        # the stack's correction on the held-out blocks: physics + network(features), the same
+        # numbers as corr[name].correction (checked on the checkpoint in train), without
+        # recomputing the regressor
+        learned = predict_residual(res.module, prep.features, held)
+        pred[name] = np.where(_mask(len(ds), held)[:, None], phys + learned, np.nan)
     val = {n: score(prep, pred[n], va) for n in corr}
     allowed = [n for n in names if n in corr]
     chosen = min(allowed, key=lambda n: val[n] if np.isfinite(val[n]) else np.inf)
@@ -594,6 +605,7 @@ def train(
     )
     final = fit_split(prep, split, cfg, device, label=f"{label} final")
     corr = final.corrections[final.chosen]
+    _check_prediction(corr, ds, final.predictions[final.chosen], split.blocks["val"][:1])
     seconds = time.perf_counter() - t0
     corr.meta.update(
         urdf=_urdf_of(model, cfg.data.robot),
@@ -613,6 +625,18 @@ def train(
     if out is not None:
         write_outputs(trained, Path(out))
     return trained
+
+
+def _check_prediction(
+    corr: ResidualCorrection, ds: ResidualDataset, pred: np.ndarray, blocks: list[tuple[int, int]]
+) -> None:
+    """The checkpoint's own correction reproduces the numbers the layers were chosen on."""
+    got = predict(corr, ds, blocks)
+    sel = _mask(len(ds), blocks) & ds.usable
+    scale = max(1.0, float(np.abs(pred[sel]).max())) if sel.any() else 1.0
+    err = float(np.abs(got[sel] - pred[sel]).max()) if sel.any() else 0.0
+    if not err <= 1e-5 * scale:
+        raise RuntimeError(f"the saved stack differs from its validated predictions by {err:.3g}")
 
 
 def _urdf_of(model: tc.RobotModel, robot: str) -> str | None:
