@@ -441,6 +441,7 @@ def main(argv=None) -> int:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True)
     for sp in sub.choices.values():
+        sp.add_argument("--debug", action="store_true", help="tracebacks instead of one line")
         sp.add_argument("--device", default="cpu")
         sp.add_argument(
             "--threads", type=int, default=1, help="torch CPU threads (1 is fastest here)"
@@ -456,6 +457,8 @@ def main(argv=None) -> int:
     try:
         return commands[args.cmd](args)
     except (ValueError, tc.TorchContactError) as e:
+        if args.debug:
+            raise
         print(f"error: {e}", file=sys.stderr)
         return getattr(e, "exit_code", 2)
 
