@@ -52,7 +52,14 @@ from torch import Tensor, nn
 
 from torchcontact.errors import CheckpointError, ModelMismatchError
 from torchcontact.model import RobotModel
-from torchcontact.spatial import cross, skew
+from torchcontact.spatial import (
+    cross,
+    inertia_about,
+    matvec,
+    skew,
+    transform_wrench,
+    twist_in_frame,
+)
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -132,7 +139,7 @@ def inertial_params(model: RobotModel, bodies: Sequence[int]) -> np.ndarray:
         m = float(model.mass[b])
         c = model.com[b].detach().cpu().double().numpy()
         ic = model.inertia_com[b].detach().cpu().double().numpy()
-        io = ic + m * (c @ c * np.eye(3) - np.outer(c, c))  # parallel axis theorem
+        io = inertia_about(m, c, ic, np.zeros(3))  # about the body origin
         out.append([m, *(m * c), io[0, 0], io[0, 1], io[1, 1], io[0, 2], io[1, 2], io[2, 2]])
     return np.asarray(out, float).reshape(-1)
 
@@ -219,29 +226,23 @@ def sensor_regressor(
     fp = forward_pass(model, q, qd, qdd)
     idx = torch.tensor(bodies, device=q.device, dtype=torch.long)
     R, p = fp.R.index_select(-3, idx), fp.p.index_select(-2, idx)  # T_root_body
-    Rt = R.transpose(-1, -2)
-
     # forward pass: twists and accelerations of each body in its frame about its origin
-    def in_body(x: Tensor) -> Tensor:
-        lin, ang = x[..., :3], x[..., 3:]
-        lin = lin + cross(ang, p)  # move the reference point from the root origin to the body's
-        return torch.cat(((Rt @ lin.unsqueeze(-1)), (Rt @ ang.unsqueeze(-1))), -2).squeeze(-1)
-
-    Yb = body_regressor(in_body(fp.v.index_select(-2, idx)), in_body(fp.a.index_select(-2, idx)))
+    v_b = twist_in_frame(R, p, fp.v.index_select(-2, idx))
+    a_b = twist_in_frame(R, p, fp.a.index_select(-2, idx))
+    Yb = body_regressor(v_b, a_b)  # (*B, nbs, 6, 10)
     # sensor pose T_root_sensor = T_root_child T_child_sensor; bodies in the sensor frame
     R_c, p_c = fp.R[..., s.child_body, :, :], fp.p[..., s.child_body, :]
     R_cs = torch.as_tensor(s.R_child_sensor, dtype=q.dtype, device=q.device)
     p_cs = torch.as_tensor(s.p_child_sensor, dtype=q.dtype, device=q.device)
     R_s = R_c @ R_cs
-    p_s = p_c + (R_c @ p_cs.unsqueeze(-1)).squeeze(-1)
+    p_s = p_c + matvec(R_c, p_cs)
     R_sb = R_s.transpose(-1, -2).unsqueeze(-3) @ R  # (*B, nbs, 3, 3)
-    p_sb = (R_s.transpose(-1, -2).unsqueeze(-3) @ (p - p_s.unsqueeze(-2)).unsqueeze(-1)).squeeze(-1)
-    # each column is a wrench: force rotated, moment rotated plus p x force (transform_wrench)
-    f = R_sb @ Yb[..., :3, :]
-    n = R_sb @ Yb[..., 3:, :] + skew(p_sb) @ f
+    p_sb = matvec(R_s.transpose(-1, -2).unsqueeze(-3), p - p_s.unsqueeze(-2))
+    # each column is a wrench in the body frame: expressed in the sensor frame
+    cols = transform_wrench(R_sb.unsqueeze(-3), p_sb.unsqueeze(-2), Yb.transpose(-1, -2))
     sign = 1.0 if s.measure_direction == "parent_to_child" else -1.0
     mask = q.new_tensor([sign if b in in_subtree else 0.0 for b in bodies])
-    cols = torch.cat((f, n), -2) * mask[:, None, None]  # (*B, nbs, 6, 10)
+    cols = cols.transpose(-1, -2) * mask[:, None, None]  # (*B, nbs, 6, 10)
     return cols.movedim(-3, -2).flatten(-2)
 
 

@@ -12,7 +12,7 @@ does not know (offset, drift, cable, noise). See :class:`UnmodeledEffects`.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -21,6 +21,7 @@ from torchcontact.contacts import Contacts
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
+from torchcontact.spatial import cross
 
 __all__ = ["SimulatedLog", "UnmodeledEffects", "contact_setup", "effect_links", "simulate"]
 
@@ -198,27 +199,6 @@ def _within_limits(model: RobotModel, q, qd, qdd, center) -> None:
         qdd[:, j] *= s
 
 
-def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotModel:
-    """A copy of ``model`` with a point mass added to the body of ``link``."""
-    fr = model.frame(link)
-    b = fr.body
-    c = torch.as_tensor(fr.R_body_frame @ np.asarray(com_link, float) + fr.p_body_frame)
-    c = c.to(model.dtype)
-    m0, c0, I0 = model.mass[b], model.com[b], model.inertia_com[b]
-    m1 = m0 + mass
-    c1 = (m0 * c0 + mass * c) / m1
-    eye = torch.eye(3, dtype=model.dtype)
-    d0, d1 = c0 - c1, c - c1
-    inertia = (
-        I0
-        + m0 * (d0 @ d0 * eye - torch.outer(d0, d0))
-        + mass * (d1 @ d1 * eye - torch.outer(d1, d1))
-    )
-    mass_t, com_t, in_t = model.mass.clone(), model.com.clone(), model.inertia_com.clone()
-    mass_t[b], com_t[b], in_t[b] = m1, c1, inertia
-    return replace(model, mass=mass_t, com=com_t, inertia_com=in_t)
-
-
 def contact_setup(
     model: RobotModel, sensor: str | None = None, links: Sequence[str] | None = None
 ) -> tuple[str, tuple[str, ...]]:
@@ -365,7 +345,7 @@ def simulate(
     cable_q = [cable_q[i % len(cable_q)] for i in range(4)]
     true_model = model
     if fx.payload_mass:
-        true_model = _with_payload(model, payload_link, fx.payload_mass, fx.payload_com)
+        true_model = model.with_point_mass(payload_link, fx.payload_mass, fx.payload_com)
     true_est = ContactEstimator(true_model, [sensor])
     # one slot per contact frame, plus the cable's when there is one
     slots = (*links, cable_link) if fx.cable_force else links
@@ -383,7 +363,7 @@ def simulate(
                 f = torch.as_tensor(force[sl, k] * on[:, None])
                 p = torch.as_tensor(position[sl, k] * on[:, None])
                 wr[:, li, :3] += f
-                wr[:, li, 3:] += torch.cross(p, f, dim=-1)
+                wr[:, li, 3:] += cross(p, f)
         ideal = est.predict_ft(
             tq, tqd, tqdd, Contacts(slots, ("known",) * len(slots), pos, wrenches=wr)
         )

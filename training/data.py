@@ -164,18 +164,17 @@ def read_log_columns(
             sensor column, a missing extra column; the message names the file and what is wrong.
     """
     from torchcontact.logs.derive import savgol_derivatives
-    from torchcontact.logs.format import ft_column, joint_names_of, open_log, read_log_columns
+    from torchcontact.logs.format import (
+        ft_column,
+        joint_names_of,
+        joint_permutation,
+        open_log,
+        read_log_columns,
+    )
 
-    names = joint_names_of(open_log(path).schema_arrow, path)
-    missing = [j for j in model.joint_names if j not in names]
-    extra_joints = [j for j in names if j not in model.joint_names]
-    if missing or extra_joints:  # as torchcontact estimate: the log's joints are the robot's
-        msg = f"{path}: joint names of the log do not match {model.name} (matched by name):"
-        if missing:
-            msg += f" the log lacks joints {missing}"
-        if extra_joints:
-            msg += f" extra {extra_joints} (mimic and fixed joints are not coordinates)"
-        raise LogError(msg)
+    # as torchcontact estimate: the log names exactly the robot's joints, in any order
+    joint_permutation(joint_names_of(open_log(path).schema_arrow, path), model.joint_names,
+                      model.name, path)  # fmt: skip
     schema_names = open_log(path).schema_arrow.names
     col = ft_column(sensor)
     derived = [c for c in ("qd", "qdd") if c not in schema_names]

@@ -22,7 +22,7 @@ from torchcontact.residual import (
     inertial_params,
     subtree_bodies,
 )
-from torchcontact.simulation import UnmodeledEffects, _with_payload
+from torchcontact.simulation import UnmodeledEffects
 
 OFFSET = [2.5, -1.25, 4.0, 0.125, -0.25, 0.5]  # [N; N m]
 PAYLOAD = dict(payload_mass=0.4, payload_com=(0.01, 0.02, 0.08))
@@ -33,7 +33,7 @@ def _exact(model, directory, payload=False, **kw):
     layers: dict = {"offset": torch.tensor(OFFSET, dtype=torch.float64)}
     if payload:
         bodies = subtree_bodies(model, "base_ft")
-        true = _with_payload(model, "hand", PAYLOAD["payload_mass"], PAYLOAD["payload_com"])
+        true = model.with_point_mass("hand", PAYLOAD["payload_mass"], PAYLOAD["payload_com"])
         delta = inertial_params(true, bodies) - inertial_params(model, bodies)
         layers.update(
             inertial_bodies=tuple(model.body_names[b] for b in bodies),

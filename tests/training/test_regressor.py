@@ -14,7 +14,7 @@ from torchcontact.residual import (
     sensor_regressor,
     subtree_bodies,
 )
-from torchcontact.simulation import UnmodeledEffects, _with_payload, simulate
+from torchcontact.simulation import UnmodeledEffects, simulate
 from training.baselines import RegressorBlocks, fit_inertial, predict_free
 from training.data import ResidualDataset, time_blocks
 
@@ -54,7 +54,7 @@ def test_regressor_times_params_is_predict_ft(robot, sensor, batch):
     bodies = subtree_bodies(model, sensor)
     assert Y.shape == (*batch, 6, 10 * len(bodies))
     hand = model.body_names[bodies[-1]]
-    for m in (model, _with_payload(model, hand, 0.7, (0.02, -0.01, 0.08))):
+    for m in (model, model.with_point_mass(hand, 0.7, (0.02, -0.01, 0.08))):
         n = int(np.prod(batch))
         nominal = tc.ContactEstimator(m, [sensor]).predict_ft(
             q, qd, qdd, tc.Contacts((), (), q.new_zeros(*batch, 0, 3))

@@ -52,6 +52,7 @@ from torchcontact.logs.format import (
     ft_column,
     iter_chunks,
     joint_names_of,
+    joint_permutation,
     open_log,
     output_schema,
     read_contacts,
@@ -201,20 +202,9 @@ class LogEstimator:
     perm: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        names = list(self.input_joint_names)
-        model_names = list(self.model.joint_names)
-        missing = [n for n in model_names if n not in names]
-        extra = [n for n in names if n not in model_names]
-        if missing or extra:
-            msg = f"{self.source}: joint names of the log do not match {self.model.name}:"
-            if missing:
-                msg += f" missing {missing}"
-            if extra:
-                msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
-            raise LogError(msg)
-        if len(set(names)) != len(names):
-            raise LogError(f"{self.source}: duplicate joint names {names}")
-        self.perm = np.array([names.index(n) for n in model_names], dtype=np.int64)
+        self.perm = joint_permutation(
+            self.input_joint_names, self.model.joint_names, self.model.name, self.source
+        )
         if self.velocity_margin is not None and not self.velocity_margin > 0:
             raise InputError(f"--velocity-margin must be > 0, got {self.velocity_margin}")
         self._ft_range = ft_ranges(self.ft_range, self.sensors)
