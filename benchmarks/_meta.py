@@ -1,19 +1,28 @@
-"""Run metadata printed above every benchmark table."""
+"""Run metadata and timing helpers shared by the benchmark scripts."""
 
 from __future__ import annotations
 
+import os
 import platform
 import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
 
 import torch
+import torch.utils.benchmark as tb
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def git_commit() -> str:
     """Short hash of the checked-out commit, or ``"unknown"`` outside a git checkout."""
     try:
         return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+            cwd=ROOT,
+        ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -30,5 +39,26 @@ def metadata() -> str:
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
     return (
         f"commit {commit} | torch {torch.__version__} | threads {torch.get_num_threads()}"
-        f" | CPU {cpu} | GPU {gpu}"
+        f" | CPU {cpu} ({os.cpu_count()} logical) | GPU {gpu} | python {platform.python_version()}"
     )
+
+
+def rate(fn: Callable[[], object], frames: int, min_run_time: float = 1.0) -> tuple[float, float]:
+    """Frames per second of ``fn`` (median of ``torch.utils.benchmark``) and the IQR's share."""
+    m = tb.Timer(stmt="fn()", globals={"fn": fn}).blocked_autorange(min_run_time=min_run_time)
+    return frames / m.median, m.iqr / m.median
+
+
+def first_call(code: str, cache: str | None = None) -> float:
+    """Seconds a fresh Python process takes to run ``code`` (which prints nothing else).
+
+    ``code`` must print one float, the seconds from its own start to its first result. With
+    ``cache`` None a new empty kernel cache is used (a cold start); pass a path to reuse one.
+    """
+    cache = cache or tempfile.mkdtemp(prefix="tc-cache-")
+    env = {**os.environ, "TORCHCONTACT_CACHE": cache}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True,
+        check=True,
+    ).stdout  # fmt: skip
+    return float(out.strip().splitlines()[-1])

@@ -1,53 +1,48 @@
-"""Contact estimator throughput: iDynTree per frame (Python loop) vs ``ContactEstimator`` batched.
+"""Contact estimator throughput: iDynTree's estimator per frame vs torchcontact's backends.
 
-Whole iCubGenova04 (icub-models), fixed root_link, all six F/T sensors, a pure force on l_forearm
-and one on l_hand, joint torques of all 32 joints, float64 on CPU, the same frames for both.
-iDynTree per frame: updateKinematicsFromFixedBase + estimateExtWrenchesAndJointTorques (the root
-submodel gets its full-wrench unknown at root_link). torch: ``torch.utils.benchmark`` median.
+Whole iCubGenova04 (icub-models), fixed root_link, all six F/T sensors (six regions), a pure force
+on l_forearm and one on l_hand (rank 5 of 6: the paper's case), joint torques of all 32 joints,
+the same frames for every method. iDynTree per frame: updateKinematicsFromFixedBase +
+estimateExtWrenchesAndJointTorques from a Python loop (its root submodel gets a full-wrench
+unknown at root_link), in one process and in one process per CPU. torchcontact: ``eager`` and the
+generated ``cpu`` kernel (threads: ``--threads``), float64 and float32; "first result" is a new
+process's wall time to its first estimate, with an empty kernel cache (cold: ``backend="auto"``
+estimates eagerly while the kernel builds) and with the disk cache (warm).
 
-Run: ``python benchmarks/estimator.py [--profile] [--threads N]``.
+Run alone on a quiet machine: ``python benchmarks/estimator.py [--batch 100000] [--threads 2]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import platform
-import subprocess
+import multiprocessing as mp
+import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import torch
-import torch.utils.benchmark as tbench
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import idyntree.swig as idt  # noqa: E402
+from _meta import first_call, metadata, rate  # noqa: E402
 from robots import ROBOTS, load_model, random_state  # noqa: E402
 
 import torchcontact as tc  # noqa: E402
 
 LINKS, KINDS = ["l_forearm", "l_hand"], ["force", "force"]
-CHUNK = 20_000  # estimate() does not chunk: bound its working set for the 1e5 run
 
 
-def make_frames(model, est, n):
-    q, qd, qdd = random_state(model, n, seed=0)
-    g = torch.Generator().manual_seed(1)
+def make_frames(model, est, n, seed=0):
+    q, qd, qdd = random_state(model, n, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
     pos = torch.randn(n, 2, 3, generator=g, dtype=torch.float64) * 0.05
     wr = torch.randn(n, 2, 6, generator=g, dtype=torch.float64) * 10
     wr[..., 3:] = 0
     ft = est.predict_ft(q, qd, qdd, tc.Contacts(LINKS, ["known"] * 2, pos, wrenches=wr))
     return q, qd, qdd, pos, ft
-
-
-def run_torch(est, q, qd, qdd, pos, ft):
-    n = q.shape[0]
-    for s in range(0, n, CHUNK):
-        e = min(n, s + CHUNK)
-        est.estimate(
-            q[s:e], qd[s:e], qdd[s:e], {k: v[s:e] for k, v in ft.items()},
-            tc.Contacts(LINKS, KINDS, pos[s:e]),
-        )  # fmt: skip
 
 
 def idyntree_setup(model):
@@ -89,72 +84,83 @@ def run_idyntree(e, model, q, qd, qdd, pos, ft, names):
         e.estimateExtWrenchesAndJointTorques(u, meas, cw, tau)
 
 
-def metadata():
-    try:
-        commit = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
-    except Exception:  # noqa: BLE001
-        commit = "?"
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"commit {commit}, torch {torch.__version__}, threads {torch.get_num_threads()},"
-        f" CPU {cpu}, python {platform.python_version()}"
-    )
-
-
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 100, 10_000, 100_000])
-    ap.add_argument("--idyntree-frames", type=int, default=2000)
-    ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--profile", action="store_true", help="torch.profiler at batch 1e4")
-    args = ap.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
+def _idyntree_worker(args) -> float:
+    """Frames/s of iDynTree's estimator over ``n`` frames in one process."""
+    seed, n = args
     model = load_model("icub")
     est = tc.ContactEstimator(model)
-    names = list(est.sensor_names)
-    print(metadata())
-    # iDynTree: per-frame cost does not depend on the batch; time it once on the same frames
-    nid = args.idyntree_frames
-    frames = make_frames(model, est, max(max(args.sizes), nid))
+    frames = make_frames(model, est, n + 10, seed)
     e = idyntree_setup(model)
-    sub = [x[:nid] for x in frames[:4]] + [{k: v[:nid] for k, v in frames[4].items()}]
-    run_idyntree(
-        e, model, *(x[:10] for x in sub[:4]), {k: v[:10] for k, v in sub[4].items()}, names
-    )
-    t0 = time.perf_counter()
-    run_idyntree(e, model, *sub, names)
-    idt_fps = nid / (time.perf_counter() - t0)
-    print(f"iDynTree per frame from Python: {idt_fps:,.0f} frames/s ({nid} frames)")
-    print(f"{'batch':>8} {'median s':>10} {'IQR s':>10} {'frames/s':>12} {'vs iDynTree':>12}")
-    for n in args.sizes:
-        q, qd, qdd, pos = (x[:n] for x in frames[:4])
-        ft = {k: v[:n] for k, v in frames[4].items()}
-        t = tbench.Timer(
-            "run_torch(est, q, qd, qdd, pos, ft)",
-            globals=dict(run_torch=run_torch, est=est, q=q, qd=qd, qdd=qdd, pos=pos, ft=ft),
-        )
-        m = t.blocked_autorange(min_run_time=1.0 if n < 100_000 else 3.0)
-        fps = n / m.median
-        print(f"{n:>8} {m.median:>10.4g} {m.iqr:>10.2g} {fps:>12,.0f} {fps / idt_fps:>11.2f}x")
-    if args.profile:
-        from torch.profiler import ProfilerActivity, profile
+    warm = [x[:10] for x in frames[:4]] + [{k: v[:10] for k, v in frames[4].items()}]
+    run_idyntree(e, model, *warm, est.sensor_names)
+    rest = [x[10:] for x in frames[:4]] + [{k: v[10:] for k, v in frames[4].items()}]
+    t = time.perf_counter()
+    run_idyntree(e, model, *rest, est.sensor_names)
+    return n / (time.perf_counter() - t)
 
-        n = 10_000
-        q, qd, qdd, pos = (x[:n] for x in frames[:4])
-        ft = {k: v[:n] for k, v in frames[4].items()}
-        run_torch(est, q, qd, qdd, pos, ft)
-        with profile(activities=[ProfilerActivity.CPU]) as prof:
-            for _ in range(3):
-                run_torch(est, q, qd, qdd, pos, ft)
-        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+
+FIRST = """
+import time; t = time.perf_counter()
+import sys; sys.path.insert(0, "tests")
+import torch, torchcontact as tc
+from robots import ROBOTS, random_state
+torch.set_num_threads({threads})
+m = tc.RobotModel.from_urdf(ROBOTS["icub"]())
+est = tc.ContactEstimator(m)
+q, qd, qdd = random_state(m, {n}, seed=0)
+ft = {{s: torch.zeros({n}, 6, dtype=torch.float64) for s in est.sensor_names}}
+pos = torch.zeros({n}, 2, 3, dtype=torch.float64)
+c = tc.Contacts(["l_forearm", "l_hand"], ["force", "force"], pos)
+r = est.estimate(q, qd, qdd, ft, c)
+print(time.perf_counter() - t)
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=100_000)
+    ap.add_argument("--threads", type=int, default=os.cpu_count())
+    ap.add_argument("--idyntree-frames", type=int, default=3000)
+    ap.add_argument("--no-first", action="store_true", help="skip the first-result timings")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    print(metadata())
+    n = args.batch
+    one = _idyntree_worker((0, args.idyntree_frames))
+    cores = os.cpu_count() or 1
+    with mp.get_context("spawn").Pool(cores) as pool:
+        many = sum(pool.map(_idyntree_worker, [(i, args.idyntree_frames) for i in range(cores)]))
+    print(f"iDynTree estimator per frame: {one:,.0f} frames/s in 1 process, {many:,.0f} on all"
+          f" cores")  # fmt: skip
+    print(f"batch {n:,}, layout {list(zip(LINKS, KINDS, strict=True))}")
+    head = ("dtype", "backend", "frames/s", "IQR", "x iDynTree 1 proc", "x iDynTree cores")
+    print("{:8} {:7} {:>12} {:>6} {:>18} {:>17}".format(*head))
+    for dtype in (torch.float64, torch.float32):
+        model = load_model("icub", dtype)
+        est = tc.ContactEstimator(model)
+        q, qd, qdd, pos, ft = make_frames(load_model("icub"), est if dtype == torch.float64 else
+                                          tc.ContactEstimator(load_model("icub")), n)  # fmt: skip
+        q, qd, qdd, pos = (x.to(dtype) for x in (q, qd, qdd, pos))
+        ft = {k: v.to(dtype) for k, v in ft.items()}
+        c = tc.Contacts(LINKS, KINDS, pos)
+        for be in ("eager", "cpu"):
+            if be == "eager" and n > 20_000:
+                m = 20_000  # eager is slow: time a slice
+                args_e = (q[:m], qd[:m], qdd[:m], {k: v[:m] for k, v in ft.items()},
+                          tc.Contacts(LINKS, KINDS, pos[:m]))  # fmt: skip
+            else:
+                m, args_e = n, (q, qd, qdd, ft, c)
+            est.estimate(*args_e, backend=be)  # build / warm up
+            fps, iqr = rate(lambda est=est, a=args_e, be=be: est.estimate(*a, backend=be), m)
+            print(f"{str(dtype)[6:]:8} {be:7} {fps:>12,.0f} {iqr:>6.0%} {fps / one:>18.1f}"
+                  f" {fps / many:>17.1f}")  # fmt: skip
+    if not args.no_first:
+        code = FIRST.format(threads=args.threads, n=10_000)
+        cache = tempfile.mkdtemp(prefix="tc-cache-")
+        cold = first_call(code, cache)
+        warm = first_call(code, cache)
+        print(f"first estimates of a new process (10,000 frames): cold {cold:.1f} s (eager while"
+              f" the kernel builds), warm {warm:.1f} s (disk cache)")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@ Graphs exported with ``torchcontact.export.export_estimator`` and run with
 1. ``EstimatorRuntime.step`` latency, one frame per call (10,000 calls after 500 warm-up calls,
    the configurations interleaved in rounds), with the graphs' node counts as exported and after
    onnxruntime's optimisation: the bundled arm with 2 force slots, and iCub ``l_arm_ft`` with 4
-   slots and a residual MLP (the default training architecture, random weights) chained into
-   the graph; in the same process, one frame through the torch estimator as the reference;
+   slots and a correction stack (offset, inertial layer, the default MLP; random weights)
+   chained into the graph; in the same process, one frame through the torch estimator as the
+   reference;
 2. the single-frame session options (threads, spinning, optimisation level, execution mode);
 3. ``EstimatorRuntime.run`` throughput of the batched graph at 1e5 frames, beside the torch
    estimator (eager, and its generated C++ kernel) in the same process.
@@ -36,7 +37,12 @@ from robots import icub_path  # noqa: E402
 
 import torchcontact as tc  # noqa: E402
 from torchcontact.export import export_estimator, export_residual_checkpoint  # noqa: E402
-from torchcontact.residual import ResidualMLP, feature_names, save_residual_model  # noqa: E402
+from torchcontact.residual import (  # noqa: E402
+    FeatureSpec,
+    ResidualCorrection,
+    ResidualMLP,
+    subtree_bodies,
+)
 from torchcontact.runtime import EstimatorRuntime, session_options  # noqa: E402
 
 TCARM = ("forearm_skin", "hand_skin"), ("force", "force")
@@ -74,19 +80,23 @@ def latency(calls: int, d: Path) -> None:
     """Section 1: single-frame latency of the step graph, interleaved configurations."""
     arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
     icub = tc.RobotModel.from_urdf(icub_path())
-    names = feature_names(icub.joint_names, ["temperature"])
+    # a correction stack as training writes it: offset, inertial layer on the sensor's subtree,
+    # the default MLP on the default features plus a temperature column (random weights)
+    spec = FeatureSpec.default(icub, "l_arm_ft", extra=("temperature",))
     torch.manual_seed(0)
-    ckpt = save_residual_model(
-        d / "residual",
-        ResidualMLP(len(names)),
-        {
-            "features": names,
-            "joint_names": list(icub.joint_names),
-            "sensor": "l_arm_ft",
-            "robot_sha256": icub.urdf_sha256,
-        },
-    )
-    export_residual_checkpoint(ckpt, d / "residual.onnx")
+    mlp = ResidualMLP(len(spec.names(icub)))
+    mlp.set_normalisation(torch.randn(64, len(spec.names(icub))), torch.randn(64, 6))
+    bodies = tuple(icub.body_names[b] for b in subtree_bodies(icub, "l_arm_ft"))
+    ckpt = ResidualCorrection(
+        icub,
+        "l_arm_ft",
+        offset=torch.randn(6, dtype=torch.float64),
+        inertial_bodies=bodies,
+        delta=0.01 * torch.randn(10 * len(bodies), dtype=torch.float64),
+        learned=mlp,
+        features=spec,
+    ).save(d / "residual")
+    export_residual_checkpoint(ckpt, d / "residual.onnx", icub)
     configs = {}  # name -> (runtime, frame, extra, path)
     for dt in (torch.float32, torch.float64):
         tag = str(dt).removeprefix("torch.")

@@ -1,21 +1,42 @@
-r"""``python -m export``: write deployment artefacts with :mod:`torchcontact.export`.
+r"""``torchcontact export``: write deployment artefacts with :mod:`torchcontact.export`.
 
-Example::
+The same parser runs as ``python -m export`` from the repository root. Example::
 
-    python -m export estimator --robot tcarm --slot forearm_skin:force --slot hand_skin:force \\
-        --out tcarm.onnx
-    python -m export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
-        --slot l_hand:wrench --dtype float32 --joints sensed --out icub_larm.onnx
-    python -m export residual runs/residual-mlp --out residual.onnx
-    python -m export estimator --robot tcarm --slot hand_skin:force --residual residual.onnx \\
-        --out tcarm_corrected.onnx
+    torchcontact export estimator --robot tcarm --slot forearm_skin:force \\
+        --slot hand_skin:force --out tcarm.onnx
+    torchcontact export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
+        --contacts slots.toml --dtype float32 --joints sensed --out icub_larm.onnx
+    torchcontact export residual runs/correction --urdf arm.urdf --out correction.onnx
+    torchcontact export estimator --robot tcarm --slot hand_skin:force \\
+        --residual correction.onnx --out tcarm_corrected.onnx
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+from collections.abc import Iterator
+
+from torchcontact.cli import Parser, guarded
+from torchcontact.errors import InputError, ModelMismatchError
+from torchcontact.logs.format import check_outputs
+
+
+def _slots(args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    """Slot links and kinds from ``--slot LINK:KIND`` or a contact-spec file (``--contacts``)."""
+    from torchcontact.contacts import SlotLayout, load_contact_spec
+
+    if bool(args.slot) == bool(args.contacts):
+        raise InputError("give the contact slots with --slot LINK:KIND (repeat) or --contacts SPEC")
+    if args.contacts:
+        layout = SlotLayout.covering(load_contact_spec(args.contacts).static())
+        return list(layout.links), list(layout.kinds)
+    slots = [s.rsplit(":", 1) for s in args.slot]
+    if any(len(s) != 2 for s in slots):
+        raise InputError("--slot takes LINK:KIND, e.g. hand_skin:force")
+    return [s[0] for s in slots], [s[1] for s in slots]
 
 
 def _estimator(args: argparse.Namespace) -> int:
@@ -26,63 +47,97 @@ def _estimator(args: argparse.Namespace) -> int:
     from torchcontact.export import DEFAULT_OPSET, export_estimator, step_graph_path
 
     if (args.robot is None) == (args.urdf is None):
-        print("give exactly one of --robot tcarm or --urdf PATH", file=sys.stderr)
-        return 2
+        raise InputError("give exactly one of --robot tcarm or --urdf PATH")
     path = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
-    model = tc.RobotModel.from_urdf(path)
-    slots = [s.rsplit(":", 1) for s in args.slot]
-    if any(len(s) != 2 for s in slots):
-        print("--slot takes LINK:KIND, e.g. hand_skin:force", file=sys.stderr)
-        return 2
-    links, kinds = [s[0] for s in slots], [s[1] for s in slots]
+    check_outputs([args.out], [path, args.contacts])
+    from torchcontact.logs.pipeline import load_robot
+
+    model = load_robot(path)
+    links, kinds = _slots(args)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     opset = args.opset or DEFAULT_OPSET
     joints = args.joints
     if joints and joints not in ("all", "sensed"):
         joints = joints.split(",")
+    print(
+        f"export: building the estimator graphs of {model.name} ({len(links)} slots) ...",
+        file=sys.stderr,
+    )
     try:
-        meta = export_estimator(
-            model, args.sensor or None, links, kinds, args.out, dtype=dtype, opset=opset,
-            rank_rtol=args.rank_rtol, moving_base=args.moving_base, torque_rows=args.torque_rows,
-            covariance=args.covariance, residual=args.residual or None,
-            joints=None if joints in (None, "all") else joints,
-            velocity_margin=args.velocity_margin,
-        )  # fmt: skip
-    except (ValueError, TorchContactError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        with _stage(f"estimator graphs of {model.name}, {len(links)} slots"):
+            meta = export_estimator(
+                model,
+                args.sensor or None,
+                links,
+                kinds,
+                args.out,
+                dtype=dtype,
+                opset=opset,
+                rank_rtol=args.rank_rtol,
+                moving_base=args.moving_base,
+                torque_rows=args.torque_rows,
+                covariance=args.covariance,
+                residual=args.residual or None,
+                joints=None if joints in (None, "all") else joints,
+                velocity_margin=args.velocity_margin,
+            )
+    except TorchContactError:
+        raise
+    except ValueError as e:
+        raise InputError(str(e)) from None
     step = str(step_graph_path(args.out))
     print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
     return 0
 
 
 def _residual(args: argparse.Namespace) -> int:
+    import torchcontact as tc
     from torchcontact.export import DEFAULT_OPSET, export_residual_checkpoint
-    from torchcontact.residual import CheckpointError
 
+    check_outputs([args.out], [args.checkpoint])
+    robot = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
     try:
-        meta = export_residual_checkpoint(
-            args.checkpoint, args.out, opset=args.opset or DEFAULT_OPSET, check=not args.no_check
-        )
-    except (CheckpointError, AssertionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        with _stage("residual graph" + ("" if args.no_check else " and parity check")):
+            meta = export_residual_checkpoint(
+                args.checkpoint,
+                args.out,
+                robot,
+                opset=args.opset or DEFAULT_OPSET,
+                check=not args.no_check,
+            )
+    except AssertionError as e:
+        raise ModelMismatchError(f"{args.checkpoint}: ONNX parity check failed: {e}") from None
     print(json.dumps({"path": str(args.out), **meta}, indent=1))
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m export``."""
-    p = argparse.ArgumentParser(prog="python -m export", description=__doc__.splitlines()[0])
+@contextlib.contextmanager
+def _stage(what: str) -> Iterator[None]:
+    """A progress line on stderr: the stage, then its duration."""
+    from tqdm import tqdm
+
+    with tqdm(
+        total=1, desc=f"export {what}", file=sys.stderr, bar_format="{desc}: {elapsed}"
+    ) as bar:
+        yield
+        bar.update(1)
+
+
+def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
+    """Entry point of ``torchcontact export`` and ``python -m export``; returns the exit code."""
+    p = Parser(prog=prog, description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("estimator", help="the whole contact estimator as one ONNX graph")
     e.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
     e.add_argument("--urdf", help="URDF file of the robot")
     e.add_argument("--sensor", action="append", help="F/T sensor to use (repeat; default all)")
-    e.add_argument("--slot", action="append", required=True, help="contact slot LINK:KIND")
-    e.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    e.add_argument("--opset", type=int, default=None)
-    e.add_argument("--rank-rtol", type=float, default=None)
+    e.add_argument("--slot", action="append", help="contact slot LINK:KIND (repeat)")
+    e.add_argument(
+        "--contacts", help="contact-spec file (TOML/JSON): one slot per contact, instead of --slot"
+    )
+    e.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="graph dtype")
+    e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
+    e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")
     e.add_argument(
         "--moving-base",
         action="store_true",
@@ -102,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument(
         "--residual",
         action="append",
-        help="residual-correction graph to chain (python -m export residual; repeat)",
+        help="correction graph to chain (torchcontact export residual; repeat)",
     )
     e.add_argument(
         "--velocity-margin",
@@ -112,12 +167,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
-    r.add_argument("checkpoint", help="checkpoint folder written by python -m training")
+    r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")
+    r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
+    r.add_argument("--urdf", help="URDF of the robot (default: the one recorded at training)")
     r.add_argument("--out", required=True, help="output .onnx path")
-    r.add_argument("--opset", type=int, default=None)
+    r.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
-    args = p.parse_args(argv)
-    return _residual(args) if args.cmd == "residual" else _estimator(args)
+
+    def run() -> int:
+        args = p.parse_args(argv)
+        return _residual(args) if args.cmd == "residual" else _estimator(args)
+
+    return guarded(run, debug="--debug" in (sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -260,3 +260,37 @@ def assert_parity(out: dict, ref, sensors, dtype, frames=slice(None), ref32=None
     np.testing.assert_array_equal(
         np.asarray(out["status"]).reshape(-1), ref.status.numpy()[frames].reshape(-1)
     )
+
+
+def correction_checkpoint(
+    directory, model: tc.RobotModel, sensor: str, kind: str, seed: int = 3, constant=None
+):
+    """A correction-stack checkpoint (``torchcontact.residual``) saved as training saves it.
+
+    Layers: a random offset and a learned ``kind`` ("mlp" or "gru") on the default features of
+    ``sensor`` with one extra column ``temperature`` (random weights, non-identity
+    normalisation), or, with ``constant`` (6,), only a learned MLP whose weights are zero, so that
+    the correction is ``constant`` whatever the inputs (it still reads ``temperature``).
+
+    Returns:
+        The checkpoint directory.
+    """
+    from torchcontact.residual import FeatureSpec, ResidualCorrection, ResidualGRU, ResidualMLP
+
+    spec = FeatureSpec.default(model, sensor, extra=("temperature",))
+    F = len(spec.names(model))
+    torch.manual_seed(seed)
+    kw: dict = {}
+    if constant is not None:
+        net = ResidualMLP(F, 8, 1)
+        with torch.no_grad():
+            for p in net.parameters():
+                p.zero_()
+        net.set_normalisation(torch.randn(4, F), torch.tensor([list(constant)] * 4))
+    else:
+        g = torch.Generator().manual_seed(seed)
+        kw["offset"] = torch.randn(6, generator=g, dtype=torch.float64)
+        net = ResidualMLP(F, 16, 2) if kind == "mlp" else ResidualGRU(F, 8, layers=1)
+        net.set_normalisation(torch.randn(64, F) * 2, torch.randn(64, 6) * 3)
+    corr = ResidualCorrection(model, sensor, learned=net, features=spec, **kw)
+    return corr.save(directory)

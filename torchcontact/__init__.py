@@ -22,12 +22,14 @@ _LAZY = {
     "InputError": "torchcontact.errors",
     "TorchContactError": "torchcontact.errors",
     "BaseMotion": "torchcontact.dynamics",
+    "ConeStatus": "torchcontact.estimation",
     "ContactEstimate": "torchcontact.estimation",
     "ContactEstimator": "torchcontact.estimation",
     "Contacts": "torchcontact.contacts",
     "FTSensor": "torchcontact.model",
     "ForwardPass": "torchcontact.dynamics",
     "Frame": "torchcontact.model",
+    "FrictionCones": "torchcontact.constrained",
     "RobotModel": "torchcontact.model",
     "URDFError": "torchcontact.model",
     "body_wrenches": "torchcontact.dynamics",
@@ -43,12 +45,14 @@ __all__ = [
     "KINDS",
     "STATUS",
     "BaseMotion",
+    "ConeStatus",
     "ContactEstimate",
     "ContactEstimator",
     "Contacts",
     "FTSensor",
     "ForwardPass",
     "Frame",
+    "FrictionCones",
     "InputError",
     "RobotModel",
     "TorchContactError",
@@ -65,6 +69,7 @@ __all__ = [
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact import robots, spatial
+    from torchcontact.constrained import FrictionCones
     from torchcontact.dynamics import (
         BaseMotion,
         ForwardPass,
@@ -77,6 +82,7 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact.estimation import (
         KINDS,
         STATUS,
+        ConeStatus,
         ContactEstimate,
         ContactEstimator,
         Contacts,

@@ -46,9 +46,14 @@ def check_input(
         raise InputError(
             f"{name} is on {x.device} but the model is on {model.device}; use model.to(device)"
         )
-    if finite and not in_tracing() and x.numel() and not bool(torch.isfinite(x).all()):
-        bad = (~torch.isfinite(x)).nonzero()[0].tolist()
-        raise InputError(f"{name} contains NaN or inf (first at index {tuple(bad)})")
+    # one reduction (no mask allocated): a NaN or inf makes the sum non-finite; only then (or
+    # on an overflowing sum of finite values) look for the culprit
+    if finite and not in_tracing() and x.numel() and not bool(torch.isfinite(x.sum())):
+        bad = (~torch.isfinite(x)).nonzero()
+        if len(bad):
+            raise InputError(
+                f"{name} contains NaN or inf (first at index {tuple(bad[0].tolist())})"
+            )
 
 
 def flatten_batch(x: Tensor, batch: torch.Size, n_feature_dims: int) -> Tensor:

@@ -1,4 +1,4 @@
-"""URDF reading (private): yourdfpy for the robot tree, lxml for the F/T ``<sensor>`` extension.
+"""URDF reading (private): the robot tree and iDynTree's F/T ``<sensor>`` extension.
 
 Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors.
 """
@@ -6,7 +6,6 @@ Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors.
 from __future__ import annotations
 
 import io
-import logging
 import os
 from pathlib import Path
 
@@ -46,88 +45,129 @@ def _floats(text: str | None, n: int, what: str, source: str) -> np.ndarray:
     return vals
 
 
+def _origin(el, what: str, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, p)`` of an element's ``<origin xyz rpy>`` (identity when absent)."""
+    o = el.find("origin")
+    xyz = _floats(None if o is None else o.get("xyz"), 3, f"{what} <origin xyz>", source)
+    rpy = _floats(None if o is None else o.get("rpy"), 3, f"{what} <origin rpy>", source)
+    return _rotation(rpy), xyz
+
+
+def _number(el, attr: str, what: str, source: str, default: float | None = None) -> float:
+    v = None if el is None else el.get(attr)
+    if v is None:
+        if default is None:
+            raise URDFError(f"{source}: {what} needs the attribute {attr!r}")
+        return default
+    try:
+        return float(v)
+    except ValueError:
+        raise URDFError(f"{source}: {what} {attr}={v!r} is not a number") from None
+
+
+def _name_of(el, child: str, what: str, source: str) -> str:
+    sub = el.find(child)
+    if sub is None or not sub.get("link"):
+        raise URDFError(f"{source}: {what} needs <{child} link=...>")
+    return sub.get("link")
+
+
 def parse(text: str, source: str) -> dict:
     """Parse URDF text into ``{"name", "links", "joints", "sensors"}`` with numpy data.
+
+    The standard library's XML parser reads the URDF elements torchcontact uses (links with their
+    ``<inertial>``, joints with origin, axis, limit and mimic, and iDynTree's ``<sensor
+    type="force_torque">`` extension); visual and collision geometry is ignored.
 
     Raises:
         URDFError: the XML or its robot description is malformed; the message names the element.
     """
-    import yourdfpy
-    from lxml import etree
+    from xml.etree import ElementTree
 
     try:
-        root = etree.fromstring(text.encode())
-    except etree.XMLSyntaxError as e:
+        root = ElementTree.fromstring(text)
+    except ElementTree.ParseError as e:
         raise URDFError(f"{source}: malformed XML: {e}") from None
     if root.tag != "robot":
         raise URDFError(f"{source}: root element is <{root.tag}>, expected <robot>")
-    # Joint types are checked before yourdfpy, which would accept any string silently.
-    for je in root.findall("joint"):
-        jtype = je.get("type")
-        if jtype not in ("revolute", "continuous", "prismatic", "fixed", "floating", "planar"):
-            raise URDFError(f"{source}: joint {je.get('name')!r} has unknown type {jtype!r}")
-
-    log = logging.getLogger("yourdfpy")
-    level = log.level
-    log.setLevel(logging.ERROR)  # mesh and validation chatter is not ours to print
-    try:
-        urdf = yourdfpy.URDF.load(
-            io.BytesIO(text.encode()),
-            build_scene_graph=False,
-            build_collision_scene_graph=False,
-            load_meshes=False,
-            load_collision_meshes=False,
-        )
-    except Exception as e:  # yourdfpy raises assorted types on bad input
-        raise URDFError(f"{source}: cannot parse URDF: {e}") from None
-    finally:
-        log.setLevel(level)
-    robot = urdf.robot
 
     links: dict[str, dict] = {}
-    for link in robot.links:
-        if link.name in links:
-            raise URDFError(f"{source}: link {link.name!r} is defined twice")
+    for le in root.findall("link"):
+        name = le.get("name")
+        if not name:
+            raise URDFError(f"{source}: a <link> has no name")
+        if name in links:
+            raise URDFError(f"{source}: link {name!r} is defined twice")
         inertial = None
-        if link.inertial is not None:
-            m = float(link.inertial.mass if link.inertial.mass is not None else 0.0)
-            origin = np.eye(4) if link.inertial.origin is None else link.inertial.origin
-            inertia = link.inertial.inertia
-            inertia = np.zeros((3, 3)) if inertia is None else np.asarray(inertia, float)
+        ie = le.find("inertial")
+        if ie is not None:
+            what = f"link {name!r} <inertial>"
+            R, p = _origin(ie, what, source)
+            m = _number(ie.find("mass"), "value", f"{what} <mass>", source, 0.0)
+            te = ie.find("inertia")
+            c = {k: _number(te, k, f"{what} <inertia>", source, 0.0)
+                 for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}  # fmt: skip
+            inertia = np.array(
+                [
+                    [c["ixx"], c["ixy"], c["ixz"]],
+                    [c["ixy"], c["iyy"], c["iyz"]],
+                    [c["ixz"], c["iyz"], c["izz"]],
+                ]
+            )
             if m < 0 or not np.isfinite(m) or not np.all(np.isfinite(inertia)):
-                raise URDFError(f"{source}: link {link.name!r} has an invalid <inertial>")
-            inertial = (m, origin[:3, :3].copy(), origin[:3, 3].copy(), inertia)
-        links[link.name] = {"name": link.name, "inertial": inertial}
+                raise URDFError(f"{source}: link {name!r} has an invalid <inertial>")
+            inertial = (m, R, p, inertia)
+        links[name] = {"name": name, "inertial": inertial}
 
     joints: list[dict] = []
     names = set()
-    for j in robot.joints:
-        if j.name in names:
-            raise URDFError(f"{source}: joint {j.name!r} is defined twice")
-        names.add(j.name)
-        origin = np.eye(4) if j.origin is None else j.origin
-        axis = np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, float)
+    for je in root.findall("joint"):
+        name = je.get("name")
+        jtype = je.get("type")
+        if not name:
+            raise URDFError(f"{source}: a <joint> has no name")
+        if jtype not in ("revolute", "continuous", "prismatic", "fixed", "floating", "planar"):
+            raise URDFError(f"{source}: joint {name!r} has unknown type {jtype!r}")
+        if name in names:
+            raise URDFError(f"{source}: joint {name!r} is defined twice")
+        names.add(name)
+        what = f"joint {name!r}"
+        R, p = _origin(je, what, source)
+        ae = je.find("axis")
+        axis = _floats(ae.get("xyz") if ae is not None else "1 0 0", 3, f"{what} <axis>", source)
         norm = float(np.linalg.norm(axis))
-        if j.type != "fixed" and not (norm > 0 and np.isfinite(norm)):
-            raise URDFError(f"{source}: joint {j.name!r} has a zero or invalid <axis>")
+        if jtype != "fixed" and not (norm > 0 and np.isfinite(norm)):
+            raise URDFError(f"{source}: joint {name!r} has a zero or invalid <axis>")
         mimic = None
-        if j.mimic is not None:
+        me = je.find("mimic")
+        if me is not None:
+            if not me.get("joint"):
+                raise URDFError(f"{source}: {what} <mimic> needs joint=...")
             mimic = {
-                "joint": j.mimic.joint,
-                "multiplier": 1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier),
-                "offset": 0.0 if j.mimic.offset is None else float(j.mimic.offset),
+                "joint": me.get("joint"),
+                "multiplier": _number(me, "multiplier", f"{what} <mimic>", source, 1.0),
+                "offset": _number(me, "offset", f"{what} <mimic>", source, 0.0),
             }
+        lim = je.find("limit")
         joints.append(
             {
-                "name": j.name,
-                "type": j.type,
-                "parent": j.parent,
-                "child": j.child,
-                "R": origin[:3, :3].copy(),
-                "p": origin[:3, 3].copy(),
+                "name": name,
+                "type": jtype,
+                "parent": _name_of(je, "parent", what, source),
+                "child": _name_of(je, "child", what, source),
+                "R": R,
+                "p": p,
                 "axis": axis / norm if norm > 0 else axis,
                 "mimic": mimic,
-                "limit": _limit(j.limit),
+                "limit": {
+                    k: _number(lim, k, f"{what} <limit>", source, d)
+                    for k, d in (
+                        ("lower", -np.inf),
+                        ("upper", np.inf),
+                        ("velocity", np.inf),
+                        ("effort", np.inf),
+                    )  # fmt: skip
+                },
             }
         )
 
@@ -164,22 +204,7 @@ def parse(text: str, source: str) -> dict:
                 "p": xyz,
             }
         )
-    return {"name": robot.name, "links": links, "joints": joints, "sensors": sensors}
-
-
-def _limit(limit) -> dict[str, float]:
-    """``<limit>`` as floats; absent attributes are -inf/inf (no limit)."""
-
-    def get(name: str, default: float) -> float:
-        v = None if limit is None else getattr(limit, name, None)
-        return default if v is None else float(v)
-
-    return {
-        "lower": get("lower", -np.inf),
-        "upper": get("upper", np.inf),
-        "velocity": get("velocity", np.inf),
-        "effort": get("effort", np.inf),
-    }
+    return {"name": root.get("name", ""), "links": links, "joints": joints, "sensors": sensors}
 
 
 def axis_rotation_terms(R0: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -110,7 +110,6 @@ class BodyConstants:
         mult: mimic multiplier (1 otherwise): the body's joint angle is ``mult * q[coord] +
             offset``.
         offset: mimic offset, rad or m.
-        rev: index of this body among the revolute bodies (its ``sin``/``cos`` input), -1.
         C: rotation of the internal frame in the parent's internal frame at ``q = 0``.
         p: origin of the body in the parent's internal frame at ``q = 0``, m.
         Q: ``(3, 3)`` numpy rotation ``R_link_internal`` (its third column is the joint axis).
@@ -124,7 +123,6 @@ class BodyConstants:
     coord: int
     mult: float
     offset: float
-    rev: int
     C: sp.M3
     p: sp.V3
     Q: np.ndarray
@@ -141,10 +139,6 @@ class Tree:
         bodies: per body, :class:`BodyConstants` (breadth-first order of the model: parents
             first).
         nv: number of joint coordinates.
-        revolute: body index of each revolute body, in ``sin``/``cos`` input order.
-        angle_coord: ``(nrev,)`` numpy int, the coordinate driving each revolute body.
-        angle_mult: ``(nrev,)`` numpy float, its mimic multiplier.
-        angle_offset: ``(nrev,)`` numpy float, its mimic offset.
         gravity: gravity in the root frame, m/s^2.
         order: body indices in depth-first preorder (parents first, one branch at a time): the
             order the passes visit bodies in, which keeps the generated code's live values few.
@@ -153,10 +147,6 @@ class Tree:
 
     bodies: tuple[BodyConstants, ...]
     nv: int
-    revolute: tuple[int, ...]
-    angle_coord: np.ndarray
-    angle_mult: np.ndarray
-    angle_offset: np.ndarray
     gravity: sp.V3
     order: tuple[int, ...]
     key: str
@@ -202,7 +192,6 @@ def _build_tree(model: RobotModel) -> Tree:
     q_to_body, q_offset = _np(model.q_to_body), _np(model.q_offset)
     bodies: list[BodyConstants] = []
     Qs: list[np.ndarray] = []
-    revolute: list[int] = []
     for b in range(model.nb):
         parent = model.body_parent[b]
         if b == 0:
@@ -222,9 +211,6 @@ def _build_tree(model: RobotModel) -> Tree:
         Qp = Qs[parent] if parent >= 0 else np.eye(3)
         C = Qp.T @ C0[b] @ Q if b else np.eye(3)
         p = Qp.T @ p0[b] if b else np.zeros(3)
-        rev = len(revolute) if kind == "revolute" else -1
-        if kind == "revolute":
-            revolute.append(b)
         bodies.append(
             BodyConstants(
                 parent=parent,
@@ -232,7 +218,6 @@ def _build_tree(model: RobotModel) -> Tree:
                 coord=coord,
                 mult=mult,
                 offset=float(q_offset[b]),
-                rev=rev,
                 C=sp.const_mat(C),
                 p=sp.const_vec(p),
                 Q=Q,
@@ -255,10 +240,6 @@ def _build_tree(model: RobotModel) -> Tree:
     return Tree(
         bodies=tuple(bodies),
         nv=model.nv,
-        revolute=tuple(revolute),
-        angle_coord=np.array([bodies[b].coord for b in revolute], dtype=np.int64),
-        angle_mult=np.array([bodies[b].mult for b in revolute]),
-        angle_offset=np.array([bodies[b].offset for b in revolute]),
         gravity=gravity,
         order=tuple(order),
         key=h.hexdigest()[:24],
@@ -440,7 +421,6 @@ def _sub_force(f: sp.Force, g: sp.Force) -> sp.Force:
 
 def _id_program(model: RobotModel, moving_base: bool, with_fext: bool) -> kernels.Program:
     tree = tree_of(model)
-    len(tree.revolute)
     inputs = {"q": tree.nv, "qd": tree.nv, "qdd": tree.nv}
     if moving_base:
         inputs.update(omega=3, domega=3, proper_acc=3)

@@ -1,15 +1,15 @@
 """Robot model built once from a URDF into plain tensors.
 
 The model is a frozen value: :meth:`RobotModel.to` returns a copy, algorithms are functions of
-``(model, q, qd, qdd, ...)``. The URDF is read with ``yourdfpy`` (kinematic tree, inertials,
-mimic tags); the F/T sensor extension that iDynTree and Gazebo read (``<sensor
-type="force_torque">`` as a child of ``<robot>``) is read beside it, since no URDF parser keeps it.
+``(model, q, qd, qdd, ...)``. The URDF is read with the standard library's XML parser
+(kinematic tree, inertials, limits, mimic tags, and the F/T sensor extension that iDynTree and
+Gazebo read, ``<sensor type="force_torque">`` as a child of ``<robot>``, which URDF libraries drop).
 
 Bodies. Links joined by fixed joints are rigidly attached and are merged into one *body* (their
 inertias combined), except across fixed joints that carry an F/T sensor or that the caller names in
 ``keep_fixed``: those stay body boundaries, because a sensor splits the tree there. Bodies are
-numbered breadth-first, so the bodies of one tree depth form a contiguous range and every parent
-lies in the previous range; the dynamics process a whole depth at once.
+numbered breadth-first (parents before children; the bodies of one tree depth form a contiguous
+range, ``levels``).
 
 Joints. ``joint_names`` lists the independent joint coordinates (revolute, continuous, prismatic),
 depth-first in URDF order like pinocchio, and fixes the order of every joint-space vector
@@ -239,6 +239,46 @@ class RobotModel:
         if g.shape != (3,) or not bool(torch.isfinite(g).all()):
             raise InputError(f"gravity must be 3 finite numbers, got {gravity!r}")
         return replace(self, gravity=g)
+
+    def with_point_mass(
+        self, link: str, mass: float, com_link: Sequence[float] = (0.0, 0.0, 0.0)
+    ) -> RobotModel:
+        """Return a copy with a point mass rigidly added to the body of ``link`` (a payload).
+
+        Args:
+            link: a link or frame name.
+            mass: kg (> 0).
+            com_link: ``(3,)`` the point mass's position in ``link``'s frame, m.
+
+        Returns:
+            A new :class:`RobotModel` whose body carries the combined mass, centre of mass and
+            inertia (parallel-axis theorem, :func:`torchcontact.spatial.combine_inertias`).
+
+        Example:
+            >>> import torchcontact as tc
+            >>> m = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+            >>> b = m.frame("hand").body
+            >>> float(m.with_point_mass("hand", 0.5).mass[b] - m.mass[b])
+            0.5
+        """
+        if not mass > 0:
+            raise InputError(f"point mass must be > 0 kg, got {mass!r}")
+        fr = self.frame(link)
+        b = fr.body
+        c = fr.R_body_frame @ np.asarray(com_link, float) + fr.p_body_frame
+
+        def np_(t: Tensor) -> np.ndarray:
+            return t.detach().to("cpu", torch.float64).numpy()
+
+        m1, c1, I1 = combine_inertias(
+            [(float(self.mass[b]), np_(self.com[b]), np_(self.inertia_com[b])),
+             (float(mass), c, np.zeros((3, 3)))]
+        )  # fmt: skip
+        mass_t, com_t, in_t = self.mass.clone(), self.com.clone(), self.inertia_com.clone()
+        mass_t[b] = m1
+        com_t[b] = torch.as_tensor(c1, dtype=self.dtype, device=self.device)
+        in_t[b] = torch.as_tensor(I1, dtype=self.dtype, device=self.device)
+        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t)
 
     def body_of(self, name: str) -> int:
         """Index of the body a link or joint frame named ``name`` is attached to.

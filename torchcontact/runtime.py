@@ -180,10 +180,11 @@ class ResidualGraph:
         """Open a correction graph (its session is kept in ``.session``).
 
         Raises:
+            InputError: no such file.
             ModelMismatchError: the file is not a correction graph.
         """
         if not os.path.isfile(path):
-            raise ModelMismatchError(f"residual graph {path}: no such file")
+            raise InputError(f"residual graph {path}: no such file")
         sess = ort.InferenceSession(
             str(path), session_options(intra_op_threads), providers=["CPUExecutionProvider"]
         )
@@ -290,6 +291,7 @@ class EstimatorRuntime:
         extra: names of the extra input columns the chained corrections read.
 
     Raises:
+        InputError: no such file.
         ModelMismatchError: the file is not an estimator graph of this format, or a check fails.
     """
 
@@ -308,7 +310,7 @@ class EstimatorRuntime:
     ) -> None:
         path = Path(os.fspath(path))
         if not path.is_file():
-            raise ModelMismatchError(f"{path}: no such file")
+            raise InputError(f"{path}: no such file")
         self._so = session_options(intra_op_threads)
         # open the small single-frame graph first when it lies beside the batched one: the
         # batched graph (thousands of nodes, seconds to optimise) loads on the first run()

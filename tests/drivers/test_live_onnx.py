@@ -126,8 +126,8 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    spec = tmp_path / "contacts.json"
-    spec.write_text(json.dumps({"positions": POSITIONS, "active": [0, 1]}))
+    spec = tmp_path / "contacts.json"  # the contact-spec format of every command
+    spec.write_text(json.dumps({"contact": [{"link": "hand_skin", "position": POSITIONS[1]}]}))
     stop = threading.Event()
 
     def send():
@@ -168,8 +168,12 @@ def test_run_cli_onnx(scene, tcp_sim, tmp_path, capsys):
     for r in lines:
         np.testing.assert_allclose(r["estimate"]["force"][1], FORCE, atol=2e-3)
         assert len(r["estimate"]["joint_torques"]) == scene["model"].nv
-    assert main(["run", "--tcp", "127.0.0.1:1", "--onnx", str(tmp_path / "none.onnx")]) == 1
+    assert main(["run", "--tcp", "127.0.0.1:1", "--onnx", str(tmp_path / "none.onnx")]) == 2
     assert "no such file" in capsys.readouterr().err
+    spec.write_text(json.dumps({"contact": [{"link": "upper_arm_skin", "position": [0, 0, 0]}]}))
+    args = ["run", "--tcp", "127.0.0.1:1", "--onnx", str(scene["path"]), "--contacts", str(spec)]
+    assert main(args) == 2  # a contact the graph has no slot for
+    assert "['upper_arm_skin:force'] find no free slot" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- several sensors, residual, robot
@@ -263,29 +267,18 @@ def test_several_sensors_in_one_graph(two_sensors, tcp_sim):
 
 
 def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, capsys):
+    from export_scenes import correction_checkpoint
+
     from torchcontact.export import export_residual_checkpoint
-    from torchcontact.residual import ResidualMLP, feature_names, save_residual_model
 
     s = two_sensors
     model = s["model"]
-    names = feature_names(model.joint_names, ["temperature"])
-    torch.manual_seed(0)
-    mlp = ResidualMLP(len(names), 8, 1)
-    with torch.no_grad():  # a constant correction of the tool reading: [0, 0, 1 N, 0, 0, 0]
-        for p in mlp.parameters():
-            p.zero_()
-        mlp.set_normalisation(torch.zeros(4, len(names)), torch.tensor([[0.0, 0, 1, 0, 0, 0]] * 4))
-    ckpt = save_residual_model(
-        tmp_path / "ck",
-        mlp,
-        {
-            "features": names,
-            "sensor": "tool_ft",
-            "joint_names": list(model.joint_names),
-            "robot_sha256": model.urdf_sha256,
-        },
+    # a correction stack of the tool reading that is the constant [0, 0, 1 N, 0, 0, 0] and reads
+    # the extra column temperature
+    ckpt = correction_checkpoint(
+        tmp_path / "ck", model, "tool_ft", "mlp", constant=[0, 0, 1, 0, 0, 0]
     )
-    export_residual_checkpoint(ckpt, tmp_path / "res.onnx")
+    export_residual_checkpoint(ckpt, tmp_path / "res.onnx", model)
     offset = np.array([0.0, 0, 1, 0, 0, 0])
     sims = {
         n: tcp_sim(
@@ -295,7 +288,11 @@ def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, ca
         for n in ("base_ft", "tool_ft")
     }
     spec = tmp_path / "contacts.json"
-    spec.write_text(json.dumps({"positions": s["pos"].tolist(), "active": [1, 1]}))
+    contacts = [  # the contact-spec format: the hand's force and the tool's wrench
+        {"link": "hand_skin", "kind": "force", "position": s["pos"][0].tolist()},
+        {"link": "tool", "kind": "wrench", "position": s["pos"][1].tolist()},
+    ]
+    spec.write_text(json.dumps({"contact": contacts}))
     port = _free_udp_port()
     stop = threading.Event()
     sender = threading.Thread(target=_sender, args=(s["q"], port, stop), daemon=True)
@@ -349,7 +346,7 @@ def test_run_cli_several_sensors_and_residual(two_sensors, tcp_sim, tmp_path, ca
                 str(s["path"]),
             ]
         )
-        == 1
+        == 2  # a usage error
     )
     assert "missing ['tool_ft']" in capsys.readouterr().err
 

@@ -9,7 +9,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from export_scenes import LAYOUTS, reference, robot_model, scene
+from export_scenes import LAYOUTS, correction_checkpoint, reference, robot_model, scene
 
 import torchcontact as tc
 from torchcontact.errors import InputError, ModelMismatchError
@@ -92,7 +92,7 @@ def test_refuses_another_robot_or_layout(exports, tmp_path):
     onnx.save(old, str(tmp_path / "old.onnx"))
     with pytest.raises(ModelMismatchError, match="re-export"):
         EstimatorRuntime(tmp_path / "old.onnx")
-    with pytest.raises(ModelMismatchError, match="no such file"):
+    with pytest.raises(InputError, match="no such file"):
         EstimatorRuntime(tmp_path / "none.onnx")
 
 
@@ -147,26 +147,16 @@ def test_input_errors_name_the_input(exports):
 
 @pytest.fixture(scope="module")
 def residuals(tmp_path_factory):
-    """Residual checkpoints of the bundled arm (MLP and GRU, random weights) and their graphs."""
+    """Correction stacks of the bundled arm (offset + MLP, offset + GRU; random weights, an extra
+    column) as checkpoints and as their graphs (``export_residual_checkpoint``)."""
     from torchcontact.export import export_residual_checkpoint
-    from torchcontact.residual import ResidualGRU, ResidualMLP, feature_names, save_residual_model
 
     d = tmp_path_factory.mktemp("residual")
     model = robot_model("tcarm")
-    names = feature_names(model.joint_names, ["temperature"])
     out = {}
     for kind in ("mlp", "gru"):
-        torch.manual_seed(3)
-        mod = ResidualMLP(len(names), 16, 2) if kind == "mlp" else ResidualGRU(len(names), 8, 1)
-        mod.set_normalisation(torch.randn(64, len(names)) * 2, torch.randn(64, 6) * 3)
-        meta = {
-            "features": names,
-            "joint_names": list(model.joint_names),
-            "sensor": "base_ft",
-            "robot_sha256": model.urdf_sha256,
-        }
-        ckpt = save_residual_model(d / kind, mod, meta)
-        export_residual_checkpoint(ckpt, d / f"{kind}.onnx")
+        ckpt = correction_checkpoint(d / kind, model, "base_ft", kind)
+        export_residual_checkpoint(ckpt, d / f"{kind}.onnx", model)
         out[kind] = (ckpt, d / f"{kind}.onnx")
     return out
 
@@ -185,29 +175,29 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
     inside = EstimatorRuntime(exports.path("tcarm", residual=str(graph)), robot="tcarm")
     chained = EstimatorRuntime(exports.path("tcarm"), robot="tcarm", residual=graph)
     assert inside.extra == chained.extra == ("temperature",)
-    # reference: the correction graph's own output (float32), subtracted, then the torch
-    # estimator in float64; a GRU keeps its state from frame to frame
+    # reference: the correction graph's own output (float32, raw joint state in), subtracted,
+    # then the torch estimator in float64; a GRU keeps its state from frame to frame
     sess = ort.InferenceSession(str(graph), providers=["CPUExecutionProvider"])
-    corr = ResidualCorrection.load(ckpt)
-    feats = (
-        corr.features(
-            *(torch.as_tensor(x[k]) for k in ("q", "qd", "qdd")),
-            {"temperature": torch.as_tensor(temp)},
-        )
-        .numpy()
-        .astype(np.float32)
-    )
+    names = [i.name for i in sess.get_inputs()]
+    assert names == ["q", "qd", "qdd", "extra"] + (["h_in"] if kind == "gru" else [])
     h = np.zeros((1, 1, 8), np.float32)
     fixed = dict(x)
     fixed["ft"] = x["ft"].copy()
     for i in range(8):
-        o = sess.run(None, {"features": feats[i : i + 1], **({"h_in": h} if kind == "gru" else {})})
+        feed = {k: x[k][i : i + 1].astype(np.float32) for k in ("q", "qd", "qdd")}
+        feed["extra"] = np.array([[temp[i]]], np.float32)
+        if kind == "gru":
+            feed["h_in"] = h
+        o = sess.run(None, feed)
         if kind == "gru":
             h = o[1]
         fixed["ft"][i, 0] -= o[0][0]
-    # and the torch module agrees with its graph (float32)
-    torch_corr = corr.residual(torch.as_tensor(feats)).numpy()
-    np.testing.assert_allclose(x["ft"][:, 0] - fixed["ft"][:, 0], torch_corr, atol=1e-4)
+    # and the torch correction stack agrees with its graph (float32)
+    corr = ResidualCorrection.load(ckpt, robot_model("tcarm"))
+    want = corr.correction(
+        *(torch.as_tensor(x[k]) for k in ("q", "qd", "qdd")), {"temperature": torch.as_tensor(temp)}
+    )
+    np.testing.assert_allclose(x["ft"][:, 0] - fixed["ft"][:, 0], want.numpy(), atol=1e-4)
     ref = reference("tcarm", fixed)
     for rt in (inside, chained):
         rt.reset()
@@ -239,7 +229,15 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
             ft_residual=x["ft_residual"],
             extra={"temperature": temp},
         )
+        # the reference evaluates the correction on the same batch (float32 sums in the
+        # batched MatMuls round differently from one frame at a time, ~1e-5 N)
+        feed = {k: x[k].astype(np.float32) for k in ("q", "qd", "qdd")}
+        (corr_b,) = sess.run(None, {**feed, "extra": temp[:, None].astype(np.float32)})
+        fixed["ft"] = x["ft"].copy()
+        fixed["ft"][:, 0] -= corr_b
+        ref = reference("tcarm", fixed)
         np.testing.assert_allclose(b["force"], ref.force.numpy(), atol=1e-9)
+        np.testing.assert_allclose(b["joint_torques"], ref.joint_torques.numpy(), atol=1e-9)
 
 
 def test_residual_for_another_robot_or_sensor_is_refused(exports, residuals, tmp_path):

@@ -53,7 +53,7 @@ def test_sigkill_then_resume_equals_uninterrupted(model, tmp_path):
     while time.monotonic() < deadline and proc.poll() is None:
         if sidecar.exists():
             try:
-                done = json.loads(sidecar.read_text())["chunks_done"]
+                done = json.loads(sidecar.read_text())["parts_done"]
             except (ValueError, KeyError):
                 done = 0
             if done >= 2:

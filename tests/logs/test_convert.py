@@ -17,6 +17,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from torchcontact.cli import main  # noqa: E402
 from torchcontact.logs import estimate_file  # noqa: E402
 from torchcontact.logs.convert import ConvertError, convert  # noqa: E402
+from torchcontact.robots import tcarm_path  # noqa: E402
 
 N = 120
 
@@ -31,7 +32,10 @@ def _frames(sim_log):
     return names, t, q, qd, ft
 
 
-def _write_bag(kind, path, sim_log):
+def _write_bag(kind, path, sim_log, publishers="one", frame_id="base_ft"):
+    """``publishers``: "one" (the arm), "gripper" (the arm plus an extra gripper joint in the
+    same messages), "two" (arm and gripper drivers publishing separately on /joint_states, the
+    gripper at a third of the rate and with other stamps)."""
     ros1 = kind == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
@@ -40,21 +44,28 @@ def _write_bag(kind, path, sim_log):
     # joint names in another order than the model's: the pipeline maps them by name
     perm = np.arange(len(names))[::-1]
 
-    def header(tt):
+    def header(tt, fid=frame_id):
         stamp = Time(sec=int(tt // 10**9), nanosec=int(tt % 10**9))
         if ros1:
-            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="base_ft")
-        return T["std_msgs/msg/Header"](stamp=stamp, frame_id="base_ft")
+            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=fid)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=fid)
 
+    JS = T["sensor_msgs/msg/JointState"]
     msgs = []
     for i in range(N):
-        js = T["sensor_msgs/msg/JointState"](
-            header=header(t[i]),
-            name=[names[j] for j in perm],
-            position=q[i, perm],
-            velocity=qd[i, perm],
-            effort=np.zeros(0),
-        )
+        arm = [names[j] for j in perm]
+        if publishers == "gripper":  # one message with an extra joint
+            js = JS(header=header(t[i]), name=[*arm, "gripper_finger"],
+                    position=np.r_[q[i, perm], 0.01], velocity=np.r_[qd[i, perm], 0.0],
+                    effort=np.zeros(0))  # fmt: skip
+        else:
+            js = JS(header=header(t[i]), name=arm, position=q[i, perm], velocity=qd[i, perm],
+                    effort=np.zeros(0))  # fmt: skip
+        if publishers == "two" and i % 3 == 0:  # the gripper's driver, stamps in between
+            tg = t[i] + 3_000_000
+            g = JS(header=header(tg), name=["gripper_finger"], position=np.array([0.02]),
+                   velocity=np.zeros(0), effort=np.zeros(0))  # fmt: skip
+            msgs += [("/joint_states", "sensor_msgs/msg/JointState", tg, g)]
         V3 = T["geometry_msgs/msg/Vector3"]
         w = T["geometry_msgs/msg/WrenchStamped"](
             header=header(t[i]),
@@ -113,6 +124,62 @@ def test_bag_to_log_and_estimate(kind, sim_log, model, tmp_path):
     assert set(pq.read_table(res["output"])["status"].to_pylist()) == {"ok"}
 
 
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+@pytest.mark.parametrize("publishers", ["gripper", "two"])
+def test_extra_joints_and_two_publishers_convert_and_estimate(
+    kind, publishers, sim_log, model, tmp_path
+):
+    bag = tmp_path / ("in.bag" if kind == "ros1" else "bag2")
+    names, t, q = _write_bag(kind, bag, sim_log, publishers=publishers)
+    out = tmp_path / "log.parquet"
+    robot = str(tcarm_path())
+    s = convert(bag, out, wrench_topics=["/ft"], robot=robot)  # the robot's joints, its order
+    assert s["joints"] == list(model.joint_names) and "ft.base_ft" in s["columns"]
+    tab = pq.read_table(out)
+    np.testing.assert_allclose(np.stack(tab["q"].to_numpy(zero_copy_only=False)), q, atol=1e-12)
+    assert "qd" in tab.column_names  # every arm message had velocities
+    res = estimate_file(out, model, tmp_path / "est.parquet")
+    assert set(pq.read_table(res["output"])["status"].to_pylist()) == {"ok"}
+    # without a robot, every joint is kept (the gripper's too), or as selected by name
+    s = convert(bag, tmp_path / "all.parquet", wrench_topics=["/ft"])
+    assert s["joints"][-1] == "gripper_finger" and len(s["joints"]) == len(names) + 1
+    g = np.stack(pq.read_table(tmp_path / "all.parquet")["q"].to_numpy(zero_copy_only=False))[:, -1]
+    assert np.allclose(g, 0.01 if publishers == "gripper" else 0.02)
+    if publishers == "two":  # the gripper publishes no velocities: qd is left to the estimator
+        assert "qd" not in pq.read_schema(tmp_path / "all.parquet").names
+    s = convert(
+        bag, tmp_path / "sel.parquet", wrench_topics=["/ft"], drop_joints=["gripper_finger"]
+    )
+    assert s["joints"] == names[::-1]
+    s = convert(bag, tmp_path / "two.parquet", wrench_topics=["/ft"], joints=[names[1], names[0]])
+    assert s["joints"] == [names[1], names[0]]
+
+
+def test_joint_selection_errors(sim_log, tmp_path, capsys):
+    bag = tmp_path / "b.bag"
+    _write_bag("ros1", bag, sim_log, publishers="two")
+    with pytest.raises(ConvertError, match=r"joints \['nope'\] of --joints are not in the input"):
+        convert(bag, tmp_path / "o.parquet", wrench_topics=["/ft"], joints=["nope"])
+    with pytest.raises(ConvertError, match=r"--drop-joints \['nope'\] are not in the input"):
+        convert(bag, tmp_path / "o.parquet", wrench_topics=["/ft"], drop_joints=["nope"])
+    args = ["convert", str(bag), "--out", str(tmp_path / "o.parquet"), "--wrench", "/ft"]
+    assert main([*args, "--joints", "a,b"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "'a', 'b'" in err[0]
+    assert main([*args, "--joints", "a", "--robot", str(tcarm_path())]) == 2
+    assert main([*args, "--out", str(bag)]) == 2  # the output would replace the bag
+    assert "is the input" in capsys.readouterr().err
+
+
+def test_sensor_column_named_after_the_robot_sensor_frame(sim_log, tmp_path):
+    bag = tmp_path / "b.bag"
+    _write_bag("ros1", bag, sim_log, frame_id="ft_plate")  # base_ft's child link
+    s = convert(bag, tmp_path / "o.parquet", wrench_topics=["/ft"], robot=str(tcarm_path()))
+    assert "ft.base_ft" in s["columns"]
+    s = convert(bag, tmp_path / "p.parquet", wrench_topics=["/ft"])  # no robot: the frame_id
+    assert "ft.ft_plate" in s["columns"]
+
+
 def test_sensor_name_from_frame_id(sim_log, tmp_path):
     bag = tmp_path / "b.bag"
     names, t, q = _write_bag("ros1", bag, sim_log)
@@ -125,6 +192,7 @@ def test_csv_and_toml_spec(tmp_path, capsys):
     spec.write_text(
         '[[contact]]\nlink = "hand_skin"\nposition = [0, 0, 0]\nstart_ns = 10\nend_ns = 20\n'
     )
+
     csv = tmp_path / "log.csv"
     rows = ["t_ns,q.a,q.b,ft.s.fx,ft.s.fy,ft.s.fz,ft.s.mx,ft.s.my,ft.s.mz"]
     rows += [f"{i * 10},{i},{-i},1,2,3,4,5,6" for i in range(4)]
@@ -135,6 +203,15 @@ def test_csv_and_toml_spec(tmp_path, capsys):
     assert json.loads(tab.schema.metadata[b"torchcontact.joint_names"]) == ["a", "b"]
     assert [len(c) for c in tab["contacts"].to_pylist()] == [0, 1, 1, 0]
     assert tab["ft.s"][0].as_py() == [1, 2, 3, 4, 5, 6]
+    bad = tmp_path / "bad.json"
+    bad.write_text(
+        '{"contact": [{"link": "hand_skin", "kind": "force_dir", "position": [0, 0, 0]}]}'
+    )
+    assert (
+        main(["convert", str(csv), "--out", str(tmp_path / "b.parquet"), "--contacts", str(bad)])
+        == 2
+    )
+    assert "contact 0: a force_dir contact needs a direction" in capsys.readouterr().err
 
 
 def test_convert_errors_name_the_file(tmp_path, sim_log):

@@ -6,8 +6,16 @@ import pyarrow.parquet as pq
 import pytest
 
 import torchcontact as tc
+from torchcontact.errors import InputError
 from torchcontact.logs import LogError, estimate_file
-from torchcontact.logs.format import META_DERIVED, META_URDF_SHA256, META_VERSION, fixed_list
+from torchcontact.logs.format import (
+    META_DERIVED,
+    META_URDF_SHA256,
+    META_VERSION,
+    fixed_list,
+    read_journal,
+)
+from torchcontact.status import status_messages
 
 
 def _contacts(path):
@@ -60,7 +68,7 @@ def test_joint_columns_reordered_by_name_and_plain_lists(model, sim_log, tmp_pat
     )
 
 
-@pytest.mark.parametrize("change,match", [("drop", "missing \\['wrist_roll'\\]"), ("add", "extra")])
+@pytest.mark.parametrize("change,match", [("drop", "lacks joints \\['wrist_roll'\\]"), ("add", "extra")])
 def test_missing_or_extra_joints_are_clear_errors(model, sim_log, tmp_path, change, match):
     tab = pq.read_table(sim_log)
     names = list(model.joint_names)
@@ -112,16 +120,22 @@ def test_bad_frames_get_a_status_and_the_rest_is_processed(model, sim_log, tmp_p
     path = tmp_path / "bad_frames.parquet"
     pq.write_table(pa.table(cols).replace_schema_metadata(tab.schema.metadata), path)
     out = pq.read_table(estimate_file(path, model, tmp_path / "o.parquet", batch_size=64)["output"])
-    status = out["status"].to_pylist()
-    assert status[10] == "non-finite F/T reading"
-    assert status[20] == "ft.base_ft is not 6 floats"
-    assert status[30] == "unknown link 'no_such_link'"
-    assert status[40] == "link 'base_link' is outside every F/T sensor's subtree"
-    assert "direction" in status[50]
-    bad = {10, 20, 30, 40, 50}
+    code = out["status_code"].to_numpy()
+    status, detail = out["status"].to_pylist(), out["status_detail"].to_pylist()
+    # the text is the code's, as in Python and ONNX; the detail says what the pipeline found
+    assert all(s == status_messages(int(c)) for s, c in zip(status, code, strict=True))
+    assert code[10] == 1 and detail[10] is None  # NaN reading: the estimator's own bit
+    assert code[20] == 1 and detail[20] == "ft.base_ft is not 6 floats"
+    assert code[30] == 128 and detail[30] == "unknown link 'no_such_link'"
+    assert (
+        code[40] == 128 and detail[40] == "link 'base_link' is outside every F/T sensor's subtree"
+    )
+    assert code[50] == 4 and detail[50] == "force_dir contact without a 3-float direction"
+    bad = [10, 20, 30, 40, 50]
+    assert np.count_nonzero(code) == 5 and set(np.flatnonzero(code)) == set(bad)
     assert all(s == "ok" for i, s in enumerate(status) if i not in bad)
     jt = np.stack(out["joint_torques"].to_numpy(zero_copy_only=False))
-    assert np.isnan(jt[[10, 20, 30, 40, 50]]).all() and np.isfinite(jt[[11, 21, 31]]).all()
+    assert np.isnan(jt[bad]).all() and np.isfinite(jt[[11, 21, 31]]).all()
     assert np.isnan(out["contacts"][30].as_py()[0]["force"]).all()
 
 
@@ -143,13 +157,141 @@ def test_qd_qdd_derived_from_q_when_missing(model, sim_log, sim_log_q_only, tmp_
     assert not np.allclose(ja, je, rtol=0, atol=1e-12)
 
 
-def test_no_contacts_column(model, sim_log, tmp_path):
+def test_no_contacts_column_warns_once(model, sim_log, tmp_path):
     tab = pq.read_table(sim_log).drop_columns(["contacts"])
     path = tmp_path / "nc.parquet"
     pq.write_table(tab, path)
-    out = pq.read_table(estimate_file(path, model, tmp_path / "o.parquet")["output"])
+    with pytest.warns(UserWarning, match="no 'contacts' column") as record:
+        s = estimate_file(path, model, tmp_path / "o.parquet", batch_size=64)  # 10 chunks
+    assert len([w for w in record if "contacts" in str(w.message)]) == 1
+    out = pq.read_table(s["output"])
     assert out["contacts"].to_pylist()[0] == [] and out["status"][0].as_py() == "ok"
 
 
 def test_fixed_list_helper_shape():
     assert fixed_list(np.zeros((4, 6))).type.list_size == 6
+
+
+def _with_column(tab, name, rows, path):
+    cols = {c: tab[c] for c in tab.column_names}
+    cols[name] = pa.array(rows, tab.schema.field(name).type)
+    pq.write_table(pa.table(cols).replace_schema_metadata(tab.schema.metadata), path)
+    return path
+
+
+def _outputs_finite(out):
+    """Per row: every output (joint torques, residuals, contact forces, moments) finite."""
+    jt = np.stack(out["joint_torques"].to_numpy(zero_copy_only=False))
+    ok = np.isfinite(jt).all(1)
+    for c in out.column_names:
+        if c.startswith("residual."):
+            ok &= np.isfinite(out[c].to_numpy(zero_copy_only=False))
+    for i, row in enumerate(out["contacts"].to_pylist()):
+        ok[i] &= all(np.isfinite(c["force"]).all() and np.isfinite(c["moment"]).all() for c in row)
+    return ok
+
+
+def test_overflow_and_implausible_inputs_get_a_status(model, sim_log, tmp_path):
+    tab = pq.read_table(sim_log)
+    qd = np.stack(tab["qd"].to_numpy(zero_copy_only=False))
+    qd[7, 2] = 1e200  # finite, overflows in the dynamics
+    qd[9, 0] = 6.0  # finite, beyond 2 x the URDF limit of 2.5 rad/s
+    ft = np.stack(tab["ft.base_ft"].to_numpy(zero_copy_only=False))
+    ft[12, 2] = 900.0  # beyond the range given below
+    path = _with_column(tab, "qd", qd.tolist(), tmp_path / "a.parquet")
+    path = _with_column(pq.read_table(path), "ft.base_ft", ft.tolist(), path)
+    rng = {"base_ft": [500.0] * 3 + [50.0] * 3}
+    out = pq.read_table(estimate_file(path, model, tmp_path / "o.parquet", ft_range=rng)["output"])
+    code, detail = out["status_code"].to_numpy(), out["status_detail"].to_pylist()
+    assert code[7] == 64 and code[9] == 64 and code[12] == 64
+    assert "qd of 'shoulder_yaw' beyond 2 x its URDF velocity limit 2.5" in detail[9]
+    assert "ft.base_ft beyond its range" in detail[12]
+    assert set(np.flatnonzero(code)) == {7, 9, 12}
+    # without the plausibility check the overflow itself is flagged: outputs NaN, bit 32
+    out = pq.read_table(
+        estimate_file(path, model, tmp_path / "p.parquet", velocity_margin=None)["output"]
+    )
+    code = out["status_code"].to_numpy()
+    assert code[7] == 32 and out["status"][7].as_py() == status_messages(32)
+    assert code[9] == 0 and set(np.flatnonzero(code)) == {7}
+    # status 0 always means finite outputs
+    ok = out["status_code"].to_numpy() == 0
+    assert (_outputs_finite(out)[ok]).all() and not _outputs_finite(out)[7]
+
+
+def test_corrupted_input_is_detected_and_the_chunks_before_are_kept(model, sim_log, tmp_path):
+    from torchcontact.logs.format import write_table
+
+    # written by torchcontact (page checksums), small row groups so the damage is mid-file
+    path = write_table(pq.read_table(sim_log), tmp_path / "in.parquet", row_group_size=100)
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid : mid + 2000] = np.random.default_rng(1).integers(0, 256, 2000, np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    out = tmp_path / "o.parquet"
+    with pytest.raises(LogError, match=r"in.parquet: corrupted data in row group \d") as e:
+        estimate_file(path, model, out, batch_size=50)
+    assert "chunks are estimated in" in str(e.value)
+    parts = sorted((tmp_path / "o.parquet.partial").glob("part-*.arrow"))
+    assert parts and not out.exists()  # nothing complete-looking, the processed chunks kept
+    assert all(read_journal(p).num_rows == 50 for p in parts)
+
+
+def test_garbage_values_without_checksums_never_report_ok_with_nan(model, sim_log, tmp_path):
+    """A file written by another tool (no page checksums): bytes of a value page overwritten
+    with garbage decode silently; those frames must not read "ok" with non-finite outputs."""
+    import struct
+
+    path = tmp_path / "plain.parquet"
+    pq.write_table(
+        pq.read_table(sim_log), path, row_group_size=100, compression="none", use_dictionary=False
+    )
+    meta = pq.ParquetFile(path).metadata
+    leaf = [meta.schema.column(i).path for i in range(meta.num_columns)].index(
+        "ft.base_ft.list.element"
+    )
+    chunk = meta.row_group(3).column(leaf)  # rows 300-399
+    end = chunk.data_page_offset + chunk.total_compressed_size
+    data = bytearray(path.read_bytes())
+    garbage = struct.pack("<d", 1e308) * 6 + struct.pack("<d", float("nan")) * 6  # 2 frames
+    data[end - len(garbage) : end] = garbage  # the last two frames' readings of that page
+    path.write_bytes(bytes(data))
+    s = estimate_file(path, model, tmp_path / "o.parquet", batch_size=64)
+    out = pq.read_table(s["output"])
+    code = out["status_code"].to_numpy()
+    assert code[398] & 32 and code[399] & 1  # overflow from finite garbage; NaN garbage
+    ok = code == 0
+    assert _outputs_finite(out)[ok].all() and not _outputs_finite(out)[[398, 399]].any()
+    assert s["bad_now"] == int((~ok).sum()) >= 2
+
+
+def test_output_that_is_the_input_is_refused(model, sim_log, tmp_path):
+    before = sim_log.read_bytes()
+    with pytest.raises(InputError, match="is the input"):
+        estimate_file(sim_log, model, sim_log)
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "a.parquet").write_bytes(before)
+    from torchcontact.logs import estimate_files
+
+    with pytest.raises(InputError, match="is the input"):  # out/<name> would be the input
+        estimate_files([folder / "a.parquet", sim_log], tcarm(), folder)
+    assert sim_log.read_bytes() == before and (folder / "a.parquet").read_bytes() == before
+    assert sorted(p.name for p in folder.iterdir()) == ["a.parquet"]
+
+
+def test_bad_options_are_refused_before_anything_is_written(model, sim_log, tmp_path):
+    out = tmp_path / "o.parquet"
+    with pytest.raises(InputError, match="--batch-size must be an integer >= 1"):
+        estimate_file(sim_log, model, out, batch_size=0)
+    with pytest.raises(InputError, match="--velocity-margin must be > 0"):
+        estimate_file(sim_log, model, out, velocity_margin=-1.0)
+    with pytest.raises(InputError, match="--ft-range wrist: not a sensor in use"):
+        estimate_file(sim_log, model, out, ft_range={"wrist": 10.0})
+    assert list(tmp_path.iterdir()) == []  # no .partial that would block a rerun
+    s = estimate_file(sim_log, model, out, batch_size=256)
+    assert s["frames"] == 600 and s["ok_now"] == 600
+
+
+def tcarm():
+    return tc.robots.tcarm_path()

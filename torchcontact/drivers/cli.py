@@ -6,13 +6,18 @@ Registered by :func:`add_parser` from ``torchcontact/cli.py``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
-from torchcontact.drivers.profiles import ProfileError, available_profiles
+import numpy as np
+
+from torchcontact.drivers.profiles import available_profiles
+from torchcontact.errors import InputError, TorchContactError
 
 
 def _is_loopback(host: str) -> bool:
@@ -29,7 +34,7 @@ def _make_source(args: argparse.Namespace) -> Any:
     name = args.sensor or profile.name.replace("-", "_")
     if args.tcp:
         if args.stream:
-            raise SystemExit("--stream needs a serial port (--port): stream mode is RS-485 only")
+            raise InputError("--stream needs a serial port (--port): stream mode is RS-485 only")
         host, port = parse_hostport(args.tcp)
         return ModbusFTSensor(profile, host=host, tcp_port=port, timeout=args.timeout, name=name)
     if profile.stream is not None or profile.name.startswith("robotiq"):
@@ -37,8 +42,40 @@ def _make_source(args: argparse.Namespace) -> Any:
             args.port, stream=args.stream, profile=profile, timeout=args.timeout, name=name
         )
     if args.stream:
-        raise SystemExit(f"profile {profile.name!r} has no stream mode")
+        raise InputError(f"profile {profile.name!r} has no stream mode")
     return ModbusFTSensor(profile, port=args.port, timeout=args.timeout, name=name)
+
+
+@contextlib.contextmanager
+def _user_errors() -> Iterator[None]:
+    """ValueErrors of the driver and estimator set-up are user errors (bad port, spec, module)."""
+    try:
+        yield
+    except TorchContactError:
+        raise
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+
+
+def _onnx_estimator(path: str, contacts: str | None) -> Any:
+    """The exported estimator with the contact spec's records placed in the graph's slots."""
+    from torchcontact.contacts import SlotLayout, load_contact_spec
+    from torchcontact.drivers.live import OnnxEstimator
+
+    est = OnnxEstimator(path)
+    if contacts is None:
+        return est  # every slot inactive
+    rt = est.runtime
+    records = load_contact_spec(contacts).static()
+    layout = SlotLayout(rt.slot_links, rt.slot_kinds)
+    arrays, slot = layout.fill(records, 1)
+    if (slot < 0).any():
+        extra = [f"{records.links[i]}:{records.kinds[i]}" for i in np.flatnonzero(slot < 0)]
+        raise InputError(
+            f"--contacts {contacts}: {extra} find no free slot in {path}, whose slots are"
+            f" {[f'{a}:{b}' for a, b in zip(layout.links, layout.kinds, strict=True)]}"
+        )
+    return OnnxEstimator(path, {k: v[0] for k, v in arrays.items()})
 
 
 def _add_source_args(p: argparse.ArgumentParser) -> None:
@@ -79,7 +116,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.tcp:
         host, port = parse_hostport(args.tcp, allow_zero=True)
         if not _is_loopback(host) and not args.allow_remote:
-            raise SystemExit(f"refusing to serve on {host}: loopback only (--allow-remote)")
+            raise InputError(f"refusing to serve on {host}: loopback only (--allow-remote)")
         sim: Any = TcpSimulator(args.profile, sig, faults, host=host, port=port).start()
         print(f"serving {args.profile} on tcp {sim.host}:{sim.port}", flush=True)
     else:
@@ -105,16 +142,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_read(args: argparse.Namespace) -> int:
     """Read a sensor, print live values and statistics, optionally log to Parquet."""
-    from torchcontact.drivers.base import FTConnectionError
     from torchcontact.drivers.log import FTLogWriter
 
-    try:
+    with _user_errors():
         src = _make_source(args)
         log = FTLogWriter(args.out, src.name) if args.out else None
         src.open()
-    except (FTConnectionError, ProfileError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
     if getattr(src, "identity", None):
         ident = {k: v for k, v in src.identity.items() if k != "raw"}
         print(f"identity: {json.dumps(ident)}", flush=True)
@@ -156,50 +189,56 @@ def cmd_read(args: argparse.Namespace) -> int:
 def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
     """``run --onnx``: the exported estimator and its F/T source (a group for several sensors).
 
-    The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the graph's first);
-    ``--source NAME=ADDRESS`` adds the others (``tcp://HOST:PORT`` or a serial port, same
+    ``--contacts SPEC`` (the contact-spec file) fills the graph's slots; without it every slot is
+    inactive. The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the graph's
+    first); ``--source NAME=ADDRESS`` adds the others (``tcp://HOST:PORT`` or a serial port, same
     profile). ``--extra NAME=VALUE`` gives constant extra inputs of the residual corrections.
     """
+    from torchcontact.contacts import SlotLayout, load_contact_spec
     from torchcontact.drivers.live import OnnxEstimator, SensorGroup
 
-    spec: dict[str, Any] | None = None
-    if args.contacts:
-        with open(args.contacts) as f:
-            spec = json.load(f)
-    if args.extra:
-        extra = {}
-        for item in args.extra:
-            name, sep, value = item.partition("=")
-            try:
-                extra[name] = float(value)
-            except ValueError:
-                raise ValueError(f"--extra takes NAME=VALUE (a number), got {item!r}") from None
-            if not sep or not name:
-                raise ValueError(f"--extra takes NAME=VALUE, got {item!r}")
-        spec = dict(spec or {"positions": None})
-        spec["extra"] = extra
+    extra = {}
+    for item in args.extra or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise InputError(f"--extra takes NAME=VALUE, got {item!r}")
+        try:
+            extra[name] = float(value)
+        except ValueError:
+            raise InputError(f"--extra takes NAME=VALUE (a number), got {item!r}") from None
     est = OnnxEstimator(args.onnx, None, robot=args.robot, residual=args.residual or None)
     rt = est.runtime
-    if spec is not None:
-        if spec.get("positions") is None:
-            spec["positions"] = [[0.0, 0.0, 0.0]] * rt.K
-            spec.setdefault("active", [0.0] * rt.K)
-        est._fixed = est._check(spec)
+    spec: dict[str, Any] = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
+    if args.contacts:
+        records = load_contact_spec(args.contacts).static()
+        layout = SlotLayout(rt.slot_links, rt.slot_kinds)
+        arrays, slot = layout.fill(records, 1)
+        if (slot < 0).any():
+            left = [f"{records.links[i]}:{records.kinds[i]}" for i in np.flatnonzero(slot < 0)]
+            slots = [f"{a}:{b}" for a, b in zip(layout.links, layout.kinds, strict=True)]
+            raise InputError(
+                f"--contacts {args.contacts}: {left} find no free slot in {args.onnx}, whose"
+                f" slots are {slots}"
+            )
+        spec = {k: v[0] for k, v in arrays.items()}
+    if extra:
+        spec["extra"] = extra
+    est.set_inputs(spec)
     primary = args.sensor or rt.sensor_names[0]
     if primary not in rt.sensor_names:
-        raise ValueError(f"--sensor {primary!r} is not one of the graph's {list(rt.sensor_names)}")
+        raise InputError(f"--sensor {primary!r} is not one of the graph's {list(rt.sensor_names)}")
     addresses = {primary: None}
     for item in args.source or []:
         name, sep, address = item.partition("=")
         if not sep or name not in rt.sensor_names:
-            raise ValueError(
+            raise InputError(
                 f"--source takes SENSOR=ADDRESS with SENSOR one of"
                 f" {list(rt.sensor_names)}, got {item!r}"
             )
         addresses[name] = address
     missing = [s for s in rt.sensor_names if s not in addresses]
     if missing:
-        raise ValueError(
+        raise InputError(
             f"{args.onnx} reads sensors {list(rt.sensor_names)}; give the others with --source"
             f" NAME=tcp://HOST:PORT (or a serial port): missing {missing}"
         )
@@ -218,7 +257,6 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
-    from torchcontact.drivers.base import FTConnectionError
     from torchcontact.drivers.live import (
         JsonLinesPublisher,
         LiveLoop,
@@ -230,29 +268,32 @@ def cmd_run(args: argparse.Namespace) -> int:
     from torchcontact.drivers.modbus import parse_hostport
     from torchcontact.errors import ModelMismatchError
 
-    try:
+    with _user_errors():
+        if args.contacts and not args.onnx:
+            raise InputError("--contacts applies to --onnx (the exported estimator) only")
         if args.onnx:
             estimator, src = _onnx_estimator(args)
         else:
             if args.source or args.residual or args.robot or args.extra:
-                raise ValueError("--source, --residual, --robot and --extra go with --onnx")
+                raise InputError("--source, --residual, --robot and --extra go with --onnx")
             estimator = load_estimator(args.estimator)
+            src = None
+        joints_at = parse_hostport(args.joints.removeprefix("udp://")) if args.joints else None
+        publish_at = None
+        if args.publish != "stdout":
+            publish_at = parse_hostport(args.publish.removeprefix("udp://"))
+        publishers: list[Any] = []
+        if publish_at is None:
+            publishers.append(JsonLinesPublisher(sys.stdout))
+        else:
+            publishers.append(UdpPublisher(*publish_at, allow_remote=args.allow_remote))
+        if src is None:
             src = _make_source(args)
         src.open()
-    except (FTConnectionError, ProfileError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
     joints = None
-    if args.joints:
-        host, port = parse_hostport(args.joints.removeprefix("udp://"))
-        joints = UdpJointSource(host, port)
+    if joints_at is not None:
+        joints = UdpJointSource(*joints_at)
         print(f"joint states on udp {joints.address[0]}:{joints.address[1]}", file=sys.stderr)
-    publishers: list[Any] = []
-    if args.publish == "stdout":
-        publishers.append(JsonLinesPublisher(sys.stdout))
-    else:
-        host, port = parse_hostport(args.publish.removeprefix("udp://"))
-        publishers.append(UdpPublisher(host, port, allow_remote=args.allow_remote))
     log = FTLogWriter(args.out, src.name) if args.out else None
     loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints)
     try:
@@ -293,7 +334,7 @@ def add_parser(subparsers: Any) -> None:
     sim.add_argument("--disconnect-every", type=float, default=0.0, help="unplug every S s")
     sim.add_argument("--disconnect-for", type=float, default=0.3, help="unplugged for S s")
     sim.add_argument("--streaming-at-start", action="store_true", help="start in stream mode")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=int, default=0, help="seed of the fault injection")
     sim.set_defaults(func=cmd_simulate)
 
     read = sensor_sub.add_parser("read", help="read a sensor, show values, log to Parquet")
@@ -337,9 +378,9 @@ def add_parser(subparsers: Any) -> None:
     )
     run.add_argument(
         "--contacts",
-        metavar="SPEC.json",
-        help='with --onnx: {"positions": [[x, y, z], ...] (m, per slot), "active": [1, 0, ...]};'
-        " default every slot inactive",
+        metavar="SPEC",
+        help='with --onnx: contact-spec file (TOML [[contact]] tables or JSON {"contact": [...]},'
+        " each with link, kind, position), placed in the graph's slots; default no contact",
     )
     run.add_argument("--joints", metavar="udp://HOST:PORT", help="joint-state UDP packets")
     run.add_argument("--require-joints", action="store_true", help="skip frames without joints")

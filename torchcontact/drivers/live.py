@@ -38,7 +38,7 @@ import numpy as np
 
 from torchcontact.drivers.base import FTSample, FTSource
 from torchcontact.drivers.log import FTLogWriter
-from torchcontact.errors import ModelMismatchError
+from torchcontact.errors import InputError, ModelMismatchError
 
 MAGIC = b"TCJS"
 VERSION = 1
@@ -371,10 +371,10 @@ class OnnxEstimator:
     ) -> None:
         import os
 
-        from torchcontact.runtime import EstimatorRuntime, ModelMismatchError
+        from torchcontact.runtime import EstimatorRuntime
 
         if not os.path.isfile(path):
-            raise ModelMismatchError(f"--onnx {path}: no such file")
+            raise InputError(f"--onnx {path}: no such file")
         self.runtime = EstimatorRuntime(
             path,
             robot,
@@ -389,6 +389,15 @@ class OnnxEstimator:
             self._fixed = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
         elif not callable(contacts):
             self._fixed = self._check(contacts)
+
+    def set_inputs(self, spec: dict[str, Any]) -> None:
+        """Use ``spec`` (the dict form of ``contacts`` above) for every following frame.
+
+        Raises:
+            InputError: a key the graph does not take or a value of the wrong shape.
+        """
+        self.contacts = spec
+        self._fixed = self._check(spec)
 
     _KEYS = (
         "positions",

@@ -1,5 +1,6 @@
 """Parquet logs of F/T frames in the project's log format.
 
+Written and read through :mod:`torchcontact.logs.format` (page checksums, atomic rename).
 One row per frame: ``t_ns`` (int64, host monotonic ns) and ``ft.<sensor>`` (fixed-size list of
 6 float64, [force; moment] in N and N m, sensor frame).
 """
@@ -30,11 +31,11 @@ class FTLogWriter:
     """
 
     def __init__(self, path: str | Path, sensor: str, batch: int = 1000) -> None:
-        import pyarrow as pa
+        from torchcontact.logs.format import ft_column, ft_log_schema
 
         self.path = Path(path)
-        self.column = f"ft.{sensor}"
-        self.schema = pa.schema([("t_ns", pa.int64()), (self.column, pa.list_(pa.float64(), 6))])
+        self.column = ft_column(sensor)
+        self.schema = ft_log_schema(sensor)
         self.batch = batch
         self._t: list[int] = []
         self._w: list[np.ndarray] = []
@@ -51,27 +52,29 @@ class FTLogWriter:
     def flush(self) -> None:
         """Write buffered rows."""
         import pyarrow as pa
-        import pyarrow.parquet as pq
+
+        from torchcontact.logs.format import LogWriter, fixed_list
 
         if self._writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._writer = pq.ParquetWriter(self.path, self.schema)
+            self._writer = LogWriter(self.path, self.schema)
         if not self._t:
             return
-        values = pa.array(np.concatenate(self._w), type=pa.float64())
         table = pa.table(
             {
                 "t_ns": pa.array(self._t, type=pa.int64()),
-                self.column: pa.FixedSizeListArray.from_arrays(values, 6),
+                self.column: fixed_list(np.stack(self._w)),
             },
             schema=self.schema,
         )
-        self._writer.write_table(table)
+        self._writer.write(table)
         self.rows += len(self._t)
         self._t, self._w = [], []
 
     def close(self) -> None:
-        """Flush and close the file (an empty log still gets its schema)."""
+        """Flush and close the file (an empty log still gets its schema).
+
+        The file is written as ``<path>.tmp`` and renamed to ``path`` here.
+        """
         self.flush()
         if self._writer is not None:
             self._writer.close()
@@ -85,24 +88,15 @@ class FTLogWriter:
 
 
 def read_ft_log(path: str | Path, sensor: str) -> tuple[np.ndarray, np.ndarray]:
-    """Read a log written by :class:`FTLogWriter`.
+    """Read a log written by :class:`FTLogWriter` (or any log with that sensor's column).
 
     Returns:
         ``t_ns`` (N,) int64 and wrenches (N, 6) float64 [force; moment], N and N m.
 
     Raises:
-        ValueError: If the columns are missing or not in the log format.
+        LogError: the file is not a readable log or lacks ``t_ns`` or ``ft.<sensor>``.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+    from torchcontact.logs.format import ft_column, read_log_columns
 
-    table = pq.read_table(path)
-    column = f"ft.{sensor}"
-    if "t_ns" not in table.column_names or column not in table.column_names:
-        raise ValueError(f"{path}: need columns t_ns and {column}; found {table.column_names}")
-    ftype = table.schema.field(column).type
-    if not (pa.types.is_fixed_size_list(ftype) and ftype.list_size == 6):
-        raise ValueError(f"{path}: {column} is {ftype}, expected fixed_size_list<double>[6]")
-    t = table.column("t_ns").to_numpy().astype(np.int64)
-    w = np.asarray(table.column(column).combine_chunks().flatten(), dtype=np.float64)
-    return t, w.reshape(-1, 6)
+    cols = read_log_columns(path, ["t_ns", ft_column(sensor)])
+    return cols["t_ns"], cols[ft_column(sensor)]

@@ -102,9 +102,9 @@ def parquet_signal(path: str | Path, sensor: str | None = None) -> Signal:
     Raises:
         ValueError: If the column is missing or empty, naming the columns present.
     """
-    import pyarrow.parquet as pq
+    from torchcontact.logs.format import open_log
 
-    table = pq.read_table(path)
+    table = open_log(path).read()  # the one Parquet reader (checksums verified)
     cols = [c for c in table.column_names if c.startswith("ft.")]
     col = f"ft.{sensor}" if sensor else (cols[0] if cols else None)
     if col is None or col not in table.column_names:

@@ -45,13 +45,14 @@ public façade.
 """
 
 from torchcontact.contacts import KINDS, Contacts
-from torchcontact.estimation.estimator import ContactEstimate, ContactEstimator
+from torchcontact.estimation.estimator import ConeStatus, ContactEstimate, ContactEstimator
 from torchcontact.estimation.layout import EstimationModel, Region, Slot
 from torchcontact.status import STATUS, status_messages
 
 __all__ = [
     "KINDS",
     "STATUS",
+    "ConeStatus",
     "ContactEstimate",
     "ContactEstimator",
     "Contacts",

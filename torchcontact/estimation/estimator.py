@@ -17,14 +17,15 @@ from torch import Tensor
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
 from torchcontact._internal import check_input, flatten_batch
-from torchcontact.contacts import Contacts
+from torchcontact.constrained import FrictionCones
+from torchcontact.contacts import KINDS, Contacts
 from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.estimation.programs import program
 from torchcontact.model import RobotModel
 
-__all__ = ["ContactEstimate", "ContactEstimator"]
+__all__ = ["ConeStatus", "ContactEstimate", "ContactEstimator"]
 
 
 class ContactEstimate(NamedTuple):
@@ -43,6 +44,11 @@ class ContactEstimate(NamedTuple):
             such frames are NaN.
         covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` from the F/T
             noise covariance, or None when not asked for.
+        cones: status of the friction-cone constrained estimate (``constraints=``), or None.
+        nullspace: sensor -> ``(*B, u, u)`` orthonormal basis of the null space of ``A`` among
+            the region's unknowns (``nullspace=True``), or None: the first ``nullity[sensor]``
+            columns are the basis vectors (combinations of contact forces the sensors cannot tell
+            apart), the rest zero. Rows follow :meth:`ContactEstimator.unknown_labels`.
     """
 
     force: Tensor
@@ -54,6 +60,29 @@ class ContactEstimate(NamedTuple):
     joint_torques: Tensor
     status: Tensor
     covariance: Tensor | None = None
+    cones: ConeStatus | None = None
+    nullspace: dict[str, Tensor] | None = None
+
+    @property
+    def nullity(self) -> dict[str, Tensor]:
+        """Sensor -> ``(*B,)`` dimension of the null space of ``A``: ``unknowns - rank``."""
+        return {s: self.unknowns[s] - self.rank[s] for s in self.rank}
+
+
+class ConeStatus(NamedTuple):
+    """Per-frame status of the friction-cone constrained estimate.
+
+    Attributes:
+        converged: sensor -> ``(*B,)`` bool, the interior-point residuals and gap met ``tol``.
+        iterations: sensor -> ``(*B,)`` int64, the iteration at which they first did (the
+            budget when never; 0 for a region without unknowns).
+        active: ``(*B, K)`` bool, the slot's cone constraint binds (its force is on the cone's
+            boundary or at its apex).
+    """
+
+    converged: dict[str, Tensor]
+    iterations: dict[str, Tensor]
+    active: Tensor
 
 
 class ContactEstimator:
@@ -149,6 +178,9 @@ class ContactEstimator:
         ft_covariance: Mapping[str, Tensor] | None = None,
         chunk_size: int | None = 8192,
         backend: str | None = None,
+        constraints: FrictionCones | None = None,
+        warm_start: tuple[Tensor, Tensor] | None = None,
+        nullspace: bool = False,
     ) -> ContactEstimate:
         """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
 
@@ -172,13 +204,25 @@ class ContactEstimator:
             chunk_size: frames per eager call (bounds memory); None for one go. Kernels stream
                 any batch in one call.
             backend: overrides the estimator's backend for this call.
+            constraints: :class:`~torchcontact.constrained.FrictionCones`: estimate with every
+                pushing slot's force inside its friction cone (``contacts.normals``,
+                ``friction`` or ``cone_angle``, ``pushing``): ``min |A x - b|^2 + eps |x|^2``
+                by a fixed-budget interior-point method (:mod:`torchcontact.constrained`); the
+                result's ``cones`` holds its status. None: the paper's pseudo-inverse.
+            warm_start: ``(force, moment)``, each ``(*B, K, 3)`` (link frame, e.g. a previous
+                frame's estimate): the constrained solver's starting point (frames with
+                non-finite values start from the pseudo-inverse solution).
+            nullspace: also return each region's null-space basis (``nullspace`` of the result).
 
         Returns:
             :class:`ContactEstimate`.
 
         Raises:
             InputError: wrong shapes/dtype/device, a missing sensor reading, a contact on an
-                unknown link or outside every sensor's subtree. Non-finite values, zero-length
+                unknown link or outside every sensor's subtree; with ``constraints``: missing
+                normals or friction, a zero normal or a friction coefficient that is not a
+                positive finite number on an active pushing slot, ``ft_covariance`` (not
+                propagated through the constrained solve). Non-finite values, zero-length
                 directions and implausible inputs do not raise: the frame gets a ``status`` and
                 NaN outputs, the other frames are unaffected.
         """
@@ -248,8 +292,28 @@ class ContactEstimator:
                     check_input(f"ft_covariance[{s!r}]", c, (6, 6), model, "(6, 6) or (*B, 6, 6)")
                     cov[:, i] = c.expand(*batch, 6, 6).reshape(n, 6, 6)
             tensors["ft_cov"] = cov.reshape(n, 36 * S)
+        cone_flags = None
+        if constraints is not None:
+            if not isinstance(constraints, FrictionCones):
+                raise InputError(
+                    f"constraints must be a torchcontact.constrained.FrictionCones, got"
+                    f" {type(constraints).__name__}"
+                )
+            if ft_covariance is not None:
+                raise InputError("ft_covariance is not propagated through the constrained solve")
+            cone_flags = constraints.resolved(dtype)
+            tensors.update(_cone_inputs(contacts, em.kinds, batch, tensors["active"], model))
+            if warm_start is not None:
+                if not isinstance(warm_start, (tuple, list)) or len(warm_start) != 2:
+                    raise InputError("warm_start must be a (force, moment) pair of (*B, K, 3)")
+                wf = per_frame("warm_start force", warm_start[0], (K, 3)).reshape(n, K, 3)
+                wm = per_frame("warm_start moment", warm_start[1], (K, 3)).reshape(n, K, 3)
+                tensors["warm"] = torch.cat([wf, wm], -1).reshape(n, 6 * K)
+        elif warm_start is not None:
+            raise InputError("warm_start needs constraints (it starts the constrained solver)")
         prog = program(em, "estimate", base is not None, tau_measured is not None,
-                       ft_covariance is not None)  # fmt: skip
+                       ft_covariance is not None, cone_flags, "warm" in tensors,
+                       bool(nullspace))  # fmt: skip
         out = _dyn._run(prog, tensors, self.backend if backend is None else backend, chunk_size)
         rank = out["rank"].round().to(torch.long)
         unknowns = out["unknowns"].round().to(torch.long)
@@ -265,7 +329,32 @@ class ContactEstimator:
             joint_torques=out["tau"].reshape(*batch, nv),
             status=out["status"][:, 0].round().to(torch.long).reshape(batch),
             covariance=None if ft_covariance is None else out["cov"].reshape(*batch, K, 6, 6),
-        )
+            cones=None if cone_flags is None else ConeStatus(
+                {s: out["converged"][:, i].reshape(batch) > 0.5 for i, s in enumerate(names)},
+                {s: out["iterations"][:, i].round().to(torch.long).reshape(batch)
+                 for i, s in enumerate(names)},
+                out["cone_active"].reshape(*batch, K) > 0.5,
+            ),
+            nullspace=None if not nullspace else _split_nullspace(em, out["nullspace"], batch),
+        )  # fmt: skip
+
+    def unknown_labels(self, contacts: Contacts) -> dict[str, list[str]]:
+        """Sensor -> names of its region's unknowns, the rows of ``ContactEstimate.nullspace``.
+
+        Example:
+            >>> import torchcontact as tc
+            >>> est = tc.ContactEstimator(tc.RobotModel.from_urdf(tc.robots.tcarm_path()))
+            >>> pos = torch.zeros(1, 3, dtype=torch.float64)
+            >>> est.unknown_labels(tc.Contacts(["hand_skin"], ["force"], pos))["base_ft"]
+            ['0:hand_skin.fx', '0:hand_skin.fy', '0:hand_skin.fz']
+        """
+        em = self.layout(contacts.links, contacts.kinds)
+        names = {"force": ("fx", "fy", "fz"), "force_dir": ("f",),
+                 "wrench": ("fx", "fy", "fz", "mx", "my", "mz"), "known": ()}  # fmt: skip
+        return {
+            s: [f"{k}:{em.slots[k].link}.{c}" for k in reg.slots for c in names[em.slots[k].kind]]
+            for s, reg in zip(self.sensor_names, em.regions, strict=True)
+        }
 
     def predict_ft(
         self,
@@ -322,3 +411,75 @@ class ContactEstimator:
         ft = out["ft"]
         return {s: ft[:, 6 * i : 6 * i + 6].reshape(*batch, 6)
                 for i, s in enumerate(self.sensor_names)}  # fmt: skip
+
+
+def _split_nullspace(em: EstimationModel, flat: Tensor, batch: torch.Size) -> dict[str, Tensor]:
+    out, start = {}, 0
+    for s, reg in zip(em.sensor_names, em.regions, strict=True):
+        u = sum(KINDS[em.slots[k].kind] for k in reg.slots)
+        out[s] = flat[:, start : start + u * u].reshape(*batch, u, u)
+        start += u * u
+    return out
+
+
+def _cone_inputs(
+    contacts: Contacts, kinds: Sequence[str], batch: torch.Size, active: Tensor, model: RobotModel
+) -> dict[str, Tensor]:
+    """``normal (N, 3K)``, ``friction (N, K)``, ``pushing (N, K)`` of the constrained program.
+
+    Raises:
+        InputError: bad shapes; missing normals or friction for pushing force/wrench slots; a
+            zero normal or a friction coefficient that is not finite and > 0 on an active
+            pushing slot (NaN normals are left to the per-frame status).
+    """
+    n, K = active.shape
+    dtype, device = model.dtype, model.device
+
+    def per_slot(name: str, v: object, default: float) -> Tensor:
+        if v is None:
+            return torch.full((n, K), default, dtype=dtype, device=device)
+        if not isinstance(v, Tensor):
+            return torch.full((n, K), float(v), dtype=dtype, device=device)
+        if v.shape not in ((K,), (*batch, K)):
+            raise InputError(f"contacts.{name} must be (K,) = ({K},) or (*B, K), got"
+                             f" {tuple(v.shape)}")  # fmt: skip
+        return v.to(device=device, dtype=dtype).expand(*batch, K).reshape(n, K)
+
+    pushing = per_slot("pushing", contacts.pushing, 1.0)
+    pushing = pushing * torch.tensor([k != "known" for k in kinds], dtype=dtype, device=device)
+    need = (pushing > 0.5) & torch.tensor([k in ("force", "wrench") for k in kinds],
+                                          device=device)  # fmt: skip
+    live = need & (active > 0.5)
+    if contacts.normals is None:
+        if bool(need.any()):
+            slots = sorted({int(k) for k in need.nonzero()[:, 1].tolist()})
+            raise InputError(f"constraints need contacts.normals for the pushing slots {slots}")
+        normal = torch.zeros(n, 3 * K, dtype=dtype, device=device)
+    else:
+        check_input("contacts.normals", contacts.normals, (K, 3), model, f"(*B, {K}, 3)",
+                    finite=False)  # fmt: skip
+        if contacts.normals.shape[:-2] != batch:
+            raise InputError(f"contacts.normals must be (*B, {K}, 3) with B={tuple(batch)}")
+        nrm = contacts.normals.reshape(n, K, 3)
+        zero = live & (nrm.abs().sum(-1) == 0)
+        if bool(zero.any()):
+            f, k = zero.nonzero()[0].tolist()
+            raise InputError(
+                f"contacts.normals: zero normal on pushing slot {k} ({contacts.links[k]!r}) in"
+                f" frame {f}; a friction cone needs a surface normal of nonzero length"
+            )
+        normal = nrm.reshape(n, 3 * K)
+    mu_raw = contacts.friction_coefficient()
+    if mu_raw is None and bool(need.any()):
+        raise InputError("constraints need contacts.friction (or contacts.cone_angle)")
+    name = "cone_angle" if contacts.cone_angle is not None else "friction"
+    mu = per_slot(name, mu_raw, 1.0)
+    bad = live & ~(torch.isfinite(mu) & (mu > 0))
+    if bool(bad.any()):
+        f, k = bad.nonzero()[0].tolist()
+        raise InputError(
+            f"contacts.{name}: slot {k} ({contacts.links[k]!r}) in frame {f} has friction"
+            f" coefficient {float(mu[f, k])!r}; it must be a finite number > 0"
+            " (cone half-angle in (0, pi/2))"
+        )
+    return {"normal": normal, "friction": mu, "pushing": pushing}

@@ -14,6 +14,7 @@ inputs once and writes every output once:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from torchcontact import dynamics as _dyn
@@ -22,6 +23,7 @@ from torchcontact import spatial as sp
 from torchcontact._scalar import (
     Scalar,
     add,
+    div,
     gt,
     isfinite,
     logical_and,
@@ -31,8 +33,10 @@ from torchcontact._scalar import (
     neg,
     select,
     sqrt,
+    sub,
     sum_,
 )
+from torchcontact.constrained import Cone, cone_rows, solve_cones
 from torchcontact.contacts import KINDS
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
@@ -66,15 +70,31 @@ def _bit(m: Scalar, value: float) -> Scalar:
 
 
 def estimate_program(
-    em: EstimationModel, moving_base: bool, torque_rows: bool, with_cov: bool
+    em: EstimationModel,
+    moving_base: bool,
+    torque_rows: bool,
+    with_cov: bool,
+    cones: tuple[int, float, float] | None = None,
+    warm: bool = False,
+    nullspace: bool = False,
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
     Inputs (per frame): ``q, qd, qdd`` (nv), ``ft0 ... ft{S-1}`` (6 each), ``pos`` (3K),
     ``active`` (K, 0/1), ``dir`` (3K, with ``force_dir`` slots), ``wrench`` (6K, with ``known``
     slots), ``omega, domega, proper_acc`` (3 each, moving base), ``tau_meas, tau_mask`` (nv each,
-    torque rows), ``ft_cov`` (36 S, covariance). Outputs: ``force, moment`` (3K), ``tau`` (nv),
-    ``rank, unknowns, residual`` (S), ``status`` (1), ``cov`` (36 K).
+    torque rows), ``ft_cov`` (36 S, covariance), ``normal`` (3K), ``friction`` and ``pushing``
+    (K each, with ``cones``), ``warm`` (6K, force and moment per slot, with ``warm``). Outputs:
+    ``force, moment`` (3K), ``tau`` (nv), ``rank, unknowns, residual`` (S), ``status`` (1),
+    ``cov`` (36 K), ``converged, iterations`` (S) and ``cone_active`` (K) with ``cones``,
+    ``nullspace`` (``sum_r u_r^2``, each region's ``u_r x u_r`` basis, row-major, columns the
+    vectors) with ``nullspace``.
+
+    With ``cones = (iterations, eps, tol)`` the contact wrenches are the friction-cone
+    constrained estimate (:func:`torchcontact.constrained.solve_cones`, started from the
+    pseudo-inverse solution, or from ``warm`` where it is finite); ``residual`` is then
+    ``|A x - b|`` of that estimate and ``rank`` stays the rank of ``A``. Without ``cones``,
+    ``warm`` and ``nullspace`` the program is exactly the unconstrained one (same kernel).
     """
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
     kinds = em.kinds
@@ -93,10 +113,19 @@ def estimate_program(
         inputs.update(tau_meas=nv, tau_mask=nv)
     if with_cov:
         inputs["ft_cov"] = 36 * S
+    if cones is not None:
+        inputs.update(normal=3 * K, friction=K, pushing=K)
+        if warm:
+            inputs["warm"] = 6 * K
     outputs = {"force": 3 * K, "moment": 3 * K, "tau": nv, "rank": S, "unknowns": S,
                "residual": S, "status": 1}  # fmt: skip
     if with_cov:
         outputs["cov"] = 36 * K
+    if cones is not None:
+        outputs.update(converged=S, iterations=S, cone_active=K)
+    n_unknowns = [sum(KINDS[em.slots[k].kind] for k in reg.slots) for reg in em.regions]
+    if nullspace:
+        outputs["nullspace"] = sum(u * u for u in n_unknowns)
 
     def fn(x: dict[str, list]) -> dict[str, list]:
         readings = [x[f"ft{i}"] for i in range(S)]
@@ -119,6 +148,14 @@ def estimate_program(
                 zero_dir.append(logical_and(act_in[k], zero))
             if kind == "known":
                 fields += list(wr[k])
+            if cones is not None and kind in ("force", "wrench"):
+                push = gt(x["pushing"][k], 0.5)
+                nk = x["normal"][3 * k : 3 * k + 3]
+                cone_fields = [*nk, x["friction"][k]]
+                fields.append(select(push, sum_(cone_fields), 0.0))  # NaN/inf propagate
+                n2 = sum_([mul(v, v) for v in nk])
+                zero = logical_and(push, logical_and(isfinite(n2), logical_not(gt(n2, 0.0))))
+                zero_dir.append(logical_and(act_in[k], zero))
             bad_field.append(logical_and(act_in[k], logical_not(_finite(fields))))
         b4, b8 = _any(bad_field), _any(zero_dir)
         b16: Scalar = False
@@ -181,7 +218,13 @@ def estimate_program(
             ranks += [rank]
             resid += [res]
             factors += [fac]
-        w = stages.contact_wrenches(em, maps, ys, wr, act)
+        extra: dict[str, list] = {}
+        if cones is not None or nullspace:
+            resid, w, extra = _constrained_and_nullspace(
+                em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm, nullspace
+            )
+        else:
+            w = stages.contact_wrenches(em, maps, ys, wr, act)
         tau = stages.backward(em, X, tau_b, pos, w)
         force = [v for wk in w for v in wk[0]]
         moment = [v for wk in w for v in wk[1]]
@@ -210,10 +253,98 @@ def estimate_program(
         }
         if with_cov:
             result["cov"] = [out(v) for v in cov]
+        if cones is not None:
+            result["converged"] = extra["converged"]
+            result["iterations"] = extra["iterations"]
+            result["cone_active"] = extra["cone_active"]
+        if nullspace:
+            result["nullspace"] = [out(v) for v in extra["nullspace"]]
         return result
 
     key = f"est|{em.key}|{moving_base}|{torque_rows}|{with_cov}"
+    if cones is not None or nullspace:
+        key += f"|cones={cones}|warm={warm}|null={nullspace}"
     return kernels.Program("estimator", fn, inputs, outputs, key)
+
+
+def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm,
+                               nullspace):  # fmt: skip
+    """The constrained estimate and/or the null-space bases of every region (program part)."""
+    K = len(em.slots)
+    w = stages.contact_wrenches(em, maps, ys, wr, act)  # pinv (and known) wrenches
+    extra: dict[str, list] = {"converged": [], "iterations": [], "cone_active": [False] * K,
+                              "nullspace": []}  # fmt: skip
+    resid = list(resid)
+    for r, reg in enumerate(em.regions):
+        n_unk = sum(KINDS[em.slots[k].kind] for k in reg.slots)
+        if factors[r] is None:  # only known slots: nothing to solve
+            extra["converged"].append(1.0)
+            extra["iterations"].append(0.0)
+            continue
+        A, labels = stages.contact_matrix(em, maps, r)
+        R, u = len(A), len(labels)
+        if nullspace:
+            present = [act[k] for k, _ in labels]
+            rtol = 10.0 * math.sqrt(em.rank_rtol)
+            basis = stages.nullspace_basis(A, factors[r], present, rtol)
+            extra["nullspace"] += [basis[c][i] for i in range(n_unk) for c in range(n_unk)]
+        if cones is None:
+            continue
+        iterations, eps, tol = cones
+        x0 = [sum_([mul(A[i][j], ys[r][i]) for i in range(R)]) for j in range(u)]  # pinv(A) b
+        if warm:
+            xw = []
+            for k, j in labels:
+                wk = [clean(v) for v in x["warm"][6 * k : 6 * k + 6]]
+                if em.slots[k].kind == "force_dir":
+                    d = x["dir"][3 * k : 3 * k + 3]
+                    n2 = sum_([mul(v, v) for v in d])
+                    xw.append(div(sum_([mul(d[i], wk[i]) for i in range(3)]),
+                                  sqrt(select(gt(n2, 0.0), n2, 1.0))))  # fmt: skip
+                else:
+                    xw.append(wk[j])
+            fin = _finite([v for k in dict.fromkeys(k for k, _ in labels)
+                           for v in x["warm"][6 * k : 6 * k + 6]])  # fmt: skip
+            x0 = [select(fin, a, c) for a, c in zip(xw, x0, strict=True)]
+        cone_list, cone_slot = [], []
+        start = 0
+        for k in reg.slots:
+            slot = em.slots[k]
+            if slot.kind == "known":
+                continue
+            on = logical_and(gt(act[k], 0.5), gt(x["pushing"][k], 0.5))
+            if slot.kind == "force_dir":
+                cone_list.append(Cone((start,), [[1.0], [0.0], [0.0]], on))
+            else:
+                n_in = x["normal"][3 * k : 3 * k + 3]
+                nk = [select(on, clean(v), d) for v, d in zip(n_in, (0.0, 0.0, 1.0), strict=True)]
+                mu = select(on, clean(x["friction"][k]), 1.0)
+                cone_list.append(Cone(tuple(range(start, start + 3)), cone_rows(nk, mu), on))
+            cone_slot.append(k)
+            start += KINDS[slot.kind]
+        sol = solve_cones(A, b[r], cone_list, x0, eps, iterations, tol)
+        extra["converged"].append(select(sol.converged, 1.0, 0.0))
+        extra["iterations"].append(sol.iterations)
+        for k, a in zip(cone_slot, sol.active, strict=True):
+            extra["cone_active"][k] = select(a, 1.0, 0.0)
+        # the constrained wrenches replace the pseudo-inverse ones (link frame, about the point)
+        start = 0
+        for k in reg.slots:
+            slot = em.slots[k]
+            if slot.kind == "known":
+                continue
+            xs = sol.x[start : start + KINDS[slot.kind]]
+            if slot.kind == "force_dir":
+                w[k] = (sp.v_scale(mul(act[k], xs[0]), maps[k].d), sp.ZERO3)
+            elif slot.kind == "force":
+                w[k] = (tuple(mul(act[k], v) for v in xs), sp.ZERO3)
+            else:
+                w[k] = (tuple(mul(act[k], v) for v in xs[:3]),
+                        tuple(mul(act[k], v) for v in xs[3:]))  # fmt: skip
+            start += KINDS[slot.kind]
+        res = [sub(sum_([mul(A[i][j], sol.x[j]) for j in range(u)]), b[r][i]) for i in range(R)]
+        resid[r] = sqrt(sum_([mul(v, v) for v in res]))
+    return resid, w, extra
 
 
 def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:

@@ -15,16 +15,18 @@ from torchcontact import dynamics as _dyn
 from torchcontact import spatial as sp
 from torchcontact._scalar import Scalar, add, div, gt, mul, neg, select, sqrt, sub, sum_
 from torchcontact.estimation.layout import EstimationModel, Region, Slot
-from torchcontact.solve import Factorization, solve_factored
+from torchcontact.solve import Factorization, factorize, solve_factored
 
 __all__ = [
     "SlotMap",
     "backward",
     "contact_point",
     "contact_maps",
+    "contact_matrix",
     "contact_wrenches",
     "covariance",
     "forward",
+    "nullspace_basis",
     "region_rhs",
     "wrench_on_body",
 ]
@@ -370,3 +372,75 @@ def covariance(
         out.append([sum_([mul(MS[i][b], M[j][b]) for b in range(6)])
                     for i in range(6) for j in range(6)])  # fmt: skip
     return out
+
+
+def contact_matrix(
+    em: EstimationModel, maps: list[SlotMap | None], r: int
+) -> tuple[list[list[Scalar]], list[tuple[int, int]]]:
+    """The explicit ``A`` of region ``r`` (rows: 6 sensor rows, then the torque rows).
+
+    Columns are the unknowns of the region's slots in slot order, in each slot's link frame:
+    ``force`` (3), ``wrench`` (force 3, then moment about the point 3), ``force_dir`` (the
+    magnitude, 1); a slot's columns are zero in frames where it is inactive. ``A A^T`` is
+    stage 3's Gram matrix and ``A^T y`` stage 5's unknowns.
+
+    Args:
+        em: the estimation model.
+        maps: stage 3's slot maps.
+        r: the region.
+
+    Returns:
+        ``(A, columns)``: ``R`` rows of ``u`` scalars, and per column ``(slot, component)``.
+    """
+    cols: list[list[Scalar]] = []
+    labels: list[tuple[int, int]] = []
+    for k in em.regions[r].slots:
+        slot, m = em.slots[k], maps[k]
+        if slot.kind == "known":
+            continue
+        if slot.kind == "force_dir":
+            dirs = [m.u]
+        else:
+            dirs = [(m.R[0][j], m.R[1][j], m.R[2][j]) for j in range(3)]
+        six = [(*f, *sp.v_cross(m.c, f)) for f in dirs]
+        if slot.kind == "wrench":
+            six += [(0.0, 0.0, 0.0, *f) for f in dirs]
+        for j, col in enumerate(six):
+            full = [*col, *(sum_([mul(sv[i], col[i]) for i in range(6)]) for sv in m.s)]
+            cols.append([mul(m.active, v) for v in full])
+            labels.append((k, j))
+    own = [maps[k] for k in em.regions[r].slots if maps[k] is not None]
+    R = 6 + (len(own[0].s) if own else 0)
+    return [[col[i] for col in cols] for i in range(R)], labels
+
+
+def nullspace_basis(
+    A: Sequence[Sequence[Scalar]],
+    f: Factorization,
+    present: Sequence[Scalar],
+    rtol: float,
+) -> list[list[Scalar]]:
+    """An orthonormal basis of ``null(A)`` among the present unknowns (columns, zero-padded).
+
+    ``P_N = D - A^T pinv(A A^T) A`` (``D``: 1 on the present unknowns) projects onto the null
+    space; ``pinv(A A^T) A`` comes from the solve's factorization ``f`` (column by column), and a
+    pivoted Cholesky of ``P_N`` with modified Gram-Schmidt (:func:`torchcontact.solve.factorize`)
+    gives its orthonormal range. The basis vectors fill the first ``u - rank`` columns.
+
+    Args:
+        A: ``R`` rows of ``u`` scalars (:func:`contact_matrix`).
+        f: the factorization of ``A A^T`` (stage 4).
+        present: per unknown, 1 if its slot is active, else 0.
+        rtol: rank tolerance of the pivoted Cholesky of ``P_N`` (eigenvalues 0 or 1).
+
+    Returns:
+        ``u`` columns of ``u`` scalars.
+    """
+    R, u = len(A), len(present)
+    PR = []  # columns of A^T pinv(G) A
+    for j in range(u):
+        y = solve_factored(f, [A[i][j] for i in range(R)])
+        PR.append([sum_([mul(A[i][c], y[i]) for i in range(R)]) for c in range(u)])
+    PN = [[sub(present[i] if i == j else 0.0, PR[j][i]) for j in range(u)] for i in range(u)]
+    fn = factorize(PN, rtol)
+    return [[select(fn.ok[k], v, 0.0) for v in fn.q[k]] for k in range(u)]

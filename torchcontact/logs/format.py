@@ -1,4 +1,9 @@
-"""The torchcontact log format: Parquet, one row per frame (the public contract of issue 4).
+"""The torchcontact log format: Parquet, one row per frame; the one reader and writer of logs.
+
+Every Parquet file torchcontact reads or writes goes through this module: the input logs of
+``estimate``, the estimates, ``convert`` and ``simulate`` outputs, the F/T logs of the drivers, and
+the training data. Files are written with page checksums, through a temporary name and an atomic
+rename (a file with the final name is always complete); page checksums are verified when read.
 
 Input columns (see the README section "Processing logs"):
 
@@ -13,19 +18,28 @@ Input columns (see the README section "Processing logs"):
   frame (rad/s, rad/s^2, proper acceleration m/s^2).
 - ``contacts``: list of structs ``{link: string, kind: wrench|force|force_dir|known, position: 3
   float64 (m, link frame), direction: 3 float64 or null, wrench: 6 float64 or null}``; extra
-  struct fields (e.g. ``true_force``) are carried to the output unchanged.
+  struct fields (e.g. ``true_force``) are carried to the output unchanged. In memory these are
+  :class:`~torchcontact.contacts.ContactRecords` (:func:`read_contacts`, :func:`contacts_column`).
 
-Output adds ``force`` and ``moment`` (3 float64, link frame, N and N m) to every contact and has
-``joint_torques``, ``rank.<sensor>``, ``unknowns.<sensor>``, ``residual.<sensor>`` and ``status``.
+Output (:func:`output_schema`) adds ``force`` and ``moment`` (3 float64, link frame, N and N m) to
+every contact and has ``joint_torques``, ``rank.<sensor>``, ``unknowns.<sensor>``,
+``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status`` (its
+text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log pipeline found, or
+null).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from torchcontact.contacts import ContactRecords
+from torchcontact.errors import InputError, LogError
 
 __all__ = [
     "BASE_COLUMNS",
@@ -33,14 +47,30 @@ __all__ = [
     "META_JOINT_NAMES",
     "META_RESIDUAL",
     "META_SENSORS",
+    "META_SOURCE",
     "META_URDF_SHA256",
     "META_VERSION",
+    "LogWriter",
+    "check_outputs",
     "contact_struct_type",
-    "ft_column",
+    "contacts_column",
     "fixed_list",
+    "ft_column",
+    "ft_log_schema",
     "input_schema",
+    "iter_chunks",
     "joint_names_of",
+    "joint_permutation",
+    "open_log",
+    "output_schema",
+    "read_contacts",
+    "read_journal",
+    "read_log_columns",
+    "read_rows",
+    "struct_list",
     "vectors",
+    "write_journal",
+    "write_table",
 ]
 
 META_JOINT_NAMES = b"torchcontact.joint_names"
@@ -48,11 +78,23 @@ META_URDF_SHA256 = b"torchcontact.urdf_sha256"
 META_VERSION = b"torchcontact.version"
 META_SENSORS = b"torchcontact.sensors"
 META_DERIVED = b"torchcontact.derived"
+#: Where a converted log came from (``bag:<name>``, ``csv:<name>``).
+META_SOURCE = b"torchcontact.source"
 #: Output logs estimated with a learned F/T correction: JSON ``{"checkpoint", "weights_sha256",
 #: "sensor", "kind"}`` (``torchcontact estimate --residual``).
 META_RESIDUAL = b"torchcontact.residual"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
+#: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.
+JOINT_COLUMNS = ("q", "qd", "qdd", "tau_measured")
+#: Options of every Parquet file written: page checksums (verified when read); no dictionary
+#: encoding and statistics of ``t_ns`` only (random floats gain nothing from either, and they
+#: halve the writing time).
+WRITE_OPTIONS: dict[str, Any] = {
+    "write_page_checksum": True,
+    "compression": "snappy",
+    "use_dictionary": False,
+}
 
 
 def ft_column(sensor: str) -> str:
@@ -92,6 +134,7 @@ def input_schema(
     derivatives: bool = True,
     contact_extra: Sequence[tuple[str, Any]] = (),
     extra: Sequence[tuple[str, Any]] = (),
+    metadata: Mapping[bytes, bytes | str] | None = None,
 ) -> Any:
     """The Parquet schema of an input log with the joint names in its metadata.
 
@@ -101,6 +144,7 @@ def input_schema(
         derivatives: include ``qd`` and ``qdd``.
         contact_extra: extra ``(name, type)`` fields of the contact struct.
         extra: extra ``(name, type)`` columns.
+        metadata: further schema metadata.
 
     Example:
         >>> input_schema(["a", "b"], ["base_ft"]).names
@@ -114,24 +158,119 @@ def input_schema(
         fields += [("qd", pa.list_(pa.float64(), nv)), ("qdd", pa.list_(pa.float64(), nv))]
     fields += [(ft_column(s), pa.list_(pa.float64(), 6)) for s in sensors]
     fields += [("contacts", pa.list_(contact_struct_type(contact_extra))), *extra]
-    return pa.schema(fields, metadata={META_JOINT_NAMES: json.dumps(list(joint_names))})
+    meta = {META_JOINT_NAMES: json.dumps(list(joint_names)), **(metadata or {})}
+    return pa.schema(fields, metadata=meta)
+
+
+def ft_log_schema(sensor: str) -> Any:
+    """Schema of an F/T-only log (the drivers' ``--out``): ``t_ns`` and ``ft.<sensor>``.
+
+    Example:
+        >>> ft_log_schema("ft300").names
+        ['t_ns', 'ft.ft300']
+    """
+    import pyarrow as pa
+
+    return pa.schema([("t_ns", pa.int64()), (ft_column(sensor), pa.list_(pa.float64(), 6))])
+
+
+def output_schema(
+    joint_names: Sequence[str],
+    sensors: Sequence[str],
+    contact_fields: Sequence[tuple[str, Any]],
+    metadata: Mapping[bytes, bytes | str],
+) -> Any:
+    """Schema of an estimated log.
+
+    Args:
+        joint_names: nv joint names, the order of ``joint_torques``.
+        sensors: the F/T sensors used.
+        contact_fields: ``(name, type)`` fields of the input contact struct (empty: no
+            ``contacts`` column in the input); ``force`` and ``moment`` are appended.
+        metadata: schema metadata (joint names are added).
+
+    Returns:
+        ``t_ns, contacts, joint_torques, rank.<s>, unknowns.<s>, residual.<s>, status_code,
+        status, status_detail``.
+    """
+    import pyarrow as pa
+
+    nv = len(joint_names)
+    contact = pa.struct(
+        [
+            *[pa.field(n, t) for n, t in contact_fields],
+            pa.field("force", pa.list_(pa.float64(), 3)),
+            pa.field("moment", pa.list_(pa.float64(), 3)),
+        ]
+    )
+    fields = [("t_ns", pa.int64()), ("contacts", pa.list_(contact))]
+    fields.append(("joint_torques", pa.list_(pa.float64(), nv)))
+    for s in sensors:
+        fields += [(f"rank.{s}", pa.int64()), (f"unknowns.{s}", pa.int64())]
+        fields.append((f"residual.{s}", pa.float64()))
+    fields += [("status_code", pa.int64()), ("status", pa.string())]
+    fields.append(("status_detail", pa.string()))
+    meta = {**metadata, META_JOINT_NAMES: json.dumps(list(joint_names))}
+    return pa.schema(fields, metadata=meta)
+
+
+def joint_permutation(
+    names: Sequence[str], model_names: Sequence[str], robot: str, source: object = ""
+) -> np.ndarray:
+    """Index of each of the robot's joints in a log's joint list (joints matched by name).
+
+    The log must name exactly the robot's joint coordinates, in any order (what ``estimate`` and
+    training accept).
+
+    Args:
+        names: the log's joint names (:func:`joint_names_of`).
+        model_names: the robot's coordinates (``model.joint_names``).
+        robot: the robot's name, for messages.
+        source: the log, for messages.
+
+    Returns:
+        ``(nv,)`` int64 ``perm`` with ``log_vector[..., perm]`` in the robot's order.
+
+    Raises:
+        LogError: joints missing or extra (naming them), or duplicate names.
+
+    Example:
+        >>> joint_permutation(["b", "a"], ["a", "b"], "robot").tolist()
+        [1, 0]
+    """
+    names, model_names = list(names), list(model_names)
+    missing = [n for n in model_names if n not in names]
+    extra = [n for n in names if n not in model_names]
+    if missing or extra:
+        msg = f"{source}: joint names of the log do not match {robot} (matched by name):"
+        if missing:
+            msg += f" the log lacks joints {missing}"
+        if extra:
+            msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
+        raise LogError(msg)
+    if len(set(names)) != len(names):
+        raise LogError(f"{source}: duplicate joint names {names}")
+    return np.array([names.index(n) for n in model_names], dtype=np.int64)
 
 
 def joint_names_of(schema: Any, path: object = "") -> list[str]:
     """Joint names from the schema metadata key ``torchcontact.joint_names``.
 
     Raises:
-        ValueError: the key is missing or not a JSON list of strings.
+        LogError: the key is missing or not a JSON list of strings.
     """
     raw = (schema.metadata or {}).get(META_JOINT_NAMES)
     if raw is None:
-        raise ValueError(
+        raise LogError(
             f"{path}: no joint names; the log format needs the schema metadata key"
             f" {META_JOINT_NAMES.decode()} (a JSON list, the order of q/qd/qdd)"
         )
-    names = json.loads(raw)
+    try:
+        names = json.loads(raw)
+    except ValueError:
+        names = None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        raise ValueError(f"{path}: {META_JOINT_NAMES.decode()} is not a JSON list of strings")
+        raise LogError(f"{path}: {META_JOINT_NAMES.decode()} is not a JSON list of strings")
     return names
 
 
@@ -174,3 +313,472 @@ def vectors(column: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
     if keep.any():
         out[good_rows] = flat[keep].reshape(-1, n)
     return out, bad
+
+
+# ---------------------------------------------------------------------- contacts <-> Arrow
+def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str, np.ndarray]]:
+    """The records of a ``contacts`` column (list of structs).
+
+    Args:
+        column: a pyarrow (chunked) ``list<struct>`` array; null rows are frames without contact.
+
+    Returns:
+        ``(records, fields, malformed)``: :class:`~torchcontact.contacts.ContactRecords` (frames
+        numbered from 0 within ``column``; NaN where a vector is missing or malformed), the
+        struct's child arrays by field name (to carry extra fields), and for ``position``,
+        ``direction`` and ``wrench`` an ``(M,)`` bool mask of records whose field is null or of
+        the wrong length (missing fields: all True).
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    lst = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
+    structs = lst.flatten()
+    frame = np.asarray(pc.list_parent_indices(lst).to_numpy(zero_copy_only=False), np.int64)
+    fields = dict(zip([f.name for f in structs.type], structs.flatten(), strict=True))
+    M = len(frame)
+    vec: dict[str, np.ndarray] = {}
+    malformed: dict[str, np.ndarray] = {}
+    for name, width in (("position", 3), ("direction", 3), ("wrench", 6)):
+        if name in fields:
+            vec[name], malformed[name] = vectors(fields[name], width)
+        else:
+            vec[name], malformed[name] = np.full((M, width), np.nan), np.ones(M, bool)
+
+    def names(key: str) -> tuple[np.ndarray, np.ndarray]:
+        """Distinct names (None last) and each record's index: Arrow's dictionary encoding."""
+        if key not in fields:
+            return np.array([None], dtype=object), np.zeros(M, np.int64)
+        enc = pc.dictionary_encode(fields[key])
+        uniq = np.array([*enc.dictionary.to_pylist(), None], dtype=object)
+        idx = enc.indices.fill_null(len(uniq) - 1).to_numpy(zero_copy_only=False)
+        return uniq, np.asarray(idx, np.int64)
+
+    ln, lc = names("link")
+    kn, kc = names("kind")
+    records = ContactRecords(
+        frame,
+        ln[lc],
+        kn[kc],
+        vec["position"],
+        vec["direction"] if "direction" in fields else None,
+        vec["wrench"] if "wrench" in fields else None,
+        (ln, lc, kn, kc),
+    )
+    return records, fields, malformed
+
+
+def contacts_column(
+    records: ContactRecords,
+    frames: int,
+    extra: Mapping[str, Any] | None = None,
+    struct_type: Any = None,
+) -> Any:
+    """A ``contacts`` column (list of structs, one list per frame) from records.
+
+    Args:
+        records: M records of frames ``0 .. frames - 1``, ordered by frame.
+        frames: number of rows.
+        extra: further struct fields, each an ``(M,)`` pyarrow array or an ``(M, n)`` float array
+            (written as a fixed-size list), in record order.
+        struct_type: the struct type to cast to (default :func:`contact_struct_type` with the
+            extra fields' types).
+
+    Returns:
+        A pyarrow ``list<struct>`` array of length ``frames``. Directions and wrenches that are
+        all NaN (not given) are written as null.
+
+    Raises:
+        InputError: records not ordered by frame, or a frame outside ``[0, frames)``.
+    """
+    import pyarrow as pa
+
+    f = records.frame
+    if len(f) and (np.any(np.diff(f) < 0) or f[0] < 0 or f[-1] >= frames):
+        raise InputError(f"contact records must be ordered by frame within [0, {frames})")
+
+    def nullable(values: np.ndarray | None, width: int) -> Any:
+        if values is None:
+            return pa.nulls(len(f), pa.list_(pa.float64(), width))
+        arr = fixed_list(np.nan_to_num(values, nan=0.0))
+        missing = np.isnan(values).all(-1)
+        if missing.any():
+            mask = pa.array(missing)
+            arr = pa.FixedSizeListArray.from_arrays(arr.flatten(), width, mask=mask)
+        return arr
+
+    children: dict[str, Any] = {
+        "link": pa.array(list(records.links), pa.string()),
+        "kind": pa.array(list(records.kinds), pa.string()),
+        "position": fixed_list(records.positions),
+        "direction": nullable(records.directions, 3),
+        "wrench": nullable(records.wrenches, 6),
+    }
+    for name, value in (extra or {}).items():
+        children[name] = fixed_list(value) if isinstance(value, np.ndarray) else value
+    if struct_type is None:
+        extra_types = [(n, children[n].type) for n in (extra or {})]
+        struct_type = contact_struct_type(extra_types)
+    return struct_list(children, f, frames, struct_type)
+
+
+def struct_list(
+    children: Mapping[str, Any], frame: np.ndarray, frames: int, struct_type: Any
+) -> Any:
+    """A ``list<struct>`` column from per-record field arrays and each record's frame.
+
+    Args:
+        children: field name -> ``(M,)`` pyarrow array, for every field of ``struct_type``.
+        frame: ``(M,)`` frame of each record, ordered.
+        frames: number of rows.
+        struct_type: the struct type (children are cast to its field types).
+    """
+    import pyarrow as pa
+
+    arrays = [children[fld.name].cast(fld.type) for fld in struct_type]
+    struct = pa.StructArray.from_arrays(arrays, fields=list(struct_type))
+    offsets = np.r_[0, np.cumsum(np.bincount(frame, minlength=frames))].astype(np.int32)
+    return pa.ListArray.from_arrays(pa.array(offsets), struct)
+
+
+# ---------------------------------------------------------------------- reading
+def open_log(path: str | Path) -> Any:
+    """Open a Parquet log for streaming; page checksums are verified where the file has them.
+
+    Args:
+        path: the file.
+
+    Returns:
+        A ``pyarrow.parquet.ParquetFile``. Reads are not pre-buffered: pre-buffering keeps every
+        column chunk read so far, so memory would grow with the log.
+
+    Raises:
+        LogError: no such file, or not a readable Parquet file (the message names it).
+    """
+    import pyarrow.parquet as pq
+
+    if not Path(path).is_file():
+        raise LogError(f"{path}: no such file")
+    try:
+        return pq.ParquetFile(path, pre_buffer=False, page_checksum_verification=True)
+    except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
+        raise LogError(f"{path}: not a readable Parquet file ({exc})") from None
+
+
+def _unreadable(pf: Any, source: object, row: int, exc: Exception) -> LogError:
+    starts = np.cumsum([0] + [pf.metadata.row_group(i).num_rows for i in range(pf.num_row_groups)])
+    g = int(np.searchsorted(starts, row, side="right") - 1)
+    g = min(max(g, 0), max(pf.num_row_groups - 1, 0))
+    lo, hi = int(starts[g]), int(starts[min(g + 1, len(starts) - 1)]) - 1
+    return LogError(
+        f"{source}: corrupted data in row group {g} (rows {lo}-{hi}): {exc}; the file is damaged"
+        " from there (a page checksum failed or a page did not decode)"
+    )
+
+
+def iter_chunks(
+    pf: Any,
+    columns: Sequence[str],
+    batch_size: int,
+    source: object = "",
+    row_groups: Sequence[int] | None = None,
+) -> Iterator[Any]:
+    """Tables of exactly ``batch_size`` rows (the last one shorter), whatever the row groups.
+
+    Args:
+        pf: from :func:`open_log`.
+        columns: columns to read.
+        batch_size: rows per table (>= 1).
+        source: file name for messages.
+        row_groups: read only these consecutive row groups (default all).
+
+    Yields:
+        pyarrow tables, in file order.
+
+    Raises:
+        LogError: a page that fails its checksum or does not decode; the message names the row
+            group and its rows. Tables before it were yielded.
+    """
+    import pyarrow as pa
+
+    buf: list[Any] = []
+    have = done = 0
+    if row_groups is not None and len(row_groups):
+        done = sum(pf.metadata.row_group(g).num_rows for g in range(row_groups[0]))
+    kw = {} if row_groups is None else {"row_groups": list(row_groups)}
+    it = pf.iter_batches(batch_size=batch_size, columns=list(columns), **kw)
+    while True:
+        try:
+            rb = next(it, None)
+        except (OSError, pa.ArrowException) as exc:
+            raise _unreadable(pf, source, done + have, exc) from None
+        if rb is None:
+            break
+        buf.append(rb)
+        have += rb.num_rows
+        while have >= batch_size:
+            tab = pa.Table.from_batches(buf).combine_chunks()
+            yield tab.slice(0, batch_size)
+            done += batch_size
+            rest = tab.slice(batch_size)
+            buf, have = rest.to_batches(), rest.num_rows
+    if have:
+        yield pa.Table.from_batches(buf).combine_chunks()
+
+
+def read_rows(path: str | Path, start: int, stop: int, columns: Sequence[str]) -> Any:
+    """Rows ``[start, stop)`` of a log (only the row groups that hold them are read).
+
+    Raises:
+        LogError: an unreadable file, missing columns or rows outside the log.
+    """
+    import pyarrow as pa
+
+    pf = open_log(path)
+    missing = [c for c in columns if c not in pf.schema_arrow.names]
+    if missing:
+        raise LogError(f"{path}: missing columns {missing} (found {pf.schema_arrow.names})")
+    n = pf.metadata.num_rows
+    if not 0 <= start <= stop <= n:
+        raise LogError(f"{path}: rows {start}-{stop - 1} are outside the log's {n} rows")
+    sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+    bounds = np.cumsum([0, *sizes])
+    groups = [g for g in range(len(sizes)) if bounds[g] < stop and bounds[g + 1] > start]
+    try:
+        tab = pf.read_row_groups(groups, columns=list(columns))
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{path}: corrupted data ({exc})") from None
+    first = int(bounds[groups[0]]) if groups else start
+    return tab.slice(start - first, stop - start)
+
+
+def read_log_columns(
+    path: str | Path, columns: Sequence[str], *, joint_names: Sequence[str] | None = None
+) -> dict[str, Any]:
+    """Read columns of a log by name into numpy arrays (the whole file).
+
+    Joint columns (``q``, ``qd``, ``qdd``, ``tau_measured``) are matched by joint name: with
+    ``joint_names`` (e.g. ``model.joint_names``) they come in that order, the log's other joints
+    left out; without it, in the log's order (:func:`joint_names_of`).
+
+    Args:
+        path: the log.
+        columns: names: ``t_ns`` -> ``(N,)`` int64; a joint column -> ``(N, nv)``; ``ft.<s>`` ->
+            ``(N, 6)``; ``base.*`` -> ``(N, 3)``; ``contacts`` ->
+            :class:`~torchcontact.contacts.ContactRecords`; another list column -> ``(N, n)``; a
+            numeric column -> ``(N,)`` float64. Rows that are null or of the wrong length are NaN.
+        joint_names: the joint order wanted.
+
+    Returns:
+        ``{name: array}`` for every requested column.
+
+    Raises:
+        LogError: an unreadable file, a missing column or joint, no joint names in the metadata.
+
+    Example:
+        >>> import tempfile, pyarrow as pa
+        >>> path = f"{tempfile.mkdtemp()}/log.parquet"
+        >>> q = fixed_list(np.array([[1.0, 2.0]]))
+        >>> _ = write_table(pa.table({"t_ns": [0], "q": q}).replace_schema_metadata(
+        ...     {META_JOINT_NAMES: '["a", "b"]'}), path)
+        >>> read_log_columns(path, ["q"], joint_names=["b", "a"])["q"].tolist()
+        [[2.0, 1.0]]
+    """
+    import pyarrow as pa
+
+    pf = open_log(path)
+    schema = pf.schema_arrow
+    missing = [c for c in columns if c not in schema.names]
+    if missing:
+        raise LogError(f"{path}: missing columns {missing} (found {schema.names})")
+    perm = None
+    if any(c in JOINT_COLUMNS for c in columns):
+        names = joint_names_of(schema, path)
+        want = list(names) if joint_names is None else list(joint_names)
+        absent = [n for n in want if n not in names]
+        if absent:
+            raise LogError(f"{path}: joints {absent} are not in the log (it has {names})")
+        perm = np.array([names.index(n) for n in want], np.int64)
+        nv = len(names)
+    try:
+        table = pf.read(columns=list(columns))
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{path}: corrupted data ({exc})") from None
+    out: dict[str, Any] = {}
+    for c in columns:
+        col = table.column(c)
+        typ = schema.field(c).type
+        if c == "t_ns":
+            out[c] = np.asarray(col.to_numpy(), np.int64)
+        elif c == "contacts":
+            out[c] = read_contacts(col)[0]
+        elif c in JOINT_COLUMNS:
+            out[c] = vectors(col, nv)[0][:, perm]
+        elif c.startswith("ft."):
+            out[c] = vectors(col, 6)[0]
+        elif c in BASE_COLUMNS:
+            out[c] = vectors(col, 3)[0]
+        elif pa.types.is_fixed_size_list(typ):
+            out[c] = vectors(col, typ.list_size)[0]
+        elif pa.types.is_list(typ) or pa.types.is_large_list(typ):
+            first = next((len(v) for v in col.to_pylist() if v is not None), 0)
+            out[c] = vectors(col, first)[0]
+        else:
+            out[c] = np.asarray(col.to_numpy(zero_copy_only=False), np.float64)
+    return out
+
+
+# ---------------------------------------------------------------------- writing
+def _tmp(path: Path) -> Path:
+    return path.with_name(path.name + ".tmp")
+
+
+class LogWriter:
+    """Write a Parquet log in parts: page checksums, a temporary name, an atomic rename on close.
+
+    Args:
+        path: the final file; ``<path>.tmp`` holds the data until :meth:`close`.
+        schema: the pyarrow schema (with its metadata).
+
+    Example:
+        >>> import tempfile, pyarrow as pa
+        >>> path = Path(tempfile.mkdtemp()) / "log.parquet"
+        >>> with LogWriter(path, ft_log_schema("s")) as w:
+        ...     w.write(pa.table({"t_ns": [1], "ft.s": fixed_list(np.zeros((1, 6)))}))
+        >>> path.exists(), w.rows
+        (True, 1)
+    """
+
+    def __init__(self, path: str | Path, schema: Any) -> None:
+        self.path = Path(path)
+        self.schema = schema
+        self.rows = 0
+        self._writer: Any = None
+
+    def write(self, table: Any, row_group_size: int | None = None) -> None:
+        """Append a table (or record batch) cast to the schema."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        if self._writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            stats = ["t_ns"] if "t_ns" in self.schema.names else False
+            self._writer = pq.ParquetWriter(
+                _tmp(self.path), self.schema, write_statistics=stats, **WRITE_OPTIONS
+            )
+        if isinstance(table, pa.RecordBatch):
+            table = pa.Table.from_batches([table])
+        table = table.replace_schema_metadata(self.schema.metadata).cast(self.schema)
+        self._writer.write_table(table, row_group_size=row_group_size)
+        self.rows += table.num_rows
+
+    def close(self) -> None:
+        """Finish the file and rename it to its final name (an empty log keeps its schema)."""
+        if self._writer is None:
+            self.write(self.schema.empty_table())
+        self._writer.close()
+        self._writer = None
+        os.replace(_tmp(self.path), self.path)
+
+    def abort(self) -> None:
+        """Drop the temporary file; the final name is left untouched."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        _tmp(self.path).unlink(missing_ok=True)
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_table(table: Any, path: str | Path, row_group_size: int | None = None) -> Path:
+    """Write a whole table to ``path`` (page checksums, temporary name, atomic rename)."""
+    with LogWriter(path, table.schema) as w:
+        w.write(table, row_group_size=row_group_size)
+    return Path(path)
+
+
+# ---------------------------------------------------------------------- journal of a run
+def write_journal(tables: Iterator[Any] | Sequence[Any], path: str | Path) -> Path:
+    """Write tables as one journal part: an Arrow IPC file (lz4), temporary name, atomic rename.
+
+    The journal holds the estimated chunks of a run that is still going; a resumed run reads it
+    back (:func:`read_journal`) instead of estimating them again. It is never a log.
+    """
+    import pyarrow as pa
+
+    path = Path(path)
+    tmp = _tmp(path)
+    writer = None
+    try:
+        for tab in tables:
+            if writer is None:
+                options = pa.ipc.IpcWriteOptions(compression="lz4")
+                writer = pa.ipc.new_file(tmp, tab.schema, options=options)
+            writer.write_table(tab)
+        if writer is None:
+            raise InputError(f"{path}: a journal part needs at least one table")
+        writer.close()
+    except BaseException:
+        if writer is not None:
+            writer.close()
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(tmp, path)
+    return path
+
+
+def read_journal(path: str | Path) -> Any:
+    """The table of a journal part written by :func:`write_journal`.
+
+    Raises:
+        LogError: an unreadable part.
+    """
+    import pyarrow as pa
+
+    try:
+        with pa.ipc.open_file(path) as f:
+            return f.read_all()
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{path}: unreadable part of an interrupted run ({exc})") from None
+
+
+def check_outputs(
+    outputs: Sequence[str | Path], inputs: Sequence[str | Path | None], option: str = "--out"
+) -> None:
+    """Refuse an output that is, or contains, one of the inputs (nothing is written).
+
+    Args:
+        outputs: every path a command will write or replace (files, side files, folders).
+        inputs: every path it reads (None entries are skipped).
+        option: the option naming the output, for the message.
+
+    Raises:
+        InputError: an output that is an input (same path, or the same file through a link), or
+            a folder output that holds an input.
+    """
+    ins = [Path(i) for i in inputs if i is not None]
+    for o in map(Path, outputs):
+        o_abs, o_res = o.absolute(), o.resolve()
+        for i in ins:
+            i_abs, i_res = i.absolute(), i.resolve()
+            same = o_abs == i_abs or o_res == i_res
+            if not same and o.exists() and i.exists():
+                same = os.path.samefile(o, i)
+            if same:
+                raise InputError(
+                    f"{option} {o} is the input {i}: refusing to overwrite it; choose another"
+                    " output (nothing was written)"
+                )
+            if i_res.is_relative_to(o_res) or i_abs.is_relative_to(o_abs):
+                raise InputError(
+                    f"{option} {o} contains the input {i}: refusing to write there; choose"
+                    " another output (nothing was written)"
+                )

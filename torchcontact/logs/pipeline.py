@@ -4,11 +4,18 @@
 :mod:`torchcontact.logs.format`) into output rows; it is shared by the local engine
 (:func:`estimate_file`) and the Ray engine (:mod:`torchcontact.logs.ray_engine`).
 
-Crash safety of :func:`estimate_file`: chunk ``k`` is written to ``OUT.partial/part-<k>.parquet``
-(through a temporary name and an atomic rename) and ``OUT.progress.json`` records the chunk
-count. Only when every chunk is done are the parts merged into ``OUT.tmp`` and renamed to ``OUT``,
-so an interrupted run never leaves a file named ``OUT``. ``resume=True`` keeps the parts already
-written and processes the rest with the same chunk size, so no frame is missing or duplicated.
+Crash safety: the output is written to ``OUT.tmp`` and renamed to ``OUT`` when every chunk is
+done, so an interrupted run never leaves a file named ``OUT``. Each estimated chunk ``k`` is also
+journalled to ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
+``OUT.progress.json`` records the progress. ``resume=True`` writes the journalled chunks into a
+fresh ``OUT.tmp`` and processes the rest with the same chunking, so no frame is missing or
+duplicated. An output that is, or contains, an input is
+refused before anything is written.
+
+Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
+(its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
+joint beyond its velocity limit, ...). Frames with a non-zero code have NaN outputs; the rest of
+the log is processed.
 """
 
 from __future__ import annotations
@@ -19,7 +26,8 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Iterator, Sequence
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,44 +35,133 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchcontact.contacts import KINDS, Contacts
-from torchcontact.errors import LogError  # noqa: F401  (re-exported)
+from torchcontact.contacts import KINDS, ContactRecords, Contacts
+from torchcontact.errors import InputError, LogError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, savgol_derivatives
 from torchcontact.logs.format import (
     BASE_COLUMNS,
     META_DERIVED,
-    META_JOINT_NAMES,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
     META_VERSION,
+    LogWriter,
+    check_outputs,
     fixed_list,
     ft_column,
+    iter_chunks,
     joint_names_of,
+    joint_permutation,
+    open_log,
+    output_schema,
+    read_contacts,
+    read_journal,
+    struct_list,
     vectors,
+    write_journal,
 )
 from torchcontact.model import RobotModel
 from torchcontact.status import status_messages
 
-__all__ = ["LogError", "LogEstimator", "estimate_file", "estimate_files", "expand_inputs"]
+__all__ = [
+    "DEFAULT_VELOCITY_MARGIN",
+    "LogError",
+    "LogEstimator",
+    "estimate_file",
+    "estimate_files",
+    "expand_inputs",
+    "load_robot",
+]
 
+#: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
+DEFAULT_VELOCITY_MARGIN = 2.0
 
-def open_parquet(path: str | Path) -> Any:
-    """Open a Parquet file, raising :class:`LogError` naming the file when it is not one."""
-    import pyarrow.parquet as pq
-
-    try:
-        return pq.ParquetFile(path)
-    except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
-        raise LogError(f"{path}: not a readable Parquet file ({exc})") from None
+# The plausibility bit (64) and the non-finite-output bit (32) are set by the estimator
+# (ContactEstimator(..., velocity_margin=..., ft_range=...)), one meaning in Python and logs.
 
 
 def resolve_device(device: str) -> str:
-    """``auto`` -> ``cuda`` when available else ``cpu``."""
+    """``auto`` -> ``cuda`` when available else ``cpu``; ``cuda`` must be available.
+
+    Raises:
+        InputError: an unknown device, or ``cuda`` without a usable CUDA device.
+    """
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise InputError(f"--device {device}: expected auto, cpu or cuda")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError(
+            f"--device {device}: CUDA is not available (torch {torch.__version__}"
+            f"{' has no CUDA support' if torch.version.cuda is None else ' sees no GPU'});"
+            " use --device cpu or auto"
+        )
     return device
+
+
+def load_robot(
+    robot: str | Path | RobotModel,
+    dtype: torch.dtype = torch.float64,
+    device: str = "cpu",
+) -> RobotModel:
+    """The robot model from a URDF path (or a model, moved to ``device`` and ``dtype``).
+
+    Raises:
+        InputError: no such URDF file, or an unusable device.
+        URDFError: a URDF torchcontact cannot model (the message names the element).
+    """
+    device = resolve_device(device)
+    if isinstance(robot, RobotModel):
+        if robot.dtype == dtype and str(robot.device) == device:
+            return robot
+        return robot.to(device, dtype)
+    if not Path(robot).is_file():
+        raise InputError(f"--robot {robot}: no such URDF file")
+    return RobotModel.from_urdf(robot, dtype=dtype, device=device)
+
+
+def _check_positive(**values: int) -> None:
+    for name, value in values.items():
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
+
+
+def ft_ranges(ft_range: Mapping[str, Any] | None, sensors: Sequence[str]) -> dict[str, np.ndarray]:
+    """``{sensor: (6,) or scalar}`` -> ``{sensor: (6,)}`` limits [N; N m], for sensors in use.
+
+    Raises:
+        InputError: a sensor not in use, a limit that is not 1 or 6 positive numbers.
+    """
+    out: dict[str, np.ndarray] = {}
+    for s, v in (ft_range or {}).items():
+        if s not in sensors:
+            raise InputError(f"--ft-range {s}: not a sensor in use ({list(sensors)})")
+        arr = np.broadcast_to(np.asarray(v, np.float64).reshape(-1), (6,)).copy()
+        if np.asarray(v).size not in (1, 6) or not (arr > 0).all():
+            raise InputError(f"--ft-range {s}: give 1 or 6 positive numbers [N; N m], got {v}")
+        out[s] = arr
+    return out
+
+
+class _Issues:
+    """Per-frame problems found by the pipeline: status bits and details, in priority order."""
+
+    def __init__(self, n: int) -> None:
+        self.code = np.zeros(n, np.int64)
+        self.items: list[tuple[np.ndarray, str]] = []
+
+    def add(self, rows: np.ndarray, bit: int, detail: str) -> None:
+        if rows.any():
+            self.code[rows] |= bit
+            self.items.append((rows, detail))
+
+    def details(self) -> np.ndarray:
+        out = np.full(len(self.code), None, dtype=object)
+        for rows, text in self.items:
+            idx = np.flatnonzero(rows)
+            out[idx] = [text if c is None else f"{c}; {text}" for c in out[idx]]
+        return out
 
 
 @dataclass
@@ -81,10 +178,15 @@ class LogEstimator:
         derived: ``qd``/``qdd`` when derived from ``q`` (recorded in the output metadata).
         residual: learned F/T correction (:class:`~torchcontact.residual.ResidualCorrection`)
             subtracted from its sensor's reading before estimation, or None.
+        velocity_margin: frames with a joint velocity beyond ``margin`` times its URDF limit get
+            status bit 64 (None: no check).
+        ft_range: ``{sensor: (6,) or scalar}`` [N; N m]: frames with a reading beyond it get
+            status bit 64.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
             an unknown sensor, or a residual for a sensor or joints not in use.
+        InputError: a bad ``ft_range``.
     """
 
     model: RobotModel
@@ -94,91 +196,52 @@ class LogEstimator:
     source: str = ""
     derived: Sequence[str] = ()
     residual: Any = None
+    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN
+    ft_range: Mapping[str, Any] | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        names = list(self.input_joint_names)
-        model_names = list(self.model.joint_names)
-        missing = [n for n in model_names if n not in names]
-        extra = [n for n in names if n not in model_names]
-        if missing or extra:
-            msg = f"{self.source}: joint names of the log do not match {self.model.name}:"
-            if missing:
-                msg += f" missing {missing}"
-            if extra:
-                msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
-            raise LogError(msg)
-        if len(set(names)) != len(names):
-            raise LogError(f"{self.source}: duplicate joint names {names}")
-        self.perm = np.array([names.index(n) for n in model_names], dtype=np.int64)
+        self.perm = joint_permutation(
+            self.input_joint_names, self.model.joint_names, self.model.name, self.source
+        )
+        if self.velocity_margin is not None and not self.velocity_margin > 0:
+            raise InputError(f"--velocity-margin must be > 0, got {self.velocity_margin}")
+        self._ft_range = ft_ranges(self.ft_range, self.sensors)
+        guards = {"velocity_margin": self.velocity_margin, "ft_range": self._ft_range}
         try:
-            self.estimator = ContactEstimator(self.model, list(self.sensors))
+            self.estimator = ContactEstimator(self.model, list(self.sensors), **guards)
         except ValueError as exc:
             raise LogError(f"{self.source}: {exc}") from None
         # contact links the estimator can use: known frames inside some sensor's region
-        self._link_ok: dict[str, str | None] = {}
-        self._residual_joints = np.zeros(0, np.int64)
-        if self.residual is not None:
-            res = self.residual
-            if res.sensor not in self.sensors:
-                raise LogError(
-                    f"{self.source}: the residual checkpoint corrects sensor {res.sensor!r}, which"
-                    f" is not among the sensors in use {list(self.sensors)}"
-                )
-            rj = list(res.meta.get("joint_names", []))
-            unknown = [j for j in rj if j not in model_names]
-            if unknown:
-                raise LogError(f"{self.source}: residual checkpoint joints {unknown} not in robot")
-            self._residual_joints = np.array([model_names.index(j) for j in rj], dtype=np.int64)
+        self._link_ok: dict[str | None, str | None] = {}
+        if self.residual is not None and self.residual.sensor not in self.sensors:
+            raise LogError(
+                f"{self.source}: the residual checkpoint corrects sensor"
+                f" {self.residual.sensor!r}, which is not among the sensors in use"
+                f" {list(self.sensors)}"
+            )
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
-        if self.residual is None:
-            return []
-        joints = set(self.residual.meta.get("joint_names", []))
-        out = []
-        for name in self.residual.feature_names:
-            prefix, _, joint = name.partition(".")
-            if not (prefix in ("q", "qd", "qdd") and joint in joints):
-                out.append(name)
-        return out
+        return [] if self.residual is None else self.residual.extra_columns
 
     # ------------------------------------------------------------------ schema
-    def output_schema(self, base_metadata: dict | None = None) -> Any:
+    def output_schema(self) -> Any:
         """Schema of the output rows, with joint names, robot hash and version in the metadata."""
-        import pyarrow as pa
-
         from torchcontact import __version__
 
-        nv = self.model.nv
-        contact = pa.struct(
-            [
-                *[pa.field(n, t) for n, t in self.contact_fields],
-                pa.field("force", pa.list_(pa.float64(), 3)),
-                pa.field("moment", pa.list_(pa.float64(), 3)),
-            ]
-        )
-        fields = [("t_ns", pa.int64()), ("contacts", pa.list_(contact))]
-        fields.append(("joint_torques", pa.list_(pa.float64(), nv)))
-        for s in self.sensors:
-            fields += [(f"rank.{s}", pa.int64()), (f"unknowns.{s}", pa.int64())]
-            fields.append((f"residual.{s}", pa.float64()))
-        fields.append(("status", pa.string()))
+        derived = {
+            "columns": list(self.derived),
+            "method": f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1} frames"
+            if self.derived
+            else "",
+        }
         meta = {
-            META_JOINT_NAMES: json.dumps(list(self.model.joint_names)),
             META_URDF_SHA256: self.model.urdf_sha256,
             META_VERSION: __version__,
             META_SENSORS: json.dumps(list(self.sensors)),
-            META_DERIVED: json.dumps(
-                {
-                    "columns": list(self.derived),
-                    "method": f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1}"
-                    " frames"
-                    if self.derived
-                    else "",
-                }
-            ),
+            META_DERIVED: json.dumps(derived),
         }
         if self.residual is not None:
             meta[META_RESIDUAL] = json.dumps(
@@ -186,10 +249,10 @@ class LogEstimator:
                     "checkpoint": self.residual.source,
                     "weights_sha256": self.residual.meta.get("weights_sha256"),
                     "sensor": self.residual.sensor,
-                    "kind": self.residual.meta.get("arch", {}).get("kind"),
+                    "kind": "+".join(self.residual.layers),
                 }
             )
-        return pa.schema(fields, metadata=meta)
+        return output_schema(self.model.joint_names, self.sensors, self.contact_fields, meta)
 
     # ------------------------------------------------------------------ helpers
     def _link_problem(self, link: str | None) -> str | None:
@@ -203,14 +266,48 @@ class LogEstimator:
                 msg = f"link {link!r} is outside every F/T sensor's subtree"
             else:
                 msg = None
-            self._link_ok[link] = msg  # type: ignore[index]
-        return self._link_ok[link]  # type: ignore[index]
+            self._link_ok[link] = msg
+        return self._link_ok[link]
 
-    def _joint_vectors(self, table: Any, name: str, reasons: list) -> np.ndarray:
-        vals, bad = vectors(table.column(name), len(self.perm))
-        if bad.any():
-            reasons.append((bad, f"{name} is not {len(self.perm)} floats"))
-        return vals[:, self.perm]
+    def _vectors(self, table: Any, name: str, n: int, bit: int, issues: _Issues) -> np.ndarray:
+        vals, bad = vectors(table.column(name), n)
+        issues.add(bad, bit, f"{name} is not {n} floats")
+        return vals
+
+    def _check_contacts(
+        self, records: ContactRecords, malformed: dict[str, np.ndarray], n: int, issues: _Issues
+    ) -> np.ndarray:
+        """Per-record problems -> frame issues (bit 128 or 4); returns the bad-record mask."""
+        M = len(records)
+        bit = np.zeros(M, np.int64)
+        # per distinct link and kind (few), mapped back to the records
+        ln, lc, kn, kc = records.name_codes()
+        link_msg = [self._link_problem(None if n is None else str(n)) for n in ln]
+        kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
+        reason = np.array(link_msg, dtype=object)[lc]
+        reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
+        bit[~np.equal(reason, None)] = 128
+        # a vector field is required only by the kind that uses it
+        kinds = records.kinds
+        for need, col, width, kind in (
+            (np.ones(M, bool), "position", 3, None),
+            (kinds == "force_dir", "direction", 3, "force_dir"),
+            (kinds == "known", "wrench", 6, "known"),
+        ):
+            bad = need & malformed[col] & (reason == None)  # noqa: E711 - object array
+            reason[bad] = (
+                "contact position is not 3 floats"
+                if kind is None
+                else f"{kind} contact without a {width}-float {col}"
+            )
+            bit[bad] = 4
+        bad_record = reason != None  # noqa: E711
+        for msg in dict.fromkeys(reason[bad_record]):
+            rows = np.zeros(n, bool)
+            sel = reason == msg
+            rows[records.frame[sel]] = True
+            issues.add(rows, int(bit[sel][0]), msg)
+        return bad_record
 
     # ------------------------------------------------------------------ one chunk
     def process(
@@ -227,145 +324,47 @@ class LogEstimator:
             A pyarrow table with :meth:`output_schema`.
         """
         import pyarrow as pa
-        import pyarrow.compute as pc
 
         if isinstance(table, pa.RecordBatch):
             table = pa.Table.from_batches([table])
-        model, est = self.model, self.estimator
+        model, est, perm = self.model, self.estimator, self.perm
         N, nv = table.num_rows, model.nv
-        reasons: list[tuple[np.ndarray, str]] = []  # (frame mask, reason) in priority order
-        q = self._joint_vectors(table, "q", reasons)
-        qd = self._joint_vectors(table, "qd", reasons) if qd is None else qd
-        qdd = self._joint_vectors(table, "qdd", reasons) if qdd is None else qdd
-        ft = {}
-        for s in self.sensors:
-            vals, bad = vectors(table.column(ft_column(s)), 6)
-            if bad.any():
-                reasons.append((bad, f"{ft_column(s)} is not 6 floats"))
-            ft[s] = vals
+        issues = _Issues(N)
+        q = self._vectors(table, "q", nv, 2, issues)[:, perm]
+        if qd is None:
+            qd = self._vectors(table, "qd", nv, 2, issues)[:, perm]
+        if qdd is None:
+            qdd = self._vectors(table, "qdd", nv, 2, issues)[:, perm]
+        ft = {s: self._vectors(table, ft_column(s), 6, 1, issues) for s in self.sensors}
         if self.residual is not None:
             ft[self.residual.sensor] = self._corrected(table, ft[self.residual.sensor], q, qd, qdd)
         tau = None
         if "tau_measured" in table.column_names:
-            tau_raw, bad = vectors(table.column("tau_measured"), nv)
-            tau = tau_raw[:, self.perm]
-            if bad.any():
-                reasons.append((bad, f"tau_measured is not {nv} floats"))
-                tau[bad] = np.nan
+            tau = self._vectors(table, "tau_measured", nv, 16, issues)[:, perm]
         base = {}
         for col, key in BASE_COLUMNS.items():
             if col in table.column_names:
-                base[key], bad = vectors(table.column(col), 3)
-                if bad.any():
-                    reasons.append((bad, f"{col} is not 3 floats"))
+                base[key] = self._vectors(table, col, 3, 2, issues)
         if base and len(base) != 3:
             raise LogError(f"{self.source}: need all of {list(BASE_COLUMNS)} or none")
 
-        # ---- contacts: flatten the list<struct>, validate, assign slots per chunk
-        has_contacts = "contacts" in table.column_names
-        if has_contacts:
-            lst = table.column("contacts").combine_chunks()
-            lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
-            structs = lst.flatten()
-            parent = np.asarray(pc.list_parent_indices(lst).to_numpy(zero_copy_only=False))
-            cols = dict(zip([f.name for f in structs.type], structs.flatten(), strict=True))
+        # ---- contacts: records -> validated -> slots (one layout per chunk)
+        if self.contact_fields:
+            records, fields, malformed = read_contacts(table.column("contacts"))
+            bad_record = self._check_contacts(records, malformed, N, issues)
         else:
-            lst, structs, parent, cols = None, None, np.zeros(0, np.int64), {}
-        M = len(parent)
-        bad_contact = np.zeros(M, bool)
-        contact_reason = np.full(M, None, dtype=object)
-        links = cols["link"].to_pylist() if M else []
-        kinds = cols["kind"].to_pylist() if M else []
-        for i, (link, kind) in enumerate(zip(links, kinds, strict=True)):
-            msg = self._link_problem(link)
-            if msg is None and kind not in KINDS:
-                msg = f"unknown contact kind {kind!r}"
-            if msg is not None:
-                bad_contact[i], contact_reason[i] = True, msg
-        pos, bad = vectors(cols["position"], 3) if M else (np.zeros((0, 3)), np.zeros(0, bool))
-        for arr, msg in ((bad, "contact position is not 3 floats"),):
-            contact_reason[arr & ~bad_contact] = msg
-            bad_contact |= arr
-        kinds_arr = np.array(kinds, dtype=object)
-        vecs: dict[str, np.ndarray | None] = {"direction": None, "wrench": None}
-        # a field is required only by the kind that uses it: force_dir needs a direction,
-        # known needs a wrench
-        for col, kind, width in (("direction", "force_dir", 3), ("wrench", "known", 6)):
-            if not M:
-                continue
-            if col in cols:
-                vecs[col], bad = vectors(cols[col], width)
-                need = (kinds_arr == kind) & bad & ~bad_contact
-                contact_reason[need] = f"{kind} contact without a {width}-float {col}"
-            else:
-                need = (kinds_arr == kind) & ~bad_contact
-                contact_reason[need] = f"{kind} contact without a {col}"
-            bad_contact |= need
-        dirs, wr = vecs["direction"], vecs["wrench"]
-        frame_contact_bad = np.zeros(N, bool)
-        if bad_contact.any():
-            for msg in dict.fromkeys(contact_reason[bad_contact]):
-                rows = np.zeros(N, bool)
-                rows[parent[bad_contact & (contact_reason == msg)]] = True
-                reasons.append((rows, msg))
-            frame_contact_bad[parent[bad_contact]] = True
-
-        # slot layout: union over frames of (link, kind) with the max multiplicity per frame
-        good = np.flatnonzero(~bad_contact)
-        slot_of = np.full(M, -1, np.int64)
-        slot_links: list[str] = []
-        slot_kinds: list[str] = []
-        if len(good):
-            keys = [(links[i], kinds[i]) for i in good]
-            uniq = sorted(set(keys))
-            key_id = np.array([uniq.index(k) for k in keys]) if len(uniq) < 8 else None
-            if key_id is None:
-                lookup = {k: j for j, k in enumerate(uniq)}
-                key_id = np.array([lookup[k] for k in keys])
-            fr = parent[good]
-            order = np.lexsort((np.arange(len(good)), key_id, fr))
-            sk, sf = key_id[order], fr[order]
-            new_group = np.r_[True, (sk[1:] != sk[:-1]) | (sf[1:] != sf[:-1])]
-            group_start = np.maximum.accumulate(np.where(new_group, np.arange(len(order)), 0))
-            rank = np.empty(len(order), np.int64)
-            rank[order] = np.arange(len(order)) - group_start
-            mult = np.zeros(len(uniq), np.int64)
-            np.maximum.at(mult, key_id, rank + 1)
-            offset = np.r_[0, np.cumsum(mult)[:-1]]
-            slot_of[good] = offset[key_id] + rank
-            for j, (link, kind) in enumerate(uniq):
-                slot_links += [link] * int(mult[j])
-                slot_kinds += [kind] * int(mult[j])
-        K = len(slot_links)
-        P = np.zeros((N, K, 3))
-        D = np.zeros((N, K, 3))
-        D[..., 2] = 1.0  # inactive force_dir slots: any nonzero direction
-        Wk = np.zeros((N, K, 6))
-        A = np.zeros((N, K), bool)
-        if len(good):
-            f, k = parent[good], slot_of[good]
-            P[f, k] = pos[good]
-            A[f, k] = True
-            if dirs is not None:
-                fd = good[kinds_arr[good] == "force_dir"]
-                D[parent[fd], slot_of[fd]] = dirs[fd]
-            if wr is not None:
-                kn = good[kinds_arr[good] == "known"]
-                Wk[parent[kn], slot_of[kn]] = wr[kn]
-        A[frame_contact_bad] = False
+            records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
+        good = np.flatnonzero(~bad_record)
+        contacts, slot_good = Contacts.from_records(
+            records.select(good), N, dtype=model.dtype, device=model.device
+        )
+        slot = np.full(len(records), -1, np.int64)
+        slot[good] = slot_good
 
         # ---- estimate (Del Prete et al. 2012, Sec. 2) on the model's device and dtype
         def t(x: np.ndarray) -> torch.Tensor:
             return torch.tensor(x, dtype=model.dtype, device=model.device)  # copy: arrow is r/o
 
-        contacts = Contacts(
-            tuple(slot_links),
-            tuple(slot_kinds),
-            t(P),
-            directions=t(D) if "force_dir" in slot_kinds else None,
-            wrenches=t(Wk) if "known" in slot_kinds else None,
-            active=torch.as_tensor(A, device=model.device),
-        )
         res = est.estimate(
             t(q),
             t(qd),
@@ -375,67 +374,78 @@ class LogEstimator:
             base=None if not base else _base_motion(base, t),
             tau_measured=None if tau is None else t(tau),
         )
-        code = res.status.cpu().numpy()
-        status = np.full(N, "ok", dtype=object)
-        for c in np.unique(code[code != 0]):
-            status[code == c] = status_messages(int(c))
-        # pipeline reasons take priority (they explain the NaNs the estimator saw)
-        pipeline_bad = np.zeros(N, bool)
-        for rows, msg in reversed(reasons):
-            status[rows] = msg
-            pipeline_bad |= rows
         force = res.force.detach().cpu().numpy()
         moment = res.moment.detach().cpu().numpy()
-        jt = res.joint_torques.detach().cpu().numpy().copy()
-        jt[pipeline_bad] = np.nan
+        jt = res.joint_torques.detach().cpu().numpy()
+        resid = {s: res.residual[s].detach().cpu().numpy().astype(np.float64) for s in self.sensors}
+        code = res.status.cpu().numpy().astype(np.int64) | issues.code
+        self._explain(code, qd, ft, issues)
+        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
+        bad = code != 0
+        jt = np.where(bad[:, None], np.nan, jt)
+        for s in self.sensors:
+            resid[s] = np.where(bad, np.nan, resid[s])
 
-        # ---- output rows: input contacts with force and moment added
-        out: dict[str, Any] = {"t_ns": table.column("t_ns").combine_chunks().cast(pa.int64())}
-        schema = self.output_schema()
+        # ---- output rows: input contacts with force and moment added, in record order
+        M = len(records)
         cf = np.full((M, 3), np.nan)
         cm = np.full((M, 3), np.nan)
-        ok_c = (slot_of >= 0) & ~pipeline_bad[parent] if M else np.zeros(0, bool)
+        ok_c = (slot >= 0) & ~bad[records.frame] if M else np.zeros(0, bool)
         if ok_c.any():
-            cf[ok_c] = force[parent[ok_c], slot_of[ok_c]]
-            cm[ok_c] = moment[parent[ok_c], slot_of[ok_c]]
+            cf[ok_c] = force[records.frame[ok_c], slot[ok_c]]
+            cm[ok_c] = moment[records.frame[ok_c], slot[ok_c]]
+        schema = self.output_schema()
         ctype = schema.field("contacts").type.value_type
-        if has_contacts:
-            children = [cols[n].cast(ctype.field(n).type) for n, _ in self.contact_fields]
-        else:
-            children = []
-        children += [fixed_list(cf), fixed_list(cm)]
-        struct = pa.StructArray.from_arrays(children, fields=list(ctype))
-        offsets = np.r_[0, np.cumsum(np.bincount(parent, minlength=N))].astype(np.int32)
-        out["contacts"] = pa.ListArray.from_arrays(pa.array(offsets), struct).cast(
-            schema.field("contacts").type
-        )
+        children = {n: fields[n] for n, _ in self.contact_fields}
+        children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
+        out: dict[str, Any] = {"t_ns": table.column("t_ns").combine_chunks().cast(pa.int64())}
+        out["contacts"] = struct_list(children, records.frame, N, ctype)
         out["joint_torques"] = fixed_list(jt)
         for s in self.sensors:
-            rk = res.rank[s].cpu().numpy().astype(np.int64)
-            un = res.unknowns[s].cpu().numpy().astype(np.int64)
-            rs = res.residual[s].detach().cpu().numpy().astype(np.float64).copy()
-            rs[pipeline_bad] = np.nan
-            out[f"rank.{s}"] = pa.array(rk)
-            out[f"unknowns.{s}"] = pa.array(un)
-            out[f"residual.{s}"] = pa.array(rs)
-        out["status"] = pa.array(status.tolist(), pa.string())
+            out[f"rank.{s}"] = pa.array(res.rank[s].cpu().numpy().astype(np.int64))
+            out[f"unknowns.{s}"] = pa.array(res.unknowns[s].cpu().numpy().astype(np.int64))
+            out[f"residual.{s}"] = pa.array(resid[s])
+        out["status_code"] = pa.array(code)
+        text = np.full(N, "ok", dtype=object)
+        for c in np.unique(code[bad]):
+            text[code == c] = status_messages(int(c))
+        out["status"] = pa.array(text.tolist(), pa.string())
+        out["status_detail"] = pa.array(issues.details().tolist(), pa.string())
         return pa.table(out, schema=schema)
+
+    def _explain(
+        self, code: np.ndarray, qd: np.ndarray, ft: dict[str, np.ndarray], issues: _Issues
+    ) -> None:
+        """Details of the estimator's bits 64 (which value is implausible) and 32 (overflow)."""
+        flagged = (code & 64) != 0
+        if flagged.any():
+            if self.velocity_margin is not None:
+                limit = np.asarray(
+                    self.model.joint_limits.get("velocity", np.full(self.model.nv, np.inf))
+                )
+                over = (np.abs(qd) > self.velocity_margin * limit) & flagged[:, None]
+                for j in np.flatnonzero(over.any(0)):
+                    issues.add(
+                        over[:, j],
+                        0,
+                        f"qd of {self.model.joint_names[j]!r} beyond {self.velocity_margin:g} x"
+                        f" its URDF velocity limit {limit[j]:g}",
+                    )
+            for s, lim in self._ft_range.items():
+                beyond = (np.abs(ft[s]) > lim).any(1) & flagged
+                issues.add(beyond, 0, f"{ft_column(s)} beyond its range {lim.tolist()}")
+        issues.add((code & 32) != 0, 0, "non-finite output from finite inputs")
 
     def _corrected(
         self, table: Any, ft: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
     ) -> np.ndarray:
-        """``ft (N, 6) - r_hat(features)`` [N; N m]; joints ``(N, nv)`` in the model's order."""
-        res, idx = self.residual, self._residual_joints
-        extra = {}
-        for col in self.residual_columns():
-            arr = table.column(col).combine_chunks()
-            extra[col] = torch.as_tensor(
-                np.array(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
-            )
-        x = res.features(
-            *(torch.as_tensor(np.ascontiguousarray(v[:, idx])) for v in (q, qd, qdd)), extra
-        )
-        return res.correct(torch.tensor(ft), x).numpy()
+        """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
+        extra = {
+            c: np.array(table.column(c).to_numpy(zero_copy_only=False), dtype=np.float64)
+            for c in self.residual_columns()
+        }
+        joints = (torch.as_tensor(v) for v in (q, qd, qdd))
+        return self.residual.correct(torch.tensor(ft), *joints, extra).cpu().numpy()
 
 
 def _base_motion(base: dict, t: Any) -> Any:
@@ -445,48 +455,45 @@ def _base_motion(base: dict, t: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- streaming
-def _rebatch(pf: Any, columns: list[str], batch_size: int) -> Iterator[Any]:
-    """Tables of exactly ``batch_size`` rows (the last one shorter), whatever the row groups."""
-    import pyarrow as pa
-
-    buf: list[Any] = []
-    have = 0
-    for rb in pf.iter_batches(batch_size=batch_size, columns=columns):
-        buf.append(rb)
-        have += rb.num_rows
-        while have >= batch_size:
-            tab = pa.Table.from_batches(buf).combine_chunks()
-            yield tab.slice(0, batch_size)
-            rest = tab.slice(batch_size)
-            buf, have = rest.to_batches(), rest.num_rows
-    if have:
-        yield pa.Table.from_batches(buf).combine_chunks()
+def times_and_positions(chunk: Any, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a chunk."""
+    q, _ = vectors(chunk.column("q"), len(perm))
+    return chunk.column("t_ns").to_numpy().astype(np.int64), q[:, perm]
 
 
-def _chunks_with_derivatives(
-    chunks: Iterator[Any], perm: np.ndarray, derive: bool, h: int
+def chunks_with_derivatives(
+    chunks: Iterator[Any],
+    perm: np.ndarray,
+    derive: bool,
+    h: int,
+    before: tuple[np.ndarray, np.ndarray] | None = None,
+    after: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]:
-    """Yield ``(chunk, qd, qdd)``; derivatives from ``q`` with ``h`` frames of context each side."""
+    """Yield ``(chunk, qd, qdd)``; derivatives from ``q`` with ``h`` frames of context each side.
+
+    Args:
+        chunks: consecutive tables of a log.
+        perm: the log's joint columns -> the model's order.
+        derive: compute ``qd``/``qdd`` (else None).
+        h: half window of :func:`~torchcontact.logs.derive.savgol_derivatives`.
+        before: ``(t_ns, q)`` of the up to ``h`` frames preceding the first chunk (model order).
+        after: ``(t_ns, q)`` of the up to ``h`` frames following the last chunk.
+    """
     if not derive:
         for c in chunks:
             yield c, None, None
         return
-    import pyarrow as pa
-
-    def tq(c: Any) -> tuple[np.ndarray, np.ndarray]:
-        q, _ = vectors(c.column("q"), len(perm))
-        return c.column("t_ns").to_numpy().astype(np.int64), q[:, perm]
-
-    prev_t = np.zeros(0, np.int64)
-    prev_q = np.zeros((0, len(perm)))
+    nv = len(perm)
+    empty = (np.zeros(0, np.int64), np.zeros((0, nv)))
+    prev_t, prev_q = before if before is not None else empty
     cur = next(chunks, None)
     while cur is not None:
         nxt = next(chunks, None)
-        t_c, q_c = tq(cur)
+        t_c, q_c = times_and_positions(cur, perm)
         if nxt is not None:
-            t_n, q_n = tq(nxt.slice(0, h) if isinstance(nxt, pa.Table) else nxt)
+            t_n, q_n = times_and_positions(nxt.slice(0, h), perm)
         else:
-            t_n, q_n = np.zeros(0, np.int64), np.zeros((0, len(perm)))
+            t_n, q_n = after if after is not None else empty
         t_all = np.concatenate([prev_t, t_c, t_n[:h]])
         q_all = np.concatenate([prev_q, q_c, q_n[:h]])
         lo = len(prev_t)
@@ -495,6 +502,19 @@ def _chunks_with_derivatives(
         prev_t = np.concatenate([prev_t, t_c])[-h:]
         prev_q = np.concatenate([prev_q, q_c])[-h:]
         cur = nxt
+
+
+def estimate_chunks(
+    le: LogEstimator, chunks: Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]
+) -> Iterator[Any]:
+    """Output tables of :func:`chunks_with_derivatives`' chunks.
+
+    Derived columns only replace the missing ones; logged ``qd``/``qdd`` are kept.
+    """
+    for chunk, qd, qdd in chunks:
+        yield le.process(
+            chunk, qd if "qd" in le.derived else None, qdd if "qdd" in le.derived else None
+        )
 
 
 def _atomic_json(path: Path, data: dict) -> None:
@@ -523,8 +543,8 @@ def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
     """Load a residual checkpoint for ``model`` (its robot hash must match).
 
     Args:
-        checkpoint: directory written by ``python -m training`` or
-            :func:`~torchcontact.residual.save_residual_model`.
+        checkpoint: directory written by ``torchcontact train fit`` or
+            :meth:`~torchcontact.residual.ResidualCorrection.save`.
         model: the robot the log is estimated with.
 
     Returns:
@@ -536,7 +556,7 @@ def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
     from torchcontact.residual import CheckpointError, ResidualCorrection
 
     try:
-        return ResidualCorrection.load(checkpoint, robot_sha256=model.urdf_sha256)
+        return ResidualCorrection.load(checkpoint, model)
     except CheckpointError as exc:
         raise LogError(f"--residual: {exc}") from None
 
@@ -546,14 +566,20 @@ def prepare(
     model: RobotModel,
     sensors: Sequence[str] | None = None,
     residual: Any = None,
+    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
+    ft_range: Mapping[str, Any] | None = None,
 ) -> tuple[Any, LogEstimator, list[str]]:
     """Open a log and build its :class:`LogEstimator`.
+
+    A log without a ``contacts`` column is estimated as contact-free, with one warning.
 
     Args:
         path: the log.
         model: the robot.
         sensors: sensors to use (default: those with a column).
         residual: a loaded :class:`~torchcontact.residual.ResidualCorrection` or None.
+        velocity_margin: see :class:`LogEstimator`.
+        ft_range: see :class:`LogEstimator`.
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read)``.
@@ -565,7 +591,7 @@ def prepare(
     import pyarrow as pa
 
     src = str(path)
-    pf = open_parquet(path)
+    pf = open_log(path)
     schema = pf.schema_arrow
     for col in ("t_ns", "q"):
         if col not in schema.names:
@@ -585,7 +611,24 @@ def prepare(
         for need in ("link", "kind", "position"):
             if need not in names:
                 raise LogError(f"{src}: contact struct lacks field {need!r} (has {names})")
-    le = LogEstimator(model, joint_names, used, contact_fields, src, derived, residual)
+    else:
+        warnings.warn(
+            f"{src}: no 'contacts' column: every frame is estimated as contact-free (any contact"
+            " load shows in residual.<sensor>)",
+            UserWarning,
+            stacklevel=2,
+        )
+    le = LogEstimator(
+        model,
+        joint_names,
+        used,
+        contact_fields,
+        src,
+        derived,
+        residual,
+        velocity_margin=velocity_margin,
+        ft_range=ft_range,
+    )
     for col in le.residual_columns():
         if col not in schema.names:
             raise LogError(
@@ -599,19 +642,135 @@ def prepare(
     return pf, le, columns
 
 
-def merge_parts(parts: Sequence[Path], out: Path, schema: Any) -> int:
-    """Concatenate Parquet parts (in order) into ``out`` through ``out.tmp`` and a rename."""
-    import pyarrow.parquet as pq
+@dataclass
+class RunState:
+    """The files of one output while it is being written, and the progress already made.
 
-    tmp = out.with_name(out.name + ".tmp")
-    rows = 0
-    with pq.ParquetWriter(tmp, schema) as w:
-        for p in parts:
-            tab = pq.read_table(p).cast(schema)
-            w.write_table(tab)
-            rows += tab.num_rows
-    os.replace(tmp, out)
-    return rows
+    Attributes:
+        out: the final output file.
+        partial: ``OUT.partial/``, the journal: one part per chunk (or Ray unit).
+        sidecar: ``OUT.progress.json``.
+        ident: what the run is (input, robot, options); a resume must match it.
+        done: parts already written by an interrupted run.
+    """
+
+    out: Path
+    partial: Path
+    sidecar: Path
+    ident: dict
+    done: set[int] = field(default_factory=set)
+
+    @classmethod
+    def side_paths(cls, out: Path) -> list[Path]:
+        """Every path an estimate writes besides ``out`` itself."""
+        return [out.with_name(out.name + s) for s in (".partial", ".progress.json", ".tmp")]
+
+    def part(self, k: int) -> Path:
+        """Path of part ``k``."""
+        return self.partial / f"part-{k:08d}.arrow"
+
+    def start(self, resume: bool, recurrent: bool = False) -> None:
+        """Create the folder, or take over an interrupted run's parts (``resume``).
+
+        Raises:
+            LogError: parts of an interrupted run without ``resume``, a run for other inputs or
+                options, or a recurrent residual (which cannot resume).
+        """
+        if self.partial.exists() or self.sidecar.exists():
+            if recurrent:
+                # the GRU state after the parts already written is not saved: refuse, not guess
+                raise LogError(
+                    f"{self.out}: an interrupted run left {self.partial.name}; a recurrent (GRU)"
+                    " residual needs every frame in order and cannot resume: delete it and rerun"
+                )
+            if not resume:
+                raise LogError(
+                    f"{self.out}: an interrupted run left {self.partial.name}; pass --resume"
+                    " (resume=True) to finish it or delete it"
+                )
+            try:
+                rec = json.loads(self.sidecar.read_text())
+            except (OSError, ValueError):
+                rec = None
+            if not isinstance(rec, dict) or any(rec.get(k) != v for k, v in self.ident.items()):
+                raise LogError(
+                    f"{self.out}: the interrupted run was for other inputs or options (engine,"
+                    f" batch size, sensors, ...); delete {self.partial} and"
+                    f" {self.sidecar.name} to start afresh"
+                )
+            for tmp in self.partial.glob("*.tmp"):
+                tmp.unlink()
+            self.done = {
+                int(p.stem.removeprefix("part-")) for p in self.partial.glob("part-*.arrow")
+            }
+        else:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            self.partial.mkdir()
+        self.record()
+
+    def record(self) -> None:
+        """Write the sidecar (atomically)."""
+        _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
+
+    def clean(self) -> None:
+        """Remove the journal and the sidecar (the output is complete)."""
+        shutil.rmtree(self.partial)
+        self.sidecar.unlink()
+
+
+def write_part(path: Path, tables: Iterator[Any] | Sequence[Any]) -> tuple[int, int]:
+    """Journal output tables as one part; returns ``(rows, rows with status 0)``."""
+    import pyarrow.compute as pc
+
+    counts = [0, 0]
+
+    def counted() -> Iterator[Any]:
+        for tab in tables:
+            counts[0] += tab.num_rows
+            counts[1] += int(pc.sum(pc.equal(tab.column("status_code"), 0)).as_py() or 0)
+            yield tab
+
+    write_journal(counted(), path)
+    return counts[0], counts[1]
+
+
+def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: Any) -> dict:
+    """What a run is: input file identity, robot, sensors and options (a resume must match)."""
+    st = os.stat(path)
+    ident = {
+        "input": str(Path(path).resolve()),
+        "input_size": st.st_size,
+        "input_mtime_ns": st.st_mtime_ns,
+        "urdf_sha256": model.urdf_sha256,
+        "sensors": list(le.sensors),
+        "velocity_margin": le.velocity_margin,
+        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
+        **options,
+    }
+    if le.residual is not None:
+        ident["residual_weights_sha256"] = le.residual.meta.get("weights_sha256")
+    return ident
+
+
+def summary(
+    path: str | Path, out: Path, rows: int, counts: dict, t0: float, le: LogEstimator, **more: Any
+) -> dict:
+    """The summary dict both engines return (and ``--json`` prints)."""
+    seconds = time.perf_counter() - t0
+    now = counts["ok"] + counts["bad"]
+    return {
+        "input": str(path),
+        "output": str(out),
+        "frames": rows,
+        "processed_now": now,
+        "ok_now": counts["ok"],
+        "bad_now": counts["bad"],
+        "seconds": round(seconds, 3),
+        "frames_per_s": round(now / max(seconds, 1e-9), 1),
+        "sensors": list(le.sensors),
+        "derived": list(le.derived),
+        **more,
+    }
 
 
 def estimate_file(
@@ -627,6 +786,8 @@ def estimate_file(
     progress: bool | None = None,
     half_window: int = DEFAULT_HALF_WINDOW,
     residual: Any = None,
+    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
+    ft_range: Mapping[str, Any] | None = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -642,30 +803,36 @@ def estimate_file(
         progress: show a progress bar (default: when stderr is a terminal).
         half_window: ``h`` of the Savitzky-Golay differentiator when ``qd``/``qdd`` are derived.
         residual: residual checkpoint directory (or a loaded
-            :class:`~torchcontact.residual.ResidualCorrection`): ``r_hat(features)`` [N; N m] is
+            :class:`~torchcontact.residual.ResidualCorrection`): its correction [N; N m] is
             subtracted from its sensor's reading before estimation and the output metadata
             ``torchcontact.residual`` names the checkpoint and its weights' sha256. A recurrent
             (GRU) residual sees the frames in time order across chunks; it cannot ``resume``.
+        velocity_margin: frames with ``|qd|`` beyond this times the URDF velocity limit get
+            status bit 64 (None: no check).
+        ft_range: ``{sensor: (6,) or scalar}`` [N; N m]; readings beyond it get status bit 64.
 
     Returns:
-        A summary dict: frames, ok, bad, seconds, frames_per_s, sensors, derived, resumed_chunks.
+        A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
+        frames_per_s, sensors, derived, resumed_chunks, chunks, engine.
 
     Raises:
-        LogError: the input cannot be processed at all (message names the file); an existing
-            ``out.partial`` without ``resume``; a ``resume`` whose input changed; a residual
-            checkpoint for another robot, an unused sensor or with a column the log lacks;
-            ``resume`` with a recurrent residual.
+        InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
+            or contains an input, a missing URDF.
+        LogError: the input cannot be processed at all (message names the file), or is
+            corrupted (the chunks before the damage stay in ``out.partial`` for a resume); an
+            existing ``out.partial`` without ``resume``; a ``resume`` whose input or options
+            changed; a residual checkpoint for another robot, an unused sensor or with a column
+            the log lacks; ``resume`` with a recurrent residual.
+        URDFError: an unusable URDF.
     """
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    model = (
-        robot
-        if isinstance(robot, RobotModel)
-        else RobotModel.from_urdf(robot, dtype=dtype, device=resolve_device(device))
-    )
-    if isinstance(robot, RobotModel) and (model.dtype != dtype or device != "cpu"):
-        model = model.to(resolve_device(device), dtype)
+    _check_positive(batch_size=batch_size, half_window=half_window)
+    out = Path(out)
+    robot_file = None if isinstance(robot, RobotModel) else robot
+    check_outputs([out, *RunState.side_paths(out)], [path, robot_file, _path_or_none(residual)])
+    model = load_robot(robot, dtype, device)
     if residual is not None and not hasattr(residual, "correct"):
         residual = load_residual(residual, model)
     if residual is not None:
@@ -675,50 +842,27 @@ def estimate_file(
             f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
             " its state depends on every earlier frame; rerun from the start"
         )
-    pf, le, columns = prepare(path, model, sensors, residual)
-    out = Path(out)
-    partial = out.with_name(out.name + ".partial")
-    sidecar = out.with_name(out.name + ".progress.json")
-    st = os.stat(path)
-    ident = {
-        "input": str(Path(path).resolve()),
-        "input_size": st.st_size,
-        "input_mtime_ns": st.st_mtime_ns,
-        "urdf_sha256": model.urdf_sha256,
-        "sensors": list(le.sensors),
-        "dtype": str(dtype),
-        "half_window": half_window,
-    }
-    if residual is not None:
-        ident["residual_weights_sha256"] = residual.meta.get("weights_sha256")
-    done = 0
-    if partial.exists() or sidecar.exists():
-        if residual is not None and residual.recurrent:
-            # the GRU state after the parts already written is not saved: refuse, do not guess
+    pf, le, columns = prepare(path, model, sensors, residual, velocity_margin, ft_range)
+    run = RunState(
+        out,
+        *RunState.side_paths(out)[:2],
+        run_ident(path, model, le, engine="local", dtype=str(dtype), half_window=half_window),
+    )
+    # an interrupted run keeps its chunk size: read it before the ident is compared
+    if resume and run.sidecar.exists():
+        try:
+            batch_size = int(json.loads(run.sidecar.read_text())["batch_size"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        if batch_size < 1:
             raise LogError(
-                f"{out}: an interrupted run left {partial.name}; a recurrent (GRU) residual needs"
-                " every frame in order and cannot resume: delete it and rerun"
+                f"{run.sidecar}: batch_size {batch_size} is invalid; delete it and rerun"
             )
-        if not resume:
-            raise LogError(
-                f"{out}: an interrupted run left {partial.name}; pass --resume (resume=True) to"
-                " finish it or delete it"
-            )
-        rec = json.loads(sidecar.read_text()) if sidecar.exists() else None
-        if rec is None or any(rec.get(k) != v for k, v in ident.items()):
-            raise LogError(f"{out}: the interrupted run was for other inputs; delete {partial}")
-        batch_size = int(rec["batch_size"])
-        for tmp in partial.glob("*.tmp"):
-            tmp.unlink()
-        while (partial / f"part-{done:08d}.parquet").exists():
-            done += 1
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        partial.mkdir()
-    ident["batch_size"] = batch_size
-    _atomic_json(sidecar, {**ident, "chunks_done": done})
-    import pyarrow.parquet as pq
-
+    run.ident["batch_size"] = batch_size
+    run.start(resume, recurrent=residual is not None and residual.recurrent)
+    done = len(run.done)
+    if run.done != set(range(done)):
+        raise LogError(f"{out}: parts of {run.partial} are not consecutive; delete it and rerun")
     total = pf.metadata.num_rows
     n_chunks = (total + batch_size - 1) // batch_size
     show = sys.stderr.isatty() if progress is None else progress
@@ -726,51 +870,55 @@ def estimate_file(
     bar.update(min(done * batch_size, total))
     schema = le.output_schema()
     counts = {"ok": 0, "bad": 0}
-    chunks = _rebatch(pf, columns, batch_size)
-    if not le.derived:  # nothing to carry between chunks: skip the done ones cheaply
+    chunks = iter_chunks(pf, columns, batch_size, path)
+    derive = bool(le.derived)
+    if not derive:  # nothing to carry between chunks: skip the done ones cheaply
         chunks = (c for k, c in enumerate(chunks) if k >= done)
-        stream = enumerate(_chunks_with_derivatives(chunks, le.perm, False, half_window), done)
-    else:
-        stream = enumerate(_chunks_with_derivatives(chunks, le.perm, True, half_window))
-    for k, (chunk, qd, qdd) in stream:
-        if k < done:
-            continue
-        # only the missing columns are replaced by derived values; logged ones are kept
-        res = le.process(
-            chunk, qd if "qd" in le.derived else None, qdd if "qdd" in le.derived else None
+        stream = enumerate(
+            estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, False, half_window)),
+            done,
         )
-        ok = int(np.sum(np.asarray(res.column("status").to_pylist(), dtype=object) == "ok"))
-        counts["ok"] += ok
-        counts["bad"] += res.num_rows - ok
-        part = partial / f"part-{k:08d}.parquet"
-        tmp = part.with_name(part.name + ".tmp")
-        pq.write_table(res, tmp)
-        os.replace(tmp, part)
-        _atomic_json(sidecar, {**ident, "chunks_done": k + 1})
-        bar.update(res.num_rows)
-    bar.close()
-    parts = [partial / f"part-{k:08d}.parquet" for k in range(n_chunks)]
-    missing = [p.name for p in parts if not p.exists()]
-    if missing:
-        raise LogError(f"{out}: parts {missing[:3]} missing; delete {partial} and rerun")
-    rows = merge_parts(parts, out, schema)
-    shutil.rmtree(partial)
-    sidecar.unlink()
-    seconds = time.perf_counter() - t0
-    return {
-        "input": str(path),
-        "output": str(out),
-        "frames": rows,
-        "processed_now": counts["ok"] + counts["bad"],
-        "ok_now": counts["ok"],
-        "bad_now": counts["bad"],
-        "seconds": round(seconds, 3),
-        "frames_per_s": round((counts["ok"] + counts["bad"]) / max(seconds, 1e-9), 1),
-        "sensors": list(le.sensors),
-        "derived": list(le.derived),
-        "resumed_chunks": done,
-        "engine": "local",
-    }
+    else:
+        stream = enumerate(
+            estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, True, half_window))
+        )
+    writer = LogWriter(out, schema)  # the output itself, renamed into place when complete
+    try:
+        for k in range(done):  # chunks of the interrupted run, from its journal
+            writer.write(read_journal(run.part(k)))
+        for k, res in stream:
+            if k < done:
+                continue
+            writer.write(res)
+            rows, ok = write_part(run.part(k), [res])
+            counts["ok"] += ok
+            counts["bad"] += rows - ok
+            run.done.add(k)
+            run.record()
+            bar.update(rows)
+        if len(run.done) != n_chunks:
+            missing = n_chunks - len(run.done)
+            raise LogError(f"{out}: {missing} chunks missing; delete {run.partial} and rerun")
+        rows = writer.rows
+        writer.close()
+    except LogError as exc:
+        writer.abort()
+        raise LogError(
+            f"{exc}; {len(run.done)} of {n_chunks} chunks are estimated in {run.partial}"
+        ) from None
+    except BaseException:
+        writer.abort()
+        raise
+    finally:
+        bar.close()
+    run.clean()
+    return summary(
+        path, out, rows, counts, t0, le, resumed_chunks=done, chunks=n_chunks, engine="local"
+    )
+
+
+def _path_or_none(x: Any) -> str | Path | None:
+    return x if isinstance(x, (str, Path)) else None
 
 
 def expand_inputs(inputs: Sequence[str | Path]) -> list[Path]:
@@ -799,6 +947,8 @@ def output_paths(inputs: Sequence[Path], out: str | Path) -> list[Path]:
     out = Path(out)
     if len(inputs) == 1 and not out.is_dir():
         return [out]
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: several inputs need a folder, and {out} is a file")
     names = [p.name for p in inputs]
     if len(set(names)) != len(names):
         raise LogError(f"inputs share file names {names}; give them distinct names")
@@ -808,14 +958,18 @@ def output_paths(inputs: Sequence[Path], out: str | Path) -> list[Path]:
 def estimate_files(
     inputs: Sequence[str | Path], robot: str | Path, out: str | Path, **kwargs: Any
 ) -> list[dict]:
-    """:func:`estimate_file` over files, folders or globs (``out`` a folder for several)."""
+    """:func:`estimate_file` over files, folders or globs (``out`` a folder for several).
+
+    Every output is checked against every input before the first file is processed.
+    """
     files = expand_inputs(inputs)
     outs = output_paths(files, out)
-    model = RobotModel.from_urdf(
-        robot,
-        dtype=kwargs.get("dtype", torch.float64),
-        device=resolve_device(kwargs.pop("device", "cpu")),
-    )
+    for o in outs:
+        check_outputs([o, *RunState.side_paths(o)], [*files, robot, kwargs.get("residual")])
+    model = load_robot(robot, kwargs.get("dtype", torch.float64), kwargs.pop("device", "cpu"))
     if kwargs.get("residual") is not None:  # load and verify once for all files
         kwargs["residual"] = load_residual(kwargs["residual"], model)
-    return [estimate_file(f, model, o, **kwargs) for f, o in zip(files, outs, strict=True)]
+    return [
+        estimate_file(f, model, o, device=str(model.device), **kwargs)
+        for f, o in zip(files, outs, strict=True)
+    ]

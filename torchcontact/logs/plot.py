@@ -1,43 +1,100 @@
 """PNG plots of an estimated log (matplotlib, Agg backend).
 
-- ``forces.png``: estimated contact forces (link frame, x/y/z) over time, one colour per link,
-  with the true forces (``contacts[].true_force``, simulated logs) as black dots when present.
-- ``quality.png``: per-frame rank and number of unknowns, and the residual ``|A x* - b|``, per
-  sensor; frames whose status is not ``ok`` marked in red.
-- ``robot.png``: the robot at one frame (links as segments between body origins of a forward
-  pass) with the contact forces as arrows, like Figure 2 of Del Prete et al. 2012. Needs the
-  joint positions: from the input log (``input_log``) joined on ``t_ns``.
+- ``forces.png``: per contact link (one colour each), the estimated contact force and moment (link
+  frame, x/y/z) over time as dots, and the truth (``contacts[].true_force``, simulated logs) as a
+  line of the same colour. Frames where some sensor's rank is below its number of unknowns are
+  shaded: there the estimate is the minimum-norm solution, which cannot recover the truth.
+- ``quality.png``: per sensor, the rank and the number of unknowns, and the residual
+  ``|A x* - b|``; frames with a non-zero status are marked.
+- ``robot.png``: the robot at one frame (links as segments between body origins of a forward pass)
+  with the contact forces as arrows, like Figure 2 of Del Prete et al. 2012. The view fits the
+  robot; by default the frame is a well-posed one (every sensor's rank equals its unknowns) with
+  the largest force. Needs the joint positions: from the input log (``input_log``), same rows.
+
+Legends sit outside the axes.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from torchcontact.errors import InputError, LogError
+
 __all__ = ["plot_log"]
+
+RANK_NOTE = "shaded: rank < unknowns, the minimum-norm estimate there is not the truth"
 
 
 def _flat_contacts(tab: Any) -> dict[str, np.ndarray]:
-    import pyarrow.compute as pc
+    from torchcontact.logs.format import read_contacts, vectors
 
-    lst = tab.column("contacts").combine_chunks()
-    parent = pc.list_parent_indices(lst).to_numpy(zero_copy_only=False)
-    st = lst.flatten()
-    names = [f.name for f in st.type]
-    cols = dict(zip(names, st.flatten(), strict=True))
-    from torchcontact.logs.format import vectors
-
+    records, fields, _ = read_contacts(tab.column("contacts"))
     out = {
-        "frame": parent,
-        "link": np.asarray(cols["link"].to_pylist(), dtype=object),
-        "position": vectors(cols["position"], 3)[0],
-        "force": vectors(cols["force"], 3)[0],
+        "frame": records.frame,
+        "link": records.links,
+        "position": records.positions,
+        "force": vectors(fields["force"], 3)[0],
+        "moment": vectors(fields["moment"], 3)[0],
     }
-    if "true_force" in cols:
-        out["true_force"] = vectors(cols["true_force"], 3)[0]
+    for name in ("true_force", "true_moment"):
+        if name in fields:
+            out[name] = vectors(fields[name], 3)[0]
     return out
+
+
+def _rank_deficient(tab: Any, sensors: list[str]) -> np.ndarray:
+    deficient = np.zeros(tab.num_rows, bool)
+    for s in sensors:
+        deficient |= tab.column(f"rank.{s}").to_numpy() < tab.column(f"unknowns.{s}").to_numpy()
+    return deficient
+
+
+def _shade(ax: Any, t: np.ndarray, mask: np.ndarray, color: str = "0.88") -> None:
+    if mask.any():
+        ax.fill_between(
+            t, 0, 1, where=mask, step="post", color=color, transform=ax.get_xaxis_transform(), lw=0
+        )
+
+
+def _with_gaps(t: np.ndarray, frame: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Break a line where consecutive records are not consecutive frames."""
+    if len(frame) < 2:
+        return t[frame], y
+    gap = np.flatnonzero(np.diff(frame) != 1) + 1
+    return np.insert(t[frame].astype(float), gap, np.nan), np.insert(y, gap, np.nan)
+
+
+def _load(log: str | Path, robot: Any) -> tuple[Any, Any]:
+    from torchcontact.logs.format import META_URDF_SHA256, open_log
+    from torchcontact.logs.pipeline import load_robot
+
+    pf = open_log(log)
+    names = pf.schema_arrow.names
+    need = ["t_ns", "contacts", "status_code", "status"]
+    missing = [c for c in need if c not in names]
+    if missing or not any(c.startswith("rank.") for c in names):
+        raise LogError(
+            f"{log}: not an output of torchcontact estimate (missing {missing or ['rank.*']}; plot"
+            " the estimate, and give the input log with --input)"
+        )
+    if pf.metadata.num_rows == 0:
+        raise LogError(f"{log}: no frames to plot")
+    model = load_robot(robot)
+    logged = (pf.schema_arrow.metadata or {}).get(META_URDF_SHA256, b"").decode()
+    if logged and logged != model.urdf_sha256:
+        raise LogError(
+            f"{log}: estimated with another robot (URDF sha256 {logged[:12]}...), not"
+            f" {model.name} ({model.urdf_sha256[:12]}...); pass that URDF with --robot"
+        )
+    try:
+        tab = pf.read()
+    except Exception as exc:
+        raise LogError(f"{log}: corrupted data ({exc})") from None
+    return tab, model
 
 
 def plot_log(
@@ -47,6 +104,7 @@ def plot_log(
     *,
     frame: int | None = None,
     input_log: str | Path | None = None,
+    progress: bool = False,
 ) -> list[Path]:
     """Write ``forces.png``, ``quality.png`` and ``robot.png`` for an estimated log.
 
@@ -54,137 +112,246 @@ def plot_log(
         log: output of :func:`torchcontact.logs.estimate_file`.
         robot: the URDF the log was estimated with.
         out_dir: folder for the PNGs (created).
-        frame: row index of the 3D view (default: the largest total contact force).
-        input_log: the input log, for the joint positions of the 3D view (skipped without it).
+        frame: row index of the robot view (default: a well-posed frame with the largest force).
+        input_log: the input log, for the joint positions of the robot view (skipped without it).
+        progress: show a progress bar over the figures.
 
     Returns:
         Paths of the PNGs written.
+
+    Raises:
+        LogError: not an estimate, an empty log, another robot's estimate, an input log whose
+            rows are not the estimate's.
+        InputError: ``frame`` outside the log, an output that is an input.
     """
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import pyarrow.parquet as pq
+    from tqdm import tqdm
+
+    from torchcontact.logs.format import check_outputs
 
     out_dir = Path(out_dir)
+    names = ["forces.png", "quality.png"] + (["robot.png"] if input_log is not None else [])
+    check_outputs([out_dir / n for n in names], [log, input_log, robot])
+    tab, model = _load(log, robot)
+    if frame is not None and not 0 <= frame < tab.num_rows:
+        raise InputError(f"--frame {frame}: the log has rows 0..{tab.num_rows - 1}")
     out_dir.mkdir(parents=True, exist_ok=True)
-    tab = pq.read_table(log)
-    t = (tab.column("t_ns").to_numpy() - tab.column("t_ns")[0].as_py()) * 1e-9
-    status = np.asarray(tab.column("status").to_pylist(), dtype=object)
+    t_ns = tab.column("t_ns").to_numpy()
+    t = (t_ns - t_ns[0]) * 1e-9
+    sensors = json.loads((tab.schema.metadata or {}).get(b"torchcontact.sensors", b"[]"))
+    sensors = sensors or [c[5:] for c in tab.column_names if c.startswith("rank.")]
     fc = _flat_contacts(tab)
+    deficient = _rank_deficient(tab, sensors)
     written = []
-
-    # ---- contact forces over time, per link, with the truth
-    fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
-    links = sorted(set(fc["link"].tolist()) - {None})
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, ax in enumerate(axes):
-        for j, link in enumerate(links):
-            sel = fc["link"] == link
-            ax.plot(
-                t[fc["frame"][sel]],
-                fc["force"][sel, i],
-                ".",
-                ms=2,
-                color=colors[j % len(colors)],
-                label=f"{link} (estimate)" if i == 0 else None,
+    with tqdm(total=len(names), unit="png", desc="plot", disable=not progress) as bar:
+        written.append(_forces(t, fc, deficient, out_dir / "forces.png"))
+        bar.update(1)
+        written.append(_quality(t, tab, sensors, deficient, out_dir / "quality.png"))
+        bar.update(1)
+        if input_log is not None:
+            written.append(
+                _robot_view(tab, fc, model, input_log, frame, deficient, out_dir / "robot.png")
             )
-        if "true_force" in fc:
-            ax.plot(
-                t[fc["frame"]],
-                fc["true_force"][:, i],
-                ".",
-                ms=0.6,
-                color="k",
-                label="truth" if i == 0 else None,
-            )
-        ax.set_ylabel(f"f{'xyz'[i]} [N]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", fontsize=7, markerscale=4)
-    axes[0].set_title("Contact forces (link frame)")
-    axes[-1].set_xlabel("time [s]")
-    fig.tight_layout()
-    written.append(out_dir / "forces.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
-
-    # ---- rank / unknowns / residual per sensor
-    sensors = [c[5:] for c in tab.column_names if c.startswith("rank.")]
-    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
-    bad = status != "ok"
-    for s in sensors:
-        axes[0].step(t, tab.column(f"rank.{s}").to_numpy(), where="post", label=f"rank {s}")
-        axes[0].step(
-            t, tab.column(f"unknowns.{s}").to_numpy(), "--", where="post", label=f"unknowns {s}"
-        )
-        r = tab.column(f"residual.{s}").to_numpy(zero_copy_only=False)
-        axes[1].semilogy(t, np.maximum(r, 1e-16), lw=0.8, label=f"residual {s}")
-    if bad.any():
-        axes[0].plot(t[bad], np.zeros(bad.sum()), "rx", ms=4, label="status != ok")
-    axes[0].set_ylabel("count")
-    axes[1].set_ylabel("|A x - b|")
-    axes[1].set_xlabel("time [s]")
-    for ax in axes:
-        ax.legend(loc="upper right", fontsize=7)
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    written.append(out_dir / "quality.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
-
-    if input_log is not None:
-        written.append(_robot_view(tab, fc, robot, input_log, frame, out_dir / "robot.png"))
+            bar.update(1)
     return written
 
 
-def _robot_view(tab, fc, robot, input_log, frame, path: Path) -> Path:
+def _forces(t: np.ndarray, fc: dict, deficient: np.ndarray, path: Path) -> Path:
     import matplotlib.pyplot as plt
-    import pyarrow.parquet as pq
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    fig, axes = plt.subplots(3, 2, figsize=(13, 7.5), sharex=True)
+    links = sorted({x for x in fc["link"].tolist() if isinstance(x, str)})
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    handles: list[Any] = []
+    for j, link in enumerate(links):
+        c = colors[j % len(colors)]
+        sel = np.flatnonzero(fc["link"] == link)
+        # several contacts on one link in a frame: one truth line per occurrence
+        frames = fc["frame"][sel]
+        first = np.r_[True, frames[1:] != frames[:-1]]
+        occurrence = np.arange(len(sel)) - np.maximum.accumulate(
+            np.where(first, np.arange(len(sel)), 0)
+        )
+        for col, what in enumerate(("force", "moment")):
+            for i in range(3):
+                ax = axes[i, col]
+                truth = fc.get(f"true_{what}")
+                for r in np.unique(occurrence) if truth is not None else []:
+                    one = sel[occurrence == r]
+                    x, y = _with_gaps(t, fc["frame"][one], truth[one, i])
+                    ax.plot(x, y, "-", color=c, lw=1.2, alpha=0.55)
+                ax.plot(t[frames], fc[what][sel, i], ".", color=c, ms=2.5)
+        handles.append(Line2D([], [], color=c, marker=".", ls="", ms=8, label=f"{link} estimate"))
+        if "true_force" in fc:
+            handles.append(Line2D([], [], color=c, lw=1.2, alpha=0.55, label=f"{link} truth"))
+    for i in range(3):
+        for col, (sym, unit) in enumerate((("f", "N"), ("m", "N m"))):
+            ax = axes[i, col]
+            _shade(ax, t, deficient)
+            ax.set_ylabel(f"{sym}{'xyz'[i]} [{unit}]")
+            ax.grid(alpha=0.3)
+    axes[0, 0].set_title("force (link frame)")
+    axes[0, 1].set_title("moment about the contact point (link frame)")
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    if deficient.any():
+        handles.append(
+            Patch(color="0.88", label="rank < unknowns:\nminimum-norm estimate,\nnot the truth")
+        )
+    fig.suptitle(f"Contact wrenches: estimate (dots) and truth (lines); {RANK_NOTE}", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 0.83, 1))
+    fig.legend(handles=handles, loc="center left", bbox_to_anchor=(0.83, 0.5), fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _quality(
+    t: np.ndarray, tab: Any, sensors: list[str], deficient: np.ndarray, path: Path
+) -> Path:
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    fig, axes = plt.subplots(2, 1, figsize=(12, 5.5), sharex=True)
+    bad = tab.column("status_code").to_numpy() != 0
+    for s in sensors:
+        axes[0].step(t, tab.column(f"unknowns.{s}").to_numpy(), where="post", lw=2.5, alpha=0.5,
+                     label=f"unknowns {s}")  # fmt: skip
+        axes[0].step(t, tab.column(f"rank.{s}").to_numpy(), where="post", lw=1, label=f"rank {s}")
+        r = tab.column(f"residual.{s}").to_numpy(zero_copy_only=False)
+        axes[1].semilogy(t, np.maximum(r, 1e-16), lw=0.8, label=f"residual {s}")
+    for ax in axes:
+        _shade(ax, t, deficient)
+        ax.grid(alpha=0.3)
+    if bad.any():
+        axes[0].plot(t[bad], np.zeros(bad.sum()), "rx", ms=4, label="status != 0 (NaN outputs)")
+    axes[0].set_ylabel("count")
+    axes[1].set_ylabel("|A x - b|")
+    axes[1].set_xlabel("time [s]")
+    axes[0].set_title(f"Identifiability per sensor ({RANK_NOTE})", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
+    for ax in axes:
+        h, labels = ax.get_legend_handles_labels()
+        if ax is axes[0] and deficient.any():
+            h.append(Patch(color="0.88"))
+            labels.append("rank < unknowns")
+        ax.legend(h, labels, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _default_frame(tab: Any, fc: dict, deficient: np.ndarray) -> int:
+    """A well-posed frame (status 0, rank = unknowns, a contact) with the largest force."""
+    mag = np.linalg.norm(np.nan_to_num(fc["force"]), axis=-1)
+    total = np.bincount(fc["frame"], mag, minlength=tab.num_rows)
+    ok = (tab.column("status_code").to_numpy() == 0) & ~deficient & (total > 0)
+    if ok.any():
+        return int(np.flatnonzero(ok)[np.argmax(total[ok])])
+    return int(np.argmax(total))
+
+
+def _side_view(vectors: list[np.ndarray]) -> tuple[float, float]:
+    """Camera ``(elevation, azimuth)`` in degrees that sees the vectors most from the side."""
+    dirs = [v / np.linalg.norm(v) for v in vectors if np.linalg.norm(v) > 0]
+    if not dirs:
+        return 25.0, -60.0
+    best, view = np.inf, (25.0, -60.0)
+    for elev in (15.0, 25.0, 35.0):
+        for azim in np.arange(-180.0, 180.0, 10.0):
+            e, a = np.radians(elev), np.radians(azim)
+            cam = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+            worst = max(abs(float(cam @ d)) for d in dirs)
+            if worst < best - 1e-9:
+                best, view = worst, (elev, float(azim))
+    return view
+
+
+def _robot_view(
+    tab: Any,
+    fc: dict,
+    model: Any,
+    input_log: str | Path,
+    frame: int | None,
+    deficient: np.ndarray,
+    path: Path,
+) -> Path:
+    import matplotlib.pyplot as plt
     import torch
 
     import torchcontact as tc
-    from torchcontact.logs.format import joint_names_of, vectors
+    from torchcontact.logs.format import joint_names_of, open_log, read_rows, vectors
 
-    model = tc.RobotModel.from_urdf(robot)
-    if frame is None:  # the frame with the largest total contact force
-        mag = np.linalg.norm(np.nan_to_num(fc["force"]), axis=-1)
-        frame = int(np.argmax(np.bincount(fc["frame"], mag, minlength=tab.num_rows)))
+    if frame is None:
+        frame = _default_frame(tab, fc, deficient)
     t_ns = tab.column("t_ns")[frame].as_py()
-    inp = pq.read_table(input_log, columns=["t_ns", "q"], filters=[("t_ns", "==", t_ns)])
-    names = joint_names_of(pq.read_schema(input_log))
-    q, _ = vectors(inp.column("q"), len(names))
+    pf = open_log(input_log)
+    names = joint_names_of(pf.schema_arrow, input_log)
+    missing = [n for n in model.joint_names if n not in names]
+    if missing:
+        raise LogError(f"{input_log}: joints {missing} of {model.name} are not in the input log")
+    if pf.metadata.num_rows != tab.num_rows:
+        raise LogError(
+            f"{input_log}: {pf.metadata.num_rows} rows, the estimate has {tab.num_rows}: give the"
+            " log that was estimated"
+        )
+    row = read_rows(input_log, frame, frame + 1, ["t_ns", "q"])
+    if row.column("t_ns")[0].as_py() != t_ns:
+        raise LogError(f"{input_log}: row {frame} has another t_ns than the estimate's")
+    q, _ = vectors(row.column("q"), len(names))
     q = q[0, [names.index(n) for n in model.joint_names]]
     zero = torch.zeros(model.nv, dtype=model.dtype)
-    fp = tc.forward_pass(model, torch.as_tensor(q), zero, zero)
+    fp = tc.forward_pass(model, torch.as_tensor(q, dtype=model.dtype), zero, zero)
     p = fp.p.numpy()
-    fig = plt.figure(figsize=(6, 6))
+    sel = np.flatnonzero(fc["frame"] == frame)
+    arrows = []  # (point, estimate, truth) in the world frame
+    for i in sel:
+        R, pf_ = (x.numpy() for x in model.frame_pose(fp, fc["link"][i]))
+        c = R @ fc["position"][i] + pf_
+        truth = R @ fc["true_force"][i] if "true_force" in fc else None
+        arrows.append((c, R @ np.nan_to_num(fc["force"][i]), truth))
+    # arrows: the largest force spans 30 % of the robot's size
+    lo, hi = p.min(0), p.max(0)
+    size = max(float(np.max(hi - lo)), 0.2)
+    fmax = max([np.linalg.norm(a[1]) for a in arrows] + [np.linalg.norm(a[2]) for a in arrows
+               if a[2] is not None] + [1e-9])  # fmt: skip
+    scale = 0.3 * size / fmax  # m per N
+    fig = plt.figure(figsize=(7.5, 7))
     ax = fig.add_subplot(projection="3d")
     for b in range(1, model.nb):  # links as segments between body origins
         a = p[model.body_parent[b]]
-        ax.plot(*np.stack([a, p[b]]).T, "-o", color="0.3", lw=3, ms=4)
-    sel = np.flatnonzero(fc["frame"] == frame)
-    scale = 0.02  # m per N
-    for i in sel:
-        R, pf = model.frame_pose(fp, fc["link"][i])
-        R, pf = R.numpy(), pf.numpy()
-        c = R @ fc["position"][i] + pf
-        f = R @ np.nan_to_num(fc["force"][i])
-        ax.scatter(*c, color="tab:red", s=20)
-        ax.quiver(*c, *(f * scale), color="tab:red", lw=2, label="estimate")
-        if "true_force" in fc:
-            ft = R @ fc["true_force"][i]
-            ax.quiver(*c, *(ft * scale), color="k", lw=1, linestyle="--", label="truth")
-    lim = np.abs(p).max() + 0.1
-    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(0, 2 * lim))
+        ax.plot(*np.stack([a, p[b]]).T, "-o", color="0.35", lw=3, ms=4)
+    pts = [p]
+    for c, f, truth in arrows:
+        ax.scatter(*c, color="tab:red", s=25, depthshade=False)
+        ax.quiver(*c, *(f * scale), color="tab:red", lw=2.5, label="estimate")
+        pts += [c[None], (c + f * scale)[None]]
+        if truth is not None:
+            ax.quiver(*c, *(truth * scale), color="k", lw=1.2, linestyle="--", label="truth")
+            pts.append((c + truth * scale)[None])
+    allp = np.concatenate(pts)
+    mid, half = (allp.min(0) + allp.max(0)) / 2, (allp.max(0) - allp.min(0)).max() / 2 + 0.05
+    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half))
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(*_side_view([a[1] for a in arrows]))
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
-    ax.set_title(f"frame {frame}: {len(sel)} contact(s), arrows {scale * 1000:.0f} mm/N")
+    posed = "well-posed" if not deficient[frame] else "rank < unknowns: minimum-norm estimate"
+    ax.set_title(
+        f"t = {(t_ns - tab.column('t_ns')[0].as_py()) * 1e-9:.2f} s (row {frame}), {len(sel)}"
+        f" contact(s), {posed}\narrows: {scale * 1000:.0f} mm per N, world frame",
+        fontsize=10,
+    )
     handles, labels = ax.get_legend_handles_labels()
     uniq = dict(zip(labels, handles, strict=True))
     if uniq:
-        ax.legend(uniq.values(), uniq.keys(), loc="upper left")
-    fig.tight_layout()
+        fig.legend(uniq.values(), uniq.keys(), loc="upper right")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -12,7 +12,15 @@ from typing import Any
 
 import numpy as np
 
-from torchcontact.logs.format import fixed_list, ft_column, input_schema
+from torchcontact.contacts import ContactRecords
+from torchcontact.errors import InputError
+from torchcontact.logs.format import (
+    LogWriter,
+    contacts_column,
+    fixed_list,
+    ft_column,
+    input_schema,
+)
 from torchcontact.model import RobotModel
 from torchcontact.simulation import SimulatedLog, UnmodeledEffects, simulate
 
@@ -38,8 +46,6 @@ def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int =
     """
     import pyarrow as pa
 
-    from torchcontact.logs.format import contact_struct_type
-
     N, K = log.contact_link.shape
     schema = input_schema(
         log.joint_names,
@@ -48,27 +54,20 @@ def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int =
         contact_extra=_contact_extra(),
         extra=[("temperature", pa.float64())],
     )
-    on = log.contact_link >= 0  # (N, K), flattened in (frame, slot) order
-    M = int(on.sum())
-    names = np.asarray(log.links, dtype=object)
-    ctype = contact_struct_type(_contact_extra())
-    struct = pa.StructArray.from_arrays(
-        [
-            pa.array(names[log.contact_link[on]].tolist(), pa.string()),
-            pa.array(["force"] * M, pa.string()),
-            fixed_list(log.contact_position[on]),
-            pa.nulls(M, pa.list_(pa.float64(), 3)),
-            pa.nulls(M, pa.list_(pa.float64(), 6)),
-            fixed_list(log.contact_force[on]),
-        ],
-        fields=list(ctype),
+    f, k = np.nonzero(log.contact_link >= 0)  # records in (frame, slot) order
+    records = ContactRecords(
+        f,
+        np.asarray(log.links, dtype=object)[log.contact_link[f, k]],
+        ["force"] * len(f),
+        log.contact_position[f, k],
     )
-    offsets = np.r_[0, np.cumsum(on.sum(1))].astype(np.int32)
+    ctype = schema.field("contacts").type.value_type
+    contacts = contacts_column(records, N, {"true_force": log.contact_force[f, k]}, ctype)
     cols: dict[str, Any] = {"t_ns": pa.array(log.t_ns + t0_ns, pa.int64()), "q": fixed_list(log.q)}
     if derivatives:
         cols["qd"], cols["qdd"] = fixed_list(log.qd), fixed_list(log.qdd)
     cols[ft_column(log.sensor)] = fixed_list(log.ft)
-    cols["contacts"] = pa.ListArray.from_arrays(pa.array(offsets), struct)
+    cols["contacts"] = contacts
     cols["temperature"] = pa.array(log.temperature, pa.float64())
     return pa.table(cols, schema=schema)
 
@@ -83,6 +82,7 @@ def write_simulated_log(
     derivatives: bool = True,
     chunk: int = 200_000,
     temperature: bool = True,
+    progress: bool = False,
     **kwargs: Any,
 ) -> Path:
     """Simulate ``frames`` frames and write them as a Parquet log, streamed in chunks.
@@ -93,38 +93,50 @@ def write_simulated_log(
 
     Args:
         model: the robot.
-        frames: number of frames.
+        frames: number of frames (>= 1).
         out: output file.
         seed: random seed.
         effects: unmodeled effects (offset, drift, cable, payload, noise).
         derivatives: write ``qd`` and ``qdd``.
         chunk: frames simulated per segment (memory is flat in ``frames``).
         temperature: keep the ``temperature`` column.
-        **kwargs: passed to :func:`torchcontact.simulation.simulate`.
+        progress: show a progress bar (per segment).
+        **kwargs: passed to :func:`torchcontact.simulation.simulate` (``sensor``, ``links``,
+            ``max_contacts``, ...).
 
     Returns:
         The output path.
-    """
-    import pyarrow.parquet as pq
 
+    Raises:
+        InputError: ``frames`` or ``chunk`` < 1.
+    """
+    from tqdm import tqdm
+
+    if not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise InputError(f"--frames must be an integer >= 1, got {frames!r}")
+    if chunk < 1:
+        raise InputError(f"chunk must be >= 1, got {chunk}")
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    writer = None
     t0 = 0
-    for i, start in enumerate(range(0, max(frames, 1), chunk)):
-        n = min(chunk, frames - start)
-        if n <= 0:
-            break
-        log = simulate(model, n, seed=seed + i, effects=effects, **kwargs)
-        tab = simulated_table(log, derivatives=derivatives, t0_ns=t0)
-        if not temperature:
-            tab = tab.drop_columns(["temperature"])
-        t0 = int(tab.column("t_ns")[-1].as_py()) + int(log.t_ns[1] - log.t_ns[0] if n > 1 else 0)
-        if writer is None:
-            writer = pq.ParquetWriter(tmp, tab.schema)
-        writer.write_table(tab, row_group_size=65536)
-    if writer is not None:
-        writer.close()
-    tmp.replace(out)
+    writer = None
+    bar = tqdm(total=frames, unit="frames", desc="simulate", disable=not progress)
+    try:
+        for i, start in enumerate(range(0, frames, chunk)):
+            n = min(chunk, frames - start)
+            log = simulate(model, n, seed=seed + i, effects=effects, **kwargs)
+            tab = simulated_table(log, derivatives=derivatives, t0_ns=t0)
+            if not temperature:
+                tab = tab.drop_columns(["temperature"])
+            step = int(log.t_ns[1] - log.t_ns[0]) if n > 1 else 0
+            t0 = int(tab.column("t_ns")[-1].as_py()) + step
+            writer = writer or LogWriter(out, tab.schema)
+            writer.write(tab, row_group_size=65536)
+            bar.update(n)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    finally:
+        bar.close()
+    writer.close()  # type: ignore[union-attr]  (frames >= 1: at least one segment)
     return out

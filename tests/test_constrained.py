@@ -1,0 +1,319 @@
+"""Friction-cone constrained estimation (torchcontact.constrained) against clarabel and physics.
+
+Reference: clarabel (an interior-point conic solver, test dependency) on the same problem
+``min 1/2 |A x - b|^2 + eps/2 |x|^2`` s.t. ``C_k x_k in Q^3``, at tolerances 1e-12. Agreement is
+checked to 1e-6 relative where clarabel reports ``Solved``; on every problem our objective must be
+no worse than clarabel's and our forces inside their cones.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from robots import load_model, random_state
+
+import torchcontact as tc
+from torchcontact.constrained import FrictionCones, cone_constrained_lstsq
+from torchcontact.errors import InputError
+
+REF_RTOL = 1e-6  # constrained solution vs clarabel, relative to max(1, |x|)
+MU = math.tan(0.5)
+
+
+def _cone_C(n, mu):
+    n = n / np.linalg.norm(n)
+    t1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    t1 /= np.linalg.norm(t1)
+    return np.stack([-mu * n, t1, np.cross(n, t1)])
+
+
+def _clarabel(A, b, Cs, eps):
+    import clarabel
+    import scipy.sparse as sps
+
+    u = A.shape[1]
+    P = A.T @ A + eps * np.eye(u)
+    G = np.zeros((3 * len(Cs), u))
+    for k, C in enumerate(Cs):
+        G[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = -C
+    st = clarabel.DefaultSettings()
+    st.verbose = False
+    st.tol_gap_abs = st.tol_gap_rel = st.tol_feas = 1e-12
+    st.tol_ktratio = 1e-10
+    st.static_regularization_constant = 1e-12
+    st.iterative_refinement_reltol = st.iterative_refinement_abstol = 1e-15
+    st.iterative_refinement_max_iter = 50
+    st.equilibrate_enable = False
+    st.max_iter = 500
+    cones = [clarabel.SecondOrderConeT(3)] * len(Cs)
+    solver = clarabel.DefaultSolver(
+        sps.csc_matrix(np.triu(P)), -A.T @ b, sps.csc_matrix(G), np.zeros(3 * len(Cs)), cones, st
+    )
+    r = solver.solve()
+    return np.array(r.x), str(r.status)
+
+
+def _random_problems(rng, n, K, R, feasible):
+    As, bs, Cs = [], [], []
+    for _ in range(n):
+        # well conditioned (singular values in [0.3, 3]), so that clarabel's 1e-12 gap pins x
+        U, _ = np.linalg.qr(rng.normal(size=(R, 3 * K)))
+        V, _ = np.linalg.qr(rng.normal(size=(3 * K, 3 * K)))
+        A = U @ np.diag(rng.uniform(0.3, 3.0, size=3 * K)) @ V.T
+        ns = [v / np.linalg.norm(v) for v in rng.normal(size=(K, 3))]
+        if feasible:  # forces pushing inside their cones: the unconstrained solution is feasible
+            f = []
+            for nk in ns:
+                t = rng.normal(size=3)
+                t -= t.dot(nk) * nk
+                f.append(-nk * rng.uniform(1, 10) + 0.3 * t)
+            b = A @ np.concatenate(f)
+        else:  # arbitrary readings: most frames have active cones
+            b = rng.normal(size=R) * 10
+        As.append(A)
+        bs.append(b)
+        Cs.append([_cone_C(nk, MU) for nk in ns])
+    return As, bs, Cs
+
+
+@pytest.mark.parametrize("K,R", [(2, 6), (2, 9), (3, 9), (4, 12), (6, 18)])
+@pytest.mark.parametrize("feasible", [True, False])
+def test_matches_clarabel(K, R, feasible):
+    rng = np.random.default_rng(10 * K + R + feasible)
+    n, eps = 80, 1e-9
+    As, bs, Cs = _random_problems(rng, n, K, R, feasible)
+    cones = [(range(3 * k, 3 * k + 3), torch.tensor(np.stack([c[k] for c in Cs])))
+             for k in range(K)]  # fmt: skip
+    x, ok, it, act = cone_constrained_lstsq(
+        torch.tensor(np.stack(As)), torch.tensor(np.stack(bs)), cones,
+        settings=FrictionCones(eps=eps),
+    )  # fmt: skip
+    assert ok.all() and (it <= 20).all()
+    x = x.numpy()
+    solved = 0
+    for i in range(n):
+        ref, status = _clarabel(As[i], bs[i], Cs[i], eps)
+
+        def obj(v, i=i):
+            return 0.5 * np.sum((As[i] @ v - bs[i]) ** 2) + 0.5 * eps * v @ v
+
+        # no worse than the reference (clarabel may sit 1e-12 outside a cone: 1e-10 slack)
+        assert obj(x[i]) <= obj(ref) + 1e-10 * (1 + obj(ref))
+        for k in range(K):  # inside every cone
+            s = Cs[i][k] @ x[i][3 * k : 3 * k + 3]
+            assert s[0] >= np.hypot(s[1], s[2]) - 1e-9 * (1 + abs(s[0]))
+        if status == "Solved":  # AlmostSolved (1e-8 met, not 1e-12) is off by up to 3e-4
+            solved += 1
+            np.testing.assert_allclose(x[i], ref, atol=REF_RTOL * max(1, np.abs(ref).max()))
+    assert solved >= 1  # clarabel solves 1 to 80 of 80 at 1e-12, fewest with six active cones
+    if feasible:
+        assert act.float().mean() < 0.1  # forces strictly inside: (almost) no cone binds
+    else:
+        assert act.float().mean() > 0.5
+
+
+def _icub_two_pushes(n, seed, boundary=False):
+    """Two pushing forces on the iCub left forearm (rank 5 of 6) and their noise-free readings."""
+    model = load_model("icub")
+    est = tc.ContactEstimator(model)
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    q, qd, qdd = random_state(model, n, seed=seed)
+    pos = (torch.rand(n, 2, 3, generator=g, dtype=f64) - 0.5) * torch.tensor(
+        [0.03, 0.03, 0.1], dtype=f64
+    )
+    if boundary:
+        # both forces on their cones' boundaries, tilted along u = c2 - c1 (normals orthogonal
+        # to u): moving along the unobservable direction (u, -u) leaves one cone either way
+        u = pos[:, 1] - pos[:, 0]
+        u = u / u.norm(dim=-1, keepdim=True)
+        n0 = torch.linalg.cross(u, torch.randn(n, 3, generator=g, dtype=f64))
+        n0 = n0 / n0.norm(dim=-1, keepdim=True)
+        normals = n0.unsqueeze(1).expand(n, 2, 3).contiguous()
+        mag = 1 + 9 * torch.rand(n, 2, 1, generator=g, dtype=f64)
+        force = mag * (-math.cos(0.5) * normals + math.sin(0.5) * u.unsqueeze(1))
+    else:
+        normals = torch.randn(n, 2, 3, generator=g, dtype=f64)
+        normals = normals / normals.norm(dim=-1, keepdim=True)
+        t = torch.randn(n, 2, 3, generator=g, dtype=f64)
+        t = t - (t * normals).sum(-1, keepdim=True) * normals
+        t = t / t.norm(dim=-1, keepdim=True)
+        ang = 0.5 * torch.rand(n, 2, 1, generator=g, dtype=f64)
+        force = (
+            10
+            * torch.rand(n, 2, 1, generator=g, dtype=f64)
+            * (-torch.cos(ang) * normals + torch.sin(ang) * t)
+        )
+    links = ("l_forearm", "l_forearm")
+    known = tc.Contacts(links, ("known",) * 2, pos, wrenches=torch.cat([force, 0 * force], -1))
+    ft = est.predict_ft(q, qd, qdd, known)
+    contacts = tc.Contacts(links, ("force",) * 2, pos, normals=normals, cone_angle=0.5)
+    return est, (q, qd, qdd, ft), contacts, force
+
+
+def test_recovers_the_truth_where_the_cones_make_it_identifiable():
+    est, state, contacts, truth = _icub_two_pushes(40, seed=1, boundary=True)
+    free = est.estimate(*state, contacts, backend="eager")
+    cone = est.estimate(*state, contacts, constraints=FrictionCones(), backend="eager")
+    assert (free.rank["l_arm_ft"] == 5).all() and (free.nullity["l_arm_ft"] == 1).all()
+    assert (free.force - truth).abs().max() > 0.05  # the pseudo-inverse cannot tell
+    # the truth sits where two cone boundaries pinch the unobservable line: the multipliers are
+    # only eps-sized there (weakly complementary), which costs the solver digits: 1e-5 relative
+    torch.testing.assert_close(cone.force, truth, atol=1e-5 * truth.abs().max(), rtol=0)
+    assert cone.cones.converged["l_arm_ft"].all()
+    assert cone.cones.active.all()  # both forces on their cones' boundaries
+
+
+def test_equals_pinv_when_the_unconstrained_solution_is_inside_the_cones():
+    est, state, contacts, truth = _icub_two_pushes(60, seed=2)
+    free = est.estimate(*state, contacts, backend="eager")
+    # normals opposite to the pseudo-inverse forces: every unconstrained solution is inside
+    inside = tc.Contacts(contacts.links, contacts.kinds, contacts.positions,
+                         normals=-free.force, cone_angle=0.5)  # fmt: skip
+    cone = est.estimate(*state, inside, constraints=FrictionCones(), backend="eager")
+    torch.testing.assert_close(cone.force, free.force, atol=1e-6 * truth.abs().max(), rtol=0)
+    torch.testing.assert_close(cone.joint_torques, free.joint_torques, atol=1e-5, rtol=0)
+    assert not cone.cones.active.any()
+    # with arbitrary normals the cones bind in some frames and the error to the truth drops
+    tight = est.estimate(*state, contacts, constraints=FrictionCones(), backend="eager")
+    assert tight.cones.active.any()
+    err_free = (free.force - truth).norm(dim=-1).median()
+    err_cone = (tight.force - truth).norm(dim=-1).median()
+    assert err_cone < err_free
+
+
+def test_warm_start_kernel_and_nullspace():
+    """Generated kernel vs eager, warm start, null-space basis (bundled arm: a small kernel)."""
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    est = tc.ContactEstimator(model)
+    n, f64 = 37, torch.float64
+    g = torch.Generator().manual_seed(3)
+    q, qd, qdd = random_state(model, n, seed=3)
+    pos = 0.05 * torch.randn(n, 2, 3, generator=g, dtype=f64)
+    normals = torch.randn(n, 2, 3, generator=g, dtype=f64)
+    force = -3 * normals + torch.randn(n, 2, 3, generator=g, dtype=f64)
+    links = ("forearm_skin", "hand_skin")
+    wr = torch.cat([force, 0 * force], -1)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ("known",) * 2, pos, wrenches=wr))
+    c = tc.Contacts(links, ("force",) * 2, pos, normals=normals, friction=0.6)
+    cons = FrictionCones()
+    eager = est.estimate(q, qd, qdd, ft, c, constraints=cons, nullspace=True, backend="eager")
+    kern = est.estimate(q, qd, qdd, ft, c, constraints=cons, nullspace=True, backend="cpu")
+    scale = force.abs().max()
+    torch.testing.assert_close(kern.force, eager.force, atol=1e-7 * scale, rtol=0)
+    assert torch.equal(kern.cones.active, eager.cones.active)
+    assert kern.cones.converged["base_ft"].all()
+    # null space: orthonormal basis of dimension unknowns - rank, spanning what the sensor
+    # cannot see (the same projector from both backends)
+    N = eager.nullspace["base_ft"]
+    d = eager.nullity["base_ft"]
+    assert (d == 6 - eager.rank["base_ft"]).all() and (d == 0).any() is not None
+    cols = N.norm(dim=-2) > 0.5
+    assert torch.equal(cols.sum(-1), d)
+    proj = N @ N.transpose(-1, -2)
+    torch.testing.assert_close(proj, kern.nullspace["base_ft"] @ kern.nullspace["base_ft"].mT,
+                               atol=1e-9, rtol=0)  # fmt: skip
+    i = int(torch.argmax(d))
+    if int(d[i]) > 0:
+        v = N[i, :, 0].reshape(2, 3)  # forces that add no reading
+        w = torch.cat([v, 0 * v], -1).unsqueeze(0)
+        sl = (slice(i, i + 1),)
+        zero = tc.Contacts(links, ("known",) * 2, pos[sl], wrenches=0 * w)
+        moved = tc.Contacts(links, ("known",) * 2, pos[sl], wrenches=w)
+        a = est.predict_ft(q[sl], qd[sl], qdd[sl], moved)["base_ft"]
+        b = est.predict_ft(q[sl], qd[sl], qdd[sl], zero)["base_ft"]
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=0)
+    # warm start from the solution: same answer, converged at once; NaN falls back to pinv
+    warm = est.estimate(q, qd, qdd, ft, c, constraints=cons, backend="eager",
+                        warm_start=(eager.force, eager.moment))  # fmt: skip
+    torch.testing.assert_close(warm.force, eager.force, atol=1e-6 * scale, rtol=0)
+    assert warm.cones.iterations["base_ft"].float().mean() <= (
+        eager.cones.iterations["base_ft"].float().mean()
+    )
+    nan = torch.full_like(eager.force, float("nan"))
+    cold = est.estimate(q, qd, qdd, ft, c, constraints=cons, backend="eager",
+                        warm_start=(nan, nan))  # fmt: skip
+    torch.testing.assert_close(cold.force, eager.force, atol=1e-9 * scale, rtol=0)
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (3,), (2, 3)])
+def test_batch_shapes_and_float32(shape):
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    est = tc.ContactEstimator(model)
+    g = torch.Generator().manual_seed(4)
+    n = math.prod(shape)
+    q, qd, qdd = (x.reshape(*shape, model.nv) for x in random_state(model, n, seed=4))
+    pos = 0.05 * torch.randn(*shape, 2, 3, generator=g, dtype=torch.float64)
+    normals = torch.randn(*shape, 2, 3, generator=g, dtype=torch.float64)
+    ft = {"base_ft": 5 * torch.randn(*shape, 6, generator=g, dtype=torch.float64)}
+    links = ("forearm_skin", "hand_skin")
+    c = tc.Contacts(
+        links, ("force", "wrench"), pos, normals=normals, friction=torch.tensor([0.5, 1])
+    )
+    r = est.estimate(q, qd, qdd, ft, c, constraints=FrictionCones(), backend="eager")
+    assert r.force.shape == (*shape, 2, 3) and r.cones.active.shape == (*shape, 2)
+    assert r.cones.iterations["base_ft"].shape == shape
+    if n > 1:  # batched equals a loop over frames; frames differ
+        flat = r.force.reshape(n, 2, 3)
+        one = est.estimate(q.reshape(n, -1)[:1], qd.reshape(n, -1)[:1], qdd.reshape(n, -1)[:1],
+                           {"base_ft": ft["base_ft"].reshape(n, 6)[:1]},
+                           tc.Contacts(links, c.kinds, pos.reshape(n, 2, 3)[:1],
+                                       normals=normals.reshape(n, 2, 3)[:1],
+                                       friction=c.friction),
+                           constraints=FrictionCones(), backend="eager")  # fmt: skip
+        torch.testing.assert_close(one.force[0], flat[0], atol=1e-9, rtol=0)
+        assert not torch.allclose(flat[0], flat[-1])
+    # float32: same cones, same answer to float32 accuracy
+    m32 = model.to(dtype=torch.float32)
+    est32 = tc.ContactEstimator(m32)
+    c32 = tc.Contacts(links, c.kinds, pos.float(), normals=normals.float(),
+                      friction=torch.tensor([0.5, 1.0]))  # fmt: skip
+    r32 = est32.estimate(q.float(), qd.float(), qdd.float(), {"base_ft": ft["base_ft"].float()},
+                         c32, constraints=FrictionCones(), backend="eager")  # fmt: skip
+    assert r32.force.dtype == torch.float32
+    scale = max(1.0, float(r.force.abs().max()))
+    torch.testing.assert_close(r32.force.double(), r.force, atol=2e-2 * scale, rtol=0)
+
+
+def test_bad_input_is_rejected_with_a_clear_error():
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    est = tc.ContactEstimator(model)
+    q = torch.zeros(2, model.nv, dtype=torch.float64)
+    ft = {"base_ft": torch.ones(2, 6, dtype=torch.float64)}
+    pos = torch.zeros(2, 1, 3, dtype=torch.float64)
+    normals = torch.tensor([[[0, 0, 1.0]], [[0, 0, 0.0]]], dtype=torch.float64)
+    cons = FrictionCones()
+    with pytest.raises(InputError, match="zero normal on pushing slot 0 .* frame 1"):
+        est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, normals=normals,
+                                              friction=0.5), constraints=cons)  # fmt: skip
+    with pytest.raises(ValueError, match="friction must be a finite number > 0"):
+        tc.Contacts(["hand_skin"], ["force"], pos, friction=-0.2)
+    with pytest.raises(InputError, match="friction coefficient -0.2"):
+        est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, normals=normals + 1,
+                                              friction=torch.tensor([-0.2])), constraints=cons)  # fmt: skip
+    with pytest.raises(ValueError, match="cone_angle must be in"):
+        tc.Contacts(["hand_skin"], ["force"], pos, cone_angle=2.0)
+    with pytest.raises(ValueError, match="not both"):
+        tc.Contacts(["hand_skin"], ["force"], pos, friction=0.5, cone_angle=0.5)
+    with pytest.raises(InputError, match="need contacts.normals"):
+        est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, friction=0.5),
+                     constraints=cons)  # fmt: skip
+    with pytest.raises(InputError, match="need contacts.friction"):
+        est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, normals=normals + 1),
+                     constraints=cons)  # fmt: skip
+    with pytest.raises(InputError, match="iterations"):
+        FrictionCones(iterations=0)
+    # a non-pushing or inactive slot needs no normal; a force_dir slot pushes without one
+    c = tc.Contacts(["hand_skin", "hand_skin"], ["force", "force_dir"], pos.expand(2, 2, 3),
+                    directions=torch.tensor([0, 0, -1.0]).expand(2, 2, 3).double(),
+                    pushing=torch.tensor([False, True]))  # fmt: skip
+    r = est.estimate(q, q, q, ft, c, constraints=cons, backend="eager")
+    assert (r.status == 0).all() and r.cones.converged["base_ft"].all()
+    # NaN normals are per-frame data errors: status, not an exception
+    bad = torch.tensor([[[0, 0, 1.0]], [[float("nan"), 0, 1.0]]], dtype=torch.float64)
+    r = est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, normals=bad,
+                                              friction=0.5), constraints=cons, backend="eager")  # fmt: skip
+    assert r.status.tolist() == [0, 4] and torch.isnan(r.force[1]).all()
