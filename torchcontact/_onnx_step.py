@@ -259,9 +259,7 @@ def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
         replace(tree.bodies[o], parent=new[tree.bodies[o].parent] if o else -1) for o in keep
     )
     order = tuple(new[o] for o in tree.order if o in new)
-    t2 = replace(
-        tree, bodies=bodies, order=order, revolute=tuple(new[o] for o in tree.revolute if o in new)
-    )
+    t2 = replace(tree, bodies=bodies, order=order)
     slots = tuple(replace(sl, body=new[sl.body]) for sl in em.slots)
     regions = tuple(replace(r, child=new[r.child]) for r in em.regions)
     return replace(
