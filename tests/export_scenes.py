@@ -162,7 +162,7 @@ def scene(
 
 
 def reference(
-    name: str, x: dict[str, np.ndarray], dtype=np.float64, compute=np.float64
+    name: str, x: dict[str, np.ndarray], dtype=np.float64, compute=np.float64, estimator=None
 ) -> tc.ContactEstimate:
     """The torch estimator's estimate of the frames ``x`` (float64 outputs).
 
@@ -171,9 +171,11 @@ def reference(
         x: the frames (:func:`scene`).
         dtype: the graph dtype whose rank rule applies.
         compute: the dtype the torch estimator computes in (float32: the float32 baseline).
+        estimator: the estimator to use (e.g. with status limits); default
+            :func:`reference_estimator`.
     """
     lay = LAYOUTS[name]
-    est = reference_estimator(name, dtype, compute)
+    est = estimator or reference_estimator(name, dtype, compute)
     tdt = torch.float32 if compute == np.float32 else torch.float64
     t = {k: torch.as_tensor(v, dtype=tdt) for k, v in x.items() if k != "truth"}
     ft = {s: t["ft"][:, i] - t["ft_residual"][:, i] for i, s in enumerate(est.sensor_names)}

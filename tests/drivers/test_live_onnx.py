@@ -74,6 +74,26 @@ def _joints(q):
     return src
 
 
+def _run_loop(src, q, est, frames):
+    """``frames`` published records of the live loop on ``src`` (opened) with joints ``q``."""
+    records = []
+
+    class Keep:
+        def publish(self, r):
+            records.append(r)
+
+    joints = _joints(q)
+    try:
+        summary = LiveLoop(src, joints, est, [Keep()], require_joints=True).run(
+            max_frames=frames, duration=5.0
+        )
+    finally:
+        src.close()
+        joints.close()
+    assert summary["published"] == frames and summary["estimator_errors"] == 0
+    return records
+
+
 def test_loop_publishes_forces_and_joint_torques(scene, tcp_sim):
     sim = tcp_sim(profile="generic-float32", signal=constant_signal(scene["ft"]))
     ft = ModbusFTSensor("generic-float32", host="127.0.0.1", tcp_port=sim.port)
@@ -83,19 +103,7 @@ def test_loop_publishes_forces_and_joint_torques(scene, tcp_sim):
         {"positions": POSITIONS, "active": [0, 1]},
         expect_joint_names=scene["model"].joint_names,
     )
-    records = []
-
-    class Keep:
-        def publish(self, r):
-            records.append(r)
-
-    joints = _joints(scene["q"])
-    summary = LiveLoop(ft, joints, est, [Keep()], require_joints=True).run(
-        max_frames=10, duration=5.0
-    )
-    ft.close()
-    joints.close()
-    assert summary["published"] == 10 and summary["estimator_errors"] == 0
+    records = _run_loop(ft, scene["q"], est, 10)
     ref_tau = scene["ref"].joint_torques.numpy()
     assert np.abs(ref_tau).max() > 0.1  # the contact loads the joints
     for r in records:
@@ -244,19 +252,7 @@ def test_several_sensors_in_one_graph(two_sensors, tcp_sim):
     )
     group.open()
     est = OnnxEstimator(str(s["path"]), {"positions": s["pos"], "active": [1, 1]}, robot=s["model"])
-    records = []
-
-    class Keep:
-        def publish(self, r):
-            records.append(r)
-
-    joints = _joints(s["q"])
-    summary = LiveLoop(group, joints, est, [Keep()], require_joints=True).run(
-        max_frames=5, duration=5.0
-    )
-    group.close()
-    joints.close()
-    assert summary["published"] == 5 and summary["estimator_errors"] == 0
+    records = _run_loop(group, s["q"], est, 5)
     for r in records:
         assert len(r["ft"]) == 12  # both readings, the graph's sensor order
         e = r["estimate"]

@@ -143,23 +143,7 @@ def test_status_bits_and_nan_frames(tmp_path, graph):
     x["active"][8, 1] = 0.0  # an inactive slot's NaN position is no error
     x["active"][16, 1] = 0.0  # nor an inactive slot's zero-length direction
     est = tc.ContactEstimator(model, None, **limits)
-    t = {k: torch.as_tensor(v) for k, v in x.items() if k != "truth"}
-    ref = est.estimate(
-        t["q"],
-        t["qd"],
-        t["qdd"],
-        {s: t["ft"][:, i] - t["ft_residual"][:, i] for i, s in enumerate(est.sensor_names)},
-        tc.Contacts(
-            lay["links"],
-            lay["kinds"],
-            t["positions"],
-            t["directions"],
-            t["wrenches"],
-            t["active"] > 0.5,
-        ),
-        base=tc.BaseMotion(t["omega"], t["domega"], t["proper_acc"]),
-        ft_covariance={s: t["ft_cov"][:, i] for i, s in enumerate(est.sensor_names)},
-    )
+    ref = reference("tcarm2", x, estimator=est)
     assert set(ref.status.tolist()) >= {0, 1, 2, 4, 8, 64}
     out = (
         _step_all(rt, x)
