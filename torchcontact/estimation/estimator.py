@@ -73,9 +73,11 @@ class ConeStatus(NamedTuple):
     """Per-frame status of the friction-cone constrained estimate.
 
     Attributes:
-        converged: sensor -> ``(*B,)`` bool, the interior-point residuals and gap met ``tol``.
-        iterations: sensor -> ``(*B,)`` int64, the iteration at which they first did (the
-            budget when never; 0 for a region without unknowns).
+        converged: sensor -> ``(*B,)`` bool: the interior-point iterations stopped (the
+            iterate no longer moves) within the budget and the KKT residuals meet ``tol``.
+        iterations: sensor -> ``(*B,)`` int64, the iterations run until then (the budget when
+            it never stopped; 0 where the pseudo-inverse solution lies inside every cone, and
+            for a region without unknowns).
         active: ``(*B, K)`` bool, the slot's cone constraint binds (its force is on the cone's
             boundary or at its apex).
     """
