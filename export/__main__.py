@@ -6,7 +6,7 @@ The same parser runs as ``python -m export`` from the repository root. Example::
         --slot hand_skin:force --out tcarm.onnx
     torchcontact export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
         --contacts slots.toml --dtype float32 --out icub_larm.onnx
-    torchcontact export residual runs/residual-mlp --out residual.onnx
+    torchcontact export residual runs/correction --urdf arm.urdf --out correction.onnx
 """
 
 from __future__ import annotations
@@ -69,14 +69,17 @@ def _estimator(args: argparse.Namespace) -> int:
 
 
 def _residual(args: argparse.Namespace) -> int:
+    import torchcontact as tc
     from torchcontact.export import DEFAULT_OPSET, export_residual_checkpoint
 
     check_outputs([args.out], [args.checkpoint])
+    robot = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
     try:
         with _stage("residual graph" + ("" if args.no_check else " and parity check")):
             meta = export_residual_checkpoint(
                 args.checkpoint,
                 args.out,
+                robot,
                 opset=args.opset or DEFAULT_OPSET,
                 check=not args.no_check,
             )
@@ -116,6 +119,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument("--out", required=True, help="output .onnx path")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")
+    r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
+    r.add_argument("--urdf", help="URDF of the robot (default: the one recorded at training)")
     r.add_argument("--out", required=True, help="output .onnx path")
     r.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")

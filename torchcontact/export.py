@@ -1,4 +1,4 @@
-"""Export the contact estimator and learned residual models to ONNX (extra ``export``).
+"""Export the contact estimator and F/T corrections to ONNX (extra ``export``).
 
 :func:`export_estimator` writes the *whole* estimator of one robot, sensor set and contact-slot
 layout as a single ONNX graph, traced from the same torch code as
@@ -7,9 +7,11 @@ layout as a single ONNX graph, traced from the same torch code as
 Cholesky of :mod:`torchcontact.solve`, and the backward pass). The graph runs with onnxruntime
 alone through :mod:`torchcontact.runtime`.
 
-:func:`export_residual` writes any ``nn.Module`` mapping features ``(N, F)`` to an F/T residual
-``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``); :func:`check_parity` compares
-the file with the module.
+:func:`export_residual_checkpoint` writes a correction stack (:mod:`torchcontact.residual`:
+offset, re-identified inertial parameters, learned layer) as one graph from raw joint state to
+the correction ``(N, 6)``; :func:`export_residual` writes any ``nn.Module`` mapping features
+``(N, F)`` to an F/T residual ``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``);
+:func:`check_parity` compares a file with its module.
 
 Graph inputs of the estimator (``N`` dynamic, ``S`` sensors, ``K`` slots, ``nv`` joints)::
 
@@ -51,6 +53,7 @@ __all__ = [
     "export_estimator",
     "export_residual",
     "export_residual_checkpoint",
+    "RESIDUAL_GRAPH_FORMAT",
 ]
 
 #: Input names of an exported estimator, in order.
@@ -409,89 +412,185 @@ def export_residual(
     return meta
 
 
-class _ResidualStep(nn.Module):
-    """One step of a recurrent residual with the state as explicit input and output.
+#: Format of the metadata of an exported correction stack (:func:`export_residual_checkpoint`).
+RESIDUAL_GRAPH_FORMAT = "torchcontact.residual-graph/1"
 
-    ``forward(features (N, F), h_in (N, L, H)) -> (residual (N, 6), h_out (N, L, H))``.
+
+class _CorrectionInputs(nn.Module):
+    """A :class:`~torchcontact.residual.CorrectionGraph` with its optional inputs made positional.
+
+    ``forward(q, qd, qdd[, extra][, h_in]) -> correction[, h_out]``.
     """
 
-    def __init__(self, module: nn.Module) -> None:
+    def __init__(self, graph: nn.Module, has_extra: bool, recurrent: bool) -> None:
         super().__init__()
-        self.module = module
+        self.graph, self.has_extra, self.recurrent = graph, has_extra, recurrent
 
-    def forward(self, features: Tensor, h_in: Tensor) -> tuple[Tensor, Tensor]:
-        """One frame of every batch element."""
-        return self.module(features, h_in)
+    def forward(self, *args: Tensor) -> Tensor | tuple[Tensor, Tensor]:
+        """Correction ``(N, 6)`` (and the next GRU state)."""
+        q, qd, qdd = args[:3]
+        extra = args[3] if self.has_extra else None
+        h_in = args[-1] if self.recurrent else None
+        c, h_out = self.graph(q, qd, qdd, extra, h_in)
+        return (c, h_out) if self.recurrent else c
+
+
+def _positive_transpose_perms(path: str | os.PathLike) -> None:
+    """Rewrite negative ``perm`` entries of ``Transpose`` nodes as positive ones.
+
+    The TorchScript exporter writes ``movedim(-1, 0)`` (used by
+    :func:`torchcontact.forward_pass` to return batch-first fields) as ``perm = [-1, 0, ...]``,
+    which ONNX does not allow; ``perm`` has one entry per axis, so ``-1`` is ``len(perm) - 1``.
+    """
+    import onnx
+
+    m = onnx.load(str(path))
+    changed = False
+    for node in m.graph.node:
+        if node.op_type != "Transpose":
+            continue
+        for attr in node.attribute:
+            if attr.name == "perm" and any(p < 0 for p in attr.ints):
+                fixed = [p + len(attr.ints) if p < 0 else p for p in attr.ints]
+                del attr.ints[:]
+                attr.ints.extend(fixed)
+                changed = True
+    if changed:
+        onnx.save(m, str(path))
 
 
 def export_residual_checkpoint(
     checkpoint: str | os.PathLike,
     path: str | os.PathLike,
+    robot: RobotModel | str | os.PathLike | None = None,
     opset: int = DEFAULT_OPSET,
     check: bool = True,
 ) -> dict[str, str]:
-    """Export a residual checkpoint directory (``python -m training``) to one ONNX file.
+    """Export a correction checkpoint (``python -m training``) as one ONNX graph.
 
-    The graph holds the weights and the feature/target normalisation (buffers of the module), has
-    a dynamic batch axis and runs in float32: ``features (N, F) -> residual (N, 6)`` [N; N m],
-    the F/T wrench ``[force; moment]`` to subtract from the sensor's reading. A GRU runs one frame
-    per call with its state explicit: ``(features, h_in (N, L, H)) -> (residual, h_out)``, zeros
-    for the first frame. ``metadata_props`` carry ``feature_names``, ``joint_names``, ``sensor``,
-    ``units``, ``kind``, ``arch``, ``model_version`` (torchcontact version of the export),
-    ``robot_sha256``, ``data_sha256`` (training data), ``checkpoint_weights_sha256`` and, from
-    :func:`export_residual`, ``opset``, ``sha256_weights`` and ``recurrent``.
+    The graph is the whole stack, computed from raw inputs inside it: the RNEA forward pass and
+    the sensor's inertial regressor (nominal wrench and inertial layer), the offset, the
+    learned layer's features (sin/cos, velocities, nominal wrench, extra columns) with their
+    normalisation, and the network. It runs in float32 with a dynamic batch ``N``::
+
+        q, qd, qdd  (N, nv)     joint state in the robot's joint order (metadata joint_names)
+        extra       (N, E)      the extra columns (metadata extra_columns), when E > 0
+        h_in        (N, L, H)   GRU state (zeros at the start), GRU stacks only
+        -> correction (N, 6)    [N; N m], sensor frame: subtract it from the sensor's reading
+           h_out      (N, L, H) the next GRU state (one frame per call)
+
+    ``metadata_props``: ``format`` (:data:`RESIDUAL_GRAPH_FORMAT`), ``inputs``,
+    ``input_shapes``, ``outputs``, ``units``, ``joint_names``, ``sensor``, ``robot``,
+    ``robot_sha256``, ``layers``, ``extra_columns``, ``feature_names``, ``recurrent`` (and
+    ``state_shape``), ``inertial`` (rank), ``data_sha256``, ``checkpoint_weights_sha256``,
+    ``model_version``, ``torch_version``, ``dtype``, ``opset``, ``sha256_weights``.
 
     Args:
-        checkpoint: checkpoint directory (verified by :func:`load_residual_model`).
+        checkpoint: checkpoint directory (verified by
+            :meth:`~torchcontact.residual.ResidualCorrection.load`).
         path: output ``.onnx`` file.
-        opset: ONNX opset version (the default loads in onnxruntime >= 1.14).
-        check: run onnxruntime against torch on batch sizes 1 and 7 (``atol`` 1e-5).
+        robot: the robot (a model or URDF path); None: the URDF recorded at training
+            (``checkpoint.json["urdf"]``), which must still hash the same.
+        opset: ONNX opset version.
+        check: compare onnxruntime with torch (float32) on batches of 1 and 7 frames
+            (``atol`` 1e-4 N).
 
     Returns:
         The metadata written.
 
     Raises:
-        torchcontact.residual.CheckpointError: unreadable or tampered checkpoint.
+        CheckpointError: unreadable, tampered or foreign checkpoint, another robot, or no robot
+            to build the graph from.
         AssertionError: ``check`` found a difference.
     """
     from torchcontact import __version__
-    from torchcontact.residual import ResidualGRU, load_residual_model
+    from torchcontact.errors import InputError
+    from torchcontact.residual import META_FILE, ResidualCorrection
 
-    module, meta = load_residual_model(checkpoint)
-    F = module.in_features
-    recurrent = isinstance(module, ResidualGRU)
-    graph: nn.Module = _ResidualStep(module) if recurrent else module
+    if robot is None:
+        try:
+            recorded = json.loads((Path(checkpoint) / META_FILE).read_text()).get("urdf")
+        except (OSError, json.JSONDecodeError):
+            recorded = None
+        if not recorded or not Path(recorded).is_file():
+            raise InputError(
+                f"{checkpoint}: no robot given and the URDF recorded at training ({recorded}) is"
+                " not available: pass the robot's URDF (--urdf or --robot)"
+            )
+        robot = recorded
+    model = robot if isinstance(robot, RobotModel) else RobotModel.from_urdf(robot)
+    model = model.to("cpu", torch.float32)
+    corr = ResidualCorrection.load(checkpoint, model)
+    graph = corr.graph.eval()
+    E = len(corr.extra_columns)
+    learned = corr.learned
+    recurrent = corr.recurrent
+    wrapper = _CorrectionInputs(graph, E > 0, recurrent).eval()
+    nv = model.nv
+    ins = ["q", "qd", "qdd"] + (["extra"] if E else []) + (["h_in"] if recurrent else [])
+    outs = ["correction"] + (["h_out"] if recurrent else [])
     gen = torch.Generator().manual_seed(0)
-    example = torch.randn(2, F, generator=gen)
-    state = torch.zeros(2, module.layers, module.hidden) if recurrent else None
-    info = {
-        "feature_names": list(meta["features"]),
-        "joint_names": list(meta.get("joint_names", [])),
-        "sensor": meta.get("sensor", ""),
+
+    def example(n: int) -> list[Tensor]:
+        x = [torch.rand(n, nv, generator=gen) * 2 - 1 for _ in range(3)]
+        if E:
+            x.append(torch.rand(n, E, generator=gen) * 10 + 25)
+        if recurrent:
+            x.append(torch.randn(n, learned.layers, learned.hidden, generator=gen))  # type: ignore[union-attr]
+        return x
+
+    dyn = {k: {0: "N"} for k in (*ins, *outs)}
+    with torch.no_grad():
+        _export(wrapper, tuple(example(2)), path, ins, outs, dyn, opset)
+    _positive_transpose_perms(path)
+    shapes: dict[str, list] = {"q": ["N", nv], "qd": ["N", nv], "qdd": ["N", nv]}
+    if E:
+        shapes["extra"] = ["N", E]
+    if recurrent:
+        shapes["h_in"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
+    h = hashlib.sha256()
+    for k, v in sorted(corr.tensors().items()):
+        h.update(k.encode())
+        h.update(v.numpy().tobytes())
+    info = corr.describe()
+    meta: dict[str, object] = {
+        "format": RESIDUAL_GRAPH_FORMAT,
+        "inputs": ins,
+        "input_shapes": shapes,
+        "outputs": outs,
         "units": {
-            "features": "q.<joint> rad or m, qd.<joint> per s, qdd.<joint> per s^2,"
-            " other columns as logged",
-            "residual": "[N; N m] wrench [force; moment] in the sensor frame, subtracted from the"
-            " reading",
+            "q": "rad or m",
+            "qd": "rad/s or m/s",
+            "qdd": "rad/s^2 or m/s^2",
+            "extra": "as logged (see extra_columns)",
+            "correction": "[N, N, N, N m, N m, N m] wrench [force; moment] in the sensor frame"
+            " and measure direction: subtract it from the reading",
         },
-        "kind": module.kind,
-        "arch": module.arch,
+        "joint_names": list(model.joint_names),
+        "sensor": corr.sensor,
+        "robot": model.name,
+        "robot_sha256": model.urdf_sha256,
+        "layers": corr.layers,
+        "extra_columns": corr.extra_columns,
+        "feature_names": info.get("learned", {}).get("feature_names", []),
+        "recurrent": "true" if recurrent else "false",
+        "inertial": {k: v for k, v in info.get("inertial", {}).items() if k != "singular_values"},
+        "data_sha256": corr.meta.get("data_sha256", ""),
+        "checkpoint_weights_sha256": corr.meta.get("weights_sha256", ""),
         "model_version": __version__,
-        "robot_sha256": meta.get("robot_sha256", ""),
-        "data_sha256": meta.get("data_sha256", ""),
-        "checkpoint_weights_sha256": meta.get("weights_sha256", ""),
+        "torch_version": torch.__version__,
         "dtype": "float32",
+        "opset": str(opset),
+        "sha256_weights": h.hexdigest(),
     }
     if recurrent:
-        info["state_shape"] = ["N", module.layers, module.hidden]
-    out = export_residual(graph, example, path, info, opset, state)
+        meta["state_shape"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
+    written = {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
+    _set_metadata(path, written)
     if check:
         for n in (1, 7):
-            ins = [torch.randn(n, F, generator=gen)]
-            if recurrent:
-                ins.append(torch.randn(n, module.layers, module.hidden, generator=gen))
-            check_parity(graph, path, ins, atol=1e-5)
-    return out
+            check_parity(wrapper, path, example(n), atol=1e-4)
+    return written
 
 
 def check_parity(

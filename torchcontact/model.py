@@ -240,6 +240,46 @@ class RobotModel:
             raise InputError(f"gravity must be 3 finite numbers, got {gravity!r}")
         return replace(self, gravity=g)
 
+    def with_point_mass(
+        self, link: str, mass: float, com_link: Sequence[float] = (0.0, 0.0, 0.0)
+    ) -> RobotModel:
+        """Return a copy with a point mass rigidly added to the body of ``link`` (a payload).
+
+        Args:
+            link: a link or frame name.
+            mass: kg (> 0).
+            com_link: ``(3,)`` the point mass's position in ``link``'s frame, m.
+
+        Returns:
+            A new :class:`RobotModel` whose body carries the combined mass, centre of mass and
+            inertia (parallel-axis theorem, :func:`torchcontact.spatial.combine_inertias`).
+
+        Example:
+            >>> import torchcontact as tc
+            >>> m = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+            >>> b = m.frame("hand").body
+            >>> float(m.with_point_mass("hand", 0.5).mass[b] - m.mass[b])
+            0.5
+        """
+        if not mass > 0:
+            raise InputError(f"point mass must be > 0 kg, got {mass!r}")
+        fr = self.frame(link)
+        b = fr.body
+        c = fr.R_body_frame @ np.asarray(com_link, float) + fr.p_body_frame
+
+        def np_(t: Tensor) -> np.ndarray:
+            return t.detach().to("cpu", torch.float64).numpy()
+
+        m1, c1, I1 = combine_inertias(
+            [(float(self.mass[b]), np_(self.com[b]), np_(self.inertia_com[b])),
+             (float(mass), c, np.zeros((3, 3)))]
+        )  # fmt: skip
+        mass_t, com_t, in_t = self.mass.clone(), self.com.clone(), self.inertia_com.clone()
+        mass_t[b] = m1
+        com_t[b] = torch.as_tensor(c1, dtype=self.dtype, device=self.device)
+        in_t[b] = torch.as_tensor(I1, dtype=self.dtype, device=self.device)
+        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t)
+
     def body_of(self, name: str) -> int:
         """Index of the body a link or joint frame named ``name`` is attached to.
 

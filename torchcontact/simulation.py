@@ -12,7 +12,7 @@ does not know (offset, drift, cable, noise). See :class:`UnmodeledEffects`.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -21,8 +21,9 @@ from torchcontact.contacts import Contacts
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
+from torchcontact.spatial import cross
 
-__all__ = ["SimulatedLog", "UnmodeledEffects", "contact_setup", "simulate"]
+__all__ = ["SimulatedLog", "UnmodeledEffects", "contact_setup", "effect_links", "simulate"]
 
 
 @dataclass(frozen=True)
@@ -35,12 +36,18 @@ class UnmodeledEffects:
             ``drift * (1 - exp(-t / drift_time_constant))``; the logged ``temperature`` follows
             the same curve (25 degC -> 35 degC), as a real sensor's housing would.
         drift_time_constant: s.
-        cable_force: N, amplitude of a cable/hose force acting on ``cable_link`` that depends
-            nonlinearly on the joint positions (``tanh``/``sin`` of several joints).
-        cable_link: link the cable pulls on.
+        cable_force: N, amplitude of a cable/hose force acting on ``cable_link`` whose tension
+            and direction depend nonlinearly on four joint angles ``q_a .. q_d`` of
+            ``cable_joints``: ``cable_force * [tanh(2 q_b), sin(q_c) cos(q_a), 0.5 sin(2 q_d)]``
+            in the link's frame.
+        cable_link: link the cable pulls on (None: the middle body of the sensor's subtree chain,
+            :func:`effect_links`).
+        cable_joints: the joints the cable tension depends on (None: the four joints nearest to
+            ``cable_link`` on its path from the root, then below it; a shorter list is cycled).
         payload_mass: kg of an unmodelled payload rigidly attached to ``payload_link``.
         payload_com: ``(3,)`` payload centre of mass in ``payload_link``'s frame, m.
-        payload_link: link carrying the payload.
+        payload_link: link carrying the payload (None: the deepest body of the sensor's subtree,
+            the end effector).
         noise_std: ``(6,)`` white Gaussian noise on the reading, ``[N; N m]``.
     """
 
@@ -48,11 +55,57 @@ class UnmodeledEffects:
     drift: Sequence[float] = (0.0,) * 6
     drift_time_constant: float = 120.0
     cable_force: float = 0.0
-    cable_link: str = "upper_arm"
+    cable_link: str | None = None
+    cable_joints: Sequence[str] | None = None
     payload_mass: float = 0.0
     payload_com: Sequence[float] = (0.0, 0.0, 0.08)
-    payload_link: str = "hand"
+    payload_link: str | None = None
     noise_std: Sequence[float] = (0.0,) * 6
+
+
+def effect_links(
+    model: RobotModel, sensor: str, effects: UnmodeledEffects
+) -> tuple[str, str, tuple[str, ...]]:
+    """Where the effects act: ``(payload_link, cable_link, cable_joints)``, defaults resolved.
+
+    Defaults follow the sensor on any robot: the payload on the deepest body of the sensor's
+    subtree (the end effector), the cable on the middle body of the subtree (a body at half the
+    depth), its tension a function of the joints nearest to that body on its path from the root
+    (then those below it), at most four.
+
+    Example:
+        >>> import torchcontact as tc
+        >>> m = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+        >>> effect_links(m, "base_ft", UnmodeledEffects())
+        ('hand', 'upper_arm', ('shoulder_yaw', 'shoulder_pitch', 'upper_arm_roll', 'elbow_pitch'))
+    """
+    sub = model.subtree(model.ft_sensors[sensor].child_body)
+    depth = {b: d for d, (s, e) in enumerate(model.levels) for b in range(s, e)}
+    deepest = max(sub, key=lambda b: (depth[b], b))
+    payload = effects.payload_link or model.body_names[deepest]
+    # the chain from the sensor's child body down to the deepest body
+    chain = [deepest]
+    while chain[-1] != sub[0]:
+        chain.append(model.body_parent[chain[-1]])
+    chain.reverse()
+    cable = effects.cable_link or model.body_names[chain[(len(chain) - 1) // 2]]
+    if effects.cable_joints is not None:
+        joints = tuple(effects.cable_joints)
+    else:
+        drives = model.q_to_body.detach().cpu().numpy() != 0  # (nv, nb)
+        b = model.frame(cable).body
+        path = []
+        while b >= 0:
+            path.append(b)
+            b = model.body_parent[b]
+        above = [j for b in reversed(path) for j in np.flatnonzero(drives[:, b])]
+        below = [j for b in chain if b not in path for j in np.flatnonzero(drives[:, b])]
+        order = list(dict.fromkeys([*above[-4:], *below]))[:4]
+        joints = tuple(model.joint_names[j] for j in order)
+    unknown = [j for j in joints if j not in model.joint_names]
+    if unknown or not joints:
+        raise InputError(f"cable_joints {list(joints)}: not joints of {model.name}")
+    return payload, cable, joints
 
 
 @dataclass
@@ -73,6 +126,9 @@ class SimulatedLog:
         links: contact frame names.
         sensor: the sensor's name.
         joint_names: ``model.joint_names``.
+        extra: more columns by name.
+        ft_effects: ``(N, 6)`` the part of ``ft`` the nominal model does not explain apart from the
+            noise (offset, drift, cable, payload): what an oracle correction subtracts.
     """
 
     t_ns: np.ndarray
@@ -89,6 +145,7 @@ class SimulatedLog:
     sensor: str
     joint_names: tuple[str, ...]
     extra: dict = field(default_factory=dict)
+    ft_effects: np.ndarray | None = None
 
 
 def _trajectory(rng, n, nv, dt, speed):
@@ -140,27 +197,6 @@ def _within_limits(model: RobotModel, q, qd, qdd, center) -> None:
         q[:, j] = c + s * dev
         qd[:, j] *= s
         qdd[:, j] *= s
-
-
-def _with_payload(model: RobotModel, link: str, mass: float, com_link) -> RobotModel:
-    """A copy of ``model`` with a point mass added to the body of ``link``."""
-    fr = model.frame(link)
-    b = fr.body
-    c = torch.as_tensor(fr.R_body_frame @ np.asarray(com_link, float) + fr.p_body_frame)
-    c = c.to(model.dtype)
-    m0, c0, I0 = model.mass[b], model.com[b], model.inertia_com[b]
-    m1 = m0 + mass
-    c1 = (m0 * c0 + mass * c) / m1
-    eye = torch.eye(3, dtype=model.dtype)
-    d0, d1 = c0 - c1, c - c1
-    inertia = (
-        I0
-        + m0 * (d0 @ d0 * eye - torch.outer(d0, d0))
-        + mass * (d1 @ d1 * eye - torch.outer(d1, d1))
-    )
-    mass_t, com_t, in_t = model.mass.clone(), model.com.clone(), model.inertia_com.clone()
-    mass_t[b], com_t[b], in_t[b] = m1, c1, inertia
-    return replace(model, mass=mass_t, com=com_t, inertia_com=in_t)
 
 
 def contact_setup(
@@ -300,16 +336,19 @@ def simulate(
         (fx.cable_force, fx.cable_link, "cable_link"),
         (fx.payload_mass, fx.payload_link, "payload_link"),
     ):
-        if used and link not in model.frames:
+        if used and link is not None and link not in model.frames:
             raise InputError(
                 f"effects.{what} {link!r} is not a link of {model.name}; name one of its links"
             )
+    payload_link, cable_link, cable_joints = effect_links(model, sensor, fx)
+    cable_q = [model.joint_names.index(j) for j in cable_joints]
+    cable_q = [cable_q[i % len(cable_q)] for i in range(4)]
     true_model = model
     if fx.payload_mass:
-        true_model = _with_payload(model, fx.payload_link, fx.payload_mass, fx.payload_com)
+        true_model = model.with_point_mass(payload_link, fx.payload_mass, fx.payload_com)
     true_est = ContactEstimator(true_model, [sensor])
     # one slot per contact frame, plus the cable's when there is one
-    slots = (*links, fx.cable_link) if fx.cable_force else links
+    slots = (*links, cable_link) if fx.cable_force else links
     ft_true = np.zeros((frames, 6))
     ft_ideal = np.zeros((frames, 6))
     for s in range(0, frames, chunk):
@@ -324,20 +363,15 @@ def simulate(
                 f = torch.as_tensor(force[sl, k] * on[:, None])
                 p = torch.as_tensor(position[sl, k] * on[:, None])
                 wr[:, li, :3] += f
-                wr[:, li, 3:] += torch.cross(p, f, dim=-1)
+                wr[:, li, 3:] += cross(p, f)
         ideal = est.predict_ft(
             tq, tqd, tqdd, Contacts(slots, ("known",) * len(slots), pos, wrenches=wr)
         )
         ft_ideal[sl] = ideal[sensor].numpy()
         if fx.cable_force:
-            qs = q[sl]
+            qa, qb, qc, qd_ = (q[sl, j] for j in cable_q)
             cable = fx.cable_force * np.stack(
-                [
-                    np.tanh(2 * qs[:, 1]),
-                    np.sin(qs[:, 2]) * np.cos(qs[:, 0]),
-                    0.5 * np.sin(2 * qs[:, 3]),
-                ],
-                axis=-1,
+                [np.tanh(2 * qb), np.sin(qc) * np.cos(qa), 0.5 * np.sin(2 * qd_)], axis=-1
             )
             wr[:, -1, :3] = torch.as_tensor(cable)
         true = true_est.predict_ft(
@@ -345,8 +379,8 @@ def simulate(
         )
         ft_true[sl] = true[sensor].numpy()
     warm = 1 - np.exp(-t / fx.drift_time_constant)
-    ft = ft_true + np.asarray(fx.offset) + warm[:, None] * np.asarray(fx.drift)
-    ft = ft + rng.normal(size=(frames, 6)) * np.asarray(fx.noise_std)
+    ft_clean = ft_true + np.asarray(fx.offset) + warm[:, None] * np.asarray(fx.drift)
+    ft = ft_clean + rng.normal(size=(frames, 6)) * np.asarray(fx.noise_std)
     return SimulatedLog(
         t_ns=(t * 1e9).round().astype(np.int64),
         q=q,
@@ -361,4 +395,5 @@ def simulate(
         links=links,
         sensor=sensor,
         joint_names=model.joint_names,
+        ft_effects=ft_clean - ft_ideal,
     )

@@ -1,28 +1,35 @@
-"""Residual learning pipeline for torchcontact (GitHub issue 5): ``python -m training``.
+"""Fitting corrections of F/T readings for torchcontact: ``python -m training``.
 
-Learns the contact-free residual ``ft_measured - ft_predicted`` of an F/T sensor, compares it with
-classical corrections, and writes checkpoints that :mod:`torchcontact.residual` loads without
-this package.
+Fits a correction stack (constant offset, offset plus re-identified inertial parameters, a
+learned layer on what the physics leaves) on the contact-free frames of logs in the documented
+format, chooses its layers on validation blocks, reports cross-validated errors, and writes one
+checkpoint that :class:`torchcontact.residual.ResidualCorrection` loads without this package.
 """
 
-from .baselines import InertialLeastSquares, inertial_params, inertial_regressor
-from .data import ResidualDataset, Split, load_parquet, split_blocks
+from .baselines import InertialFit, RegressorBlocks, fit_inertial, fit_offset, predict_free
+from .data import ResidualDataset, Split, fold_splits, load_parquet, read_log_columns, split_blocks
 from .fit import TrainConfig, fit_residual, predict_residual
-from .pipeline import DataConfig, load_checkpoint, run_experiment, save_checkpoint
+from .pipeline import Config, DataConfig, FeatureConfig, StackConfig, load_config, train
 
 __all__ = [
+    "Config",
     "DataConfig",
-    "InertialLeastSquares",
+    "FeatureConfig",
+    "InertialFit",
+    "RegressorBlocks",
     "ResidualDataset",
     "Split",
+    "StackConfig",
     "TrainConfig",
+    "fit_inertial",
+    "fit_offset",
     "fit_residual",
-    "inertial_params",
-    "inertial_regressor",
-    "load_checkpoint",
+    "fold_splits",
+    "load_config",
     "load_parquet",
+    "predict_free",
     "predict_residual",
-    "run_experiment",
-    "save_checkpoint",
+    "read_log_columns",
     "split_blocks",
+    "train",
 ]

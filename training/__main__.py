@@ -1,49 +1,66 @@
-"""Command line: ``torchcontact train fit --config CFG --out DIR`` or ``... benchmark --out DIR``.
+"""Command line: ``torchcontact train fit | benchmark | heldout | study``.
 
 The same parser runs as ``python -m training`` from the repository root (``train`` is an alias of
-``fit``).
+``fit`` there).
+
+``train`` fits a correction stack on logs in the documented format (or a simulated log) for any
+URDF and sensor and writes one checkpoint directory with its report; ``benchmark`` runs the
+synthetic conditions (offset; payload on the end effector; temperature drift plus a cable whose
+tension depends on joint angles) on any robot and sensor with cross-validated scores;
+``heldout`` trains on one simulated log and scores on another; ``study`` compares learned-layer
+input sets on held-out logs.
 """
 
 from __future__ import annotations
 
-import argparse
+import platform
+import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 import torchcontact as tc
 from torchcontact.cli import Parser, guarded
 from torchcontact.errors import InputError
 
+from .data import ResidualDataset
 from .fit import TrainConfig
 from .pipeline import (
-    METHODS,
+    CLASSICAL,
+    Config,
     DataConfig,
-    asdict_cfg,
+    FeatureConfig,
+    StackConfig,
     load_config,
+    log,
     make_dataset,
-    plot,
-    run_experiment,
-    save_checkpoint,
+    predict,
+    resolve_robot,
+    score_methods,
     table_markdown,
+    train,
     write_json,
 )
 
 OFFSET = (3.0, -2.0, 4.0, 0.3, -0.2, 0.25)
 NOISE = (0.05, 0.05, 0.05, 0.005, 0.005, 0.005)
+DRIFT = (4.0, -3.0, 2.0, 0.4, 0.3, -0.2)
 
-#: the three synthetic conditions of the benchmark (issue 5)
+#: the synthetic conditions (issue 12's table): payload on the sensor subtree's end effector,
+#: temperature drift (logged temperature follows it) plus a joint-angle dependent cable
 CONDITIONS = {
     "offset": {"offset": OFFSET, "noise_std": NOISE},
-    "offset+payload": {"offset": OFFSET, "noise_std": NOISE, "payload_mass": 0.6},
-    "offset+drift+cable": {
+    "payload": {"offset": OFFSET, "noise_std": NOISE, "payload_mass": 0.25},
+    "drift+cable": {
         "offset": OFFSET,
         "noise_std": NOISE,
-        "drift": (4.0, -3.0, 2.0, 0.4, 0.3, -0.2),
+        "drift": DRIFT,
         "drift_time_constant": 60.0,
-        "cable_force": 6.0,
+        "cable_force": 3.0,
     },
 }
 
@@ -53,6 +70,34 @@ def _seed(seed: int) -> None:
     torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def _meta() -> dict:
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            check=False,
+        ).stdout.strip()
+    except OSError:
+        commit = ""
+    return {
+        "commit": commit or "unknown",
+        "torch_version": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+        "python": platform.python_version(),
+    }
+
+
+def _model_and_sensor(robot: str, sensor: str | None) -> tuple[tc.RobotModel, str]:
+    model = tc.RobotModel.from_urdf(resolve_robot(robot))
+    sensor = sensor or next(iter(model.ft_sensors), "")
+    if sensor not in model.ft_sensors:
+        raise InputError(f"{model.name} has no F/T sensor {sensor!r} ({list(model.ft_sensors)})")
+    return model, sensor
+
+
 def _config_path(config: str) -> Path:
     """A TOML file, or the name of a bundled config (``example``: ``configs/example.toml``)."""
     bundled = Path(__file__).resolve().parent / "configs" / f"{config}.toml"
@@ -60,138 +105,378 @@ def _config_path(config: str) -> Path:
 
 
 def cmd_train(args) -> int:
-    """Train one residual model from a TOML config; write the checkpoint directory."""
-    args.config = str(_config_path(args.config))
-    try:
-        data_cfg, train_cfg, raw = load_config(args.config)
-    except (OSError, TypeError, ValueError) as exc:  # unreadable file, unknown key, bad value
-        raise InputError(f"--config {args.config}: {exc}") from None
-    _seed(train_cfg.seed)
-    model = tc.RobotModel.from_urdf(args.urdf or tc.robots.tcarm_path())
-    ds = make_dataset(model, data_cfg)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    key = "d_gru" if train_cfg.kind == "gru" else "d_mlp"
-    methods = ("a", "b", "c", key)
-    exp = run_experiment(
-        model,
-        ds,
-        data_cfg,
-        train_cfg,
-        methods=methods,
-        gru_cfg=train_cfg,
-        device=args.device,
-        label="train",
-    )
-    table = table_markdown({args.config: exp.metrics})
-    print(table)
-    save_checkpoint(
-        out, exp.fits[key], ds, model, {**asdict_cfg(data_cfg, train_cfg), "toml": raw}, exp.metrics
-    )
-    (out / "metrics.md").write_text(table + "\n")
-    plot(exp, ds, out, Path(args.config).stem)
-    print(f"checkpoint: {out}")
+    """Fit a correction stack; write the checkpoint directory with its report."""
+    if args.config:
+        path = _config_path(args.config)
+        try:
+            cfg, _ = load_config(path)
+        except (OSError, TypeError, ValueError) as exc:  # unreadable file, unknown key, bad value
+            raise InputError(f"--config {args.config}: {exc}") from None
+    else:
+        cfg = Config()
+    data = cfg.data
+    if args.log:
+        data = replace(data, source="parquet", paths=list(args.log))
+    if args.robot or args.urdf:
+        data = replace(data, robot=args.urdf or args.robot)
+    if args.sensor:
+        data = replace(data, sensor=args.sensor)
+    if args.extra is not None:
+        data = replace(data, extra=list(args.extra))
+    if args.folds is not None:
+        data = replace(data, folds=args.folds)
+    cfg = replace(cfg, data=data)
+    if args.layers:
+        cfg = replace(cfg, stack=replace(cfg.stack, layers=args.layers.split(",")))
+    _seed(cfg.train.seed)
+    model, sensor = _model_and_sensor(data.robot, data.sensor or None)
+    ds = make_dataset(model, data, sensor)
+    t0 = time.perf_counter()
+    trained = train(model, ds, cfg, out=args.out, device=args.device)
+    from .pipeline import report_markdown
+
+    print(report_markdown(trained))
+    print(f"checkpoint: {args.out} ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 
+def _conditions(args) -> dict[str, dict]:
+    out = {}
+    for n in args.conditions:
+        if n not in CONDITIONS:
+            raise ValueError(f"unknown condition {n!r}; expected {list(CONDITIONS)}")
+        fx = dict(CONDITIONS[n])
+        if args.cable is not None and "cable_force" in fx:
+            fx["cable_force"] = args.cable
+        fx["noise_std"] = tuple(args.noise_scale * x for x in fx["noise_std"])
+        out[n] = fx
+    return out
+
+
+def _goals(metrics: dict[str, dict[str, dict[str, float]]], key: str) -> list[str]:
+    """The issue's goals checked on one metric (contact-force RMSE 1c or free force RMS)."""
+    lines = []
+    for cond, rows in metrics.items():
+        stack = rows["stack"][key]
+        best = min(rows[c][key] for c in CLASSICAL if c in rows)
+        never = f"stack {stack:.3f} vs best classical {best:.3f}: " + (
+            "ok" if stack <= best * 1.02 else "MISSED"
+        )
+        if cond == "payload" and "oracle" in rows:
+            ratio = stack / rows["oracle"][key]
+            ok = "ok" if ratio <= 1.5 else "MISSED"
+            lines.append(f"{cond}: stack/oracle = {ratio:.2f} (goal <= 1.5: {ok}); {never}")
+        elif cond == "drift+cable":
+            gain = rows["offset"][key] / stack
+            ok = "ok" if gain >= 4 else "MISSED"
+            lines.append(f"{cond}: offset/stack = {gain:.2f} (goal >= 4: {ok}); {never}")
+        else:
+            lines.append(f"{cond}: {never}")
+    return lines
+
+
 def cmd_benchmark(args) -> int:
-    """Run (a)-(d) on the three synthetic conditions; print and save the table."""
+    """Cross-validated benchmark of the correction stack on synthetic conditions."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
-    train_cfg = TrainConfig(seed=args.seed)
-    gru_cfg = TrainConfig(
-        kind="gru",
-        hidden=64,
-        layers=1,
-        epochs=args.gru_epochs,
-        lr=3e-3,
-        batch_size=256,
-        patience=10,
-        seq_len=200,
-        seed=args.seed,
-    )
-    methods = ("a", "b", "c", "d_mlp", "d_mlp_c") + (("d_gru",) if args.gru else ())
-    results, timing = {}, {}
+    model, sensor = _model_and_sensor(args.robot, args.sensor)
+    conditions = _conditions(args)
+    train_cfg = TrainConfig(kind=args.learned, seed=args.seed, epochs=args.epochs)
+    results, timing, chosen = {}, {}, {}
     t0 = time.perf_counter()
-    for i, (name, fx) in enumerate(CONDITIONS.items()):
+    for i, (name, fx) in enumerate(conditions.items()):
         _seed(args.seed)
-        data_cfg = DataConfig(frames=args.frames, seed=args.seed + i, effects=dict(fx))
-        ds = make_dataset(model, data_cfg)
-        exp = run_experiment(
-            model,
-            ds,
-            data_cfg,
-            train_cfg,
-            methods=methods,
-            gru_cfg=gru_cfg,
-            device=args.device,
-            label=name,
+        data = DataConfig(
+            robot=args.robot,
+            sensor=sensor,
+            frames=args.frames,
+            seed=args.seed + i,
+            force_max=args.force_max,
+            folds=args.folds,
+            block_seconds=args.block_seconds,
+            effects=dict(fx),
         )
-        results[name], timing[name] = exp.metrics, exp.seconds
+        cfg = Config(data=data, train=train_cfg)
+        ds = make_dataset(model, data, sensor)
         d = out / name.replace("+", "_")
-        d.mkdir(exist_ok=True)
-        cfg = {**asdict_cfg(data_cfg, train_cfg), "gru": vars(gru_cfg)}
-        save_checkpoint(d / "checkpoint", exp.fits["d_mlp"], ds, model, cfg, exp.metrics)
-        if "d_gru" in exp.fits:
-            save_checkpoint(d / "checkpoint_gru", exp.fits["d_gru"], ds, model, cfg, exp.metrics)
-        plot(exp, ds, d, name)
-        print(f"[{name}] {exp.seconds:.1f} s", file=sys.stderr)
+        trained = train(model, ds, cfg, out=d, device=args.device, label=name)
+        assert trained.report is not None
+        results[name] = trained.report.metrics
+        timing[name] = trained.seconds
+        chosen[name] = {"folds": trained.report.chosen, "checkpoint": trained.final.chosen}
+        log(f"[{name}] {trained.seconds:.1f} s, stack {trained.report.chosen}")
+    meta = _meta()
+    head = (
+        f"robot {model.name}, sensor {sensor}, {args.frames} frames per condition, "
+        f"{args.folds}-fold CV over {args.block_seconds:g} s blocks, commit {meta['commit']}, torch"
+        f" {meta['torch_version']}, {meta['threads']} thread(s)"
+    )
     table = table_markdown(results)
-    print(table)
-    (out / "results.md").write_text(table + "\n")
+    goals = _goals(results, "force_rmse") + _goals(results, "residual_force_rms")
+    text = "\n".join([head, "", table, "", "goals (force RMSE 1c, then free |F|):", *goals])
+    print(text)
+    (out / "results.md").write_text(text + "\n")
     write_json(
         out / "results.json",
         {
-            "methods": METHODS,
-            "conditions": {
-                k: {kk: list(vv) if isinstance(vv, tuple) else vv for kk, vv in v.items()}
-                for k, v in CONDITIONS.items()
-            },
+            "robot": model.name,
+            "sensor": sensor,
+            "conditions": conditions,
             "frames": args.frames,
             "seed": args.seed,
             "results": results,
+            "chosen": chosen,
             "seconds": timing,
             "total_seconds": time.perf_counter() - t0,
-            "torch_version": torch.__version__,
-            "threads": torch.get_num_threads(),
+            **meta,
         },
     )
+    return 0
+
+
+def heldout(
+    model: tc.RobotModel,
+    sensor: str,
+    fx: dict,
+    cfg: Config,
+    train_frames: int,
+    test_frames: int,
+    seed: int,
+    device: str = "cpu",
+    label: str = "",
+    new_session: bool = False,
+) -> tuple[dict, object]:
+    """Train on the first frames of a simulated session, score on the frames after them.
+
+    The first ``train_frames`` train (with validation blocks inside them), the next
+    ``test_frames`` are scored; with ``new_session`` the test frames are another session (a
+    different seed, whose joint trajectory explores another region of the workspace).
+
+    Returns:
+        ``(metrics per method on the test frames, the Trained result)``.
+    """
+    from torchcontact.simulation import UnmodeledEffects, simulate
+
+    from .pipeline import prepare
+
+    frames = train_frames + (0 if new_session else test_frames)
+    data = replace(cfg.data, frames=frames, seed=seed, effects=dict(fx), folds=0)
+    cfg = replace(cfg, data=data)
+    whole = make_dataset(model, data, sensor)
+    ds = whole.subset(slice(0, train_frames))
+    trained = train(model, ds, cfg, device=device, label=label)
+    if new_session:
+        test_log = simulate(
+            model,
+            test_frames,
+            sensor=sensor,
+            seed=seed + 1000,
+            rate_hz=data.rate_hz,
+            force_max=data.force_max,
+            effects=UnmodeledEffects(**fx),
+        )
+        test = ResidualDataset.from_simulated(test_log, data.extra)
+    else:
+        test = whole.subset(slice(train_frames, frames))
+    prep = prepare(model, test, replace(cfg, stack=StackConfig(layers=["offset"])))
+    span = [(0, len(test))]
+    preds = {n: predict(c, test, span) for n, c in trained.final.corrections.items()}
+    preds["stack"] = preds[trained.final.chosen]
+    preds["none"] = np.zeros((len(test), 6))
+    preds["oracle"] = test.truth["ft_effects"]
+    return score_methods(prep, preds), trained
+
+
+def cmd_heldout(args) -> int:
+    """The issue's held-out scoring: train on one log, estimate contacts on another."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model, sensor = _model_and_sensor(args.robot, args.sensor)
+    cfg = Config(
+        data=DataConfig(robot=args.robot, sensor=sensor, force_max=args.force_max),
+        train=TrainConfig(kind=args.learned, seed=args.seed, epochs=args.epochs),
+    )
+    results, timing, chosen = {}, {}, {}
+    for name, fx in _conditions(args).items():
+        _seed(args.seed)
+        metrics, trained = heldout(
+            model,
+            sensor,
+            fx,
+            cfg,
+            args.train_frames,
+            args.test_frames,
+            args.seed,
+            args.device,
+            name,
+            new_session=args.new_session,
+        )
+        results[name], timing[name] = metrics, trained.seconds
+        chosen[name] = trained.final.chosen
+        log(f"[{name}] trained in {trained.seconds:.1f} s, stack {trained.final.chosen}")
+    meta = _meta()
+    head = (
+        f"robot {model.name}, sensor {sensor}, train {args.train_frames} / test"
+        f" {args.test_frames} frames ("
+        + ("another session" if args.new_session else "the frames after the training ones")
+        + f"), noise x{args.noise_scale:g}, contacts 1-2 pure forces of 0-"
+        f"{args.force_max:g} N, commit {meta['commit']}, torch {meta['torch_version']}"
+    )
+    text = "\n".join([head, "", table_markdown(results), "", f"chosen: {chosen}"])
+    print(text)
+    (out / "heldout.md").write_text(text + "\n")
+    write_json(
+        out / "heldout.json",
+        {"results": results, "chosen": chosen, "train_seconds": timing, **meta},
+    )
+    return 0
+
+
+#: input sets of the learned layer compared by ``study`` (the first is the old default)
+FEATURE_SETS = {
+    "all joints: q, qd, qdd": FeatureConfig(
+        joints="all", angles="raw", accelerations=True, nominal=False
+    ),
+    "sensor joints: q, qd, qdd": FeatureConfig(angles="raw", accelerations=True, nominal=False),
+    "sensor joints: sin/cos, qd": FeatureConfig(nominal=False),
+    "sensor joints: sin/cos, qd, nominal (default)": FeatureConfig(),
+    "sensor joints: sin/cos, qd, qdd, nominal": FeatureConfig(accelerations=True),
+    "all joints: sin/cos, qd, nominal": FeatureConfig(joints="all"),
+}
+
+
+def cmd_study(args) -> int:
+    """Held-out contact-force error of the learned layer per input set (README table)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for robot, sensor in [r.split(":") for r in args.robots]:
+        model, sensor = _model_and_sensor(robot, sensor)
+        for cond, fx in _conditions(args).items():
+            for fname, fcfg in FEATURE_SETS.items():
+                _seed(args.seed)
+                cfg = Config(
+                    data=DataConfig(robot=robot, sensor=sensor, force_max=args.force_max),
+                    features=fcfg,
+                    stack=StackConfig(layers=["offset", args.learned]),
+                    train=TrainConfig(kind=args.learned, seed=args.seed, epochs=args.epochs),
+                )
+                metrics, trained = heldout(
+                    model, sensor, fx, cfg, args.train_frames, args.test_frames, args.seed,
+                    args.device, f"{robot} {cond} {fname}",
+                )  # fmt: skip
+                n_feat = len(trained.prep.spec.names(model))
+                key = f"offset+{args.learned}"
+                f = trained.final.fits[key]
+                rows.append(
+                    {
+                        "robot": model.name,
+                        "sensor": sensor,
+                        "condition": cond,
+                        "features": fname,
+                        "n_features": n_feat,
+                        "force_rmse_1c": metrics["stack"].get("force_rmse"),
+                        "free_force_rms": metrics["stack"]["residual_force_rms"],
+                        "free_moment_rms": metrics["stack"]["residual_moment_rms"],
+                        "offset_force_rmse_1c": metrics["offset"].get("force_rmse"),
+                        "train_loss": f.train_loss[f.best_epoch],
+                        "val_loss": f.val_loss[f.best_epoch],
+                    }
+                )
+                log(f"{rows[-1]}")
+    lines = [
+        "| robot / sensor | condition | learned-layer inputs | F | held-out force RMSE 1c (N)"
+        " | held-out free \\|F\\| (N) | train / val loss |",
+        "|---|---|---|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['robot']} `{r['sensor']}` | {r['condition']} | {r['features']} |"
+            f" {r['n_features']} | {r['force_rmse_1c']:.3f} | {r['free_force_rms']:.3f} |"
+            f" {r['train_loss']:.3f} / {r['val_loss']:.3f} |"
+        )
+    meta = _meta()
+    text = "\n".join(lines) + f"\n\ncommit {meta['commit']}, torch {meta['torch_version']}"
+    print(text)
+    (out / "study.md").write_text(text + "\n")
+    write_json(out / "study.json", {"rows": rows, **meta})
     return 0
 
 
 def main(argv=None, prog: str = "python -m training") -> int:
     """Entry point of ``torchcontact train`` and ``python -m training``; returns the exit code."""
     p = Parser(prog=prog, description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="cmd", required=True, metavar="{fit,benchmark}")
-    t = sub.add_parser("fit", aliases=["train"], help="train a residual model from a TOML config")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="{fit,benchmark,heldout,study}")
+    t = sub.add_parser(
+        "fit", aliases=["train"], help="fit a correction stack on logs; write the checkpoint"
+    )
     t.add_argument(
         "--config",
-        required=True,
-        help="TOML config ([data], [model], [train]), or a bundled one by name: example",
+        default=None,
+        help="TOML config (flags override it), or a bundled one by name: example",
     )
+    t.add_argument("--log", nargs="+", default=None, help="Parquet logs in the documented format")
+    t.add_argument("--robot", default=None, help="tcarm, icub, or a URDF path")
+    t.add_argument("--urdf", default=None, help="robot URDF (same as --robot PATH)")
+    t.add_argument("--sensor", default=None, help="F/T sensor (default: the robot's first)")
+    t.add_argument("--extra", nargs="*", default=None, help="extra feature columns")
+    t.add_argument("--layers", default=None, help="e.g. offset,inertial,mlp (default: auto)")
+    t.add_argument("--folds", type=int, default=None, help="cross-validation folds (0: none)")
     t.add_argument("--out", required=True, help="checkpoint directory")
-    t.add_argument("--urdf", default=None, help="robot URDF (default: the bundled tcarm)")
-    t.add_argument("--device", default="cpu", help="torch device")
-    b = sub.add_parser("benchmark", help="synthetic benchmark of corrections (a)-(d)")
-    b.add_argument("--out", required=True, help="output folder")
-    b.add_argument("--frames", type=int, default=24000, help="frames per condition")
-    b.add_argument("--seed", type=int, default=0, help="random seed")
-    b.add_argument("--gru", action=argparse.BooleanOptionalAction, default=True, help="train GRUs")
-    b.add_argument("--gru-epochs", type=int, default=40, help="GRU epochs")
-    b.add_argument("--device", default="cpu", help="torch device")
-    for sp in (t, b):
-        sp.add_argument(
-            "--threads",
-            type=int,
-            default=1,
-            help="torch CPU threads (1 is fastest for these small models)",
+    for name, fn in (("benchmark", cmd_benchmark), ("heldout", cmd_heldout)):
+        b = sub.add_parser(name, help=fn.__doc__.splitlines()[0])
+        b.add_argument("--robot", default="tcarm", help="tcarm, icub, or a URDF path")
+        b.add_argument("--sensor", default=None)
+        b.add_argument("--conditions", nargs="+", default=list(CONDITIONS))
+        b.add_argument("--cable", type=float, default=None, help="cable force amplitude, N")
+        b.add_argument(
+            "--noise-scale", type=float, default=1.0, help="times the F/T noise of the conditions"
         )
+        b.add_argument("--force-max", type=float, default=10.0, help="peak contact force, N")
+        b.add_argument("--learned", choices=["mlp", "gru"], default="mlp")
+        b.add_argument("--epochs", type=int, default=TrainConfig.epochs, help="learned layer")
+        b.add_argument("--seed", type=int, default=0)
+        b.add_argument("--out", required=True)
+    sub.choices["benchmark"].add_argument("--frames", type=int, default=36000)
+    sub.choices["benchmark"].add_argument("--folds", type=int, default=5)
+    sub.choices["benchmark"].add_argument("--block-seconds", type=float, default=10.0)
+    h = sub.choices["heldout"]
+    h.add_argument("--train-frames", type=int, default=36000)
+    h.add_argument("--test-frames", type=int, default=12000)
+    h.add_argument(
+        "--new-session",
+        action="store_true",
+        help="test on another simulated session (another workspace region), not the next frames",
+    )
+    s = sub.add_parser("study", help=cmd_study.__doc__)
+    s.add_argument("--robots", nargs="+", default=["tcarm:base_ft", "icub:l_arm_ft"])
+    s.add_argument("--conditions", nargs="+", default=["payload", "drift+cable"])
+    s.add_argument("--cable", type=float, default=None)
+    s.add_argument("--noise-scale", type=float, default=1.0)
+    s.add_argument("--force-max", type=float, default=10.0)
+    s.add_argument("--learned", choices=["mlp", "gru"], default="mlp")
+    s.add_argument("--epochs", type=int, default=TrainConfig.epochs)
+    s.add_argument("--train-frames", type=int, default=36000)
+    s.add_argument("--test-frames", type=int, default=12000)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    for sp in {id(v): v for v in sub.choices.values()}.values():
+        sp.add_argument("--device", default="cpu", help="torch device")
+        sp.add_argument(
+            "--threads", type=int, default=1, help="torch CPU threads (1 is fastest here)"
+        )
+    commands = {
+        "fit": cmd_train,
+        "train": cmd_train,
+        "benchmark": cmd_benchmark,
+        "heldout": cmd_heldout,
+        "study": cmd_study,
+    }
 
     def run() -> int:
         args = p.parse_args(argv)
         torch.set_num_threads(args.threads)
-        return cmd_benchmark(args) if args.cmd == "benchmark" else cmd_train(args)
+        return commands[args.cmd](args)
 
     return guarded(run, debug="--debug" in (sys.argv[1:] if argv is None else argv))
 

@@ -1,27 +1,32 @@
-"""Classical corrections: contact-free prediction, constant offset, inertial re-identification.
+"""Physics layers of a correction: nominal prediction, constant offset, inertial re-identification.
 
-The contact-free reading of a sensor is linear in the inertial parameters of the bodies beyond it
-(the Newton-Euler body wrench ``I a + v x* I v`` is linear in the spatial inertia), when each body
-is parametrised by ``theta_b = (m, m c, I_origin)`` -- mass, first moments and the rotational
-inertia about the body origin (10 numbers). ``predict_ft = Y(q, qd, qdd) theta``; with a sensor
-offset ``o`` the reading is ``Y theta + o``. :func:`inertial_regressor` builds ``Y`` column by
-column from ``predict_ft`` on model copies with one parameter perturbed by one unit (exact, by
-linearity); :class:`InertialLeastSquares` re-identifies ``theta`` and ``o`` from contact-free
-frames.
+The contact-free reading of a sensor is ``Y(q, qd, qdd) theta`` (:func:`sensor_regressor
+<torchcontact.residual.sensor_regressor>`, ten parameters per body the sensor carries). With an
+offset ``o`` and parameter errors ``delta`` the residual of the nominal model is
+``r = [I | Y] (o, delta) + noise``: a linear least-squares problem over the contact-free frames.
+
+Not every combination of parameters changes the reading (a fixed-base sensor cannot tell a mass
+on its z axis from an ``fz`` offset; a trajectory may not excite some inertia products), so the
+fit works in a base of the *identifiable* space: the stacked design matrix is reduced per time
+block by QR (memory flat in the log length), the blocks' factors are stacked and reduced again,
+and the column-scaled factor's SVD gives the directions ordered by how much the data excite them.
+Directions below ``rcond`` of the largest singular value are never fitted; among the others the
+truncation rank is chosen on the validation blocks (truncated SVD), so weakly excited directions
+are fitted only where that lowers the error on unseen blocks.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 import torchcontact as tc
+from torchcontact.residual import sensor_regressor, subtree_bodies
 
-#: names of the 10 inertial parameters of one body, about its origin, body axes
-PARAM_NAMES = ("m", "mcx", "mcy", "mcz", "Ixx", "Ixy", "Ixz", "Iyy", "Iyz", "Izz")
-_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+from .data import ResidualDataset
 
 
 def no_contacts(n: int, dtype=torch.float64) -> tc.Contacts:
@@ -29,159 +34,213 @@ def no_contacts(n: int, dtype=torch.float64) -> tc.Contacts:
     return tc.Contacts((), (), torch.zeros(n, 0, 3, dtype=dtype))
 
 
-def predict_free(est: tc.ContactEstimator, q, qd, qdd, sensor: str, chunk: int = 32768):
-    """Contact-free reading ``(N, 6)`` numpy float64 predicted by ``est``'s model."""
-    out = []
-    for s in range(0, len(q), chunk):
-        t = [
-            torch.as_tensor(np.asarray(x[s : s + chunk]), dtype=torch.float64) for x in (q, qd, qdd)
-        ]
-        out.append(est.predict_ft(*t, no_contacts(len(t[0])))[sensor].numpy())
-    return np.concatenate(out) if out else np.zeros((0, 6))
-
-
-def subtree_bodies(model: tc.RobotModel, sensor: str) -> list[int]:
-    """Bodies whose inertia the sensor measures (its child body's subtree)."""
-    return sorted(model.subtree(model.ft_sensors[sensor].child_body))
-
-
-def inertial_params(model: tc.RobotModel, bodies: list[int]) -> np.ndarray:
-    """``(len(bodies) * 10,)`` parameters ``(m, m c, I_origin)`` per body (float64)."""
-    out = []
-    for b in bodies:
-        m = float(model.mass[b])
-        c = model.com[b].double().numpy()
-        ic = model.inertia_com[b].double().numpy()
-        io = ic + m * (c @ c * np.eye(3) - np.outer(c, c))
-        out.append([m, *(m * c), *(io[i, j] for i, j in _SYM)])
-    return np.asarray(out, float).reshape(-1)
-
-
-def with_inertial_params(model: tc.RobotModel, bodies: list[int], theta: np.ndarray):
-    """Copy of ``model`` whose ``bodies`` carry parameters ``theta`` (converted to com form).
-
-    Masses must be nonzero (the com is ``h / m``); the copy need not be physically consistent.
-    """
-    theta = np.asarray(theta, float).reshape(len(bodies), 10)
-    mass, com, inertia = model.mass.clone(), model.com.clone(), model.inertia_com.clone()
-    for b, th in zip(bodies, theta, strict=True):
-        m, h = th[0], th[1:4]
-        io = np.zeros((3, 3))
-        for v, (i, j) in zip(th[4:], _SYM, strict=True):
-            io[i, j] = io[j, i] = v
-        c = h / m
-        ic = io - (h @ h * np.eye(3) - np.outer(h, h)) / m
-        mass[b] = m
-        com[b] = torch.as_tensor(c, dtype=model.dtype)
-        inertia[b] = torch.as_tensor(ic, dtype=model.dtype)
-    return replace(model, mass=mass, com=com, inertia_com=inertia)
-
-
-def inertial_regressor(
-    model: tc.RobotModel, sensor: str, q, qd, qdd, chunk: int = 8192
+def predict_free(
+    model: tc.RobotModel, sensor: str, q, qd, qdd, usable=None, chunk: int = 32768
 ) -> np.ndarray:
-    """Regressor ``Y (N, 6, P)`` with ``predict_ft(model) = Y @ inertial_params(model)``.
+    """Contact-free reading ``(N, 6)`` the model predicts (:meth:`ContactEstimator.predict_ft`).
 
-    Built from the public forward pass: the kinematics once, then the body wrenches
-    ``I a + v x* I v`` of model copies with parameter ``j`` of every subtree body raised by one
-    unit; each body's change, moved to the sensor frame, is its column ``j`` (exact, since body
-    wrenches are linear in ``theta``). The reading is the wrench the parent side exerts on the
-    sensor's subtree: the sum of the subtree's body wrenches, in the sensor frame about its origin,
-    with the sign of ``measure_direction``. ``P = 10 * len(subtree_bodies(model, sensor))``.
+    Frames not ``usable`` (non-finite joint values) get NaN.
     """
-    bodies = subtree_bodies(model, sensor)
-    theta0 = inertial_params(model, bodies).reshape(len(bodies), 10)
-    s = model.ft_sensors[sensor]
-    sign = 1.0 if s.measure_direction == "parent_to_child" else -1.0
-    R_cs = torch.as_tensor(s.R_child_sensor, dtype=model.dtype)
-    p_cs = torch.as_tensor(s.p_child_sensor, dtype=model.dtype)
-    perturbed = []
-    for j in range(10):
-        th = theta0.copy()
-        th[:, j] += 1.0
-        perturbed.append(with_inertial_params(model, bodies, th))
-    out = []
-    for s0 in range(0, len(q), chunk):
-        t = [
-            torch.as_tensor(np.asarray(x[s0 : s0 + chunk]), dtype=model.dtype) for x in (q, qd, qdd)
-        ]
-        fp = tc.forward_pass(model, *t)
-        # pose of the sensor frame in the root: T_root_child T_child_sensor
-        R = fp.R[:, s.child_body] @ R_cs
-        p = fp.p[:, s.child_body] + fp.R[:, s.child_body] @ p_cs
-        f0 = tc.body_wrenches(model, fp)[:, bodies]
-        cols = []
-        for mj in perturbed:
-            df = tc.body_wrenches(mj, fp)[:, bodies] - f0  # (n, nbs, 6) root frame, root origin
-            force, moment = df[..., :3], df[..., 3:]
-            moment = moment - torch.cross(p[:, None].expand_as(force), force, dim=-1)
-            Rt = R.transpose(-1, -2)[:, None]
-            cols.append(sign * torch.cat(((Rt @ force[..., None]), (Rt @ moment[..., None])), -2))
-        # cols[j]: (n, nbs, 6, 1) -> Y[:, :, b * 10 + j]
-        Y = torch.cat(cols, -1).permute(0, 2, 1, 3).reshape(len(t[0]), 6, -1)
-        out.append(Y.numpy())
-    return np.concatenate(out) if out else np.zeros((0, 6, 10 * len(bodies)))
+    est = tc.ContactEstimator(model, [sensor])
+    n = len(q)
+    usable = np.ones(n, bool) if usable is None else np.asarray(usable, bool)
+    out = np.full((n, 6), np.nan)
+    idx = np.flatnonzero(usable)
+    for s in range(0, len(idx), chunk):
+        sel = idx[s : s + chunk]
+        t = [torch.as_tensor(np.asarray(x)[sel], dtype=model.dtype) for x in (q, qd, qdd)]
+        out[sel] = est.predict_ft(*t, no_contacts(len(sel), model.dtype))[sensor].numpy()
+    return out
+
+
+def fit_offset(residual: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Constant offset ``(6,)``: the mean residual of ``frames`` (contact-free, usable)."""
+    if not len(frames):
+        raise ValueError("no contact-free frame to fit the offset on")
+    return residual[frames].mean(0)
+
+
+def _qr_rhs(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` and ``Q^T b`` of the reduced QR ``A = Q R``.
+
+    By torch's LAPACK, which follows ``torch.set_num_threads``: numpy's multithreaded OpenBLAS
+    was 170x slower on a loaded 2-core machine (1.1 s for a 3000 x 56 QR).
+    """
+    Q, R = torch.linalg.qr(torch.as_tensor(A))
+    return R.numpy(), (Q.T @ torch.as_tensor(b)).numpy()
 
 
 @dataclass
-class InertialLeastSquares:
-    """Baseline (c): sensor offset plus re-identified inertial parameters, by least squares.
+class RegressorBlocks:
+    """Per time block, the QR reduction of the physics least squares ``[I | Y] x = r``.
 
-    Fits ``r = Y delta + o`` on contact-free frames, where ``r`` is the residual of the nominal
-    model and ``delta`` the change of the subtree's inertial parameters. Columns are scaled to
-    unit RMS and solved with ``lstsq(rcond)``: directions the trajectory does not excite (below
-    ``rcond`` of the largest singular value) are left at the nominal values (minimum-norm
-    ``delta``), so unidentifiable combinations are not invented.
+    ``||A_b x - r_b||^2 = ||R_b x - c_b||^2 + (rr_b - ||c_b||^2)`` for block ``b``'s frames, so
+    any union of blocks is solved from the stacked ``R_b``, ``c_b`` alone.
 
     Attributes:
-        rcond: relative singular-value cut-off.
-        offset: ``(6,)`` fitted offset.
-        delta: ``(P,)`` fitted parameter change.
-        rank: numerical rank of the scaled design matrix.
+        blocks: the ``(start, stop)`` frame ranges.
+        R: ``(nblocks, C, C)`` upper-triangular factors, ``C = 6 + P``.
+        c: ``(nblocks, C)`` ``Q_b^T r_b``.
+        rr: ``(nblocks,)`` ``||r_b||^2``.
+        rows: ``(nblocks,)`` frames used per block.
+        bodies: body indices of the ``P / 10`` parameter groups.
     """
 
-    rcond: float = 1e-6
-    offset: np.ndarray | None = None
-    delta: np.ndarray | None = None
-    rank: int = 0
-    model: tc.RobotModel | None = None
-    sensor: str = ""
+    blocks: list[tuple[int, int]]
+    R: np.ndarray
+    c: np.ndarray
+    rr: np.ndarray
+    rows: np.ndarray
+    bodies: list[int] = field(default_factory=list)
 
-    def fit(
-        self, model: tc.RobotModel, sensor: str, Y: np.ndarray, residual
-    ) -> InertialLeastSquares:
-        """Fit on contact-free frames.
+    @classmethod
+    def build(
+        cls,
+        model: tc.RobotModel,
+        ds: ResidualDataset,
+        residual: np.ndarray,
+        blocks: Sequence[tuple[int, int]],
+        chunk: int = 16384,
+    ) -> RegressorBlocks:
+        """Reduce every block's contact-free, usable frames (regressor by the library).
 
-        Args:
-            model: the nominal robot.
-            sensor: the sensor.
-            Y: ``(n, 6, P)`` regressor of the frames (:func:`inertial_regressor`).
-            residual: ``(n, 6)`` residuals of the nominal model.
-
-        Returns:
-            self, fitted.
+        The regressor is computed for up to ``chunk`` frames at a time.
         """
-        n, _, P = Y.shape
-        A = np.concatenate([np.broadcast_to(np.eye(6), (n, 6, 6)), Y], -1).reshape(n * 6, 6 + P)
-        scale = np.sqrt((A**2).mean(0))
-        scale[scale == 0] = 1.0
-        x, _, rank, _ = np.linalg.lstsq(
-            A / scale, np.asarray(residual).reshape(-1), rcond=self.rcond
-        )
-        x = x / scale
-        self.offset, self.delta, self.rank = x[:6], x[6:], int(rank)
-        self.model, self.sensor = model, sensor
-        return self
+        bodies = subtree_bodies(model, ds.sensor)
+        C = 6 + 10 * len(bodies)
+        nb = len(blocks)
+        R = np.zeros((nb, C, C))
+        c = np.zeros((nb, C))
+        rr = np.zeros(nb)
+        rows = np.zeros(nb, np.int64)
+        targets = ds.targets
+        sels = [np.arange(s, e)[targets[s:e]] for s, e in blocks]
+        i = 0
+        while i < nb:  # the regressor of several blocks at once (fewer, larger batches)
+            j, n = i, 0
+            while j < nb and (j == i or n + len(sels[j]) <= chunk):
+                n += len(sels[j])
+                j += 1
+            sel = np.concatenate(sels[i:j])
+            if len(sel):
+                t = [torch.as_tensor(x[sel], dtype=model.dtype) for x in (ds.q, ds.qd, ds.qdd)]
+                Y = sensor_regressor(model, ds.sensor, *t, bodies).numpy()  # (n, 6, P)
+            at = 0
+            for k in range(i, j):  # then each block's QR
+                m = len(sels[k])
+                rows[k] = m
+                if m:
+                    Yk = Y[at : at + m]
+                    A = np.concatenate([np.broadcast_to(np.eye(6), (m, 6, 6)), Yk], -1)
+                    r = residual[sels[k]].reshape(-1)
+                    Rb, cb = _qr_rhs(A.reshape(m * 6, C), r)
+                    R[k, : Rb.shape[0]] = Rb
+                    c[k, : Rb.shape[0]] = cb
+                    rr[k] = r @ r
+                at += m
+            i = j
+        return cls(list(blocks), R, c, rr, rows, bodies)
 
-    def correction(self, Y: np.ndarray) -> np.ndarray:
-        """``(N, 6)`` predicted residual ``Y delta + o`` for regressors ``Y (N, 6, P)``."""
-        return Y @ self.delta + self.offset
+    def combine(self, ids: Sequence[int]) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """``(R, c, rr, rows)`` of the union of blocks ``ids`` (a second QR of the stack)."""
+        ids = [i for i in ids if self.rows[i] > 0]
+        C = self.R.shape[-1]
+        if not ids:
+            return np.zeros((C, C)), np.zeros(C), 0.0, 0
+        R, c = _qr_rhs(self.R[ids].reshape(-1, C), self.c[ids].reshape(-1))
+        Rf = np.zeros((C, C))
+        cf = np.zeros(C)
+        Rf[: R.shape[0]], cf[: R.shape[0]] = R, c
+        return Rf, cf, float(self.rr[ids].sum()), int(self.rows[ids].sum())
 
-    def identified_model(self) -> tc.RobotModel:
-        """The nominal model with the re-identified parameters (for inspection).
 
-        It may be physically inconsistent in directions the data did not excite.
-        """
-        bodies = subtree_bodies(self.model, self.sensor)
-        theta = inertial_params(self.model, bodies) + self.delta
-        return with_inertial_params(self.model, bodies, theta)
+@dataclass
+class InertialFit:
+    """Offset plus inertial parameter change fitted in the identifiable directions.
+
+    Attributes:
+        offset: ``(6,)`` [N; N m].
+        delta: ``(P,)`` parameter change, :data:`torchcontact.residual.PARAM_NAMES` per body.
+        bodies: body indices.
+        rank: directions fitted (chosen on the validation blocks).
+        identifiable: directions above ``rcond`` (never more are fitted).
+        columns: ``6 + P`` unknowns.
+        singular_values: of the column-scaled design matrix, descending.
+        val_rms: validation RMS residual per candidate rank ``0 .. identifiable``.
+    """
+
+    offset: np.ndarray
+    delta: np.ndarray
+    bodies: list[int]
+    rank: int
+    identifiable: int
+    columns: int
+    singular_values: np.ndarray
+    val_rms: np.ndarray
+
+    def info(self) -> dict:
+        """JSON-ready summary (recorded in the checkpoint)."""
+        return {
+            "rank": self.rank,
+            "identifiable": self.identifiable,
+            "unknowns": self.columns,
+            "singular_values": [float(s) for s in self.singular_values],
+            "note": "offset and parameter changes fitted in the rank leading directions of the"
+            " column-scaled regressor's SVD; the other directions stay at the nominal values",
+        }
+
+
+def fit_inertial(
+    rb: RegressorBlocks,
+    train: Sequence[int],
+    val: Sequence[int],
+    rcond: float = 1e-7,
+    rank: int | None = None,
+) -> InertialFit:
+    """Fit offset + parameter change on blocks ``train``, truncation rank chosen on ``val``.
+
+    Args:
+        rb: the reduced blocks.
+        train: indices into ``rb.blocks`` to fit on.
+        val: indices to choose the rank on (empty: the largest identifiable rank).
+        rcond: relative singular-value threshold of identifiability.
+        rank: a fixed rank instead of the validation choice (clipped to the identifiable one).
+
+    Returns:
+        :class:`InertialFit`.
+    """
+    R, c, _, rows = rb.combine(train)
+    if rows == 0:
+        raise ValueError("no contact-free frame in the training blocks")
+    scale = np.sqrt((R**2).sum(0))  # column norms of the stacked design matrix
+    scale[scale == 0] = 1.0
+    U, s, Vt = (x.numpy() for x in torch.linalg.svd(torch.as_tensor(R / scale)))
+    k_max = int((s > rcond * s[0]).sum()) if s[0] > 0 else 0
+    z = U.T @ c
+    # solution of rank k: x_k = D^-1 V_k (z_k / s_k); candidates as cumulative sums
+    steps = (Vt[:k_max].T * (z[:k_max] / s[:k_max])) / scale[:, None]  # (C, k_max)
+    X = np.concatenate([np.zeros((len(scale), 1)), np.cumsum(steps, 1)], 1)  # (C, k_max + 1)
+    Rv, cv, rrv, nv = rb.combine(val)
+    if nv:
+        RX = (torch.as_tensor(Rv) @ torch.as_tensor(X)).numpy()  # torch: see _qr_rhs
+        rss = (RX**2).sum(0) - 2 * (cv[:, None] * RX).sum(0) + rrv
+        val_rms = np.sqrt(np.maximum(rss, 0) / (6 * nv))
+    else:
+        val_rms = np.full(k_max + 1, np.nan)
+    if rank is not None:
+        k = min(int(rank), k_max)
+    elif nv:
+        k = int(np.argmin(val_rms))
+    else:
+        k = k_max
+    x = X[:, k]
+    return InertialFit(
+        offset=x[:6],
+        delta=x[6:],
+        bodies=list(rb.bodies),
+        rank=k,
+        identifiable=k_max,
+        columns=len(scale),
+        singular_values=s,
+        val_rms=val_rms,
+    )

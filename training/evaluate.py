@@ -1,4 +1,9 @@
-"""Contact-force error of corrected readings on held-out frames with ground truth."""
+"""Scores of corrections: what they leave on contact-free frames, and contact-force errors.
+
+On a recorded log there is no ground truth: a correction is scored by the F/T residual it
+leaves on held-out contact-free frames, per axis (:func:`residual_rmse`). Simulated logs also
+carry the true contacts, and :func:`contact_metrics` estimates them from the corrected readings.
+"""
 
 from __future__ import annotations
 
@@ -93,9 +98,18 @@ def contact_metrics(
     return out
 
 
+AXES = ("fx", "fy", "fz", "mx", "my", "mz")
+
+
 def residual_rmse(residual: np.ndarray) -> dict[str, float]:
-    """RMS of the force and moment parts of residuals ``(n, 6)``: N and N m."""
-    return {
-        "residual_force_rms": _rmse(residual[:, :3]),
-        "residual_moment_rms": _rmse(residual[:, 3:]),
-    }
+    """RMS of what a correction leaves on contact-free frames ``(n, 6)``: per axis and in norm.
+
+    Returns:
+        ``rms.fx`` .. ``rms.mz`` (N, N m), ``residual_force_rms`` and ``residual_moment_rms``
+        (root mean square of the force and moment vector norms), ``frames_free``.
+    """
+    out = {f"rms.{a}": _rmse(residual[:, i : i + 1]) for i, a in enumerate(AXES)}
+    out["residual_force_rms"] = _rmse(residual[:, :3])
+    out["residual_moment_rms"] = _rmse(residual[:, 3:])
+    out["frames_free"] = len(residual)
+    return out

@@ -15,16 +15,22 @@ from torchcontact.residual import ResidualGRU, ResidualMLP
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of one residual model (the ``[model]`` and ``[train]`` TOML tables)."""
+    """Hyper-parameters of the learned layer (the ``[model]`` and ``[train]`` TOML tables).
+
+    Regularisation: AdamW weight decay, and early stopping on the validation blocks (contiguous
+    time blocks never seen in training): the weights of the best validation epoch are kept and
+    training stops after ``patience`` epochs without improvement.
+    """
 
     kind: str = "mlp"
-    hidden: int = 128
+    hidden: int = 64
     layers: int = 2
     epochs: int = 150
     batch_size: int = 512
     lr: float = 3e-3
-    weight_decay: float = 1e-5
-    patience: int = 20
+    weight_decay: float = 1e-4
+    patience: int = 15
+    min_improvement: float = 1e-6
     seq_len: int = 200
     seed: int = 0
 
@@ -61,6 +67,16 @@ def _windows(x, y, mask, blocks, seq_len):
     )
 
 
+def _adamw(module: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """AdamW, the fused kernel where this torch has it (2x faster steps on CPU here)."""
+    try:
+        return torch.optim.AdamW(
+            module.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True
+        )
+    except (RuntimeError, TypeError):
+        return torch.optim.AdamW(module.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
 def fit_residual(
     features: np.ndarray,
     target: np.ndarray,
@@ -88,6 +104,9 @@ def fit_residual(
     """
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
+    # unusable frames hold NaN: zeros as GRU inputs, masked out of the loss (an MLP never sees them)
+    features = np.where(np.isfinite(features), features, 0.0)
+    target = np.where(train_mask[:, None], target, 0.0)
     nf = features.shape[1]
     tr = np.concatenate([np.arange(s, e) for s, e in train_blocks])
     tr = tr[train_mask[tr]]
@@ -101,20 +120,23 @@ def fit_residual(
         raise ValueError(f"unknown model kind {cfg.kind!r} (mlp or gru)")
     module.set_normalisation(torch.as_tensor(features[tr]), torch.as_tensor(target[tr]))
     module.to(device)
-    opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = _adamw(module, cfg)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=cfg.patience // 3)
-    tstd = module.target_std
 
-    if cfg.kind == "mlp":
-        Xt = torch.as_tensor(features[tr], dtype=torch.float32, device=device)
-        Yt = torch.as_tensor(target[tr], dtype=torch.float32, device=device)
-        Xv = torch.as_tensor(features[va], dtype=torch.float32, device=device)
-        Yv = torch.as_tensor(target[va], dtype=torch.float32, device=device)
+    if isinstance(module, ResidualMLP):
+        # frame-wise: normalise once, train the network on normalised inputs and targets
+        def norm(idx):
+            x = torch.as_tensor(features[idx], dtype=torch.float32, device=device)
+            y = torch.as_tensor(target[idx], dtype=torch.float32, device=device)
+            return module._in(x), (y - module.target_mean) / module.target_std
+
+        Xt, Yt = norm(tr)
+        Xv, Yv = norm(va)
         Mt = torch.ones(len(tr), device=device)
         Mv = torch.ones(len(va), device=device)
 
-        def run(x):
-            return module(x)
+        def loss_fn(x, y, m):
+            return ((module.net(x) - y) ** 2).mean()
     else:
         Xt, Yt, Mt = (
             t.to(device) for t in _windows(features, target, train_mask, train_blocks, cfg.seq_len)
@@ -122,13 +144,11 @@ def fit_residual(
         Xv, Yv, Mv = (
             t.to(device) for t in _windows(features, target, train_mask, val_blocks, cfg.seq_len)
         )
+        tstd = module.target_std
 
-        def run(x):
-            return module.forward_sequence(x)[0]
-
-    def loss_fn(x, y, m):
-        err = ((run(x) - y) / tstd) ** 2
-        return (err.mean(-1) * m).sum() / m.sum().clamp_min(1)
+        def loss_fn(x, y, m):
+            err = ((module.forward_sequence(x)[0] - y) / tstd) ** 2
+            return (err.mean(-1) * m).sum() / m.sum().clamp_min(1)
 
     res = FitResult(module)
     best, best_state, bad = float("inf"), None, 0
@@ -142,7 +162,8 @@ def fit_residual(
             loss = loss_fn(Xt[idx], Yt[idx], Mt[idx])
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(module.parameters(), 1.0)
+            if cfg.kind == "gru":  # recurrent gradients can spike
+                torch.nn.utils.clip_grad_norm_(module.parameters(), 1.0)
             opt.step()
             total += loss.item() * len(idx)
             count += len(idx)
@@ -152,7 +173,7 @@ def fit_residual(
         res.train_loss.append(total / max(count, 1))
         res.val_loss.append(v)
         sched.step(v)
-        if v < best - 1e-6:
+        if v < best * (1 - cfg.min_improvement):
             best, best_state, bad, res.best_epoch = v, copy.deepcopy(module.state_dict()), 0, epoch
         else:
             bad += 1
@@ -180,5 +201,5 @@ def predict_residual(
             r = module.forward_sequence(x[None])[0][0]
         else:
             r = module(x)
-        out[s:e] = r.numpy()
+        out[s:e] = r.double().numpy()
     return out

@@ -1,8 +1,9 @@
-"""``python -m export residual CHECKPOINT --out FILE.onnx``: residual checkpoints to ONNX.
+"""``python -m export residual CHECKPOINT --out FILE.onnx``: a correction stack as one ONNX graph.
 
-The checkpoints are built here with the classes of :mod:`torchcontact.residual` (random weights,
-non-identity normalisation so that the graph must carry it) and saved with
-``save_residual_model``, as ``python -m training`` does.
+The checkpoints are built here with the classes of :mod:`torchcontact.residual` (random layers,
+non-identity normalisation so that the graph must carry it) and saved as ``python -m training``
+saves them. The graph computes everything from the raw joint state: forward pass, regressor,
+features, network.
 """
 
 import json
@@ -13,95 +14,138 @@ import onnxruntime as ort
 import pytest
 import torch
 
+import torchcontact as tc
 from export.__main__ import main
-from torchcontact.export import check_parity
+from torchcontact.export import RESIDUAL_GRAPH_FORMAT, export_residual_checkpoint
 from torchcontact.residual import (
+    FeatureSpec,
+    ResidualCorrection,
     ResidualGRU,
     ResidualMLP,
-    feature_names,
-    load_residual_model,
-    save_residual_model,
+    subtree_bodies,
 )
 
-JOINTS = ["shoulder", "elbow", "wrist"]
-FEATURES = feature_names(JOINTS, ["temperature"])
-F = len(FEATURES)
+
+def _model(name):
+    from robots import load_model
+
+    return tc.RobotModel.from_urdf(tc.robots.tcarm_path()) if name == "tcarm" else load_model(name)
 
 
-def _checkpoint(tmp_path, kind):
-    torch.manual_seed(1)
-    m = ResidualMLP(F, hidden=16, layers=2) if kind == "mlp" else ResidualGRU(F, 8, layers=2)
-    m.set_normalisation(torch.randn(64, F) * 3 + 1, torch.randn(64, 6) * 5 - 2)
-    meta = {
-        "features": FEATURES,
-        "joint_names": JOINTS,
-        "sensor": "base_ft",
-        "robot_sha256": "a" * 64,
-        "data_sha256": "d" * 64,
-    }
-    return save_residual_model(tmp_path / kind, m, meta)
+SENSOR = {"tcarm": "base_ft", "icub": "l_arm_ft"}
 
 
-@pytest.mark.parametrize("kind", ["mlp", "gru"])
-def test_export_residual_cli_parity_and_metadata(tmp_path, kind, capsys):
-    ckpt = _checkpoint(tmp_path, kind)
-    path = tmp_path / f"{kind}.onnx"
-    assert main(["residual", str(ckpt), "--out", str(path)]) == 0
-    assert json.loads(capsys.readouterr().out)["path"] == str(path)
-    module, meta = load_residual_model(ckpt)
+def _checkpoint(tmp_path, robot, layers, extra=("temperature",)):
+    model = _model(robot)
+    sensor = SENSOR[robot]
+    g = torch.Generator().manual_seed(1)
+    kw: dict = {"offset": torch.randn(6, generator=g, dtype=torch.float64)}
+    if "inertial" in layers:
+        bodies = subtree_bodies(model, sensor)
+        kw["inertial_bodies"] = tuple(model.body_names[b] for b in bodies)
+        kw["delta"] = 0.05 * torch.randn(10 * len(bodies), generator=g, dtype=torch.float64)
+    learned = [x for x in layers if x in ("mlp", "gru")]
+    if learned:
+        spec = FeatureSpec.default(model, sensor, extra=extra)
+        F = len(spec.names(model))
+        torch.manual_seed(1)
+        net = ResidualMLP(F, 16, 2) if learned[0] == "mlp" else ResidualGRU(F, 8, layers=2)
+        net.set_normalisation(torch.randn(64, F) * 2 + 1, torch.randn(64, 6) * 5 - 2)
+        kw.update(learned=net, features=spec)
+    c = ResidualCorrection(model, sensor, **kw, meta={"data_sha256": "d" * 64})
+    return c.save(tmp_path / "-".join(layers)), c
 
+
+def _inputs(model, n, E, seed=2):
+    g = torch.Generator().manual_seed(seed)
+    x = [torch.rand(n, model.nv, generator=g, dtype=torch.float64) * 3 - 1.5 for _ in range(3)]
+    extra = torch.rand(n, E, generator=g, dtype=torch.float64) * 10 + 25
+    return x, extra
+
+
+@pytest.mark.parametrize(
+    "robot,layers",
+    [
+        ("tcarm", ("offset", "inertial", "mlp")),
+        ("icub", ("offset", "inertial", "mlp")),
+        ("icub", ("offset", "inertial")),
+        ("tcarm", ("offset", "mlp")),
+    ],
+)
+def test_exported_stack_equals_the_torch_correction(tmp_path, robot, layers, capsys):
+    ckpt, corr = _checkpoint(tmp_path, robot, layers)
+    model = corr.model
+    path = tmp_path / "c.onnx"
+    urdf = tc.robots.tcarm_path() if robot == "tcarm" else None
+    export_residual_checkpoint(ckpt, path, urdf or _icub_path())
     m = onnx.load(str(path))
     assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in m.graph.initializer)
-    assert [o.version for o in m.opset_import if o.domain in ("", "ai.onnx")] == [18]
+    E = len(corr.extra_columns)
+    names = [i.name for i in m.graph.input]
+    assert names == ["q", "qd", "qdd"] + (["extra"] if E else [])
+    assert [o.name for o in m.graph.output] == ["correction"]
     props = {p.key: p.value for p in m.metadata_props}
-    assert json.loads(props["feature_names"]) == FEATURES
-    assert json.loads(props["joint_names"]) == JOINTS
-    assert props["sensor"] == "base_ft" and props["data_sha256"] == "d" * 64
-    assert props["kind"] == kind and props["recurrent"] == str(kind == "gru").lower()
-    assert props["checkpoint_weights_sha256"] == meta["weights_sha256"]
-    assert "N m" in json.loads(props["units"])["residual"] and props["model_version"]
-    inputs = [i.name for i in m.graph.input]
-    assert inputs == (["features", "h_in"] if kind == "gru" else ["features"])
-
-    # onnxruntime vs torch, float32, dynamic batch
-    gen = torch.Generator().manual_seed(2)
-    graph = module if kind == "mlp" else (lambda x, h: module(x, h))
+    assert props["format"] == RESIDUAL_GRAPH_FORMAT and props["sensor"] == corr.sensor
+    assert json.loads(props["joint_names"]) == list(model.joint_names)
+    assert json.loads(props["layers"]) == list(layers)
+    assert json.loads(props["extra_columns"]) == corr.extra_columns
+    assert props["robot_sha256"] == model.urdf_sha256 and props["data_sha256"] == "d" * 64
+    assert props["checkpoint_weights_sha256"] == corr.meta["weights_sha256"]
+    assert "N m" in json.loads(props["units"])["correction"] and props["recurrent"] == "false"
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    for n in (1, 2, 7, 1024):
-        x = torch.randn(n, F, generator=gen) * 3 + 1
-        if kind == "mlp":
-            assert check_parity(module, path, x, atol=1e-5) <= 1e-5
-            continue
-        h = torch.randn(n, 2, 8, generator=gen)
-        with torch.no_grad():
-            r_ref, h_ref = graph(x, h)
-        r, h_out = sess.run(None, {"features": x.numpy(), "h_in": h.numpy()})
-        assert r.dtype == np.float32 and r.shape == (n, 6) and h_out.shape == (n, 2, 8)
-        assert np.abs(r - r_ref.numpy()).max() <= 1e-5
-        assert np.abs(h_out - h_ref.numpy()).max() <= 1e-5
+    for n in (1, 5, 300):
+        (q, qd, qdd), extra = _inputs(model, n, E, seed=n)
+        want = corr.correction(q, qd, qdd, dict(zip(corr.extra_columns, extra.T, strict=True)))
+        feed = {"q": q, "qd": qd, "qdd": qdd} | ({"extra": extra} if E else {})
+        (got,) = sess.run(None, {k: v.float().numpy() for k, v in feed.items()})
+        assert got.shape == (n, 6) and got.dtype == np.float32
+        # float32 graph vs float64 torch: rounding of the forward pass and the network
+        scale = max(1.0, float(want.abs().max()))
+        np.testing.assert_allclose(got, want.numpy(), rtol=0, atol=2e-5 * scale)
 
 
-def test_gru_stepped_in_onnx_equals_the_sequence(tmp_path, capsys):
-    ckpt = _checkpoint(tmp_path, "gru")
+def _icub_path():
+    from robots import icub_path
+
+    return icub_path()
+
+
+def test_gru_stack_stepped_in_onnx_equals_the_sequence(tmp_path):
+    ckpt, corr = _checkpoint(tmp_path, "tcarm", ("offset", "gru"))
     path = tmp_path / "gru.onnx"
-    assert main(["residual", str(ckpt), "--out", str(path), "--no-check"]) == 0
-    module, _ = load_residual_model(ckpt)
-    x = torch.randn(3, 20, F, generator=torch.Generator().manual_seed(3))
-    with torch.no_grad():
-        ref, _ = module.forward_sequence(x)
+    assert main(["residual", str(ckpt), "--robot", "tcarm", "--out", str(path)]) == 0
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    h = np.zeros((3, 2, 8), np.float32)  # zero state before the first frame
+    assert [i.name for i in sess.get_inputs()] == ["q", "qd", "qdd", "extra", "h_in"]
+    props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    assert props["recurrent"] == "true" and json.loads(props["state_shape"]) == ["N", 2, 8]
+    (q, qd, qdd), extra = _inputs(corr.model, 20, 1)
+    want = corr.correction(q, qd, qdd, {"temperature": extra[:, 0]})  # one sequence in time
+    h = np.zeros((1, 2, 8), np.float32)  # zero state before the first frame
     for t in range(20):
-        r, h = sess.run(None, {"features": x[:, t].numpy(), "h_in": h})
-        assert np.abs(r - ref[:, t].numpy()).max() <= 1e-5
+        feed = {"q": q[t : t + 1], "qd": qd[t : t + 1], "qdd": qdd[t : t + 1]}
+        feed["extra"] = extra[t : t + 1]
+        r, h = sess.run(None, {k: v.float().numpy() for k, v in feed.items()} | {"h_in": h})
+        np.testing.assert_allclose(r[0], want[t].numpy(), atol=2e-4)
 
 
-def test_tampered_checkpoint_is_refused(tmp_path, capsys):
-    ckpt = _checkpoint(tmp_path, "mlp")
+def test_export_cli_uses_the_recorded_urdf_and_refuses_tampering(tmp_path, capsys):
+    ckpt, corr = _checkpoint(tmp_path, "tcarm", ("offset", "mlp"))
+    path = tmp_path / "x.onnx"
+    # no URDF recorded and none given: the error says what to pass
+    assert main(["residual", str(ckpt), "--out", str(path)]) == 2
+    assert "pass the robot's URDF" in capsys.readouterr().err
+    meta = json.loads((ckpt / "checkpoint.json").read_text())
+    (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "urdf": str(tc.robots.tcarm_path())}))
+    assert main(["residual", str(ckpt), "--out", str(path)]) == 0
+    assert json.loads(capsys.readouterr().out)["path"] == str(path)
+    # another robot's URDF is refused
+    assert main(["residual", str(ckpt), "--urdf", str(_icub_path()), "--out", str(path)]) == 1
+    assert "trained for robot" in capsys.readouterr().err
     w = ckpt / "weights.safetensors"
     data = bytearray(w.read_bytes())
     data[-1] ^= 1
     w.write_bytes(bytes(data))
-    assert main(["residual", str(ckpt), "--out", str(tmp_path / "x.onnx")]) == 1  # bad data
+    path.unlink()
+    assert main(["residual", str(ckpt), "--robot", "tcarm", "--out", str(path)]) == 1  # bad data
     assert "does not match" in capsys.readouterr().err
-    assert not (tmp_path / "x.onnx").exists()
+    assert not path.exists()

@@ -93,19 +93,15 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     from torchcontact.cli import main
     from torchcontact.logs import LogError
     from torchcontact.logs.ray_engine import estimate_file_ray
-    from torchcontact.residual import ResidualGRU, feature_names, save_residual_model
+    from torchcontact.residual import FeatureSpec, ResidualCorrection, ResidualGRU
     from torchcontact.robots import tcarm_path
 
-    joints = list(model.joint_names)
-    meta = {
-        "features": feature_names(joints),
-        "joint_names": joints,
-        "sensor": "base_ft",
-        "robot_sha256": model.urdf_sha256,
-        "data_sha256": "0" * 64,
-    }
+    spec = FeatureSpec.default(model, "base_ft")
     torch.manual_seed(0)
-    gru = save_residual_model(tmp_path / "gru", ResidualGRU(len(meta["features"]), 4), meta)
+    stack = ResidualCorrection(
+        model, "base_ft", learned=ResidualGRU(len(spec.names(model)), 4), features=spec
+    )
+    gru = stack.save(tmp_path / "gru")
     with pytest.raises(LogError, match="cannot use a recurrent"):
         estimate_file_ray(sim_log, tcarm_path(), tmp_path / "o.parquet", residual=gru)
     out = str(tmp_path / "o.parquet")

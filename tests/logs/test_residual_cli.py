@@ -1,9 +1,8 @@
-"""``torchcontact estimate --residual``: a learned F/T correction applied before estimation.
+"""``torchcontact estimate --residual``: a correction stack applied before estimation.
 
-The residual models are built here, not trained: a :class:`ResidualMLP` whose last layer has zero
-weights and a bias equal to a known sensor offset predicts exactly that offset (the default
-normalisation is the identity), so a simulated log with that offset is estimated exactly with the
-correction and wrongly without it. The offset values are float32-exact.
+The corrections are built here, not trained: an offset layer equal to a known sensor offset, and
+an inertial layer whose parameter change is exactly a payload's, explain a simulated log's
+readings exactly, so its contacts are estimated exactly with the correction and wrongly without.
 """
 
 import json
@@ -17,40 +16,44 @@ from torchcontact.cli import main
 from torchcontact.logs import LogError, estimate_file, write_simulated_log
 from torchcontact.logs.format import META_RESIDUAL
 from torchcontact.residual import (
+    FeatureSpec,
+    ResidualCorrection,
     ResidualGRU,
-    ResidualMLP,
-    feature_names,
-    save_residual_model,
+    inertial_params,
+    subtree_bodies,
 )
 from torchcontact.simulation import UnmodeledEffects
 
-OFFSET = [2.5, -1.25, 4.0, 0.125, -0.25, 0.5]  # [N; N m], exact in float32
+OFFSET = [2.5, -1.25, 4.0, 0.125, -0.25, 0.5]  # [N; N m]
+PAYLOAD = dict(payload_mass=0.4, payload_com=(0.01, 0.02, 0.08))
 
 
-def _meta(model, *, robot_sha256=None, sensor="base_ft"):
-    joints = list(model.joint_names)
-    return {
-        "features": feature_names(joints, ["temperature"]),
-        "joint_names": joints,
-        "sensor": sensor,
-        "robot_sha256": robot_sha256 or model.urdf_sha256,
-        "data_sha256": "0" * 64,
-    }
-
-
-def _offset_mlp(model, directory, **meta_kwargs):
-    meta = _meta(model, **meta_kwargs)
-    m = ResidualMLP(len(meta["features"]), hidden=8, layers=1)
-    with torch.no_grad():
-        m.net[-1].weight.zero_()
-        m.net[-1].bias.copy_(torch.tensor(OFFSET))
-    return save_residual_model(directory, m, meta)
+def _exact(model, directory, payload=False, **kw):
+    """Offset (and the payload's exact inertial change): the log's effects, nothing else."""
+    layers: dict = {"offset": torch.tensor(OFFSET, dtype=torch.float64)}
+    if payload:
+        bodies = subtree_bodies(model, "base_ft")
+        true = model.with_point_mass("hand", PAYLOAD["payload_mass"], PAYLOAD["payload_com"])
+        delta = inertial_params(true, bodies) - inertial_params(model, bodies)
+        layers.update(
+            inertial_bodies=tuple(model.body_names[b] for b in bodies),
+            delta=torch.as_tensor(delta),
+        )
+    c = ResidualCorrection(model, "base_ft", **layers, **kw)
+    return c.save(directory)
 
 
 @pytest.fixture(scope="module")
 def offset_log(model, tmp_path_factory):
     path = tmp_path_factory.mktemp("offset") / "log.parquet"
     return write_simulated_log(model, 400, path, seed=3, effects=UnmodeledEffects(offset=OFFSET))
+
+
+@pytest.fixture(scope="module")
+def payload_log(model, tmp_path_factory):
+    path = tmp_path_factory.mktemp("payload") / "log.parquet"
+    fx = UnmodeledEffects(offset=OFFSET, **PAYLOAD)
+    return write_simulated_log(model, 400, path, seed=4, effects=fx)
 
 
 def _single_contact_errors(path):
@@ -62,10 +65,14 @@ def _single_contact_errors(path):
     return np.asarray(errs)
 
 
-def test_residual_cli_recovers_forces_that_the_offset_spoils(model, offset_log, tmp_path, capsys):
-    ckpt = _offset_mlp(model, tmp_path / "ckpt")
+@pytest.mark.parametrize("payload", [False, True])
+def test_residual_cli_recovers_forces_that_the_effects_spoil(
+    model, offset_log, payload_log, tmp_path, capsys, payload
+):
+    log = payload_log if payload else offset_log
+    ckpt = _exact(model, tmp_path / "ckpt", payload=payload)
     with_res, without = tmp_path / "with.parquet", tmp_path / "without.parquet"
-    args = ["estimate", str(offset_log), "--quiet", "--batch-size", "64"]
+    args = ["estimate", str(log), "--quiet", "--batch-size", "64"]
     assert main([*args, "--out", str(with_res), "--residual", str(ckpt)]) == 0
     assert main([*args, "--out", str(without)]) == 0
     capsys.readouterr()
@@ -78,35 +85,38 @@ def test_residual_cli_recovers_forces_that_the_offset_spoils(model, offset_log, 
         "checkpoint": str(ckpt.resolve()),
         "weights_sha256": weights,
         "sensor": "base_ft",
-        "kind": "mlp",
+        "kind": "offset+inertial" if payload else "offset",
     }
     assert META_RESIDUAL not in pq.read_schema(without).metadata
 
 
-def test_foreign_robot_checkpoint_is_refused(model, offset_log, tmp_path, capsys):
-    ckpt = _offset_mlp(model, tmp_path / "ckpt", robot_sha256="f" * 64)
+def test_foreign_robot_and_unknown_sensor_are_refused(model, offset_log, tmp_path, capsys):
+    ckpt = _exact(model, tmp_path / "ckpt")
+    meta = json.loads((ckpt / "checkpoint.json").read_text())
+    (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "robot_sha256": "f" * 64}))
     out = tmp_path / "o.parquet"
     assert main(["estimate", str(offset_log), "--out", str(out), "--residual", str(ckpt)]) == 1
     err = capsys.readouterr().err
     assert "trained for robot ffff" in err and model.urdf_sha256 in err
     assert not out.exists() and not out.with_name("o.parquet.partial").exists()
-
-
-def test_missing_feature_column_and_unknown_sensor_are_named(model, tmp_path):
-    ckpt = _offset_mlp(model, tmp_path / "ckpt")
-    no_temp = write_simulated_log(model, 50, tmp_path / "nt.parquet", seed=1, temperature=False)
-    with pytest.raises(LogError, match="needs column 'temperature', which the log lacks"):
-        estimate_file(no_temp, model, tmp_path / "o.parquet", residual=ckpt)
-    other = _offset_mlp(model, tmp_path / "other", sensor="wrist_ft")
-    with pytest.raises(LogError, match="corrects sensor 'wrist_ft'"):
-        estimate_file(no_temp, model, tmp_path / "o2.parquet", residual=other)
+    (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "sensor": "wrist_ft"}))
+    with pytest.raises(LogError, match="corrects sensor 'wrist_ft', which tcarm does not have"):
+        estimate_file(offset_log, model, tmp_path / "o2.parquet", residual=ckpt)
 
 
 def _gru_ckpt(model, directory):
-    meta = _meta(model)
+    spec = FeatureSpec.default(model, "base_ft", extra=("temperature",))
     torch.manual_seed(0)
-    m = ResidualGRU(len(meta["features"]), hidden=8)
-    return save_residual_model(directory, m, meta)
+    net = ResidualGRU(len(spec.names(model)), hidden=8)
+    offset = torch.tensor(OFFSET, dtype=torch.float64)
+    return ResidualCorrection(model, "base_ft", offset, learned=net, features=spec).save(directory)
+
+
+def test_missing_feature_column_is_named(model, tmp_path):
+    ckpt = _gru_ckpt(model, tmp_path / "gru")
+    no_temp = write_simulated_log(model, 50, tmp_path / "nt.parquet", seed=1, temperature=False)
+    with pytest.raises(LogError, match="needs column 'temperature', which the log lacks"):
+        estimate_file(no_temp, model, tmp_path / "o.parquet", residual=ckpt)
 
 
 def test_gru_state_carries_across_chunks_and_resume_is_refused(model, offset_log, tmp_path):
@@ -124,3 +134,20 @@ def test_gru_state_carries_across_chunks_and_resume_is_refused(model, offset_log
     assert np.abs(a - c).max() > 1e-3  # the correction did change the estimates
     with pytest.raises(LogError, match="not supported with a recurrent"):
         estimate_file(offset_log, model, tmp_path / "r.parquet", residual=ckpt, resume=True)
+
+
+def test_frames_the_correction_cannot_use_are_flagged_and_the_rest_processed(model, tmp_path):
+    import pyarrow as pa
+
+    log = write_simulated_log(model, 120, tmp_path / "l.parquet", seed=5)
+    t = pq.read_table(log)
+    temp = t.column("temperature").to_numpy().copy()
+    temp[[7, 40]] = np.nan
+    t = t.set_column(t.column_names.index("temperature"), "temperature", pa.array(temp))
+    pq.write_table(t, log)
+    ckpt = _gru_ckpt(model, tmp_path / "gru")
+    res = estimate_file(log, model, tmp_path / "o.parquet", residual=ckpt)
+    status = pq.read_table(res["output"]).column("status").to_pylist()
+    assert res["frames"] == 120
+    bad = [i for i, s in enumerate(status) if s != "ok"]
+    assert bad == [7, 40] and "F/T" in status[7]

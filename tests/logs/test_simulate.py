@@ -77,7 +77,8 @@ def test_contact_links_and_sensor_are_chosen_and_checked(robot_paths, tmp_path, 
     assert "--contact-links ['l_hand']: outside the subtree of sensor 'r_arm_ft'" in err
     assert main([*args, "--contact-links", "no_link"]) == 2
     assert "not links or frames" in capsys.readouterr().err
-    assert main([*args, "--cable", "2"]) == 2  # the default cable link is tcarm's
-    assert "effects.cable_link 'upper_arm' is not a link" in capsys.readouterr().err
+    # the effects follow the sensor on any robot: the default cable pulls inside its subtree
+    cable = ["simulate", "--robot", icub, "--frames", "200", "--quiet"]
+    assert main([*cable, "--out", str(tmp_path / "cable.parquet"), "--cable", "2"]) == 0
     tc_args = ["simulate", "--robot", str(tcarm_path()), "--frames", "50", "--quiet"]
     assert main([*tc_args, "--out", str(tmp_path / "t.parquet"), "--max-contacts", "0"]) == 2

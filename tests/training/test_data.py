@@ -1,3 +1,5 @@
+"""Training reads the documented log format as written; splits are contiguous time blocks."""
+
 import json
 
 import numpy as np
@@ -5,8 +7,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from torchcontact.simulation import simulate
-from training.data import ResidualDataset, load_parquet, split_blocks
+from torchcontact.errors import LogError
+from torchcontact.logs import write_simulated_log
+from torchcontact.logs.format import fixed_list
+from torchcontact.simulation import UnmodeledEffects, simulate
+from training.data import ResidualDataset, fold_splits, load_parquet, split_blocks, time_blocks
 
 
 @pytest.mark.parametrize("lengths,block", [((1000,), 100), ((350, 17, 640), 64), ((5,), 2)])
@@ -31,55 +36,139 @@ def test_split_by_contiguous_blocks_leaks_no_frame(lengths, block):
     assert runs <= len(s.blocks["test"])
 
 
-def test_split_is_seeded():
+def test_split_is_seeded_and_a_zero_share_is_empty():
     f = np.zeros(500, int)
     a, b, c = split_blocks(f, 50, seed=0), split_blocks(f, 50, seed=0), split_blocks(f, 50, seed=1)
     np.testing.assert_array_equal(a.test, b.test)
     assert not np.array_equal(a.test, c.test)
+    d = split_blocks(f, 50, (0.8, 0.2, 0.0))
+    assert len(d.test) == 0 and len(d.val) == 100 and len(d.train) == 400
 
 
-def test_parquet_loader(tmp_path, arm):
-    log = simulate(arm, 400, seed=2)
-    nv = arm.nv
-    contacts = []
-    for i in range(400):
-        row = [
-            {"link": log.links[li], "position": list(log.contact_position[i, k])}
-            for k, li in enumerate(log.contact_link[i])
-            if li >= 0
-        ]
-        contacts.append(row)
-    fsl = lambda a, n: pa.FixedSizeListArray.from_arrays(pa.array(a.reshape(-1)), n)  # noqa: E731
-    table = pa.table(
-        {
-            "t_ns": pa.array(log.t_ns),
-            "q": fsl(log.q, nv),
-            "qd": fsl(log.qd, nv),
-            "qdd": fsl(log.qdd, nv),
-            "ft.base_ft": fsl(log.ft, 6),
-            "contacts": pa.array(
-                contacts,
-                type=pa.list_(
-                    pa.struct([("link", pa.string()), ("position", pa.list_(pa.float64(), 3))])
-                ),
-            ),
-            "temperature": pa.array(log.temperature),
-        }
-    ).replace_schema_metadata({"torchcontact.joint_names": json.dumps(list(arm.joint_names))})
-    p1, p2 = tmp_path / "a.parquet", tmp_path / "b.parquet"
-    pq.write_table(table, p1)
-    pq.write_table(table.slice(10, 20), p2)
-    ds = load_parquet([p1, p2], "base_ft", extra=["temperature", "time"])
+@pytest.mark.parametrize("folds", [2, 3, 5])
+def test_folds_test_every_block_exactly_once(folds):
+    file_id = np.r_[np.zeros(730, int), np.ones(400, int)]
+    splits = fold_splits(file_id, 50, folds, seed=3)
+    assert len(splits) == folds
+    tested = np.concatenate([s.test for s in splits])
+    np.testing.assert_array_equal(np.sort(tested), np.arange(len(file_id)))
+    blocks = time_blocks(file_id, 50)
+    for s in splits:
+        assert len(s.val) and len(s.train) and len(s.test)
+        names = [set(s.blocks[n]) for n in ("train", "val", "test")]
+        assert set.union(*names) == set(blocks)  # every block has a role in every fold
+        assert not (names[0] & names[1] or names[0] & names[2] or names[1] & names[2])
+    with pytest.raises(ValueError, match="cannot make 5 folds"):
+        fold_splits(np.zeros(100, int), 50, 5)
+
+
+def _reordered_log(arm, path, frames=400, seed=2, drop=(), derivatives=True, **kw):
+    """A log as another system writes it: joints in another order, vectors as plain lists, no
+    contacts column (optionally)."""
+    log = simulate(arm, frames, seed=seed, effects=UnmodeledEffects(offset=(1, 2, 3, 0, 0, 0)))
+    order = list(arm.joint_names)[::-1]
+    perm = [arm.joint_names.index(j) for j in order]
+
+    def joints(x):
+        return pa.array(x[:, perm].tolist(), pa.list_(pa.float64()))
+
+    cols = {"t_ns": pa.array(log.t_ns), "q": joints(log.q)}
+    if derivatives:
+        cols.update(qd=joints(log.qd), qdd=joints(log.qdd))
+    cols["ft.base_ft"] = fixed_list(log.ft)
+    contacts = [
+        [{"link": log.links[li], "kind": "force"} for li in row if li >= 0]
+        for row in log.contact_link
+    ]
+    struct = pa.list_(pa.struct([("link", pa.string()), ("kind", pa.string())]))
+    cols["contacts"] = pa.array(contacts, struct)
+    cols["temperature"] = pa.array(log.temperature)
+    for c in drop:
+        cols.pop(c, None)
+    table = pa.table(cols).replace_schema_metadata({"torchcontact.joint_names": json.dumps(order)})
+    pq.write_table(table, path, **kw)
+    return log
+
+
+def test_log_joints_are_mapped_by_name(tmp_path, arm):
+    p = tmp_path / "a.parquet"
+    log = _reordered_log(arm, p)
+    ds = load_parquet([p], arm, "base_ft", extra=["temperature", "time"])
     ref = ResidualDataset.from_simulated(log, ["temperature", "time"])
-    assert len(ds) == 420 and ds.joint_names == arm.joint_names
-    np.testing.assert_array_equal(ds.q[:400], ref.q)
-    np.testing.assert_array_equal(ds.ft[400:], ref.ft[10:30])
-    np.testing.assert_array_equal(ds.contact_free[:400], ref.contact_free)
-    assert ref.contact_free.any() and not ref.contact_free.all()
-    np.testing.assert_array_equal(ds.file_id, np.r_[np.zeros(400), np.ones(20)])
-    assert ds.extra["time"][400] == 0.0  # time since each file's start
-    assert ds.feature_names()[-2:] == ["temperature", "time"]
-    assert ds.features().shape == (420, 3 * nv + 2)
-    with pytest.raises(ValueError, match="ft.nope"):
-        load_parquet([p1], "nope")
-    assert ds.sha256() != load_parquet([p1], "base_ft", extra=["temperature", "time"]).sha256()
+    assert ds.joint_names == arm.joint_names
+    for k in ("q", "qd", "qdd", "ft", "contact_free"):
+        np.testing.assert_array_equal(getattr(ds, k), getattr(ref, k))
+    np.testing.assert_array_equal(ds.extra["temperature"], ref.extra["temperature"])
+    assert ref.contact_free.any() and not ref.contact_free.all() and ds.usable.all()
+
+
+def test_several_files_and_the_simulated_log_writer(tmp_path, arm):
+    a = write_simulated_log(arm, 300, tmp_path / "a.parquet", seed=1)
+    b = write_simulated_log(arm, 120, tmp_path / "b.parquet", seed=2)
+    ds = load_parquet([a, b], arm, "base_ft", extra=["temperature", "time"])
+    ref = ResidualDataset.from_simulated(simulate(arm, 120, seed=2), ["temperature"])
+    assert len(ds) == 420
+    np.testing.assert_array_equal(ds.q[300:], ref.q)
+    np.testing.assert_array_equal(ds.file_id, np.r_[np.zeros(300), np.ones(120)])
+    assert ds.extra["time"][300] == 0.0  # time since each file's start
+    assert [s["frames"] for s in ds.sources] == [300, 120]
+    assert ds.sha256() != load_parquet([a], arm, "base_ft", extra=["temperature"]).sha256()
+
+
+def test_missing_derivatives_are_derived_and_no_contacts_column_means_free(tmp_path, arm):
+    p = tmp_path / "q_only.parquet"
+    log = _reordered_log(arm, p, frames=600, drop=("qd", "qdd", "contacts"), derivatives=False)
+    ds = load_parquet([p], arm, "base_ft")
+    assert ds.sources[0]["derived"] == ["qd", "qdd"] and not ds.sources[0]["contacts_column"]
+    assert ds.contact_free.all()
+    inner = slice(10, -10)
+    np.testing.assert_allclose(ds.qd[inner], log.qd[inner], atol=2e-3 * np.abs(log.qd).max())
+    np.testing.assert_allclose(ds.qdd[inner], log.qdd[inner], atol=2e-2 * np.abs(log.qdd).max())
+
+
+def test_bad_rows_are_kept_but_unusable_and_bad_files_are_named(tmp_path, arm):
+    p = tmp_path / "bad.parquet"
+    _reordered_log(arm, p, frames=50)
+    t = pq.read_table(p)
+    q = t.column("q").to_pylist()
+    q[3] = q[3][:-2]  # a short vector
+    q[9][1] = float("nan")
+    ft = t.column("ft.base_ft").to_pylist()
+    ft[20] = None
+    t = t.set_column(1, "q", pa.array(q, pa.list_(pa.float64())))
+    t = t.set_column(
+        t.column_names.index("ft.base_ft"), "ft.base_ft", pa.array(ft, pa.list_(pa.float64(), 6))
+    )
+    pq.write_table(t, p)
+    ds = load_parquet([p], arm, "base_ft")
+    assert np.flatnonzero(~ds.usable).tolist() == [3, 9, 20] and len(ds) == 50
+    # the short vector and the null reading read as NaN rows (the log format's reader), so they
+    # count with the NaN value as unusable frames
+    assert ds.sources[0]["malformed_frames"] == 3
+
+    wrong = tmp_path / "wrong_joints.parquet"
+    names = ["gripper", *list(arm.joint_names)[::-1][1:]]  # wrist_roll is missing, gripper extra
+    pq.write_table(
+        t.replace_schema_metadata({"torchcontact.joint_names": json.dumps(names)}), wrong
+    )
+    with pytest.raises(LogError, match="lacks joints \\['wrist_roll'\\] extra \\['gripper'\\]"):
+        load_parquet([wrong], arm, "base_ft")
+    renamed = tmp_path / "renamed.parquet"
+    pq.write_table(
+        t.rename_columns(
+            [c.replace("base_ft", "other") for c in t.column_names]
+        ).replace_schema_metadata(t.schema.metadata),
+        renamed,
+    )
+    with pytest.raises(LogError, match="missing columns \\['ft.base_ft'\\]"):
+        load_parquet([renamed], arm, "base_ft")
+    with pytest.raises(LogError, match="missing columns \\['humidity'\\]"):
+        load_parquet([p], arm, "base_ft", extra=["humidity"])
+    with pytest.raises(LogError, match="no F/T sensor 'nope'"):
+        load_parquet([p], arm, "nope")
+    (tmp_path / "x.parquet").write_text("not parquet")
+    with pytest.raises(LogError, match="x.parquet: not a readable Parquet file"):
+        load_parquet([tmp_path / "x.parquet"], arm, "base_ft")
+    pq.write_table(t.replace_schema_metadata({}), tmp_path / "nm.parquet")
+    with pytest.raises(LogError, match="no joint names"):
+        load_parquet([tmp_path / "nm.parquet"], arm, "base_ft")

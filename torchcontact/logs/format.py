@@ -60,6 +60,7 @@ __all__ = [
     "input_schema",
     "iter_chunks",
     "joint_names_of",
+    "joint_permutation",
     "open_log",
     "output_schema",
     "read_contacts",
@@ -211,6 +212,45 @@ def output_schema(
     fields.append(("status_detail", pa.string()))
     meta = {**metadata, META_JOINT_NAMES: json.dumps(list(joint_names))}
     return pa.schema(fields, metadata=meta)
+
+
+def joint_permutation(
+    names: Sequence[str], model_names: Sequence[str], robot: str, source: object = ""
+) -> np.ndarray:
+    """Index of each of the robot's joints in a log's joint list (joints matched by name).
+
+    The log must name exactly the robot's joint coordinates, in any order (what ``estimate`` and
+    training accept).
+
+    Args:
+        names: the log's joint names (:func:`joint_names_of`).
+        model_names: the robot's coordinates (``model.joint_names``).
+        robot: the robot's name, for messages.
+        source: the log, for messages.
+
+    Returns:
+        ``(nv,)`` int64 ``perm`` with ``log_vector[..., perm]`` in the robot's order.
+
+    Raises:
+        LogError: joints missing or extra (naming them), or duplicate names.
+
+    Example:
+        >>> joint_permutation(["b", "a"], ["a", "b"], "robot").tolist()
+        [1, 0]
+    """
+    names, model_names = list(names), list(model_names)
+    missing = [n for n in model_names if n not in names]
+    extra = [n for n in names if n not in model_names]
+    if missing or extra:
+        msg = f"{source}: joint names of the log do not match {robot} (matched by name):"
+        if missing:
+            msg += f" the log lacks joints {missing}"
+        if extra:
+            msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
+        raise LogError(msg)
+    if len(set(names)) != len(names):
+        raise LogError(f"{source}: duplicate joint names {names}")
+    return np.array([names.index(n) for n in model_names], dtype=np.int64)
 
 
 def joint_names_of(schema: Any, path: object = "") -> list[str]:

@@ -52,6 +52,7 @@ from torchcontact.logs.format import (
     ft_column,
     iter_chunks,
     joint_names_of,
+    joint_permutation,
     open_log,
     output_schema,
     read_contacts,
@@ -201,20 +202,9 @@ class LogEstimator:
     perm: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        names = list(self.input_joint_names)
-        model_names = list(self.model.joint_names)
-        missing = [n for n in model_names if n not in names]
-        extra = [n for n in names if n not in model_names]
-        if missing or extra:
-            msg = f"{self.source}: joint names of the log do not match {self.model.name}:"
-            if missing:
-                msg += f" missing {missing}"
-            if extra:
-                msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
-            raise LogError(msg)
-        if len(set(names)) != len(names):
-            raise LogError(f"{self.source}: duplicate joint names {names}")
-        self.perm = np.array([names.index(n) for n in model_names], dtype=np.int64)
+        self.perm = joint_permutation(
+            self.input_joint_names, self.model.joint_names, self.model.name, self.source
+        )
         if self.velocity_margin is not None and not self.velocity_margin > 0:
             raise InputError(f"--velocity-margin must be > 0, got {self.velocity_margin}")
         self._ft_range = ft_ranges(self.ft_range, self.sensors)
@@ -225,31 +215,16 @@ class LogEstimator:
             raise LogError(f"{self.source}: {exc}") from None
         # contact links the estimator can use: known frames inside some sensor's region
         self._link_ok: dict[str | None, str | None] = {}
-        self._residual_joints = np.zeros(0, np.int64)
-        if self.residual is not None:
-            res = self.residual
-            if res.sensor not in self.sensors:
-                raise LogError(
-                    f"{self.source}: the residual checkpoint corrects sensor {res.sensor!r}, which"
-                    f" is not among the sensors in use {list(self.sensors)}"
-                )
-            rj = list(res.meta.get("joint_names", []))
-            unknown = [j for j in rj if j not in model_names]
-            if unknown:
-                raise LogError(f"{self.source}: residual checkpoint joints {unknown} not in robot")
-            self._residual_joints = np.array([model_names.index(j) for j in rj], dtype=np.int64)
+        if self.residual is not None and self.residual.sensor not in self.sensors:
+            raise LogError(
+                f"{self.source}: the residual checkpoint corrects sensor"
+                f" {self.residual.sensor!r}, which is not among the sensors in use"
+                f" {list(self.sensors)}"
+            )
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
-        if self.residual is None:
-            return []
-        joints = set(self.residual.meta.get("joint_names", []))
-        out = []
-        for name in self.residual.feature_names:
-            prefix, _, joint = name.partition(".")
-            if not (prefix in ("q", "qd", "qdd") and joint in joints):
-                out.append(name)
-        return out
+        return [] if self.residual is None else self.residual.extra_columns
 
     # ------------------------------------------------------------------ schema
     def output_schema(self) -> Any:
@@ -274,7 +249,7 @@ class LogEstimator:
                     "checkpoint": self.residual.source,
                     "weights_sha256": self.residual.meta.get("weights_sha256"),
                     "sensor": self.residual.sensor,
-                    "kind": self.residual.meta.get("arch", {}).get("kind"),
+                    "kind": "+".join(self.residual.layers),
                 }
             )
         return output_schema(self.model.joint_names, self.sensors, self.contact_fields, meta)
@@ -464,18 +439,13 @@ class LogEstimator:
     def _corrected(
         self, table: Any, ft: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
     ) -> np.ndarray:
-        """``ft (N, 6) - r_hat(features)`` [N; N m]; joints ``(N, nv)`` in the model's order."""
-        res, idx = self.residual, self._residual_joints
-        extra = {}
-        for col in self.residual_columns():
-            arr = table.column(col).combine_chunks()
-            extra[col] = torch.as_tensor(
-                np.array(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
-            )
-        x = res.features(
-            *(torch.as_tensor(np.ascontiguousarray(v[:, idx])) for v in (q, qd, qdd)), extra
-        )
-        return res.correct(torch.tensor(ft), x).numpy()
+        """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
+        extra = {
+            c: np.array(table.column(c).to_numpy(zero_copy_only=False), dtype=np.float64)
+            for c in self.residual_columns()
+        }
+        joints = (torch.as_tensor(v) for v in (q, qd, qdd))
+        return self.residual.correct(torch.tensor(ft), *joints, extra).cpu().numpy()
 
 
 def _base_motion(base: dict, t: Any) -> Any:
@@ -573,8 +543,8 @@ def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
     """Load a residual checkpoint for ``model`` (its robot hash must match).
 
     Args:
-        checkpoint: directory written by ``torchcontact train`` or
-            :func:`~torchcontact.residual.save_residual_model`.
+        checkpoint: directory written by ``torchcontact train fit`` or
+            :meth:`~torchcontact.residual.ResidualCorrection.save`.
         model: the robot the log is estimated with.
 
     Returns:
@@ -586,7 +556,7 @@ def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
     from torchcontact.residual import CheckpointError, ResidualCorrection
 
     try:
-        return ResidualCorrection.load(checkpoint, robot_sha256=model.urdf_sha256)
+        return ResidualCorrection.load(checkpoint, model)
     except CheckpointError as exc:
         raise LogError(f"--residual: {exc}") from None
 
@@ -833,7 +803,7 @@ def estimate_file(
         progress: show a progress bar (default: when stderr is a terminal).
         half_window: ``h`` of the Savitzky-Golay differentiator when ``qd``/``qdd`` are derived.
         residual: residual checkpoint directory (or a loaded
-            :class:`~torchcontact.residual.ResidualCorrection`): ``r_hat(features)`` [N; N m] is
+            :class:`~torchcontact.residual.ResidualCorrection`): its correction [N; N m] is
             subtracted from its sensor's reading before estimation and the output metadata
             ``torchcontact.residual`` names the checkpoint and its weights' sha256. A recurrent
             (GRU) residual sees the frames in time order across chunks; it cannot ``resume``.
