@@ -12,8 +12,15 @@ constrained one, those of one interior-point iteration, which the kernel loops o
 iterations the frames ran (mean, max, and the mean over vector blocks of four frames of the
 slowest frame: what the kernel pays), and the median force error of both estimates.
 
+With ``--log N``, also the log pipeline's warm start (``estimate --constraints``): a simulated
+iCub log of N frames (``torchcontact.simulation``: up to four contacts on l_forearm and l_hand,
+held 0.3 to 3 s, pushing within 0.62 rad of their skin normal, cones of 0.7 rad), estimated with
+each frame started from its predecessor's estimate and with every frame started cold: the
+iterations the solver ran (mean over the frames it solved) and the frames/s of the whole
+pipeline (kernels built by a first run).
+
 Run on a quiet machine: ``flock -x /tmp/tc-cpu.lock python benchmarks/constrained.py
-[--frames 20000] [--threads 1] [--rounds 5] [--cold-build]``.
+[--frames 20000] [--threads 1] [--rounds 5] [--cold-build] [--log 100000]``.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--iterations", type=int, default=None, help="budget (default FrictionCones)")
     ap.add_argument("--cold-build", action="store_true", help="build the kernels in a new cache")
+    ap.add_argument("--log", type=int, default=0, metavar="N", help="warm start on an N-frame log")
     args = ap.parse_args()
     if args.cold_build:
         os.environ["TORCHCONTACT_CACHE"] = tempfile.mkdtemp(prefix="tc-bench-cache-")
@@ -99,6 +107,40 @@ def main() -> None:
     e_free = (res["unconstrained"].force - truth).norm(dim=-1).median().item()
     e_cone = (res["constrained"].force - truth).norm(dim=-1).median().item()
     print(f"median error pinv / constrained: {e_free / e_cone:.2f}x")
+    if args.log:
+        log_warm_start(model, args.log)
+
+
+def log_warm_start(model, frames: int) -> None:
+    """Warm vs cold starts of ``estimate --constraints`` on a simulated iCub log."""
+    import math
+
+    from torchcontact.logs import estimate_file
+    from torchcontact.logs.pipeline import LogConstraints
+    from torchcontact.logs.simlog import write_simulated_log
+
+    d = Path(tempfile.mkdtemp(prefix="tc-bench-log-"))
+    log = write_simulated_log(model, frames, d / "log.parquet", sensor="l_arm_ft",
+                              links=["l_forearm", "l_hand"], max_contacts=4, seed=1)  # fmt: skip
+    print(f"log: {frames} frames, iCub l_arm_ft, up to 4 contacts on l_forearm and l_hand")
+    from torchcontact import kernels
+
+    runs = []
+    for i, warm in enumerate((True, False, True, False)):
+        if i == 2:  # the first two runs start the kernels' builds (backend "auto"): finish them
+            for t in list(kernels._building.values()):
+                t.join()
+        out = d / f"est-{warm}.parquet"
+        out.unlink(missing_ok=True)
+        cons = LogConstraints(friction=math.tan(0.7), warm_start=warm)
+        runs.append((warm, estimate_file(log, model, out, constraints=cons, progress=False)))
+    print("| start | frames/s (pipeline) | frames solved | iterations mean | max | converged |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for warm, s in runs[2:]:
+        c = s["cones"]
+        print(f"| {'predecessor' if warm else 'cold (pinv)'} | {s['frames_per_s']:,.0f} |"
+              f" {c['solved']} | {c['iterations_mean']:.2f} | {c['iterations_max']} |"
+              f" {c['converged']:.2%} |")  # fmt: skip
 
 
 if __name__ == "__main__":
