@@ -383,9 +383,14 @@ def add_parser(subparsers: Any) -> None:
     plot.add_argument("log", help="output of torchcontact estimate")
     plot.add_argument("--robot", help="URDF (default: the bundled tcarm)")
     plot.add_argument(
-        "--frame", type=int, help="row of the robot view (default: a well-posed frame)"
+        "--frame",
+        type=int,
+        help="row of the robot view and of the unobservable directions (default: a well-posed"
+        " frame; for nullspace.png the frame with the most unobservable directions)",
     )
-    plot.add_argument("--input", help="the input log (joint positions for the robot view)")
+    plot.add_argument(
+        "--input", help="the input log (joint positions for robot.png and nullspace.png)"
+    )
     plot.add_argument("--out", help="folder of the PNGs (default: the log's name without suffix)")
     plot.add_argument("--quiet", action="store_true", help="no progress bar")
     plot.set_defaults(func=cmd_plot)
