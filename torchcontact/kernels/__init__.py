@@ -22,10 +22,13 @@ is loaded or cached, and otherwise runs eagerly while the kernel builds in a bac
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import os
 import platform
+import subprocess
+import sys
 import threading
 import warnings
 from collections.abc import Callable, Mapping
@@ -39,7 +42,8 @@ from torch import Tensor
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
 
-__all__ = ["BACKENDS", "Program", "cache_dir", "compiled", "run"]
+__all__ = ["BACKENDS", "CFLAGS", "Program", "build_source", "cache_dir", "compiled", "run",
+           "wait_for_builds"]
 
 #: Accepted ``backend`` arguments.
 BACKENDS = ("auto", "eager", "cpu", "cuda")
@@ -166,38 +170,58 @@ def _source(program: Program, dtype: torch.dtype) -> tuple[str, str]:
     return src, h
 
 
-def _build(program: Program, dtype: torch.dtype, src: str, h: str) -> Callable:
-    """Compile (or load from the cache) and wrap the kernel of ``program``."""
-    from torch.utils import cpp_extension
+#: Compiler flags of the CPU kernels (IEEE semantics kept: no -ffast-math).
+CFLAGS = (
+    "-O2",
+    "-march=native",
+    "-fno-math-errno",
+    "-fno-trapping-math",
+    "-ffp-contract=fast",
+    "-fno-semantic-interposition",
+)
 
+
+def _paths(program: Program, h: str) -> tuple[str, Path, Path]:
+    """Name, source file and shared library of a CPU kernel in the cache."""
     name = f"tck_{program.name}_{h}"
     d = cache_dir() / "kernels" / name
-    so = d / f"{name}.so"
+    return name, d / f"{name}.cpp", d / f"{name}.so"
+
+
+def _write_source(cpp: Path, src: str) -> None:
+    cpp.parent.mkdir(parents=True, exist_ok=True)
+    if not cpp.exists() or cpp.read_text() != src:
+        tmp = cpp.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(src)
+        tmp.replace(cpp)
+
+
+def build_source(name: str, cpp: Path) -> Path:
+    """Compile one kernel source with torch's extension builder; returns the library's path.
+
+    Also the entry point of the detached build process (``python -m torchcontact.kernels``).
+
+    Raises:
+        KernelBuildError: the compiler is missing or fails.
+    """
+    from torch.utils import cpp_extension
+
+    try:
+        cpp_extension.load(
+            name, [str(cpp)], extra_cflags=list(CFLAGS), build_directory=str(cpp.parent),
+            is_python_module=False, verbose=False,
+        )  # fmt: skip
+    except Exception as e:  # compiler missing, internal compiler error, ...
+        raise KernelBuildError(f"building kernel {name} failed: {e}") from e
+    return cpp.with_suffix(".so")
+
+
+def _build(program: Program, dtype: torch.dtype, src: str, h: str) -> Callable:
+    """Compile (or load from the cache) and wrap the kernel of ``program``."""
+    name, cpp, so = _paths(program, h)
     if not so.exists():
-        d.mkdir(parents=True, exist_ok=True)
-        cpp = d / f"{name}.cpp"
-        if not cpp.exists() or cpp.read_text() != src:
-            tmp = cpp.with_suffix(".tmp")
-            tmp.write_text(src)
-            tmp.replace(cpp)
-        try:
-            cpp_extension.load(
-                name,
-                [str(cpp)],
-                extra_cflags=[
-                    "-O2",
-                    "-march=native",
-                    "-fno-math-errno",
-                    "-fno-trapping-math",
-                    "-ffp-contract=fast",
-                    "-fno-semantic-interposition",
-                ],
-                build_directory=str(d),
-                is_python_module=False,
-                verbose=False,
-            )
-        except Exception as e:  # compiler missing, internal compiler error, ...
-            raise KernelBuildError(f"building kernel {name} failed: {e}") from e
+        _write_source(cpp, src)
+        build_source(name, cpp)
     lib = ctypes.CDLL(str(so))
     return _wrap(lib.tc_kernel, program, dtype)
 
@@ -218,12 +242,14 @@ def _wrap(fn, program: Program, dtype: torch.dtype) -> Callable:
         outs = {k: torch.empty(n, m, dtype=dtype) for k, m in program.outputs.items()}
         outl = [outs[k] for k in names_out]
         nthreads = max(1, torch.get_num_threads())
-        if n < 512 or nthreads == 1:
+        if n < 1024 or nthreads == 1:
             _invoke(fn, 0, n, ins, outl)
         else:
+            # several pieces per thread, taken as threads come free: a thread the OS does not
+            # schedule (a busy neighbour on the other core) holds back one piece, not half
             pool = _get_pool(nthreads)
-            step = -(-n // nthreads)
-            step = -(-step // 16) * 16  # whole vector blocks per thread
+            step = max(512, -(-n // (4 * nthreads)))
+            step = -(-step // 16) * 16  # whole vector blocks per piece
             futs = [pool.submit(_invoke, fn, s, min(n, s + step), ins, outl)
                     for s in range(0, n, step)]  # fmt: skip
             for f in futs:
@@ -284,6 +310,16 @@ def compiled(
             return None
         thread = _building.get(ckey)
     if thread is not None:
+        if isinstance(thread, _Build) and (wait or thread.done()):
+            thread.join()
+            with _lock:
+                _building.pop(ckey, None)
+            if not thread.so.exists():
+                log = thread.so.with_suffix(".log")
+                why = log.read_text()[-2000:] if log.exists() else "no log"
+                return _finish(ckey, _failing(f"building kernel {thread.so.stem} failed: {why}"),
+                               raise_=wait)  # fmt: skip
+            return _finish(ckey, thread.load, raise_=wait)
         if not wait:
             return None
         thread.join()
@@ -297,17 +333,28 @@ def compiled(
         def build() -> Callable:
             return _cuda.build(program, dtype, cache_dir())
 
-        cached = False
     else:
         src, h = _source(program, dtype)
-        name = f"tck_{program.name}_{h}"
-        cached = (cache_dir() / "kernels" / name / f"{name}.so").exists()
+        name, cpp, so = _paths(program, h)
 
         def build() -> Callable:
             return _build(program, dtype, src, h)
 
-    if wait or cached:
+        if not (wait or so.exists()):
+            # a detached process: the build goes on (and fills the cache) if this one exits
+            _write_source(cpp, src)
+            log = open(cpp.with_suffix(".log"), "w")  # noqa: SIM115 - the child writes it
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "torchcontact.kernels", name, str(cpp)],
+                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+            log.close()
+            with _lock:
+                _building[ckey] = _Build(proc, so, build)
+            return None
         return _finish(ckey, build, raise_=wait)
+    if wait:
+        return _finish(ckey, build, raise_=True)
     t = threading.Thread(
         target=_finish, args=(ckey, build, False), name=f"torchcontact-build-{program.name}",
         daemon=True,
@@ -316,6 +363,38 @@ def compiled(
         _building[ckey] = t
     t.start()
     return None
+
+
+@dataclass
+class _Build:
+    """A kernel being compiled by a detached process."""
+
+    proc: subprocess.Popen
+    so: Path
+    load: Callable[[], Callable]
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait for the process."""
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self.proc.wait(timeout)
+
+    def done(self) -> bool:
+        return self.proc.poll() is not None
+
+
+def wait_for_builds(timeout: float | None = None) -> None:
+    """Wait until the kernels building in the background are built (or failed)."""
+    with _lock:
+        pending = list(_building.values())
+    for b in pending:
+        b.join(timeout)
+
+
+def _failing(msg: str) -> Callable[[], Callable]:
+    def build() -> Callable:
+        raise KernelBuildError(msg)
+
+    return build
 
 
 def _no_cuda() -> Callable:
