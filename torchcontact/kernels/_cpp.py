@@ -21,6 +21,8 @@ only ``-ffp-contract=fast`` fuses multiply-adds, which changes results by roundi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 from torchcontact._scalar import Sym, Trace, loop_deps
 
@@ -164,6 +166,53 @@ def loop_bodies(nodes: list[Sym]) -> dict[int, list[Sym]]:
     return out
 
 
+def emit_loop(
+    s: Sym,
+    body: list[Sym],
+    lines: list[str],
+    ref: Callable[[Any], str],
+    emit_node: Callable[[Sym], None],
+    scope: dict,
+    value: str,
+    stop: str,
+) -> None:
+    """Append the lines of a ``"loop"`` node (C++ and CUDA alike).
+
+    The carried values ``t<index>`` start from the loop's ``init``; the loop runs ``spec.n``
+    times: its ``body`` (:func:`loop_bodies`, emitted by ``emit_node``, indented one level), then
+    the carries take their new values, then it exits early where ``spec.stop`` holds.
+
+    Args:
+        s: the ``"loop"`` node.
+        body: its body's nodes, in order.
+        lines: the kernel's lines so far (appended to).
+        ref: the emitter's name of a scalar.
+        emit_node: the emitter's line(s) of one node, appended to ``lines``.
+        scope: the emitter's per-scope cache (shared sines/cosines), restored after the body.
+        value: the type of a value (``"V"`` vector, ``"T"`` scalar).
+        stop: the early-exit condition as a format string of the stop value (``"{}"``).
+    """
+    spec, i = s.args[0], s.index
+    lines.extend(f"  {value} t{c.index} = {ref(x)};" for c, x in zip(spec.carries, spec.init,
+                                                                       strict=True))  # fmt: skip
+    lines.append(f"  for (int it{i} = 0; it{i} < {spec.n}; ++it{i}) {{")
+    outer_lines, outer_scope = len(lines), dict(scope)
+    for b in body:
+        emit_node(b)
+    for j in range(outer_lines, len(lines)):
+        lines[j] = "  " + lines[j]
+    scope.clear()
+    scope.update(outer_scope)  # sines of the body live in its scope
+    for j, x in enumerate(spec.new):
+        lines.append(f"    const {value} nx{i}_{j} = {ref(x)};")
+    lines.extend(f"    t{c.index} = nx{i}_{j};" for j, c in enumerate(spec.carries))
+    if isinstance(spec.stop, Sym):
+        lines.append(f"    if ({stop.format(ref(spec.stop))}) break;")
+    elif spec.stop is True:
+        lines.append("    break;")
+    lines.append("  }")
+
+
 def emit(
     trace: Trace,
     outputs: dict[str, list],
@@ -247,33 +296,12 @@ def emit(
         else:  # pragma: no cover - every op of _scalar is handled above
             raise ValueError(f"no C++ for op {s.op!r}")
 
-    def emit_loop(s: Sym) -> None:
-        spec, i = s.args[0], s.index
-        for c, x in zip(spec.carries, spec.init, strict=True):
-            name[c.index] = f"t{c.index}"
-            lines.append(f"  V t{c.index} = {ref(x)};")
-        lines.append(f"  for (int it{i} = 0; it{i} < {spec.n}; ++it{i}) {{")
-        outer_lines, outer_sincos = len(lines), dict(sincos)
-        for b in bodies[i]:
-            emit_node(b)
-        for j in range(outer_lines, len(lines)):
-            lines[j] = "  " + lines[j]
-        sincos.clear()
-        sincos.update(outer_sincos)  # sines of the body live in its scope
-        for j, x in enumerate(spec.new):
-            lines.append(f"    const V nx{i}_{j} = {ref(x)};")
-        lines.extend(f"    t{c.index} = nx{i}_{j};" for j, c in enumerate(spec.carries))
-        if isinstance(spec.stop, Sym):
-            lines.append(f"    if (all_lanes({ref(spec.stop)})) break;")
-        elif spec.stop is True:
-            lines.append("    break;")
-        lines.append("  }")
-
     for s in nodes:
         if s.index in deferred or s.op == "carry":
             continue
         if s.op == "loop":
-            emit_loop(s)
+            name.update((c.index, f"t{c.index}") for c in s.args[0].carries)
+            emit_loop(s, bodies[s.index], lines, ref, emit_node, sincos, "V", "all_lanes({})")
             continue
         emit_node(s)
 

@@ -37,7 +37,7 @@ def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_l
         symbol: name of the exported host function ``symbol(n, in, in_stride, out, out_stride,
             stream)``; the pointer arrays are host arrays of device pointers.
     """
-    from torchcontact.kernels._cpp import live_nodes, loop_bodies
+    from torchcontact.kernels._cpp import emit_loop, live_nodes, loop_bodies
 
     flat = [x for xs in outputs.values() for x in xs]
     nodes = live_nodes(trace, flat)
@@ -98,32 +98,11 @@ def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_l
         else:  # pragma: no cover - every op of _scalar is handled above
             raise ValueError(f"no CUDA for op {s.op!r}")
 
-    def emit_loop(s: Sym) -> None:
-        spec, i = s.args[0], s.index
-        lines.extend(f"  T t{c.index} = {ref(x)};" for c, x in zip(spec.carries, spec.init,
-                                                                  strict=True))  # fmt: skip
-        lines.append(f"  for (int it{i} = 0; it{i} < {spec.n}; ++it{i}) {{")
-        outer_lines, outer_sincos = len(lines), dict(done_sincos)
-        for b in bodies[i]:
-            emit_node(b)
-        for j in range(outer_lines, len(lines)):
-            lines[j] = "  " + lines[j]
-        done_sincos.clear()
-        done_sincos.update(outer_sincos)  # sines of the body live in its scope
-        for j, x in enumerate(spec.new):
-            lines.append(f"    const T nx{i}_{j} = {ref(x)};")
-        lines.extend(f"    t{c.index} = nx{i}_{j};" for j, c in enumerate(spec.carries))
-        if isinstance(spec.stop, Sym):
-            lines.append(f"    if ({ref(spec.stop)}) break;")
-        elif spec.stop is True:
-            lines.append("    break;")
-        lines.append("  }")
-
     for s in nodes:
         if s.index in deferred or s.op == "carry":
             continue
         if s.op == "loop":
-            emit_loop(s)
+            emit_loop(s, bodies[s.index], lines, ref, emit_node, done_sincos, "T", "{}")
         else:
             emit_node(s)
     for k, xs in enumerate(outputs.values()):
