@@ -128,8 +128,7 @@ def log_warm_start(model, frames: int) -> None:
     runs = []
     for i, warm in enumerate((True, False, True, False)):
         if i == 2:  # the first two runs start the kernels' builds (backend "auto"): finish them
-            for t in list(kernels._building.values()):
-                t.join()
+            kernels.wait_for_builds()
         out = d / f"est-{warm}.parquet"
         out.unlink(missing_ok=True)
         cons = LogConstraints(friction=math.tan(0.7), warm_start=warm)
