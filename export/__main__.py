@@ -58,9 +58,12 @@ def _estimator(args: argparse.Namespace) -> int:
     )
     try:
         with _stage(f"estimator graph of {model.name}, {len(links)} slots"):
+            cones = None
+            if args.constraints or args.cone_iterations is not None:
+                cones = tc.FrictionCones(args.cone_iterations or tc.FrictionCones().iterations)
             meta = export_estimator(
                 model, args.sensor or None, links, kinds, args.out, dtype=dtype, opset=opset,
-                rank_rtol=args.rank_rtol,
+                rank_rtol=args.rank_rtol, constraints=cones,
             )  # fmt: skip
     except ValueError as e:
         raise InputError(str(e)) from None
@@ -116,6 +119,14 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="graph dtype")
     e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")
+    e.add_argument(
+        "--constraints",
+        action="store_true",
+        help="the friction-cone constrained estimator (inputs normals, friction, pushing)",
+    )
+    e.add_argument(
+        "--cone-iterations", type=int, default=None, help="its iteration budget (default 25)"
+    )
     e.add_argument("--out", required=True, help="output .onnx path")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")

@@ -26,6 +26,13 @@ Graph inputs of the estimator (``N`` dynamic, ``S`` sensors, ``K`` slots, ``nv``
 Outputs: ``force (N, K, 3)``, ``moment (N, K, 3)``, ``joint_torques (N, nv)``, ``rank (N, S)``
 int64, ``unknowns (N, S)`` int64, ``residual (N, S)``, ``status (N,)`` int64 (bits of
 :data:`torchcontact.STATUS`; outputs of such frames are NaN).
+
+With ``constraints`` (:class:`~torchcontact.FrictionCones`) the graph is the friction-cone
+constrained estimator, its interior-point iterations unrolled to the whole budget; it takes
+:data:`CONE_INPUTS` after the inputs above (``normals (N, K, 3)`` outward surface normals, link
+frame; ``friction (N, K)`` coefficients; ``pushing (N, K)`` 1/0) and returns
+:data:`CONE_OUTPUTS` after the outputs above (``converged (N, S)`` bool, ``iterations (N, S)``
+int64, ``cone_active (N, K)`` bool).
 """
 
 from __future__ import annotations
@@ -41,11 +48,14 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from torchcontact.constrained import FrictionCones
 from torchcontact.contacts import KINDS, Contacts
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
 __all__ = [
+    "CONE_INPUTS",
+    "CONE_OUTPUTS",
     "ESTIMATOR_INPUTS",
     "ESTIMATOR_OUTPUTS",
     "EstimatorGraph",
@@ -78,6 +88,10 @@ ESTIMATOR_OUTPUTS = (
     "residual",
     "status",
 )
+#: Inputs a constrained estimator graph takes after :data:`ESTIMATOR_INPUTS`.
+CONE_INPUTS = ("normals", "friction", "pushing")
+#: Outputs a constrained estimator graph returns after :data:`ESTIMATOR_OUTPUTS`.
+CONE_OUTPUTS = ("converged", "iterations", "cone_active")
 #: Format version of the metadata written by :func:`export_estimator`.
 FORMAT = "torchcontact.estimator/1"
 DEFAULT_OPSET = 18
@@ -94,14 +108,21 @@ class EstimatorGraph(nn.Module):
             into the graph).
         links: K link (or frame) names of the contact slots.
         kinds: K slot kinds (see :data:`torchcontact.KINDS`).
+        constraints: :class:`~torchcontact.FrictionCones`: the friction-cone constrained
+            estimator (inputs and outputs of :data:`CONE_INPUTS`, :data:`CONE_OUTPUTS` added).
     """
 
     def __init__(
-        self, estimator: ContactEstimator, links: Sequence[str], kinds: Sequence[str]
+        self,
+        estimator: ContactEstimator,
+        links: Sequence[str],
+        kinds: Sequence[str],
+        constraints: FrictionCones | None = None,
     ) -> None:
         super().__init__()
         self.est = estimator
         self.links, self.kinds = tuple(links), tuple(kinds)
+        self.constraints = constraints
         # validate the layout now (unknown links, slots outside every sensor's subtree)
         estimator.layout(self.links, self.kinds)
 
@@ -116,20 +137,27 @@ class EstimatorGraph(nn.Module):
         wrenches: Tensor,
         active: Tensor,
         ft_residual: Tensor,
+        normals: Tensor | None = None,
+        friction: Tensor | None = None,
+        pushing: Tensor | None = None,
     ) -> tuple[Tensor, ...]:
         """Estimate ``N`` frames; shapes as in the module docstring."""
         est = self.est
         readings = ft - ft_residual  # residual correction (a learned model's output, or zeros)
+        cones = {}
+        if self.constraints is not None:
+            cones = dict(normals=normals, friction=friction, pushing=pushing > 0.5)
         out = est.estimate(
             q,
             qd,
             qdd,
             {s: readings[:, i] for i, s in enumerate(est.sensor_names)},
-            Contacts(self.links, self.kinds, positions, directions, wrenches, active),
+            Contacts(self.links, self.kinds, positions, directions, wrenches, active, **cones),
             backend="eager",
+            constraints=self.constraints,
         )
         names = est.sensor_names
-        return (
+        res = (
             out.force,
             out.moment,
             out.joint_torques,
@@ -138,10 +166,20 @@ class EstimatorGraph(nn.Module):
             torch.stack([out.residual[s] for s in names], -1),
             out.status,
         )
+        if out.cones is None:
+            return res
+        return (
+            *res,
+            torch.stack([out.cones.converged[s] for s in names], -1),
+            torch.stack([out.cones.iterations[s] for s in names], -1),
+            out.cones.active,
+        )
 
 
-def _example_inputs(model: RobotModel, S: int, K: int, n: int = 2) -> tuple[Tensor, ...]:
-    """Finite example inputs (distinct frames) for tracing."""
+def _example_inputs(
+    model: RobotModel, S: int, K: int, n: int = 2, cones: bool = False
+) -> tuple[Tensor, ...]:
+    """Finite example inputs (distinct frames) for tracing (with the cone inputs: ``cones``)."""
     g = torch.Generator().manual_seed(0)
     dt = model.dtype
 
@@ -159,6 +197,7 @@ def _example_inputs(model: RobotModel, S: int, K: int, n: int = 2) -> tuple[Tens
         r(n, K, 6),
         torch.ones(n, K, dtype=dt),
         torch.zeros(n, S, 6, dtype=dt),
+        *((r(n, K, 3) + 0.5, r(n, K) + 0.5, torch.ones(n, K, dtype=dt)) if cones else ()),
     )
 
 
@@ -287,6 +326,7 @@ def export_estimator(
     gravity: Sequence[float] | None = None,
     rank_rtol: float | None = None,
     step_graph: bool = True,
+    constraints: FrictionCones | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as one ONNX graph.
 
@@ -309,6 +349,9 @@ def export_estimator(
         rank_rtol: rank tolerance of the solve (None: :data:`torchcontact.solve.RANK_RTOL` of
             ``dtype``).
         step_graph: also write the single-frame graph ``<path stem>.step.onnx``.
+        constraints: :class:`~torchcontact.FrictionCones`: export the friction-cone
+            constrained estimator (the whole iteration budget unrolled; more inputs and
+            outputs, see the module docstring; metadata ``constraints``).
 
     Returns:
         The metadata written into the file's ``metadata_props``.
@@ -333,17 +376,25 @@ def export_estimator(
     if gravity is not None:
         m = m.with_gravity(gravity)
     est = ContactEstimator(m, sensors, rank_rtol=rank_rtol)
-    graph = EstimatorGraph(est, links, kinds).eval()
+    graph = EstimatorGraph(est, links, kinds, constraints).eval()
     S, K = len(est.sensor_names), len(links)
-    names_out = list(ESTIMATOR_OUTPUTS)
-    dyn = {k: {0: "N"} for k in (*ESTIMATOR_INPUTS, *names_out)}
-    _export(graph, _example_inputs(m, S, K), path, ESTIMATOR_INPUTS, names_out, dyn, opset)
+    cones = constraints is not None
+    names_in = [*ESTIMATOR_INPUTS, *(CONE_INPUTS if cones else ())]
+    names_out = [*ESTIMATOR_OUTPUTS, *(CONE_OUTPUTS if cones else ())]
+    dyn = {k: {0: "N"} for k in (*names_in, *names_out)}
+    _export(graph, _example_inputs(m, S, K, cones=cones), path, names_in, names_out, dyn, opset)
     meta = estimator_metadata(m, est, links, kinds, opset, rank_rtol)
+    if cones:
+        iterations, eps, tol, _ = constraints.resolved(m.dtype)
+        meta["constraints"] = json.dumps({"iterations": iterations, "eps": eps, "tol": tol})
+        meta["inputs"], meta["outputs"] = json.dumps(names_in), json.dumps(names_out)
+        shapes = json.loads(meta["input_shapes"])
+        shapes.update(normals=["N", K, 3], friction=["N", K], pushing=["N", K])
+        meta["input_shapes"] = json.dumps(shapes)
     if step_graph:
         step = step_graph_path(path)
-        _export(
-            graph, _example_inputs(m, S, K, n=1), step, ESTIMATOR_INPUTS, names_out, None, opset
-        )
+        example = _example_inputs(m, S, K, n=1, cones=cones)
+        _export(graph, example, step, names_in, names_out, None, opset)
         meta["step_graph"] = step.name
         _set_metadata(step, {**meta, "batch": "1"})
     _set_metadata(path, meta)

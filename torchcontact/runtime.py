@@ -28,6 +28,8 @@ __all__ = ["EstimatorRuntime", "ModelMismatchError"]
 
 _FORMAT = "torchcontact.estimator/1"
 _INPUTS = ("q", "qd", "qdd", "ft", "positions", "directions", "wrenches", "active", "ft_residual")
+#: More inputs of a friction-cone constrained graph (metadata ``constraints``).
+_CONE_INPUTS = ("normals", "friction", "pushing")
 
 
 class EstimatorRuntime:
@@ -109,8 +111,9 @@ class EstimatorRuntime:
                 f" {list(zip(expect_slots[0], expect_slots[1], strict=True))}"
             )
         names = [i.name for i in self.session.get_inputs()]
-        if tuple(names) != _INPUTS:
-            raise ModelMismatchError(f"{path} has inputs {names}, expected {list(_INPUTS)}")
+        self._inputs = _INPUTS + (_CONE_INPUTS if "constraints" in meta else ())
+        if tuple(names) != self._inputs:
+            raise ModelMismatchError(f"{path} has inputs {names}, expected {list(self._inputs)}")
         self.joint_names, self.sensor_names = tuple(joints), tuple(sensors)
         self.slot_links, self.slot_kinds = tuple(links), tuple(kinds)
         self.nv, self.S, self.K = len(joints), len(sensors), len(links)
@@ -138,6 +141,9 @@ class EstimatorRuntime:
             "wrenches": (self.K, 6),
             "active": (self.K,),
             "ft_residual": (self.S, 6),
+            "normals": (self.K, 3),
+            "friction": (self.K,),
+            "pushing": (self.K,),
         }
         self._zeros1 = {k: np.zeros((1, *s), self.dtype) for k, s in self._shapes.items()}
 
@@ -149,16 +155,19 @@ class EstimatorRuntime:
         )
 
     def _feed(self, values: dict, n: int | None) -> dict[str, np.ndarray]:
+        unknown = [k for k, v in values.items() if k not in self._inputs and v is not None]
+        if unknown:
+            raise ValueError(f"{unknown} are not inputs of {self.path} ({list(self._inputs)})")
         feed = {}
-        for k in _INPUTS:
+        for k in self._inputs:
             x = values.get(k)
             trailing = self._shapes[k]
             if x is None:
-                if k in ("q", "qd", "qdd", "ft", "positions"):
+                if k in ("q", "qd", "qdd", "ft", "positions", "normals", "friction"):
                     raise ValueError(f"{k} is required")
                 x = (
                     np.ones((1 if n is None else n, *trailing), self.dtype)
-                    if k == "active"
+                    if k in ("active", "pushing")
                     else (self._zeros1[k] if n is None else np.zeros((n, *trailing), self.dtype))
                 )
             else:
@@ -185,6 +194,7 @@ class EstimatorRuntime:
         directions: np.ndarray | None = None,
         wrenches: np.ndarray | None = None,
         ft_residual: np.ndarray | None = None,
+        **cones: np.ndarray,
     ) -> dict[str, np.ndarray]:
         """Estimate ``N`` frames.
 
@@ -198,16 +208,19 @@ class EstimatorRuntime:
             directions: ``(N, K, 3)`` force directions of ``force_dir`` slots (default zeros).
             wrenches: ``(N, K, 6)`` wrenches of ``known`` slots (default zeros).
             ft_residual: ``(N, S, 6)`` subtracted from ``ft`` (default zeros).
+            **cones: a constrained graph's ``normals (N, K, 3)``, ``friction (N, K)`` (both
+                required there) and ``pushing (N, K)`` (default ones).
 
         Returns:
             name -> array: ``force (N, K, 3)`` N, ``moment (N, K, 3)`` N m, ``joint_torques
             (N, nv)``, ``rank``, ``unknowns`` ``(N, S)`` int64, ``residual (N, S)``, ``status
-            (N,)`` int64 (0 ok; bits of ``torchcontact.STATUS``).
+            (N,)`` int64 (0 ok; bits of ``torchcontact.STATUS``); a constrained graph's
+            ``converged``, ``iterations`` ``(N, S)`` and ``cone_active (N, K)`` too.
         """
         n = int(np.shape(q)[0])
         values = dict(
             q=q, qd=qd, qdd=qdd, ft=ft, positions=positions, active=active,
-            directions=directions, wrenches=wrenches, ft_residual=ft_residual,
+            directions=directions, wrenches=wrenches, ft_residual=ft_residual, **cones,
         )  # fmt: skip
         out = self.session.run(None, self._feed(values, n))
         return dict(zip(self.output_names, out, strict=True))
@@ -223,11 +236,12 @@ class EstimatorRuntime:
         directions: np.ndarray | None = None,
         wrenches: np.ndarray | None = None,
         ft_residual: np.ndarray | None = None,
+        **cones: np.ndarray,
     ) -> dict[str, np.ndarray]:
         """Estimate one frame: inputs as :meth:`run` without the leading ``N``; outputs too."""
         values = dict(
             q=q, qd=qd, qdd=qdd, ft=ft, positions=positions, active=active,
-            directions=directions, wrenches=wrenches, ft_residual=ft_residual,
+            directions=directions, wrenches=wrenches, ft_residual=ft_residual, **cones,
         )  # fmt: skip
         out = self.step_session.run(None, self._feed(values, None))
         return {k: v[0] for k, v in zip(self.output_names, out, strict=True)}
