@@ -23,6 +23,7 @@ from torch import Tensor
 
 from torchcontact._scalar import Sym, Trace
 from torchcontact.errors import KernelBuildError
+from torchcontact.kernels import build_dir_lock
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
@@ -152,30 +153,15 @@ def build(program, dtype: torch.dtype, cache: Path) -> Callable:
     Raises:
         KernelBuildError: nvcc is missing or fails.
     """
-    from torch.utils import cpp_extension
-
     src = source(program, dtype)
     cap = torch.cuda.get_device_capability()
     h = hashlib.sha256(f"{torch.__version__}|{cap}|{src}".encode()).hexdigest()[:20]
     name = f"tckc_{program.name}_{h}"
     d = cache / "kernels" / name
     so = d / f"{name}.so"
-    if not so.exists():
-        d.mkdir(parents=True, exist_ok=True)
-        cu = d / f"{name}.cu"
-        cu.write_text(src)
-        try:
-            cpp_extension.load(
-                name,
-                [str(cu)],
-                extra_cuda_cflags=["-O3", "--fmad=true"],
-                build_directory=str(d),
-                is_python_module=False,
-                with_cuda=True,
-                verbose=False,
-            )
-        except Exception as e:
-            raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e
+    with build_dir_lock(d):
+        if not so.exists():
+            _compile(name, d, src)
     fn = ctypes.CDLL(str(so)).tc_launch
     fn.restype = ctypes.c_int
     fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
@@ -202,3 +188,23 @@ def build(program, dtype: torch.dtype, cache: Path) -> Callable:
         return outs
 
     return call
+
+
+def _compile(name: str, d: Path, src: str) -> None:
+    """nvcc-compile the source of one CUDA kernel into ``d`` (its build directory, held)."""
+    from torch.utils import cpp_extension
+
+    cu = d / f"{name}.cu"
+    cu.write_text(src)
+    try:
+        cpp_extension.load(
+            name,
+            [str(cu)],
+            extra_cuda_cflags=["-O3", "--fmad=true"],
+            build_directory=str(d),
+            is_python_module=False,
+            with_cuda=True,
+            verbose=False,
+        )
+    except Exception as e:
+        raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e
