@@ -33,27 +33,27 @@ def icub_model() -> tc.RobotModel:
     return tc.RobotModel.from_urdf(icub_models.get_model_file("iCubGenova04"))
 
 
-def run(model: tc.RobotModel, K: int, frames: int, F: float = 10.0, seed: int = 0,
-        backend: str = "auto") -> dict[str, np.ndarray]:  # fmt: skip
-    """Simulate ``K`` pushing forces per frame and estimate them both ways.
+def simulate(
+    model: tc.RobotModel, est: tc.ContactEstimator, K: int, frames: int, F: float = 10.0,
+    seed: int = 0,
+) -> tuple[tuple, tc.Contacts, torch.Tensor]:  # fmt: skip
+    """Random joint states and ``K`` pushing forces per frame, and the readings they cause.
 
     Args:
         model: the iCub.
+        est: its estimator (all sensors).
         K: contacts per frame (on ``LINKS[:K]``).
         frames: number of frames.
         F: maximum force norm, N.
         seed: random seed.
-        backend: kernel backend of the estimator.
 
     Returns:
-        ``pinv`` and ``cone`` error norms ``(frames, K)`` N, ``converged`` ``(frames,)``,
-        ``iterations`` ``(frames,)``, ``active`` ``(frames, K)``, ``rank`` and ``unknowns``.
+        ``((q, qd, qdd, ft), contacts, truth)``: the estimator's inputs, the ``force`` slots with
+        their normals and 0.5 rad cones, and the true forces ``(frames, K, 3)`` (link frames).
     """
     g = torch.Generator().manual_seed(seed)
     f64 = torch.float64
-    est = tc.ContactEstimator(model)
     links = LINKS[:K]
-    sensor = est.sensor_names[est.region[model.frame(links[0]).body]]
     q, qd, qdd = ((torch.rand(frames, model.nv, generator=g, dtype=f64) * 2 - 1) for _ in range(3))
     pos = (torch.rand(frames, K, 3, generator=g, dtype=f64) - 0.5) * torch.tensor(
         [0.03, 0.03, 0.1], dtype=f64
@@ -69,6 +69,28 @@ def run(model: tc.RobotModel, K: int, frames: int, F: float = 10.0, seed: int = 
     wr = torch.cat([truth, torch.zeros_like(truth)], -1)
     ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ("known",) * K, pos, wrenches=wr))
     c = tc.Contacts(links, ("force",) * K, pos, normals=normals, cone_angle=HALF_ANGLE)
+    return (q, qd, qdd, ft), c, truth
+
+
+def run(model: tc.RobotModel, K: int, frames: int, F: float = 10.0, seed: int = 0,
+        backend: str = "auto") -> dict[str, np.ndarray]:  # fmt: skip
+    """Simulate ``K`` pushing forces per frame (:func:`simulate`) and estimate them both ways.
+
+    Args:
+        model: the iCub.
+        K: contacts per frame (on ``LINKS[:K]``).
+        frames: number of frames.
+        F: maximum force norm, N.
+        seed: random seed.
+        backend: kernel backend of the estimator.
+
+    Returns:
+        ``pinv`` and ``cone`` error norms ``(frames, K)`` N, ``converged`` ``(frames,)``,
+        ``iterations`` ``(frames,)``, ``active`` ``(frames, K)``, ``rank`` and ``unknowns``.
+    """
+    est = tc.ContactEstimator(model)
+    sensor = est.sensor_names[est.region[model.frame(LINKS[0]).body]]
+    (q, qd, qdd, ft), c, truth = simulate(model, est, K, frames, F, seed)
     free = est.estimate(q, qd, qdd, ft, c, backend=backend)
     cone = est.estimate(q, qd, qdd, ft, c, constraints=tc.FrictionCones(), backend=backend)
     return {

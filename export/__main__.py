@@ -65,6 +65,9 @@ def _estimator(args: argparse.Namespace) -> int:
     )
     try:
         with _stage(f"estimator graphs of {model.name}, {len(links)} slots"):
+            cones = None
+            if args.constraints or args.cone_iterations is not None:
+                cones = tc.FrictionCones(args.cone_iterations or tc.FrictionCones().iterations)
             meta = export_estimator(
                 model,
                 args.sensor or None,
@@ -80,6 +83,7 @@ def _estimator(args: argparse.Namespace) -> int:
                 residual=args.residual or None,
                 joints=None if joints in (None, "all") else joints,
                 velocity_margin=args.velocity_margin,
+                constraints=cones,
             )
     except TorchContactError:
         raise
@@ -164,6 +168,14 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         type=float,
         default=None,
         help="status bit 64 beyond this multiple of the URDF velocity limits",
+    )
+    e.add_argument(
+        "--constraints",
+        action="store_true",
+        help="the friction-cone constrained estimator (inputs normals, friction, pushing)",
+    )
+    e.add_argument(
+        "--cone-iterations", type=int, default=None, help="its iteration budget (default 25)"
     )
     e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")

@@ -217,6 +217,29 @@ def test_a_background_build_outlives_its_process(tmp_path):
     assert list(tmp_path.glob("kernels/tck_rnea_*/*.so"))
 
 
+def test_a_killed_build_does_not_block_the_next(monkeypatch, tmp_path):
+    """A build killed part-way leaves torch's ``lock`` baton; the next build clears it."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    model = _pendulum().with_gravity((0.0, 0.0, -9.6))
+    prog = dynamics.program(model, "id", False, False)
+    src, h = kernels._source(prog, torch.float64)
+    name, cpp, so = kernels._paths(prog, h)
+    kernels._write_source(cpp, src)
+    (cpp.parent / "lock").write_text("")  # what a SIGKILLed cpp_extension.load leaves behind
+    code = f"from pathlib import Path; from torchcontact.kernels import build_source; " \
+           f"build_source({name!r}, Path({str(cpp)!r}))"  # fmt: skip
+    # in a child process, so that a regression hangs there and fails on the timeout
+    kernel = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
+                            timeout=240, capture_output=True, text=True, check=False)  # fmt: skip
+    assert kernel.returncode == 0, kernel.stderr[-2000:]
+    assert so.exists() and not (cpp.parent / "lock").exists()
+    q = torch.rand(64, 1, dtype=torch.float64)
+    torch.testing.assert_close(
+        model.inverse_dynamics(q, q, q, backend="cpu"),
+        model.inverse_dynamics(q, q, q, backend="eager"), atol=KERNEL_VS_EAGER, rtol=0,
+    )  # fmt: skip
+
+
 def test_disk_cache_makes_a_second_process_start_fast(tmp_path):
     env = {**os.environ, "TORCHCONTACT_CACHE": str(tmp_path)}
     code = (

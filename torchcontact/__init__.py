@@ -30,6 +30,7 @@ _LAZY = {
     "ForwardPass": "torchcontact.dynamics",
     "Frame": "torchcontact.model",
     "FrictionCones": "torchcontact.constrained",
+    "PreviousFrame": "torchcontact.constrained",
     "RobotModel": "torchcontact.model",
     "URDFError": "torchcontact.model",
     "body_wrenches": "torchcontact.dynamics",
@@ -54,6 +55,7 @@ __all__ = [
     "Frame",
     "FrictionCones",
     "InputError",
+    "PreviousFrame",
     "RobotModel",
     "TorchContactError",
     "URDFError",
@@ -69,7 +71,7 @@ __all__ = [
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact import robots, spatial
-    from torchcontact.constrained import FrictionCones
+    from torchcontact.constrained import FrictionCones, PreviousFrame
     from torchcontact.dynamics import (
         BaseMotion,
         ForwardPass,

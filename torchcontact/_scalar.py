@@ -15,6 +15,11 @@ spatial vectors as tuples of them). A scalar is one of:
 Every operation goes through the functions below (never through ``+`` or ``*`` on scalars), which
 fold constants and dispatch on the kind of their operands. Masks (the results of comparisons) are
 ``bool`` constants, bool tensors or boolean symbols, consumed by :func:`select`.
+
+Iterative algorithms with a fixed budget (the friction-cone solver) use :func:`loop`: eager torch
+runs the body in a Python loop, a trace records the body once and generated kernels emit a real
+loop around it (the code of one iteration, not of the whole budget), leaving it early once every
+frame of a vector block (CPU) or the thread's frame (CUDA) has converged.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import contextlib
 import contextvars
 import math
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, Union
+from typing import Any, NamedTuple, Union
 
 import torch
 from torch import Tensor
@@ -43,6 +48,7 @@ __all__ = [
     "logical_not",
     "logical_or",
     "lincomb",
+    "loop",
     "mul",
     "neg",
     "rsqrt",
@@ -106,6 +112,7 @@ class Trace:
         self.nodes: list[Sym] = []
         self.inputs: dict[str, list[Sym]] = {}
         self._cse: dict[tuple, Sym] = {}
+        self._in_loop = False
 
     def input(self, name: str, n: int) -> list[Sym]:
         """Declare an input array of ``n`` scalars per frame; returns its symbols."""
@@ -371,6 +378,126 @@ def sum_(xs: Sequence[Scalar]) -> Scalar:
 def lincomb(coeffs: Sequence[float], xs: Sequence[Scalar]) -> Scalar:
     """``sum_i coeffs[i] * xs[i]`` for constant coefficients (zeros skipped, +-1 folded)."""
     return sum_([mul(float(c), x) for c, x in zip(coeffs, xs, strict=True) if c != 0])
+
+
+class Loop(NamedTuple):
+    """The recorded body of a :func:`loop` (the ``args[0]`` of its ``"loop"`` node).
+
+    Attributes:
+        n: the iteration budget.
+        init: the carried values' initial values (scalars from before the loop).
+        carries: the ``"carry"`` symbols standing for the carried values inside the body.
+        new: the carried values at the end of one iteration (scalars).
+        stop: mask: this frame is at a fixed point of the body (it may leave the loop).
+        start: index of the body's first node; the body's nodes are ``start <= index < end``.
+        end: index one past the body's last node (the ``"loop"`` node's own index).
+    """
+
+    n: int
+    init: tuple
+    carries: tuple
+    new: tuple
+    stop: Any
+    start: int
+    end: int
+
+
+_UNROLL: contextvars.ContextVar[bool] = contextvars.ContextVar("torchcontact_unroll", default=False)
+
+
+@contextlib.contextmanager
+def unrolled_loops() -> Iterator[None]:
+    """Within the block, :func:`loop` on symbols records every iteration (no ``"loop"`` node).
+
+    For consumers of a :class:`Trace` that have no loop construct (a node-per-op ONNX emitter).
+    """
+    token = _UNROLL.set(True)
+    try:
+        yield
+    finally:
+        _UNROLL.reset(token)
+
+
+def loop(
+    n: int,
+    body: Callable[[list[Scalar]], tuple[list[Scalar], Scalar]],
+    init: Sequence[Scalar],
+) -> list[Scalar]:
+    """``n`` iterations of ``state, stop = body(state)`` from ``init``; returns the final state.
+
+    The body must leave a frame's state unchanged once it has returned ``stop`` for that frame
+    (a converged frame is a fixed point). Then leaving early changes nothing, and the backends do:
+    eager torch once every frame has stopped (never while tracing for export: the traced graph
+    keeps the whole budget), a generated CPU kernel once every frame of its vector block has, a
+    CUDA thread once its frame has. On symbols the body is traced once into a ``"loop"`` node
+    (:class:`Loop`); values it computes are not visible after the loop (common subexpressions
+    are not shared across the loop's boundary). Loops do not nest.
+
+    Args:
+        n: the iteration budget (>= 0).
+        body: ``state -> (new state, stop mask)``; state entries are float scalars (not masks).
+        init: the initial state.
+
+    Returns:
+        The state after the loop.
+
+    Example:
+        >>> def halve(s):  # halve while above 1
+        ...     new = select(gt(s[0], 1.0), mul(s[0], 0.5), s[0])
+        ...     return [new], logical_not(gt(new, 1.0))
+        >>> loop(10, halve, [torch.tensor([8.0, 3000.0])])[0]  # 3000 uses the whole budget
+        tensor([1.0000, 2.9297])
+    """
+    state = list(init)
+    tr = _trace_of(*state)
+    if tr is None or _UNROLL.get():
+        for _ in range(n):
+            state, stop = body(state)
+            state = list(state)
+            if isinstance(stop, bool) and stop:
+                break
+            if isinstance(stop, Tensor) and not _exporting() and bool(stop.all()):
+                break
+        return state
+    if tr._in_loop:
+        raise ValueError("loops do not nest")
+    if any(isinstance(x, Sym) and x.mask for x in state):
+        raise ValueError("a loop carries float scalars; turn masks into select(m, 1.0, 0.0)")
+    lid = sum(1 for s in tr.nodes if s.op == "loop")
+    carries = [tr._new("carry", (lid, i), False) for i in range(len(state))]
+    start, known = len(tr.nodes), len(tr._cse)
+    tr._in_loop = True
+    try:
+        new, stop = body(list(carries))
+    finally:
+        tr._in_loop = False
+        # values of the body are not visible after the loop: forget them for hash-consing
+        for key in list(tr._cse)[known:]:
+            del tr._cse[key]
+    new = list(new)
+    if len(new) != len(state):
+        raise ValueError(f"loop body returned {len(new)} values for a state of {len(state)}")
+    spec = Loop(int(n), tuple(state), tuple(carries), tuple(new), stop, start, len(tr.nodes))
+    node = tr._new("loop", (spec,), False)
+    return [tr._new("loopout", (node, i), False) for i in range(len(state))]
+
+
+def _exporting() -> bool:
+    """Tracing for export: the graph must hold the whole budget, data-independent."""
+    return bool(
+        torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+    )
+
+
+def loop_deps(s: Sym) -> list[Sym]:
+    """The symbols a node reads (a ``"loop"`` node: its initial values, body results and stop)."""
+    if s.op == "loop":
+        spec: Loop = s.args[0]
+        vals = [*spec.init, *spec.new, spec.stop]
+        return [v for v in vals if isinstance(v, Sym)]
+    if s.op == "in" or s.op == "carry":
+        return []
+    return [a for a in s.args if isinstance(a, Sym)]
 
 
 def map_tensors(fn: Callable[[Tensor], Tensor], xs: Sequence[Scalar]) -> list[Scalar]:

@@ -28,36 +28,53 @@ positive definite) and solves it for the predictor and the corrector right sides
 batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of frames):
 
 * **Accuracy at a fixed budget, from a cold start.** The iteration count of an interior-point
-  method hardly depends on the data: 20 to 30 iterations reach 1e-9 relative accuracy on these
+  method hardly depends on the data: 10 to 20 iterations reach rounding level on these
   problems whatever their conditioning. First-order methods (ADMM on the same normal equations,
   projected gradient) converge linearly at a rate set by the conditioning of ``A`` and the angle
   between the cones and ``null(A)``; the estimator's matrices are rank-deficient by design
   (that is why the cones are needed), and ADMM typically needs hundreds of iterations for 1e-6
-  here. A fixed budget is what makes the program straight-line code (exportable, one
-  instruction stream for every frame on SIMD lanes or CUDA threads), so the method whose budget
+  here. A fixed budget is what makes the program exportable (straight-line code in ONNX) and one
+  instruction stream for every frame on SIMD lanes or CUDA threads, so the method whose budget
   can be small and data-independent wins.
-* **Cost.** One ``u x u`` Cholesky per iteration (about ``u^3 / 6`` multiply-adds: 288 for four
-  pure forces) is cheap next to the RNEA of a humanoid; ``A^T A`` and the constant parts
-  ``C_k^T J C_k`` are formed once per frame.
+* **Cost.** The iterations are one :func:`torchcontact._scalar.loop`: a generated kernel holds
+  the code of one iteration and leaves the loop once every frame of its vector block has stopped
+  (a frame stops when its iterate no longer moves, see below), so the cost follows the frames'
+  own iteration counts (13 on average, 14 per block of four on the iCub with four contacts),
+  not the budget. Square cones (a force's friction cone) are solved in cone coordinates
+  ``y = C_k x`` (``A C_k^-1`` formed once per frame), where ``C_k = I`` and the iterations skip
+  every product with it. One ``u x u`` Cholesky per iteration (about ``u^3 / 6`` multiply-adds:
+  288 for four pure forces): a Woodbury (capacitance) form through the ``R x R`` matrix
+  ``I + A D^-1 A^T`` costs more for ``u <= 2 R`` (12 unknowns, 6 rows: ~1000 operations against
+  ~690) and about the same for ``u = 18``, so the dense form stays.
 * **Branch-free.** Step lengths to the cone boundaries have closed forms; every choice is a
-  ``select``. A frame stops moving once its duality gap reaches rounding level
-  (:data:`FREEZE_GAP`), and a step that would make the iterate non-finite is not taken. Each
-  Mehrotra step is compared with the same step without the second-order term and the one that
-  lowers the gap more is kept: Mehrotra's term alone cycled on frames whose solution is at the
-  cones' apexes.
+  ``select``; a step that would make the iterate non-finite is not taken. The first round also
+  tried the step without Mehrotra's second-order term each iteration and kept the better one
+  (against cycling at the cones' apexes); on every test problem, apex solutions included, the
+  Mehrotra step alone converged in as many iterations to the same accuracy against clarabel,
+  and it saves a third of the Newton solves.
 
-**Warm start.** ``x0`` is the starting point (the pseudo-inverse solution by default, or the
-previous frame's estimate). When it lies inside every cone it is returned as it is: the
-pseudo-inverse solution is the ``eps -> 0`` limit of the unconstrained problem, which the
+**When a frame stops.** Along ``null(A)`` only ``eps`` pins the solution, so a duality gap that
+meets a usual tolerance (1e-6 relative) leaves the forces far from the regularised optimum
+(measured: tens of percent on the iCub's rank-deficient problems). A frame therefore iterates
+until its gap is below :data:`STOP_GAP` (1e-16 of ``1 + |A^T b|^2`` in float64; the force then
+agrees with 40-iteration runs to ~1e-4 relative), or below :data:`STALL_GAP` after a step that
+did not halve it (the gap's rounding floor, reached on infeasible problems); from then on its
+iterate does not move.
+
+**Warm start.** The iterations start at ``x_start`` (the previous frame's estimate) or at the
+pseudo-inverse solution ``x_pinv``. When ``x_pinv`` lies inside every cone it is the answer,
+returned as it is: it is the ``eps -> 0`` limit of the unconstrained problem, which the
 iterates approach only to rounding / ``eps`` along ``null(A)``. The slacks start at ``C_k x0``
 moved inside the cones and the duals at a multiple of the cone's centre, as interior-point
 methods require (the dual of the previous frame is not reused: a point on the cone boundary is
 a poor start).
 
-**Status per frame.** ``converged`` (the residuals and the duality gap meet ``tol``),
-``iterations`` (the iteration at which they first did; the budget otherwise) and per cone
-``active`` (the constraint binds: the force is on the cone's boundary, or at its apex, to
-within ``10 tol`` relative).
+**Status per frame.** ``iterations`` (the iterations the frame ran until it stopped; the budget
+if it never did; 0 when the pseudo-inverse solution was the answer), ``converged`` (it stopped
+and its relative KKT residuals meet ``tol``) and per cone ``active`` (the constraint binds: the
+force is on the cone's boundary, or at its apex, to within ``10 tol`` relative). A frame that
+did not converge keeps its last iterate (inside the cones, close to optimal); this is not a
+status bit of :data:`torchcontact.STATUS`, whose non-zero values mean NaN outputs.
 
 Everything is written on scalars (:mod:`torchcontact._scalar`): it runs eagerly on ``(N,)``
 tensors (CPU, CUDA, ONNX export) and inside generated kernels. :func:`cone_constrained_lstsq` is
@@ -82,6 +99,7 @@ from torchcontact._scalar import (
     logical_and,
     logical_not,
     logical_or,
+    loop,
     mul,
     neg,
     select,
@@ -94,9 +112,13 @@ from torchcontact.errors import InputError
 __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_TOL",
+    "STALL_GAP",
+    "STOP_GAP",
+    "WARM_MARGIN",
     "Cone",
     "ConeSolution",
     "FrictionCones",
+    "PreviousFrame",
     "cone_constrained_lstsq",
     "cone_rows",
     "solve_cones",
@@ -105,8 +127,21 @@ __all__ = [
 #: Default regularisation ``eps`` per dtype (``A`` has entries of order 1 and metres).
 DEFAULT_EPS: dict[torch.dtype, float] = {torch.float64: 1e-9, torch.float32: 1e-5}
 #: A frame stops moving once its duality gap is below this, relative to ``1 + |A^T b|^2``.
-FREEZE_GAP = 1e-16
-#: Default convergence tolerance per dtype (relative residuals and gap).
+#: A frame stops (its iterate no longer moves) once its duality gap is below this, relative to
+#: ``1 + |A^T b|^2``, per dtype: along ``null(A)`` only ``eps`` pins the solution, so the gap must
+#: fall far below ``eps |x|^2`` before the iterate settles there (measured: the force moves by
+#: ~sqrt(gap) relative on the iCub's rank-deficient problems).
+STOP_GAP: dict[torch.dtype, float] = {torch.float64: 1e-16, torch.float32: 1e-11}
+#: ... or once a step lowers a gap below this (relative likewise) by less than half: the gap has
+#: reached its rounding floor (measured: 1e-16 to 1e-15 on infeasible problems in float64).
+STALL_GAP: dict[torch.dtype, float] = {torch.float64: 1e-14, torch.float32: 1e-8}
+#: Slacks of a warm start are moved inside the cones by the first of these times the scale
+#: ``1 + |C x0|``, its duals start at the second times the scale (cold: 0.1 and 1): a warm start
+#: is taken to be near the solution. Measured: on a simulated tcarm log (smooth motion, contacts
+#: held 0.3 to 3 s), from each frame's predecessor, 7.3 iterations on average against 11.4 cold;
+#: from an unrelated frame's estimate (iCub, four contacts) 14.1 against 12.7.
+WARM_MARGIN = (1e-3, 1e-2)
+#: Default convergence tolerance per dtype (relative KKT residuals of a stopped frame).
 DEFAULT_TOL: dict[torch.dtype, float] = {torch.float64: 1e-6, torch.float32: 1e-3}
 
 
@@ -118,18 +153,21 @@ class FrictionCones:
     :class:`~torchcontact.Contacts`.
 
     Attributes:
-        iterations: fixed interior-point iteration budget (straight-line code; 20 reached
-            1e-9 on every tested problem, 7 to 9 iterations typically).
+        iterations: interior-point iteration budget (the exported graph runs all of it;
+            kernels and eager torch stop when every frame has stopped). Measured on the iCub
+            with four contacts: frames stop after 9 to 22 iterations in float64 (13 on
+            average), 7 to 16 in float32 (10).
         eps: regularisation ``eps`` of ``|A x - b|^2 + eps |x|^2`` (default
             :data:`DEFAULT_EPS` of the model's dtype).
-        tol: convergence tolerance of the ``converged`` flag (default :data:`DEFAULT_TOL`).
+        tol: tolerance of the ``converged`` flag on a stopped frame's relative KKT residuals
+            (default :data:`DEFAULT_TOL`).
 
     Example:
         >>> FrictionCones(iterations=30).iterations
         30
     """
 
-    iterations: int = 20
+    iterations: int = 25
     eps: float | None = None
     tol: float | None = None
 
@@ -142,11 +180,46 @@ class FrictionCones:
             if v is not None and not (float(v) > 0 and float(v) < 1):
                 raise InputError(f"FrictionCones.{name} must be in (0, 1), got {v!r}")
 
-    def resolved(self, dtype: torch.dtype) -> tuple[int, float, float]:
-        """``(iterations, eps, tol)`` with the defaults of ``dtype`` filled in."""
+    def resolved(self, dtype: torch.dtype) -> tuple[int, float, float, tuple[float, float]]:
+        """``(iterations, eps, tol, stop)`` with the defaults of ``dtype`` filled in.
+
+        ``stop``: :data:`STOP_GAP` and :data:`STALL_GAP` of ``dtype``.
+        """
         eps = DEFAULT_EPS.get(dtype, 1e-9) if self.eps is None else float(self.eps)
-        tol = DEFAULT_TOL.get(dtype, 1e-9) if self.tol is None else float(self.tol)
-        return self.iterations, eps, tol
+        tol = DEFAULT_TOL.get(dtype, 1e-6) if self.tol is None else float(self.tol)
+        stop = (STOP_GAP.get(dtype, 1e-16), STALL_GAP.get(dtype, 1e-14))
+        return self.iterations, eps, tol, stop
+
+
+@dataclass(frozen=True)
+class PreviousFrame:
+    """Warm start every frame from its predecessor's estimate (``estimate(..., warm_start=...)``).
+
+    The batch is a time series (frames in order along the flattened batch). Its frames are
+    estimated in waves: a batch of ``n`` frames is cut into blocks of ``S = ceil(n / wave)``
+    consecutive frames, and wave ``j`` holds the ``j``-th frame of every block (about ``wave``
+    frames, one batched call), started from wave ``j - 1``'s estimates. The first frame of each
+    block starts cold (the pseudo-inverse solution), but the batch's first one, which starts
+    from ``before``. A warm start changes the iterations a frame needs (:data:`WARM_MARGIN`), not
+    its answer (to the solver's accuracy).
+
+    Attributes:
+        before: ``(force, moment)``, each ``(K, 3)``, the estimate of the frame before the batch
+            (link frames; NaN rows start cold), or None.
+        wave: frames per batched call (>= 1); smaller waves warm-start more frames (all but one
+            in ``S``) at the price of more calls.
+
+    Example:
+        >>> PreviousFrame(wave=512).wave
+        512
+    """
+
+    before: tuple[Tensor, Tensor] | None = None
+    wave: int = 1024
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.wave, int) and self.wave >= 1):
+            raise InputError(f"PreviousFrame.wave must be an int >= 1, got {self.wave!r}")
 
 
 class Cone(NamedTuple):
@@ -154,7 +227,8 @@ class Cone(NamedTuple):
 
     Attributes:
         cols: indices of the unknowns it reads (one slot's).
-        C: 3 rows of ``len(cols)`` scalars: the cone coordinates ``(t, y1, y2)`` of the slot.
+        C: 3 rows of ``len(cols)`` scalars: the cone coordinates ``(t, y1, y2)`` of the slot
+            (invertible when square, as a friction cone's is).
         on: mask scalar: the constraint applies in this frame (else it is ignored).
     """
 
@@ -168,9 +242,9 @@ class ConeSolution(NamedTuple):
 
     Attributes:
         x: ``u`` unknowns.
-        converged: mask: residuals and gap met the tolerance within the budget.
-        iterations: the iteration at which the duality gap first met the tolerance (the budget
-            if never), as a float.
+        converged: mask: the frame stopped within the budget and its residuals met ``tol``.
+        iterations: the iterations the frame ran until it stopped (the budget if it never did,
+            0 when the pseudo-inverse solution is the answer), as a float.
         active: per cone, mask: the constraint binds at the solution.
     """
 
@@ -198,24 +272,23 @@ def _cholesky(H: list[list[Scalar]], floor: float) -> list[list[Scalar]]:
     for j in range(n):
         d = sub(H[j][j], sum_([mul(L[j][k], L[j][k]) for k in range(j)]))
         d = select(gt(d, floor), d, floor)
-        ljj = sqrt(d)
-        inv = div(1.0, ljj)
-        L[j][j] = ljj
+        L[j][j] = sqrt(d)
+        inv = div(1.0, L[j][j])
         for i in range(j + 1, n):
             L[i][j] = mul(sub(H[i][j], sum_([mul(L[i][k], L[j][k]) for k in range(j)])), inv)
-        L[j] = L[j]  # row j complete up to the diagonal
     return L
 
 
 def _cho_solve(L: list[list[Scalar]], r: Sequence[Scalar]) -> list[Scalar]:
-    """``(L L^T)^{-1} r``."""
+    """``(L L^T)^{-1} r`` (the reciprocals of the diagonal are those of :func:`_cholesky`)."""
     n = len(r)
+    inv = [div(1.0, L[i][i]) for i in range(n)]
     y: list[Scalar] = [0.0] * n
     for i in range(n):
-        y[i] = div(sub(r[i], sum_([mul(L[i][k], y[k]) for k in range(i)])), L[i][i])
+        y[i] = mul(sub(r[i], sum_([mul(L[i][k], y[k]) for k in range(i)])), inv[i])
     x: list[Scalar] = [0.0] * n
     for i in range(n - 1, -1, -1):
-        x[i] = div(sub(y[i], sum_([mul(L[k][i], x[k]) for k in range(i + 1, n)])), L[i][i])
+        x[i] = mul(sub(y[i], sum_([mul(L[k][i], x[k]) for k in range(i + 1, n)])), inv[i])
     return x
 
 
@@ -234,22 +307,30 @@ def _eig_min(v: Sequence[Scalar]) -> Scalar:
 
 
 class _Scaling(NamedTuple):
-    """Nesterov-Todd scaling ``W = eta Wbar(w)`` of one cone (``W z = W^{-1} s = lam``)."""
+    """Nesterov-Todd scaling ``W = eta Wbar(w)`` of one cone (``W z = W^{-1} s = lam``).
+
+    With the reciprocals the products need (computed once per iteration and cone).
+    """
 
     eta: Scalar
     w: list[Scalar]  # w^T J w = 1, w0 > 0
+    inv_eta: Scalar  # 1 / eta
+    inv_eta2: Scalar  # 1 / eta^2
+    inv_1w0: Scalar  # 1 / (1 + w0)
 
 
 def _nt_scaling(s: Sequence[Scalar], z: Sequence[Scalar]) -> _Scaling:
     ns = sqrt(_jdot(s, s))
     nz = sqrt(_jdot(z, z))
-    sb = [div(v, ns) for v in s]
-    zb = [div(v, nz) for v in z]
+    inv_ns, inv_nz = div(1.0, ns), div(1.0, nz)
+    sb = [mul(v, inv_ns) for v in s]  # the same products as _inv_max_step's
+    zb = [mul(v, inv_nz) for v in z]
     gamma = sqrt(mul(add(1.0, _dot(sb, zb)), 0.5))
     inv2g = div(0.5, gamma)
     w = [mul(add(sb[0], zb[0]), inv2g), mul(sub(sb[1], zb[1]), inv2g),
          mul(sub(sb[2], zb[2]), inv2g)]  # fmt: skip
-    return _Scaling(sqrt(div(ns, nz)), w)
+    eta = sqrt(mul(ns, inv_nz))
+    return _Scaling(eta, w, div(1.0, eta), mul(nz, inv_ns), div(1.0, add(1.0, w[0])))
 
 
 def _w_apply(sc: _Scaling, v: Sequence[Scalar], inverse: bool) -> list[Scalar]:
@@ -258,11 +339,11 @@ def _w_apply(sc: _Scaling, v: Sequence[Scalar], inverse: bool) -> list[Scalar]:
     w1v1 = add(mul(w[1], v[1]), mul(w[2], v[2]))
     if inverse:  # Wbar^{-1} = J Wbar J
         first = sub(mul(w[0], v[0]), w1v1)
-        coef = sub(div(w1v1, add(1.0, w[0])), v[0])
-        scale = div(1.0, sc.eta)
+        coef = sub(mul(w1v1, sc.inv_1w0), v[0])
+        scale = sc.inv_eta
     else:
         first = add(mul(w[0], v[0]), w1v1)
-        coef = add(div(w1v1, add(1.0, w[0])), v[0])
+        coef = add(mul(w1v1, sc.inv_1w0), v[0])
         scale = sc.eta
     out = [first, add(v[1], mul(coef, w[1])), add(v[2], mul(coef, w[2]))]
     return [mul(scale, x) for x in out]
@@ -272,7 +353,7 @@ def _w_inv2(sc: _Scaling, v: Sequence[Scalar]) -> list[Scalar]:
     """``W^{-2} v = eta^{-2} (2 wh wh^T - J) v`` with ``wh = J w``."""
     wh = (sc.w[0], neg(sc.w[1]), neg(sc.w[2]))
     t = mul(2.0, _dot(wh, v))
-    inv = div(1.0, mul(sc.eta, sc.eta))
+    inv = sc.inv_eta2
     return [mul(inv, sub(mul(t, wh[0]), v[0])), mul(inv, add(mul(t, wh[1]), v[1])),
             mul(inv, add(mul(t, wh[2]), v[2]))]  # fmt: skip
 
@@ -301,7 +382,7 @@ def _inv_max_step(x: Sequence[Scalar], d: Sequence[Scalar]) -> Scalar:
     inv_nu = div(1.0, nu)
     xb = [mul(v, inv_nu) for v in x]
     r0 = _jdot(xb, d)
-    c = div(add(d[0], r0), add(1.0, xb[0]))
+    c = mul(add(d[0], r0), div(1.0, add(1.0, xb[0])))  # the reciprocal is shared by all d
     r1 = (sub(d[1], mul(c, xb[1])), sub(d[2], mul(c, xb[2])))
     neg_eig = sub(sqrt(add(mul(r1[0], r1[0]), mul(r1[1], r1[1]))), r0)
     return mul(_max(neg_eig, 0.0), inv_nu)
@@ -382,172 +463,254 @@ def cone_rows(normal: Sequence[Scalar], mu: Scalar) -> list[list[Scalar]]:
     return [[neg(mul(mu, nx)), neg(mul(mu, ny)), neg(mul(mu, nz))], list(t1), list(t2)]
 
 
+class _Problem(NamedTuple):
+    """The per-frame constants of one constrained solve (formed once, before the iterations)."""
+
+    P: list[list[Scalar]]  # lower triangle of A^T A + eps I
+    q: list[Scalar]  # -A^T b
+    cones: Sequence[Cone]
+    on: list[Scalar]
+    CJC: list  # per cone, C^T J C (lower triangle)
+    inv_m: Scalar  # 1 / (number of cones that apply)
+    floor: float  # smallest pivot of the Newton matrix's Cholesky factor
+
+
+def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Scalar]]):
+    """One Mehrotra predictor-corrector step from ``(x, s, z)``: the next iterate."""
+    cones, on, u = pb.cones, pb.on, len(x)
+    # ---- residuals of the KKT conditions P x + q - C^T z = 0, C x - s = 0
+    rd = [add(sum_([mul(pb.P[max(i, j)][min(i, j)], x[j]) for j in range(u)]), pb.q[i])
+          for i in range(u)]  # fmt: skip
+    rp = []
+    for k, c in enumerate(cones):
+        ctz = _ct(c, z[k])
+        for j, i in enumerate(c.cols):
+            rd[i] = sub(rd[i], select(on[k], ctz[j], 0.0))
+        rp.append([select(on[k], sub(a, b_), 0.0) for a, b_ in zip(_cx(c, x), s[k], strict=True)])
+    # ---- Nesterov-Todd scaling and the Newton matrix H = P + sum C^T W^-2 C
+    scs = [_nt_scaling(s[k], z[k]) for k in range(len(cones))]
+    lam = [_w_apply(scs[k], z[k], inverse=False) for k in range(len(cones))]
+    H = [list(row) for row in pb.P]
+    for k, c in enumerate(cones):
+        wh = [scs[k].w[0], neg(scs[k].w[1]), neg(scs[k].w[2])]
+        g = _ct(c, wh)
+        inv_eta2 = scs[k].inv_eta2
+        for a, i in enumerate(c.cols):
+            for bb, j in enumerate(c.cols):
+                if j > i:
+                    continue
+                blk = mul(inv_eta2, sub(mul(2.0, mul(g[a], g[bb])), pb.CJC[k][a][bb]))
+                H[i][j] = add(H[i][j], select(on[k], blk, 0.0))
+    L = _cholesky([[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)], pb.floor)
+    # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
+    dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, [[neg(v) for v in lk] for lk in lam])
+    T_a = _inv_step(on, s, z, ds_a, dz_a)
+    alpha_a = select(gt(T_a, 1.0), div(1.0, _max(T_a, 1.0)), 1.0)
+    mu = mul(sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(len(cones))]), pb.inv_m)
+    one_minus = sub(1.0, alpha_a)
+    sigma = mul(mul(one_minus, one_minus), one_minus)
+    # ---- corrector (Mehrotra): lam o (W dz + W^-1 ds) = -(lam o lam + (W^-1 ds_a) o (W dz_a)
+    # - sigma mu e), the same factorization
+    vs = []
+    for k in range(len(cones)):
+        ll = _jordan(lam[k], lam[k])
+        corr = _jordan(_w_apply(scs[k], ds_a[k], inverse=True),
+                       _w_apply(scs[k], dz_a[k], inverse=False))  # fmt: skip
+        rhs = [add(sub(ll[0], mul(sigma, mu)), corr[0]), add(ll[1], corr[1]), add(ll[2], corr[2])]
+        vs.append(_jordan_solve(lam[k], [neg(v) for v in rhs]))
+    dx, ds, dz = _newton(cones, on, L, rd, rp, scs, vs)
+    # ---- step: 0.99 of the way to the nearest cone boundary, at most a full step
+    T = _inv_step(on, s, z, ds, dz)
+    alpha = select(gt(T, 0.99), div(0.99, _max(T, 0.99)), 1.0)
+    x_new = [add(xi, mul(alpha, di)) for xi, di in zip(x, dx, strict=True)]
+    s_new = [[add(a, mul(alpha, d)) for a, d in zip(s[k], ds[k], strict=True)]
+             for k in range(len(cones))]  # fmt: skip
+    z_new = [[add(a, mul(alpha, d)) for a, d in zip(z[k], dz[k], strict=True)]
+             for k in range(len(cones))]  # fmt: skip
+    return x_new, s_new, z_new
+
+
+_EYE3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def _inv3(C: Sequence[Sequence[Scalar]]) -> list[list[Scalar]]:
+    """Inverse of a 3 x 3 matrix of scalars (adjugate over determinant)."""
+    cof = [[sub(mul(C[(i + 1) % 3][(j + 1) % 3], C[(i + 2) % 3][(j + 2) % 3]),
+                mul(C[(i + 1) % 3][(j + 2) % 3], C[(i + 2) % 3][(j + 1) % 3]))
+            for j in range(3)] for i in range(3)]  # fmt: skip
+    inv_det = div(1.0, _dot(C[0], cof[0]))
+    return [[mul(cof[j][i], inv_det) for j in range(3)] for i in range(3)]
+
+
+def _to_cone_coordinates(
+    A: Sequence[Sequence[Scalar]], cones: Sequence[Cone], u: int
+) -> tuple[list[list[Scalar]], list[Cone], list]:
+    """``A T^-1``, the cones in the new coordinates, and per cone ``C^-1`` (None: not square)."""
+    A2 = [list(row) for row in A]
+    out, Cinv = [], []
+    for c in cones:
+        if len(c.cols) != 3:
+            out.append(c)
+            Cinv.append(None)
+            continue
+        ci = _inv3(c.C)
+        for row, row2 in zip(A, A2, strict=True):
+            for j, col in enumerate(c.cols):
+                row2[col] = sum_([mul(row[c.cols[a]], ci[a][j]) for a in range(3)])
+        out.append(Cone(c.cols, _EYE3, c.on))
+        Cinv.append(ci)
+    return A2, out, Cinv
+
+
+def _apply_blocks(cones, C, Cinv, x: Sequence[Scalar], forward: bool) -> list[Scalar]:
+    """``T x`` (``forward``, with the original ``C``) or ``T^-1 y`` on the square cones."""
+    out = list(x)
+    for k, (c, ci) in enumerate(zip(cones, Cinv, strict=True)):
+        if ci is None:
+            continue
+        M = C[k] if forward else ci
+        v = [x[i] for i in c.cols]
+        for r, i in enumerate(c.cols):
+            out[i] = _dot(M[r], v)
+    return out
+
+
 def solve_cones(
     A: Sequence[Sequence[Scalar]],
     b: Sequence[Scalar],
     cones: Sequence[Cone],
-    x0: Sequence[Scalar],
+    x_pinv: Sequence[Scalar],
     eps: float,
     iterations: int,
     tol: float,
+    stop: tuple[float, float] = (STOP_GAP[torch.float64], STALL_GAP[torch.float64]),
+    x_start: Sequence[Scalar] | None = None,
+    start_on: Scalar = True,
 ) -> ConeSolution:
     """Minimise ``1/2 |A x - b|^2 + eps/2 |x|^2`` with every cone ``C_k x[cols_k] in Q^3``.
 
     Primal-dual interior-point method with Mehrotra's predictor-corrector and Nesterov-Todd
-    scaling, ``iterations`` steps (see the module docstring). Cones whose ``on`` mask is false in
-    a frame are left out of that frame's problem.
+    scaling, at most ``iterations`` steps (see the module docstring). Cones whose ``on`` mask is
+    false in a frame are left out of that frame's problem. The iterations are one
+    :func:`torchcontact._scalar.loop`: a frame stops once its duality gap is below ``stop``
+    (its iterate no longer moves), and a generated kernel leaves the loop once every frame of its
+    block has.
 
     Args:
         A: ``R`` rows of ``u`` scalars.
         b: ``R`` scalars.
         cones: the constraints.
-        x0: ``u`` scalars, the starting point (any; e.g. the pseudo-inverse solution).
+        x_pinv: ``u`` scalars, the pseudo-inverse solution ``pinv(A) b``: the answer when it lies
+            inside every cone, else the start.
         eps: regularisation (> 0).
-        iterations: the fixed iteration budget.
-        tol: convergence tolerance (relative residuals and duality gap).
+        iterations: the iteration budget.
+        tol: convergence tolerance of a stopped frame's relative KKT residuals.
+        stop: a frame stops when its duality gap is below ``stop[0] (1 + |A^T b|^2)``, or below
+            ``stop[1] (1 + |A^T b|^2)`` after a step that did not halve it (:data:`STOP_GAP`,
+            :data:`STALL_GAP`).
+        x_start: ``u`` scalars, another starting point (e.g. the previous frame's estimate);
+            None: ``x_pinv``.
+        start_on: mask: the frame starts from ``x_start`` (else from ``x_pinv``), with the
+            tighter start of a warm start (:data:`WARM_MARGIN`).
 
     Returns:
         :class:`ConeSolution`.
     """
-    R, u = len(b), len(x0)
-    # ---- the problem: P = A^T A + eps I, q = -A^T b (formed once per frame)
+    R, u, m = len(b), len(x_pinv), len(cones)
+    # ---- cone coordinates: y = T x with T = C_k on the columns of each square cone (a friction
+    # cone of a force), the identity elsewhere; then those cones read y directly (C = I), and
+    # the iterations skip every product with C (constants fold them away)
+    C = [c.C for c in cones]
+    A, cones, Cinv = _to_cone_coordinates(A, cones, u)
+    x_pinv = _apply_blocks(cones, C, Cinv, x_pinv, forward=True)
+    if x_start is not None:
+        x_start = _apply_blocks(cones, C, Cinv, x_start, forward=True)
+    # ---- the problem: P = A^T A + eps T^-T T^-1, q = -A^T b (formed once per frame; A in
+    # cone coordinates)
     P = [[sum_([mul(A[r][i], A[r][j]) for r in range(R)]) for j in range(i + 1)]
          for i in range(u)]  # fmt: skip
-    for i in range(u):
-        P[i][i] = add(P[i][i], eps)
+    reg: list[list[Scalar]] = [[eps if i == j else 0.0 for j in range(i + 1)] for i in range(u)]
+    for c, ci in zip(cones, Cinv, strict=True):
+        if ci is not None:  # eps |T^-1 y|^2 on the cone's columns: eps Cinv^T Cinv
+            for a, i in enumerate(c.cols):
+                for bb, j in enumerate(c.cols[: a + 1]):
+                    reg[i][j] = mul(eps, sum_([mul(ci[r][a], ci[r][bb]) for r in range(3)]))
+    P = [[add(P[i][j], reg[i][j]) for j in range(i + 1)] for i in range(u)]
     q = [neg(sum_([mul(A[r][i], b[r]) for r in range(R)])) for i in range(u)]
     qq = _dot(q, q)
     on = [c.on for c in cones]
     m_on = sum_([select(o, 1.0, 0.0) for o in on])
-    inv_m = div(1.0, _max(m_on, 1.0))
     # C_k^T J C_k: constant part of each cone's block of the Newton matrix
     CJC = [[[_jdot([row[i] for row in c.C], [row[j] for row in c.C]) for j in range(len(c.cols))]
             for i in range(len(c.cols))] for c in cones]  # fmt: skip
-
-    def Pmul(x: Sequence[Scalar]) -> list[Scalar]:  # noqa: N802
-        return [sum_([mul(P[max(i, j)][min(i, j)], x[j]) for j in range(u)]) for i in range(u)]
-
-    e = [1.0, 0.0, 0.0]
-    # ---- starting point: x0; slacks C x0 moved inside the cones; duals at the cones' centres
-    x = list(x0)
-    st = [_cx(c, x) for c in cones]
-    scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
-    margin = mul(0.1, scale)
+    pb = _Problem(P, q, cones, on, CJC, div(1.0, _max(m_on, 1.0)), eps * 1e-6)
+    # ---- the pseudo-inverse solution inside every cone (the eps -> 0 limit of the
+    # unconstrained problem) is the answer: returned exactly, since along null(A) the iterates
+    # are pinned only by eps, i.e. to rounding / eps
     inside0: Scalar = True
-    for o, v in zip(on, st, strict=True):
-        ok0 = logical_or(logical_not(o), logical_not(gt(0.0, _eig_min(v))))
+    for o, c in zip(on, cones, strict=True):
+        ok0 = logical_or(logical_not(o), logical_not(gt(0.0, _eig_min(_cx(c, x_pinv)))))
         inside0 = logical_and(inside0, ok0)
-    s, z = [], []
+    # ---- starting point: x0; slacks C x0 moved inside the cones; duals at the cones' centres
+    e = [1.0, 0.0, 0.0]
+    if x_start is None:
+        start_on = False
+    x0 = [select(start_on, a, b_) for a, b_ in zip(x_start or x_pinv, x_pinv, strict=True)]
+    st = [_cx(c, x0) for c in cones]
+    scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
+    margin = mul(select(start_on, WARM_MARGIN[0], 0.1), scale)
+    dual0 = mul(select(start_on, WARM_MARGIN[1], 1.0), scale)
+    s0, z0 = [], []
     for o, v in zip(on, st, strict=True):
         shift = _max(sub(margin, _eig_min(v)), 0.0)
-        s.append(_on3(o, [add(v[0], shift), v[1], v[2]], e))
-        z.append(_on3(o, [scale, 0.0, 0.0], e))
+        s0.append(_on3(o, [add(v[0], shift), v[1], v[2]], e))
+        z0.append(_on3(o, [dual0, 0.0, 0.0], e))
+    gap_stop = mul(stop[0], add(1.0, qq))
+    gap_stall = mul(stop[1], add(1.0, qq))
 
-    done: Scalar = False
-    frozen: Scalar = False
-    it_done: Scalar = float(iterations)
-    gap_tol = mul(tol, add(1.0, qq))
-    freeze_gap = mul(FREEZE_GAP, add(1.0, qq))
-    floor = eps * 1e-6
-    for it in range(iterations):
-        # ---- residuals of the KKT conditions P x + q - C^T z = 0, C x - s = 0
-        Px = Pmul(x)
-        rd = [add(Px[i], q[i]) for i in range(u)]
-        rp = []
-        for k, c in enumerate(cones):
-            ctz = _ct(c, z[k])
-            for j, i in enumerate(c.cols):
-                rd[i] = sub(rd[i], select(on[k], ctz[j], 0.0))
-            rp.append(
-                [select(on[k], sub(a, b_), 0.0) for a, b_ in zip(_cx(c, x), s[k], strict=True)]
-            )
-        # ---- Nesterov-Todd scaling and the Newton matrix H = P + sum C^T W^-2 C
-        scs = [_nt_scaling(s[k], z[k]) for k in range(len(cones))]
-        lam = [_w_apply(scs[k], z[k], inverse=False) for k in range(len(cones))]
-        H = [list(row) for row in P]
-        for k, c in enumerate(cones):
-            wh = [scs[k].w[0], neg(scs[k].w[1]), neg(scs[k].w[2])]
-            g = _ct(c, wh)
-            inv_eta2 = div(1.0, mul(scs[k].eta, scs[k].eta))
-            for a, i in enumerate(c.cols):
-                for bb, j in enumerate(c.cols):
-                    if j > i:
-                        continue
-                    blk = mul(inv_eta2, sub(mul(2.0, mul(g[a], g[bb])), CJC[k][a][bb]))
-                    H[i][j] = add(H[i][j], select(on[k], blk, 0.0))
-        Hs = [[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)]
-        L = _cholesky(Hs, floor)
+    def unpack(state: Sequence[Scalar]) -> tuple[list, list, list, Scalar, Scalar, Scalar]:
+        x = list(state[:u])
+        s = [list(state[u + 3 * k : u + 3 * k + 3]) for k in range(m)]
+        z = [list(state[u + 3 * m + 3 * k : u + 3 * m + 3 * k + 3]) for k in range(m)]
+        return x, s, z, *state[u + 6 * m : u + 6 * m + 3]
 
-        # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
-        dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, [[neg(v) for v in lk] for lk in lam])
-        T_a = _inv_step(on, s, z, ds_a, dz_a)
-        alpha_a = select(gt(T_a, 1.0), div(1.0, _max(T_a, 1.0)), 1.0)
-        mu = mul(sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(len(cones))]), inv_m)
-        one_minus = sub(1.0, alpha_a)
-        sigma = mul(mul(one_minus, one_minus), one_minus)
-        # ---- corrector: lam o lam + (W^-1 ds_a) o (W dz_a) - sigma mu e (Mehrotra), and the same
-        # without the second-order term; the step that lowers the gap more is taken (Mehrotra's
-        # term alone can cycle when the predictor is poor, e.g. forces at the cones' apexes)
-        steps = []
-        for second_order in (True, False):
-            vs = []
-            for k in range(len(cones)):
-                ll = _jordan(lam[k], lam[k])
-                dsk = [sub(ll[0], mul(sigma, mu)), ll[1], ll[2]]
-                if second_order:
-                    corr = _jordan(_w_apply(scs[k], ds_a[k], inverse=True),
-                                   _w_apply(scs[k], dz_a[k], inverse=False))  # fmt: skip
-                    dsk = [add(a, c_) for a, c_ in zip(dsk, corr, strict=True)]
-                vs.append(_jordan_solve(lam[k], [neg(v) for v in dsk]))
-            dx, ds, dz = _newton(cones, on, L, rd, rp, scs, vs)
-            T = _inv_step(on, s, z, ds, dz)
-            alpha = select(gt(T, 0.99), div(0.99, _max(T, 0.99)), 1.0)
-            s_new = [[add(a, mul(alpha, d)) for a, d in zip(s[k], ds[k], strict=True)]
-                     for k in range(len(cones))]  # fmt: skip
-            z_new = [[add(a, mul(alpha, d)) for a, d in zip(z[k], dz[k], strict=True)]
-                     for k in range(len(cones))]  # fmt: skip
-            gap = sum_([select(on[k], _dot(s_new[k], z_new[k]), 0.0) for k in range(len(cones))])
-            x_new = [add(xi, mul(alpha, di)) for xi, di in zip(x, dx, strict=True)]
-            steps.append((x_new, s_new, z_new, gap))
-        plain = gt(steps[0][3], steps[1][3])
-        x_new, s_new, z_new = (
-            [select(plain, b_, a) for a, b_ in zip(steps[0][0], steps[1][0], strict=True)],
-            [[select(plain, b_, a) for a, b_ in zip(u1, u2, strict=True)]
-             for u1, u2 in zip(steps[0][1], steps[1][1], strict=True)],
-            [[select(plain, b_, a) for a, b_ in zip(u1, u2, strict=True)]
-             for u1, u2 in zip(steps[0][2], steps[1][2], strict=True)],
-        )  # fmt: skip
-        # ---- take the step unless it went non-finite
+    def body(state: list[Scalar]) -> tuple[list[Scalar], Scalar]:
+        x, s, z, count, stopped, gap_prev = unpack(state)
+        frozen = gt(stopped, 0.5)
+        x_new, s_new, z_new = _step(pb, x, s, z)
+        # ---- take the step unless it went non-finite or the frame has stopped
         ok = isfinite(sum_([*x_new, *(v for sk in s_new for v in sk),
                             *(v for zk in z_new for v in zk)]))  # fmt: skip
         keep = logical_or(frozen, logical_not(ok))
         x = [select(keep, a, b_) for a, b_ in zip(x, x_new, strict=True)]
-        s = [[select(keep, a, b_) for a, b_ in zip(s[k], s_new[k], strict=True)]
-             for k in range(len(cones))]  # fmt: skip
-        z = [[select(keep, a, b_) for a, b_ in zip(z[k], z_new[k], strict=True)]
-             for k in range(len(cones))]  # fmt: skip
-        # iterations: the first at which the duality gap met tol (a cheap per-step test; the
-        # residuals are checked once, at the end)
-        gap = sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(len(cones))])
-        newly = logical_and(logical_not(gt(gap, gap_tol)), logical_not(done))
-        it_done = select(newly, float(it + 1), it_done)
-        done = logical_or(done, newly)
-        # stop far below the tolerance: later steps only stir rounding noise (W grows like
-        # 1 / sqrt(gap)) and could spoil the residuals
-        frozen = logical_not(gt(gap, freeze_gap))
-    # active: the slack is on the cone's boundary (or apex) to within 10 tol of its size plus
-    # one unit (N), so a slack at the apex (size ~0) counts; the dual alone cannot tell, as it
-    # is only eps-sized when the cone merely picks a point of the least-squares set
-    active = [logical_and(o, logical_not(gt(_eig_min(sk), mul(10.0 * tol, add(sk[0], 1.0)))))
+        s = [[select(keep, a, b_) for a, b_ in zip(s[k], s_new[k], strict=True)] for k in range(m)]
+        z = [[select(keep, a, b_) for a, b_ in zip(z[k], z_new[k], strict=True)] for k in range(m)]
+        count = select(frozen, count, add(count, 1.0))
+        # ---- stop once the gap is far below eps |x|^2: later steps would only stir rounding
+        # noise (W grows like 1 / sqrt(gap)) and could spoil the residuals
+        gap = sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(m)])
+        stall = logical_and(logical_not(gt(gap, gap_stall)), gt(gap, mul(0.5, gap_prev)))
+        halt = logical_or(frozen, logical_or(logical_not(gt(gap, gap_stop)), stall))
+        new = [*x, *(v for sk in s for v in sk), *(v for zk in z for v in zk), count,
+               select(halt, 1.0, 0.0), select(frozen, gap_prev, gap)]  # fmt: skip
+        return new, halt
+
+    init = [*x0, *(v for sk in s0 for v in sk), *(v for zk in z0 for v in zk), 0.0,
+            select(inside0, 1.0, 0.0), float("inf")]  # fmt: skip
+    x, s, z, count, stopped, _ = unpack(loop(iterations, body, init))
+    # active: the slack is on the cone's boundary (or apex) to within ACTIVE_RTOL of its size
+    # plus one unit (N), so a slack at the apex (size ~0) counts; the dual alone cannot tell, as
+    # it is only eps-sized when the cone merely picks a point of the least-squares set
+    rtol = 10.0 * tol
+    active = [logical_and(o, logical_not(gt(_eig_min(sk), mul(rtol, add(sk[0], 1.0)))))
               for o, sk in zip(on, s, strict=True)]  # fmt: skip
-    # x0 inside every cone (e.g. the pseudo-inverse solution, the eps -> 0 limit of the
-    # unconstrained problem): it is the answer. Returned exactly, since along null(A) the
-    # iterate is pinned only by eps, i.e. to rounding / eps.
-    conv = _converged(P, q, qq, cones, on, x, s, z, tol)
+    conv = logical_and(gt(stopped, 0.5), _converged(P, q, qq, cones, on, x, s, z, tol))
+    x = _apply_blocks(cones, None, Cinv, x, forward=False)
+    x_pinv = _apply_blocks(cones, None, Cinv, x_pinv, forward=False)
     return ConeSolution(
-        [select(inside0, a, b_) for a, b_ in zip(x0, x, strict=True)],
+        [select(inside0, a, b_) for a, b_ in zip(x_pinv, x, strict=True)],
         logical_or(inside0, conv),
-        select(inside0, 0.0, it_done),
+        select(inside0, 0.0, count),
         [logical_and(logical_not(inside0), a) for a in active],
     )
 
@@ -595,7 +758,8 @@ def cone_constrained_lstsq(
         b: ``(*B, R)``.
         cones: per cone ``(cols, C)`` with ``C`` ``(*B, 3, len(cols))`` (or ``(3, len(cols))``).
         on: ``(*B, m)`` bool, which cones apply (default all).
-        x0: ``(*B, u)`` starting point (default ``pinv(A) b``).
+        x0: ``(*B, u)`` starting point (default ``pinv(A) b``, which is also the answer wherever
+            it lies inside every cone).
         settings: iteration budget, ``eps``, ``tol`` (default :class:`FrictionCones`).
 
     Returns:
@@ -620,13 +784,11 @@ def cone_constrained_lstsq(
     batch = torch.broadcast_shapes(A.shape[:-2], b.shape[:-1])
     n = int(torch.Size(batch).numel())
     settings = settings or FrictionCones()
-    iters, eps, tol = settings.resolved(A.dtype)
+    iters, eps, tol, stop = settings.resolved(A.dtype)
     Af = A.expand(*batch, R, u).reshape(n, R, u)
     bf = b.expand(*batch, R).reshape(n, R)
-    if x0 is None:
-        x0f = (torch.linalg.pinv(Af, rcond=1e-10) @ bf.unsqueeze(-1)).squeeze(-1)
-    else:
-        x0f = x0.expand(*batch, u).reshape(n, u)
+    xp = (torch.linalg.pinv(Af, rcond=1e-10) @ bf.unsqueeze(-1)).squeeze(-1)
+    x0f = None if x0 is None else x0.expand(*batch, u).reshape(n, u)
     cs = []
     for k, (cols, C) in enumerate(cones):
         cols = tuple(int(c) for c in cols)
@@ -635,9 +797,13 @@ def cone_constrained_lstsq(
         Cf = C.expand(*batch, 3, len(cols)).reshape(n, 3, len(cols))
         o = True if on is None else on.expand(*batch, len(cones)).reshape(n, -1)[:, k]
         cs.append(Cone(cols, [[Cf[:, r, j] for j in range(len(cols))] for r in range(3)], o))
+    start = None if x0f is None else [x0f[:, j] for j in range(u)]
+    start_on = True if x0f is None else torch.isfinite(x0f).all(-1)
+    if x0f is not None:
+        start = [torch.where(start_on, v, 0.0) for v in start]
     sol = solve_cones([[Af[:, r, j] for j in range(u)] for r in range(R)],
-                      [bf[:, r] for r in range(R)], cs, [x0f[:, j] for j in range(u)], eps,
-                      iters, tol)  # fmt: skip
+                      [bf[:, r] for r in range(R)], cs, [xp[:, j] for j in range(u)], eps,
+                      iters, tol, stop, start, start_on)  # fmt: skip
 
     def t(v: Scalar, dtype=A.dtype) -> Tensor:
         return v.to(dtype) if isinstance(v, Tensor) else torch.full((n,), v, dtype=dtype)

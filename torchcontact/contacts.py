@@ -14,6 +14,10 @@ record of a ``(link, kind)`` pair in a frame goes to the r-th slot of that pair.
 :func:`load_contact_spec` reads the TOML/JSON contact-spec files used by ``torchcontact convert
 --contacts``, ``torchcontact run --contacts`` and ``torchcontact export estimator --contacts``.
 
+Records and slots also carry what the friction-cone constrained estimate needs
+(``estimate(..., constraints=...)``): each contact's outward surface normal, its friction
+coefficient or cone half-angle, and whether it pushes.
+
 torch is imported only by :meth:`Contacts.from_records`, so the records, layouts and specs serve
 the live loop's onnxruntime path without torch.
 """
@@ -22,8 +26,8 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,6 +40,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from torch import Tensor
 
 __all__ = [
+    "CONE_FIELDS",
     "KINDS",
     "ContactRecords",
     "ContactSpec",
@@ -47,6 +52,13 @@ __all__ = [
 
 #: Contact kinds and their number of unknowns.
 KINDS: dict[str, int] = {"wrench": 6, "force": 3, "force_dir": 1, "known": 0}
+#: The friction-cone fields of a contact record (:class:`ContactRecords`).
+CONE_FIELDS = ("normals", "friction", "cone_angle", "pushing")
+#: Numeric fields of a record and their widths (None: one number per record).
+_VECTOR_FIELDS: dict[str, int | None] = {
+    "positions": 3, "directions": 3, "wrenches": 6, "normals": 3, "friction": None,
+    "cone_angle": None, "pushing": None,
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -132,6 +144,7 @@ class Contacts:
         *,
         dtype: torch.dtype | None = None,
         device: torch.device | str = "cpu",
+        friction: float | None = None,
     ) -> tuple[Contacts, np.ndarray]:
         """Slots from per-frame records: the variable-count-to-slots assignment.
 
@@ -143,11 +156,17 @@ class Contacts:
                 ``(link, kind)`` in their frame are left out (their slot is -1).
             dtype: of the tensors (default float64).
             device: of the tensors.
+            friction: friction coefficient of the records that give neither ``friction`` nor
+                ``cone_angle`` (None: theirs stays NaN, which a constrained estimate refuses).
 
         Returns:
             ``(contacts, slot)``: :class:`Contacts` with ``(B, K, ...)`` tensors (``active`` marks
             the filled slots; inactive ``force_dir`` slots get the direction +z, other inactive
-            data zeros), and ``slot`` ``(M,)`` int64, each record's slot (-1: none).
+            data zeros), and ``slot`` ``(M,)`` int64, each record's slot (-1: none). When the
+            records carry them (or ``friction`` is given), ``normals`` ``(B, K, 3)`` (NaN for a
+            record without one), ``friction`` ``(B, K)`` (each record's ``mu``: its
+            ``friction``, else ``tan(cone_angle)``, else ``friction``) and ``pushing``
+            ``(B, K)`` (a record's own flag, else every kind but ``known``).
 
         Raises:
             InputError: a record's frame outside ``[0, frames)`` (see :meth:`SlotLayout.fill`).
@@ -164,11 +183,12 @@ class Contacts:
 
         dtype = torch.float64 if dtype is None else dtype
         layout = SlotLayout.covering(records) if layout is None else layout
-        arrays, slot = layout.fill(records, frames)
+        arrays, slot = layout.fill(records, frames, friction=friction)
 
         def t(x: np.ndarray | None) -> Tensor | None:
             return None if x is None else torch.tensor(x, dtype=dtype, device=device)
 
+        pushing = arrays.get("pushing")
         contacts = cls(
             layout.links,
             layout.kinds,
@@ -176,6 +196,9 @@ class Contacts:
             directions=t(arrays.get("directions")),
             wrenches=t(arrays.get("wrenches")),
             active=torch.as_tensor(arrays["active"], device=device),
+            normals=t(arrays.get("normals")),
+            friction=t(arrays.get("friction")),
+            pushing=None if pushing is None else torch.as_tensor(pushing, device=device),
         )
         return contacts, slot
 
@@ -208,6 +231,17 @@ class Contacts:
                 return None
             return x.detach().reshape(n, K, width).cpu().double().numpy()[f, k]
 
+        def per_slot(x: Tensor | float | None) -> np.ndarray | None:
+            if x is None:
+                return None
+            a = x.detach().cpu().double().numpy() if hasattr(x, "detach") else np.asarray(x, float)
+            return np.broadcast_to(a, (*a.shape[:-1], K) if a.ndim else (K,)).reshape(-1, K)
+
+        def slot_values(x: Tensor | float | None) -> np.ndarray | None:
+            a = per_slot(x)
+            return None if a is None else np.broadcast_to(a, (n, K))[f, k]
+
+        push = slot_values(self.pushing)
         return ContactRecords(
             frame=f,
             links=np.asarray(self.links, dtype=object)[k],
@@ -215,6 +249,10 @@ class Contacts:
             positions=pos[f, k],
             directions=per_record(self.directions, 3),
             wrenches=per_record(self.wrenches, 6),
+            normals=per_record(self.normals, 3),
+            friction=slot_values(self.friction),
+            cone_angle=slot_values(self.cone_angle),
+            pushing=None if push is None else push.astype(np.float64),
         )
 
 
@@ -246,6 +284,12 @@ class ContactRecords:
             ``links == link_names[link_codes]`` (likewise kinds): the distinct names and each
             record's index among them, when the reader has them (Arrow dictionary encoding);
             :meth:`name_codes` computes them otherwise.
+        normals: ``(M, 3)`` float64 outward surface normals, link frame (NaN: missing), or None.
+        friction: ``(M,)`` float64 friction coefficients (NaN: not given), or None.
+        cone_angle: ``(M,)`` float64 cone half-angles, rad (NaN: not given), or None; a record
+            gives ``friction`` or ``cone_angle``.
+        pushing: ``(M,)`` float64 1 (the contact pushes) or 0 (NaN: not given, which means
+            every kind but ``known`` pushes), or None.
 
     Raises:
         InputError: arrays of inconsistent lengths or widths.
@@ -260,6 +304,10 @@ class ContactRecords:
     names: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(
         default=None, repr=False, compare=False
     )
+    normals: np.ndarray | None = None
+    friction: np.ndarray | None = None
+    cone_angle: np.ndarray | None = None
+    pushing: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         frame = np.asarray(self.frame, dtype=np.int64).reshape(-1)
@@ -267,16 +315,50 @@ class ContactRecords:
         object.__setattr__(self, "frame", frame)
         object.__setattr__(self, "links", _object_array(self.links, M, "links"))
         object.__setattr__(self, "kinds", _object_array(self.kinds, M, "kinds"))
-        for name, width in (("positions", 3), ("directions", 3), ("wrenches", 6)):
+        for name, width in _VECTOR_FIELDS.items():
             value = getattr(self, name)
             if value is None:
                 continue
             arr = np.asarray(value, dtype=np.float64)
-            if arr.shape != (M, width):
+            shape = (M,) if width is None else (M, width)
+            if arr.shape != shape:
                 raise InputError(
-                    f"contact records: {name} must have shape ({M}, {width}), got {arr.shape}"
+                    f"contact records: {name} must have shape {shape}, got {arr.shape}"
                 )
             object.__setattr__(self, name, arr)
+
+    @property
+    def cone_fields(self) -> tuple[str, ...]:
+        """The friction-cone fields these records carry (``normals``, ``friction``, ...)."""
+        return tuple(n for n in CONE_FIELDS if getattr(self, n) is not None)
+
+    def with_frame(self, frame: np.ndarray) -> ContactRecords:
+        """The same records numbered with other frames."""
+        return replace(self, frame=frame)
+
+    @classmethod
+    def concat(cls, parts: Sequence[ContactRecords]) -> ContactRecords:
+        """Records of several parts, in order (a field missing from a part is NaN there)."""
+        if not parts:
+            return cls.empty()
+        M = [len(p) for p in parts]
+
+        def joined(name: str) -> np.ndarray | None:
+            if all(getattr(p, name) is None for p in parts):
+                return None
+            w = _VECTOR_FIELDS[name]
+            return np.concatenate(
+                [np.full((m,) if w is None else (m, w), np.nan) if getattr(p, name) is None
+                 else getattr(p, name) for p, m in zip(parts, M, strict=True)]
+            )  # fmt: skip
+
+        return cls(
+            np.concatenate([p.frame for p in parts]),
+            np.concatenate([p.links for p in parts]),
+            np.concatenate([p.kinds for p in parts]),
+            np.concatenate([p.positions for p in parts]),
+            **{n: joined(n) for n in _VECTOR_FIELDS if n != "positions"},
+        )
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -314,6 +396,7 @@ class ContactRecords:
             pick(self.directions),
             pick(self.wrenches),
             names,
+            **{n: pick(getattr(self, n)) for n in CONE_FIELDS},
         )
 
 
@@ -383,19 +466,24 @@ class SlotLayout:
         return np.where((key_id >= 0) & (rank < mult), start + rank, -1)
 
     def fill(
-        self, records: ContactRecords, frames: int
+        self, records: ContactRecords, frames: int, friction: float | None = None
     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Per-slot arrays of B frames from records (numpy; :meth:`Contacts.from_records` wraps it).
 
         Args:
             records: M records of frames ``0 .. frames - 1``.
             frames: number of frames B.
+            friction: friction coefficient of records without ``friction`` or ``cone_angle``.
 
         Returns:
             ``(arrays, slot)``: ``positions (B, K, 3)``, ``active (B, K)`` bool, and, when the
             layout has such slots, ``directions (B, K, 3)`` (inactive ``force_dir`` slots get +z)
-            and ``wrenches (B, K, 6)``; ``slot (M,)`` from :meth:`assign` (-1: record left out).
-            A ``force_dir`` or ``known`` record without its vector gets NaN there.
+            and ``wrenches (B, K, 6)``; when the records carry them, ``normals (B, K, 3)``
+            (inactive slots: zeros), ``friction (B, K)`` (``friction``, else
+            ``tan(cone_angle)``, else the default ``friction``; inactive slots: 1) and
+            ``pushing (B, K)`` bool (a record's flag, else every kind but ``known``); ``slot
+            (M,)`` from :meth:`assign` (-1: record left out). A ``force_dir`` or ``known`` record
+            without its vector, a record without a normal or friction, gets NaN there.
 
         Raises:
             InputError: a record's frame outside ``[0, frames)``.
@@ -421,6 +509,23 @@ class SlotLayout:
             sel = kinds == "known"
             wr = records.wrenches
             W[f[sel], k[sel]] = np.nan if wr is None else wr[ok[sel]]
+        if records.normals is not None:
+            out["normals"] = np.zeros((frames, K, 3))
+            out["normals"][f, k] = records.normals[ok]
+        if records.friction is not None or records.cone_angle is not None or friction is not None:
+            mu = np.full(len(ok), np.nan if friction is None else float(friction))
+            if records.cone_angle is not None:
+                angle = records.cone_angle[ok]
+                mu = np.where(np.isnan(angle), mu, np.tan(angle))
+            if records.friction is not None:
+                mu = np.where(np.isnan(records.friction[ok]), mu, records.friction[ok])
+            out["friction"] = np.ones((frames, K))
+            out["friction"][f, k] = mu
+        if records.pushing is not None:
+            default = np.array([kd != "known" for kd in self.kinds], bool)
+            out["pushing"] = np.repeat(default[None], frames, 0)
+            given = records.pushing[ok]
+            out["pushing"][f, k] = np.where(np.isnan(given), default[k], given > 0.5)
         return out, slot
 
 
@@ -474,7 +579,8 @@ def _rank_in_frame(frame: np.ndarray, key_id: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- contact-spec files
-_SPEC_KEYS = ("link", "kind", "position", "direction", "wrench", "start_ns", "end_ns")
+_SPEC_KEYS = ("link", "kind", "position", "direction", "wrench", "normal", "friction",
+              "cone_angle", "pushing", "start_ns", "end_ns")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -510,8 +616,7 @@ class ContactSpec:
         """
         t = np.asarray(t_ns, np.int64)[:, None]
         f, e = np.nonzero((t >= self.start_ns[None]) & (t <= self.end_ns[None]))
-        rec = self.entries.select(e)
-        return ContactRecords(f, rec.links, rec.kinds, rec.positions, rec.directions, rec.wrenches)
+        return self.entries.select(e).with_frame(f)
 
     def static(self) -> ContactRecords:
         """Every entry in frame 0, for a fixed contact set (the live loop).
@@ -524,9 +629,7 @@ class ContactSpec:
                 f"{self.source}: start_ns/end_ns apply to logs only; a live contact spec lists"
                 " the contacts present all the time"
             )
-        e = self.entries
-        frame = np.zeros(len(e), np.int64)
-        return ContactRecords(frame, e.links, e.kinds, e.positions, e.directions, e.wrenches)
+        return self.entries.with_frame(np.zeros(len(self.entries), np.int64))
 
 
 def _numbers(value: Any, n: int, where: str) -> list[float]:
@@ -547,7 +650,9 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
         data: ``{"contact": [entry, ...]}`` or a list of entries; an entry is a mapping with
             ``link`` (str), ``position`` (3 numbers, m, link frame), optional ``kind`` (default
             ``"force"``), ``direction`` (3 numbers; ``force_dir`` only, required there),
-            ``wrench`` (6 numbers ``[N; N m]``; ``known`` only, required there), ``start_ns`` and
+            ``wrench`` (6 numbers ``[N; N m]``; ``known`` only, required there), ``normal`` (3
+            numbers, outward surface normal in the link frame, nonzero), ``friction`` (> 0) or
+            ``cone_angle`` (rad, in ``(0, pi/2)``), ``pushing`` (bool), ``start_ns`` and
             ``end_ns`` (int ns, inclusive range; default always).
         source: name used in messages.
 
@@ -557,7 +662,8 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
     Raises:
         InputError: naming the entry and key: an unknown key, a missing link or position, an
             unknown kind, a vector of the wrong length or with non-finite values, a missing
-            direction or wrench, or ``start_ns > end_ns``.
+            direction or wrench, a zero normal, a friction coefficient or cone angle out of
+            range (or both given), a ``pushing`` that is not a boolean, or ``start_ns > end_ns``.
 
     Example:
         >>> spec = parse_contact_spec({"contact": [{"link": "hand", "position": [0, 0, 0.1]}]})
@@ -575,6 +681,7 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
             f"{source}: 'contact' must be a list of tables, got {type(items).__name__}"
         )
     links, kinds, pos, dirs, wrs, lo, hi = [], [], [], [], [], [], []
+    cone: dict[str, list] = {n: [] for n in CONE_FIELDS}
     for i, c in enumerate(items):
         where = f"{source}: contact {i}"
         if not isinstance(c, Mapping):
@@ -603,6 +710,7 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
                 raise InputError(f"{where}: a {needed_by} contact needs a {key}")
             else:
                 out.append([math.nan] * width)
+        _cone_entry(c, where, cone)
         for key, default, out in (
             ("start_ns", np.iinfo(np.int64).min, lo),
             ("end_ns", np.iinfo(np.int64).max, hi),
@@ -614,6 +722,7 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
         if lo[-1] > hi[-1]:
             raise InputError(f"{where}: start_ns {lo[-1]} is after end_ns {hi[-1]}")
     E = len(links)
+    given = {n: v for n, v in cone.items() if any(not math.isnan(x) for x in np.ravel(v))}
     entries = ContactRecords(
         np.arange(E),
         links,
@@ -621,8 +730,33 @@ def parse_contact_spec(data: Any, source: str = "contact spec") -> ContactSpec:
         np.asarray(pos, np.float64).reshape(E, 3),
         np.asarray(dirs, np.float64).reshape(E, 3) if "force_dir" in kinds else None,
         np.asarray(wrs, np.float64).reshape(E, 6) if "known" in kinds else None,
-    )
+        **{n: np.asarray(v, np.float64).reshape(E, 3) if n == "normals" else
+           np.asarray(v, np.float64) for n, v in given.items()},
+    )  # fmt: skip
     return ContactSpec(entries, np.asarray(lo, np.int64), np.asarray(hi, np.int64), source)
+
+
+def _cone_entry(c: Mapping[str, Any], where: str, out: dict[str, list]) -> None:
+    """Validate an entry's friction-cone keys; append its values (NaN when absent) to ``out``."""
+    normal = [math.nan] * 3
+    if c.get("normal") is not None:
+        normal = _numbers(c["normal"], 3, f"{where}: normal")
+        if not any(normal):
+            raise InputError(f"{where}: normal is zero; give the outward surface normal")
+    out["normals"].append(normal)
+    if c.get("friction") is not None and c.get("cone_angle") is not None:
+        raise InputError(f"{where}: give friction or cone_angle, not both")
+    for key in ("friction", "cone_angle"):
+        v = c.get(key)
+        if v is not None and not (
+            isinstance(v, (int, float)) and not isinstance(v, bool) and _in_range(key, float(v))
+        ):
+            raise InputError(f"{where}: {key} must be {_RANGE[key]}, got {v!r}")
+        out[key].append(math.nan if v is None else float(v))
+    push = c.get("pushing")
+    if push is not None and not isinstance(push, bool):
+        raise InputError(f"{where}: pushing must be true or false, got {push!r}")
+    out["pushing"].append(math.nan if push is None else float(push))
 
 
 def load_contact_spec(path: str | Path) -> ContactSpec:
@@ -636,6 +770,9 @@ def load_contact_spec(path: str | Path) -> ContactSpec:
         position = [0.0, 0.0, 0.0]   # m, link frame
         direction = [0, 0, -1]       # force_dir only
         wrench = [0, 0, 0, 0, 0, 0]  # known only, [N; N m]
+        normal = [0, 0, 1]           # optional: outward surface normal, link frame
+        cone_angle = 0.5             # optional: rad (or friction = mu)
+        pushing = true               # optional (default: every kind but known)
         start_ns = 0                 # optional time range (inclusive), logs only
         end_ns = 5_000_000_000
 
@@ -668,6 +805,7 @@ def load_contact_spec(path: str | Path) -> ContactSpec:
         kind = "TOML" if path.suffix.lower() == ".toml" else "JSON"
         raise InputError(f"{path}: not a valid {kind} contact spec ({exc})") from None
     return parse_contact_spec(data, str(path))
+
 
 _RANGE = {"friction": "a finite number > 0", "cone_angle": "in (0, pi/2) rad"}
 

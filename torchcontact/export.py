@@ -35,6 +35,15 @@ offset, re-identified inertial parameters, learned layer) as one graph from raw 
 the correction ``(N, 6)``; :func:`export_residual` writes any ``nn.Module`` mapping features
 ``(N, F)`` to an F/T residual ``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``);
 :func:`check_parity` compares a file with its module.
+
+With ``constraints`` (:class:`~torchcontact.FrictionCones`) :func:`export_estimator` writes the
+friction-cone constrained estimator instead: the eager estimator traced by ``torch.onnx`` with
+its interior-point iterations unrolled to the whole budget (one batched graph, no single-frame
+graph: :meth:`EstimatorRuntime.step <torchcontact.runtime.EstimatorRuntime.step>` runs it with
+``N = 1``). It takes :data:`CONE_INPUTS` after the fixed-base inputs (``normals (N, K, 3)``
+outward surface normals, link frame; ``friction (N, K)`` coefficients; ``pushing (N, K)`` 1/0)
+and returns :data:`CONE_OUTPUTS` after the outputs (``converged (N, S)`` bool,
+``iterations (N, S)`` int64, ``cone_active (N, K)`` bool).
 """
 
 from __future__ import annotations
@@ -50,12 +59,15 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchcontact.contacts import KINDS
+from torchcontact.constrained import FrictionCones
+from torchcontact.contacts import KINDS, Contacts
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
 __all__ = [
+    "CONE_INPUTS",
+    "CONE_OUTPUTS",
     "ESTIMATOR_INPUTS",
     "ESTIMATOR_OUTPUTS",
     "check_parity",
@@ -88,6 +100,10 @@ ESTIMATOR_OUTPUTS = (
     "residual",
     "status",
 )
+#: Inputs a constrained estimator graph takes after the fixed-base ones (``constraints``).
+CONE_INPUTS = ("normals", "friction", "pushing")
+#: Outputs a constrained estimator graph returns after :data:`ESTIMATOR_OUTPUTS`.
+CONE_OUTPUTS = ("converged", "iterations", "cone_active")
 #: Format version of the metadata written by :func:`export_estimator`.
 FORMAT = "torchcontact.estimator/2"
 DEFAULT_OPSET = 18
@@ -143,6 +159,115 @@ def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> No
         m.metadata_props.add(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
     onnx.checker.check_model(m)
     onnx.save(m, str(path))
+
+
+class _ConstrainedGraph(nn.Module):
+    """The friction-cone constrained estimator of fixed slots, tensors in and out (traced).
+
+    ``forward(q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual, normals,
+    friction, pushing)`` returns :data:`ESTIMATOR_OUTPUTS` then :data:`CONE_OUTPUTS`.
+    """
+
+    def __init__(
+        self,
+        estimator: ContactEstimator,
+        links: Sequence[str],
+        kinds: Sequence[str],
+        constraints: FrictionCones,
+    ) -> None:
+        super().__init__()
+        self.est, self.constraints = estimator, constraints
+        self.links, self.kinds = tuple(links), tuple(kinds)
+
+    def forward(self, *x: Tensor) -> tuple[Tensor, ...]:
+        """Estimate ``N`` frames (shapes in the module docstring)."""
+        q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual = x[:9]
+        normals, friction, pushing = x[9:]
+        est, names = self.est, self.est.sensor_names
+        readings = ft - ft_residual
+        contacts = Contacts(
+            self.links,
+            self.kinds,
+            positions,
+            directions,
+            wrenches,
+            active > 0.5,
+            normals=normals,
+            friction=friction,
+            pushing=pushing > 0.5,
+        )
+        out = est.estimate(
+            q,
+            qd,
+            qdd,
+            {s: readings[:, i] for i, s in enumerate(names)},
+            contacts,
+            backend="eager",
+            constraints=self.constraints,
+        )
+        cones = out.cones
+        return (
+            out.force,
+            out.moment,
+            out.joint_torques,
+            torch.stack([out.rank[s] for s in names], -1),
+            torch.stack([out.unknowns[s] for s in names], -1),
+            torch.stack([out.residual[s] for s in names], -1),
+            out.status,
+            torch.stack([cones.converged[s] for s in names], -1),
+            torch.stack([cones.iterations[s] for s in names], -1),
+            cones.active,
+        )
+
+
+def _export_constrained(
+    est: ContactEstimator, links, kinds, constraints: FrictionCones, path: Path, meta: dict, opset
+) -> dict[str, str]:
+    """Trace :class:`_ConstrainedGraph` to ``path`` and write ``meta`` (updated) into it."""
+    m = est.model
+    S, K, nv = len(est.sensor_names), len(links), m.nv
+    shapes = {
+        "q": ["N", nv],
+        "qd": ["N", nv],
+        "qdd": ["N", nv],
+        "ft": ["N", S, 6],
+        "positions": ["N", K, 3],
+        "directions": ["N", K, 3],
+        "wrenches": ["N", K, 6],
+        "active": ["N", K],
+        "ft_residual": ["N", S, 6],
+        "normals": ["N", K, 3],
+        "friction": ["N", K],
+        "pushing": ["N", K],
+    }
+    g = torch.Generator().manual_seed(0)
+    ex = {k: torch.rand(2, *sh[1:], generator=g, dtype=torch.float64) for k, sh in shapes.items()}
+    for k in ("directions", "normals", "friction"):
+        ex[k] = ex[k] + 0.5
+    for k in ("active", "pushing"):
+        ex[k] = torch.ones_like(ex[k])
+    ex["ft_residual"] = torch.zeros_like(ex["ft_residual"])
+    example = tuple(v.to(m.dtype) for v in ex.values())
+    names_out = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
+    dyn = {k: {0: "N"} for k in (*shapes, *names_out)}
+    graph = _ConstrainedGraph(est, links, kinds, constraints).eval()
+    with torch.no_grad():
+        _export(graph, example, path, list(shapes), names_out, dyn, opset)
+    iterations, eps, tol, _ = constraints.resolved(m.dtype)
+    meta = {
+        **meta,
+        "inputs": json.dumps(list(shapes)),
+        "input_shapes": json.dumps(shapes),
+        "outputs": json.dumps(names_out),
+        "constraints": json.dumps({"iterations": iterations, "eps": eps, "tol": tol}),
+        "solver": "friction-cone constrained least squares (torchcontact.constrained), unrolled",
+        "step_graph": "",
+        "step_inputs": "{}",
+        "step_outputs": "{}",
+        "graph": "batched",
+    }
+    _set_metadata(path, meta)
+    return meta
 
 
 def _residual_graphs(residual, model: RobotModel, est: ContactEstimator) -> list:
@@ -326,6 +451,7 @@ def export_estimator(
     ft_range: Mapping[str, float | Sequence[float]] | None = None,
     residual: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
     joints: Sequence[str] | str | None = None,
+    constraints: FrictionCones | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -362,6 +488,10 @@ def export_estimator(
             ``"sensed"``, the joints whose torque the sensors determine (inside the sensors'
             subtrees, and between a sensor and the next moving joint towards the root). The
             single-frame graph keeps only the bodies the regions and these torques need.
+        constraints: :class:`~torchcontact.FrictionCones`: the friction-cone constrained
+            estimator instead (traced, the whole iteration budget unrolled; one batched graph,
+            more inputs and outputs, see the module docstring; metadata ``constraints``); fixed
+            base and F/T rows only.
 
     Returns:
         The metadata written into the files' ``metadata_props``.
@@ -406,7 +536,15 @@ def export_estimator(
     from torchcontact._onnx_step import torque_joints
 
     coords = torque_joints(em, joints)
-    gb, shapes = _batched_graph(em, flags, npd, res, coords)
+    if constraints is not None:
+        if any(flags) or res or joints is not None:
+            raise InputError(
+                "constraints: the constrained graph takes the fixed-base F/T inputs only (no"
+                " moving_base, torque_rows, covariance, residual or joints)"
+            )
+        shapes = {}
+    else:
+        gb, shapes = _batched_graph(em, flags, npd, res, coords)
     files = [Path(rg.path).name for rg, _ in res]
     meta = {
         "format": FORMAT,
@@ -471,6 +609,8 @@ def export_estimator(
         "torch_version": torch.__version__,
         "opset": str(opset),
     }
+    if constraints is not None:
+        return _export_constrained(est, links, kinds, constraints, path, meta, opset)
     if step_graph:
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
         meta["step_inputs"] = json.dumps(lin.as_dict())

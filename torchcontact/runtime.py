@@ -516,6 +516,9 @@ class EstimatorRuntime:
         tau_mask: np.ndarray | None = None,
         ft_cov: np.ndarray | None = None,
         extra: Mapping[str, float] | None = None,
+        normals: np.ndarray | None = None,
+        friction: np.ndarray | None = None,
+        pushing: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """Estimate one frame from the raw readings.
 
@@ -537,12 +540,17 @@ class EstimatorRuntime:
             tau_mask: ``(nv,)`` which torques are measured (default: the finite ones).
             ft_cov: ``(S, 6, 6)`` reading noise covariances (graphs with the covariance).
             extra: the extra columns the corrections read, name -> value (e.g. temperature).
+            normals: ``(K, 3)`` outward surface normals, link frames (constrained graphs,
+                ``export_estimator(..., constraints=...)``; required there).
+            friction: ``(K,)`` friction coefficients (constrained graphs; required there).
+            pushing: ``(K,)`` 1/0: the contact can only push (constrained graphs; default 1).
 
         Returns:
             ``force``, ``moment`` ``(K, 3)`` (N, N m; link frames, moment about the point),
             ``joint_torques (nv,)``, ``rank``, ``unknowns`` ``(S,)`` int64, ``residual (S,)``,
-            ``status`` (int, 0 ok; bits of ``torchcontact.STATUS``), and ``covariance
-            (K, 6, 6)`` when exported with it.
+            ``status`` (int, 0 ok; bits of ``torchcontact.STATUS``), ``covariance
+            (K, 6, 6)`` when exported with it, and a constrained graph's ``converged``,
+            ``iterations`` ``(S,)`` and ``cone_active (K,)``.
 
         Raises:
             InputError: a wrong shape, a missing required input or extra column.
@@ -563,6 +571,9 @@ class EstimatorRuntime:
                         tau_measured=tau_measured,
                         tau_mask=tau_mask,
                         ft_cov=ft_cov,
+                        normals=normals,
+                        friction=friction,
+                        pushing=pushing,
                     ).items()
                 },
                 extra={k: np.atleast_1d(v) for k, v in (extra or {}).items()},
@@ -583,6 +594,8 @@ class EstimatorRuntime:
         if "wrenches" in self._xv:
             put("wrenches", wrenches)
         put("ft_residual", ft_residual)
+        for name, value in (("normals", normals), ("friction", friction), ("pushing", pushing)):
+            put(name, value)  # only a constrained graph has them (it has no step graph)
         if "omega" in self._xv or omega is not None:
             put("omega", omega, None)
             put("domega", domega, None)
@@ -689,6 +702,9 @@ class EstimatorRuntime:
         extra: Mapping[str, np.ndarray] | None = None,
         h_in: Mapping[str, np.ndarray] | None = None,
         chunk_size: int = 16384,
+        normals: np.ndarray | None = None,
+        friction: np.ndarray | None = None,
+        pushing: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """Estimate ``N`` independent frames with the batched graph.
 
@@ -712,6 +728,9 @@ class EstimatorRuntime:
             h_in: sensor -> ``(N, L, H)`` recurrent states of corrections inside the graph
                 (default zeros; each row is an independent frame).
             chunk_size: frames per graph call (bounds memory, keeps the working set in cache).
+            normals: ``(N, K, 3)`` (constrained graphs).
+            friction: ``(N, K)`` (constrained graphs).
+            pushing: ``(N, K)`` (constrained graphs; default ones).
 
         Returns:
             As :meth:`step` with a leading ``N``; ``status`` ``(N,)`` int64.
@@ -739,7 +758,16 @@ class EstimatorRuntime:
             tau_measured=tau_measured,
             tau_mask=tau_mask,
             ft_cov=ft_cov,
+            normals=normals,
+            friction=friction,
+            pushing=pushing,
         )
+        inputs = {i.name for i in sess.get_inputs()}
+        optional = ("omega", "domega", "proper_acc", "tau_measured", "tau_mask", "ft_cov")
+        optional += ("normals", "friction", "pushing")
+        unknown = [k for k in optional if given[k] is not None and k not in inputs]
+        if unknown:
+            raise InputError(f"this graph has no inputs {unknown} (exported without them)")
         if tau_measured is not None and tau_mask is None:
             given["tau_mask"] = np.isfinite(np.asarray(tau_measured, dtype=float))
         feed = {}
@@ -773,12 +801,15 @@ class EstimatorRuntime:
                         "proper_acc",
                         "tau_measured",
                         "ft_cov",
+                        "normals",
+                        "friction",
                     ):
                         raise InputError(
                             f"{name} is required by this graph, shape (N, "
                             f"{', '.join(map(str, trailing))})"
                         )
-                    x = np.ones((n, *trailing)) if name == "active" else np.zeros((n, *trailing))
+                    ones = name in ("active", "pushing")
+                    x = np.ones((n, *trailing)) if ones else np.zeros((n, *trailing))
             x = np.asarray(x, dtype=self.dtype)
             if x.shape != (n, *trailing):
                 raise InputError(

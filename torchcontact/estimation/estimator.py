@@ -17,7 +17,7 @@ from torch import Tensor
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
 from torchcontact._internal import check_input, flatten_batch
-from torchcontact.constrained import FrictionCones
+from torchcontact.constrained import FrictionCones, PreviousFrame
 from torchcontact.contacts import KINDS, Contacts
 from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError
@@ -73,9 +73,11 @@ class ConeStatus(NamedTuple):
     """Per-frame status of the friction-cone constrained estimate.
 
     Attributes:
-        converged: sensor -> ``(*B,)`` bool, the interior-point residuals and gap met ``tol``.
-        iterations: sensor -> ``(*B,)`` int64, the iteration at which they first did (the
-            budget when never; 0 for a region without unknowns).
+        converged: sensor -> ``(*B,)`` bool: the interior-point iterations stopped (the
+            iterate no longer moves) within the budget and the KKT residuals meet ``tol``.
+        iterations: sensor -> ``(*B,)`` int64, the iterations run until then (the budget when
+            it never stopped; 0 where the pseudo-inverse solution lies inside every cone, and
+            for a region without unknowns).
         active: ``(*B, K)`` bool, the slot's cone constraint binds (its force is on the cone's
             boundary or at its apex).
     """
@@ -179,7 +181,7 @@ class ContactEstimator:
         chunk_size: int | None = 8192,
         backend: str | None = None,
         constraints: FrictionCones | None = None,
-        warm_start: tuple[Tensor, Tensor] | None = None,
+        warm_start: tuple[Tensor, Tensor] | PreviousFrame | None = None,
         nullspace: bool = False,
     ) -> ContactEstimate:
         """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
@@ -211,7 +213,9 @@ class ContactEstimator:
                 result's ``cones`` holds its status. None: the paper's pseudo-inverse.
             warm_start: ``(force, moment)``, each ``(*B, K, 3)`` (link frame, e.g. a previous
                 frame's estimate): the constrained solver's starting point (frames with
-                non-finite values start from the pseudo-inverse solution).
+                non-finite values start from the pseudo-inverse solution); or
+                :class:`~torchcontact.constrained.PreviousFrame`: the batch is a time series and
+                each frame starts from its predecessor's estimate (computed in waves).
             nullspace: also return each region's null-space basis (``nullspace`` of the result).
 
         Returns:
@@ -303,7 +307,17 @@ class ContactEstimator:
                 raise InputError("ft_covariance is not propagated through the constrained solve")
             cone_flags = constraints.resolved(dtype)
             tensors.update(_cone_inputs(contacts, em.kinds, batch, tensors["active"], model))
-            if warm_start is not None:
+            if isinstance(warm_start, PreviousFrame):
+                if warm_start.before is not None:
+                    pair = warm_start.before
+                    if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+                        raise InputError("PreviousFrame.before must be a (force, moment) pair")
+                    for name, x in zip(("force", "moment"), warm_start.before, strict=True):
+                        check_input(f"PreviousFrame.before {name}", x, (K, 3), model,
+                                    f"({K}, 3)", finite=False)  # fmt: skip
+                        if x.dim() != 2:
+                            raise InputError(f"PreviousFrame.before {name} must be ({K}, 3)")
+            elif warm_start is not None:
                 if not isinstance(warm_start, (tuple, list)) or len(warm_start) != 2:
                     raise InputError("warm_start must be a (force, moment) pair of (*B, K, 3)")
                 wf = per_frame("warm_start force", warm_start[0], (K, 3)).reshape(n, K, 3)
@@ -311,10 +325,15 @@ class ContactEstimator:
                 tensors["warm"] = torch.cat([wf, wm], -1).reshape(n, 6 * K)
         elif warm_start is not None:
             raise InputError("warm_start needs constraints (it starts the constrained solver)")
+        waves = warm_start if isinstance(warm_start, PreviousFrame) else None
         prog = program(em, "estimate", base is not None, tau_measured is not None,
-                       ft_covariance is not None, cone_flags, "warm" in tensors,
-                       bool(nullspace))  # fmt: skip
-        out = _dyn._run(prog, tensors, self.backend if backend is None else backend, chunk_size)
+                       ft_covariance is not None, cone_flags,
+                       "warm" in tensors or waves is not None, bool(nullspace))  # fmt: skip
+        backend = self.backend if backend is None else backend
+        if waves is None:
+            out = _dyn._run(prog, tensors, backend, chunk_size)
+        else:
+            out = _run_waves(prog, tensors, waves, K, backend, chunk_size)
         rank = out["rank"].round().to(torch.long)
         unknowns = out["unknowns"].round().to(torch.long)
         ident = rank == unknowns
@@ -411,6 +430,49 @@ class ContactEstimator:
         ft = out["ft"]
         return {s: ft[:, 6 * i : 6 * i + 6].reshape(*batch, 6)
                 for i, s in enumerate(self.sensor_names)}  # fmt: skip
+
+
+def _run_waves(
+    prog: kernels.Program,
+    tensors: dict[str, Tensor],
+    warm: PreviousFrame,
+    K: int,
+    backend: str,
+    chunk_size: int | None,
+) -> dict[str, Tensor]:
+    """Run the constrained program in waves, each frame warm-started from its predecessor.
+
+    Frames ``j, j + S, j + 2 S, ...`` form wave ``j`` (``S = ceil(n / warm.wave)``): the ``j``-th
+    frame of every block of ``S`` consecutive frames; wave ``j`` starts from wave ``j - 1``'s
+    estimates, wave 0 cold but for frame 0 (``warm.before``).
+    """
+    first = next(iter(tensors.values()))
+    n = first.shape[0]
+    S = max(1, -(-n // warm.wave))
+    floats = (torch.float32, torch.float64)
+    if backend == "auto" and n >= kernels.AUTO_BUILD_MIN_FRAMES and first.dtype in floats:
+        # the waves are smaller than the batch: start the background build for the batch
+        kernels.compiled(prog, first.dtype, first.device, wait=False)
+    out: dict[str, Tensor] = {}
+    prev = None
+    for j in range(min(S, n)):
+        rows = slice(j, n, S)
+        sub = {k: v[rows] for k, v in tensors.items()}
+        m = sub["q"].shape[0]
+        start = first.new_full((m, 6 * K), float("nan"))
+        if prev is not None:
+            start = prev[:m]  # the previous wave has as many rows or one more
+        elif warm.before is not None:
+            start[0] = torch.cat([warm.before[0], warm.before[1]], -1).reshape(6 * K)
+        sub["warm"] = start
+        o = _dyn._run(prog, sub, backend, chunk_size)
+        for k, v in o.items():
+            if k not in out:
+                out[k] = v.new_empty(n, v.shape[1])
+            out[k][rows] = v
+        prev = torch.cat([o["force"].reshape(m, K, 3), o["moment"].reshape(m, K, 3)], -1)
+        prev = prev.reshape(m, 6 * K)
+    return out
 
 
 def _split_nullspace(em: EstimationModel, flat: Tensor, batch: torch.Size) -> dict[str, Tensor]:

@@ -290,8 +290,9 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             extra["nullspace"] += [basis[c][i] for i in range(n_unk) for c in range(n_unk)]
         if cones is None:
             continue
-        iterations, eps, tol = cones
+        iterations, eps, tol, stop = cones
         x0 = [sum_([mul(A[i][j], ys[r][i]) for i in range(R)]) for j in range(u)]  # pinv(A) b
+        x_start, start_on = None, False
         if warm:
             xw = []
             for k, j in labels:
@@ -305,7 +306,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
                     xw.append(wk[j])
             fin = _finite([v for k in dict.fromkeys(k for k, _ in labels)
                            for v in x["warm"][6 * k : 6 * k + 6]])  # fmt: skip
-            x0 = [select(fin, a, c) for a, c in zip(xw, x0, strict=True)]
+            x_start, start_on = xw, fin
         cone_list, cone_slot = [], []
         start = 0
         for k in reg.slots:
@@ -322,7 +323,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
                 cone_list.append(Cone(tuple(range(start, start + 3)), cone_rows(nk, mu), on))
             cone_slot.append(k)
             start += KINDS[slot.kind]
-        sol = solve_cones(A, b[r], cone_list, x0, eps, iterations, tol)
+        sol = solve_cones(A, b[r], cone_list, x0, eps, iterations, tol, stop, x_start, start_on)
         extra["converged"].append(select(sol.converged, 1.0, 0.0))
         extra["iterations"].append(sol.iterations)
         for k, a in zip(cone_slot, sol.active, strict=True):

@@ -42,8 +42,17 @@ from torch import Tensor
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
 
-__all__ = ["BACKENDS", "CFLAGS", "Program", "build_source", "cache_dir", "compiled", "run",
-           "wait_for_builds"]
+__all__ = [
+    "BACKENDS",
+    "CFLAGS",
+    "Program",
+    "build_dir_lock",
+    "build_source",
+    "cache_dir",
+    "compiled",
+    "run",
+    "wait_for_builds",
+]
 
 #: Accepted ``backend`` arguments.
 BACKENDS = ("auto", "eager", "cpu", "cuda")
@@ -206,14 +215,40 @@ def build_source(name: str, cpp: Path) -> Path:
     """
     from torch.utils import cpp_extension
 
-    try:
-        cpp_extension.load(
-            name, [str(cpp)], extra_cflags=list(CFLAGS), build_directory=str(cpp.parent),
-            is_python_module=False, verbose=False,
-        )  # fmt: skip
-    except Exception as e:  # compiler missing, internal compiler error, ...
-        raise KernelBuildError(f"building kernel {name} failed: {e}") from e
-    return cpp.with_suffix(".so")
+    so = cpp.with_suffix(".so")
+    with build_dir_lock(cpp.parent):
+        if so.exists():  # another process built it while this one waited
+            return so
+        try:
+            cpp_extension.load(
+                name, [str(cpp)], extra_cflags=list(CFLAGS), build_directory=str(cpp.parent),
+                is_python_module=False, verbose=False,
+            )  # fmt: skip
+        except Exception as e:  # compiler missing, internal compiler error, ...
+            raise KernelBuildError(f"building kernel {name} failed: {e}") from e
+    return so
+
+
+@contextlib.contextmanager
+def build_dir_lock(directory: Path):
+    """Hold the build directory of one kernel for this process, clearing a dead build's baton.
+
+    torch's extension builder guards a build directory with a ``lock`` file that it deletes when
+    the build ends; a build killed part-way (a test run or CLI interrupted) leaves it behind and
+    every later build of that kernel waits on it forever. Builders here first take an OS file
+    lock (``fcntl.flock``, released by the kernel when its process dies) on ``build.flock``, so
+    once it is held any ``lock`` file left in the directory belongs to a dead build and is removed.
+    """
+    import fcntl
+
+    directory.mkdir(parents=True, exist_ok=True)
+    with open(directory / "build.flock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            (directory / "lock").unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _build(program: Program, dtype: torch.dtype, src: str, h: str) -> Callable:

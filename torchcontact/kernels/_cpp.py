@@ -10,6 +10,10 @@ cost 2x through store-forwarding stalls); outputs are written the same way. The 
 block runs on zero-padded copies of its rows. ``sin``/``cos`` are computed in-kernel
 (``vsincos``), so a joint angle is read once.
 
+A :func:`torchcontact._scalar.loop` becomes a C++ ``for`` loop around the code of one iteration
+(the body's nodes that do not depend on the carried values are computed once, before it); the
+block leaves it once every lane's ``stop`` mask holds.
+
 No ``-ffast-math``: the kernel keeps IEEE semantics (NaN and inf propagate as in eager torch);
 only ``-ffp-contract=fast`` fuses multiply-adds, which changes results by rounding only.
 """
@@ -17,8 +21,10 @@ only ``-ffp-contract=fast`` fuses multiply-adds, which changes results by roundi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
-from torchcontact._scalar import Sym, Trace
+from torchcontact._scalar import Sym, Trace, loop_deps
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
@@ -60,6 +66,11 @@ static inline void vsincos(V x, V* s, V* c) {
       }
     }
   }
+}
+static inline bool all_lanes(M m) {
+  bool a = true;
+  for (int l = 0; l < W; ++l) a = a && m[l];
+  return a;
 }
 // one lane per frame: W rows of a (N, k) array, element j of each
 static inline V load(const T* p, int64_t s, int j) { return V{TC_LOAD}; }
@@ -128,9 +139,78 @@ def live_nodes(trace: Trace, outputs: list) -> list[Sym]:
         if s.index in seen:
             continue
         seen.add(s.index)
-        if s.op != "in":
-            stack.extend(a for a in s.args if isinstance(a, Sym))
+        stack.extend(loop_deps(s))
+        if s.op == "loop":  # every carried value is assigned, used or not
+            stack.extend(s.args[0].carries)
     return [n for n in trace.nodes if n.index in seen]
+
+
+def loop_bodies(nodes: list[Sym]) -> dict[int, list[Sym]]:
+    """Per live ``"loop"`` node, its body's live nodes that depend on the carried values.
+
+    These are emitted inside the loop, in order; the body's other nodes (loop invariants) are
+    emitted where they stand, before the loop.
+    """
+    out: dict[int, list[Sym]] = {}
+    for s in nodes:
+        if s.op != "loop":
+            continue
+        spec = s.args[0]
+        variant = {c.index for c in spec.carries}
+        body = []
+        for b in nodes:
+            if spec.start <= b.index < spec.end and any(d.index in variant for d in loop_deps(b)):
+                variant.add(b.index)
+                body.append(b)
+        out[s.index] = body
+    return out
+
+
+def emit_loop(
+    s: Sym,
+    body: list[Sym],
+    lines: list[str],
+    ref: Callable[[Any], str],
+    emit_node: Callable[[Sym], None],
+    scope: dict,
+    value: str,
+    stop: str,
+) -> None:
+    """Append the lines of a ``"loop"`` node (C++ and CUDA alike).
+
+    The carried values ``t<index>`` start from the loop's ``init``; the loop runs ``spec.n``
+    times: its ``body`` (:func:`loop_bodies`, emitted by ``emit_node``, indented one level), then
+    the carries take their new values, then it exits early where ``spec.stop`` holds.
+
+    Args:
+        s: the ``"loop"`` node.
+        body: its body's nodes, in order.
+        lines: the kernel's lines so far (appended to).
+        ref: the emitter's name of a scalar.
+        emit_node: the emitter's line(s) of one node, appended to ``lines``.
+        scope: the emitter's per-scope cache (shared sines/cosines), restored after the body.
+        value: the type of a value (``"V"`` vector, ``"T"`` scalar).
+        stop: the early-exit condition as a format string of the stop value (``"{}"``).
+    """
+    spec, i = s.args[0], s.index
+    lines.extend(f"  {value} t{c.index} = {ref(x)};" for c, x in zip(spec.carries, spec.init,
+                                                                       strict=True))  # fmt: skip
+    lines.append(f"  for (int it{i} = 0; it{i} < {spec.n}; ++it{i}) {{")
+    outer_lines, outer_scope = len(lines), dict(scope)
+    for b in body:
+        emit_node(b)
+    for j in range(outer_lines, len(lines)):
+        lines[j] = "  " + lines[j]
+    scope.clear()
+    scope.update(outer_scope)  # sines of the body live in its scope
+    for j, x in enumerate(spec.new):
+        lines.append(f"    const {value} nx{i}_{j} = {ref(x)};")
+    lines.extend(f"    t{c.index} = nx{i}_{j};" for j, c in enumerate(spec.carries))
+    if isinstance(spec.stop, Sym):
+        lines.append(f"    if ({stop.format(ref(spec.stop))}) break;")
+    elif spec.stop is True:
+        lines.append("    break;")
+    lines.append("  }")
 
 
 def emit(
@@ -156,6 +236,8 @@ def emit(
     """
     flat_out = [x for xs in outputs.values() for x in xs]
     nodes = live_nodes(trace, flat_out)
+    bodies = loop_bodies(nodes)
+    deferred = {b.index for body in bodies.values() for b in body}
     name = {}
     consts: dict[float, str] = {}
     lines: list[str] = []
@@ -170,7 +252,7 @@ def emit(
             consts[key] = f"c{len(consts)}"
         return consts[key]
 
-    for s in nodes:
+    def emit_node(s: Sym) -> None:
         v = f"t{s.index}"
         name[s.index] = v
         if s.op == "in":
@@ -206,11 +288,23 @@ def emit(
             lines.append(f"  const M {v} = {ref(x)} | {ref(y)};")
         elif s.op == "not":
             lines.append(f"  const M {v} = ~{ref(s.args[0])};")
+        elif s.op == "loopout":
+            lines.append(f"  const V {v} = {ref(s.args[0].args[0].carries[s.args[1]])};")
         elif s.op == "sel":
             m, x, y = s.args
             lines.append(f"  const V {v} = {ref(m)} ? {ref(x)} : {ref(y)};")
         else:  # pragma: no cover - every op of _scalar is handled above
             raise ValueError(f"no C++ for op {s.op!r}")
+
+    for s in nodes:
+        if s.index in deferred or s.op == "carry":
+            continue
+        if s.op == "loop":
+            name.update((c.index, f"t{c.index}") for c in s.args[0].carries)
+            emit_loop(s, bodies[s.index], lines, ref, emit_node, sincos, "V", "all_lanes({})")
+            continue
+        emit_node(s)
+
     stores = []
     for k, xs in enumerate(outputs.values()):
         for j, x in enumerate(xs):

@@ -6,7 +6,9 @@ output and writes its rows (the same calling convention as :mod:`torchcontact.ke
 ``sin``/``cos`` use CUDA's ``sincos`` (1 ulp in double), masks are ``bool`` and selects ternaries;
 no fast-math flags. The host entry ``tc_launch`` takes device pointers and a stream, so the
 kernel runs on torch's current stream. It is built with ``torch.utils.cpp_extension.load`` (nvcc)
-and cached on disk like the CPU kernels.
+and cached on disk like the CPU kernels. A :func:`torchcontact._scalar.loop` is a ``for`` loop
+around the code of one iteration (loop invariants computed before it) that a thread leaves once
+its frame's ``stop`` mask holds.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from torch import Tensor
 
 from torchcontact._scalar import Sym, Trace
 from torchcontact.errors import KernelBuildError
+from torchcontact.kernels import build_dir_lock
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
@@ -35,10 +38,12 @@ def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_l
         symbol: name of the exported host function ``symbol(n, in, in_stride, out, out_stride,
             stream)``; the pointer arrays are host arrays of device pointers.
     """
-    from torchcontact.kernels._cpp import live_nodes
+    from torchcontact.kernels._cpp import emit_loop, live_nodes, loop_bodies
 
     flat = [x for xs in outputs.values() for x in xs]
     nodes = live_nodes(trace, flat)
+    bodies = loop_bodies(nodes)
+    deferred = {b.index for body in bodies.values() for b in body}
     in_index = {k: i for i, k in enumerate(trace.inputs)}
     n_in, n_out = len(trace.inputs), len(outputs)
     lines: list[str] = []
@@ -54,7 +59,8 @@ def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_l
         return f"(T){c!r}"
 
     done_sincos: dict[str, tuple[str, str]] = {}
-    for s in nodes:
+
+    def emit_node(s: Sym) -> None:
         v = f"t{s.index}"
         if s.op == "in":
             arr, j = s.args
@@ -85,11 +91,21 @@ def emit(trace: Trace, outputs: dict[str, list], dtype: str, symbol: str = "tc_l
             lines.append(f"  const bool {v} = {ref(s.args[0])} || {ref(s.args[1])};")
         elif s.op == "not":
             lines.append(f"  const bool {v} = !{ref(s.args[0])};")
+        elif s.op == "loopout":
+            lines.append(f"  const T {v} = {ref(s.args[0].args[0].carries[s.args[1]])};")
         elif s.op == "sel":
             m, x, y = s.args
             lines.append(f"  const T {v} = {ref(m)} ? {ref(x)} : {ref(y)};")
         else:  # pragma: no cover - every op of _scalar is handled above
             raise ValueError(f"no CUDA for op {s.op!r}")
+
+    for s in nodes:
+        if s.index in deferred or s.op == "carry":
+            continue
+        if s.op == "loop":
+            emit_loop(s, bodies[s.index], lines, ref, emit_node, done_sincos, "T", "{}")
+        else:
+            emit_node(s)
     for k, xs in enumerate(outputs.values()):
         for j, x in enumerate(xs):
             lines.append(f"  p.out[{k}][f * p.out_stride[{k}] + {j}] = {ref(x)};")
@@ -137,30 +153,15 @@ def build(program, dtype: torch.dtype, cache: Path) -> Callable:
     Raises:
         KernelBuildError: nvcc is missing or fails.
     """
-    from torch.utils import cpp_extension
-
     src = source(program, dtype)
     cap = torch.cuda.get_device_capability()
     h = hashlib.sha256(f"{torch.__version__}|{cap}|{src}".encode()).hexdigest()[:20]
     name = f"tckc_{program.name}_{h}"
     d = cache / "kernels" / name
     so = d / f"{name}.so"
-    if not so.exists():
-        d.mkdir(parents=True, exist_ok=True)
-        cu = d / f"{name}.cu"
-        cu.write_text(src)
-        try:
-            cpp_extension.load(
-                name,
-                [str(cu)],
-                extra_cuda_cflags=["-O3", "--fmad=true"],
-                build_directory=str(d),
-                is_python_module=False,
-                with_cuda=True,
-                verbose=False,
-            )
-        except Exception as e:
-            raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e
+    with build_dir_lock(d):
+        if not so.exists():
+            _compile(name, d, src)
     fn = ctypes.CDLL(str(so)).tc_launch
     fn.restype = ctypes.c_int
     fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
@@ -187,3 +188,23 @@ def build(program, dtype: torch.dtype, cache: Path) -> Callable:
         return outs
 
     return call
+
+
+def _compile(name: str, d: Path, src: str) -> None:
+    """nvcc-compile the source of one CUDA kernel into ``d`` (its build directory, held)."""
+    from torch.utils import cpp_extension
+
+    cu = d / f"{name}.cu"
+    cu.write_text(src)
+    try:
+        cpp_extension.load(
+            name,
+            [str(cu)],
+            extra_cuda_cflags=["-O3", "--fmad=true"],
+            build_directory=str(d),
+            is_python_module=False,
+            with_cuda=True,
+            verbose=False,
+        )
+    except Exception as e:
+        raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e

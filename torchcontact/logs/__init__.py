@@ -7,6 +7,7 @@ Optional dependencies: the ``logs`` extra (pyarrow, tqdm, matplotlib, rosbags); 
 from torchcontact.logs.derive import savgol_derivatives
 from torchcontact.logs.format import input_schema, joint_names_of
 from torchcontact.logs.pipeline import (
+    LogConstraints,
     LogError,
     LogEstimator,
     estimate_file,
@@ -16,6 +17,7 @@ from torchcontact.logs.pipeline import (
 from torchcontact.logs.simlog import simulated_table, write_simulated_log
 
 __all__ = [
+    "LogConstraints",
     "LogError",
     "LogEstimator",
     "estimate_file",

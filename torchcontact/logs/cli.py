@@ -69,6 +69,31 @@ def _ft_range(values: list[str] | None) -> dict[str, list[float]] | None:
     return out
 
 
+def _constraints(args: argparse.Namespace) -> Any:
+    """``--constraints`` and its options -> a :class:`~torchcontact.logs.LogConstraints` or None."""
+    import math
+
+    from torchcontact.constrained import FrictionCones
+    from torchcontact.logs.pipeline import LogConstraints
+
+    names = ("friction", "cone_angle", "cone_iterations")
+    given = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) is not None]
+    given += ["--no-warm-start"] if args.no_warm_start else []
+    if not args.constraints:
+        if given:
+            raise InputError(f"{', '.join(given)} apply with --constraints only")
+        return None
+    if args.friction is not None and args.cone_angle is not None:
+        raise InputError("give --friction or --cone-angle, not both")
+    friction = args.friction
+    if args.cone_angle is not None:
+        if not 0 < args.cone_angle < math.pi / 2:
+            raise InputError(f"--cone-angle must be in (0, pi/2) rad, got {args.cone_angle}")
+        friction = math.tan(args.cone_angle)
+    cones = FrictionCones() if args.cone_iterations is None else FrictionCones(args.cone_iterations)
+    return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs."""
     from torchcontact.logs.pipeline import estimate_files
@@ -83,6 +108,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         progress=_progress(args),
         velocity_margin=args.velocity_margin or None,
         ft_range=_ft_range(args.ft_range),
+        constraints=_constraints(args),
     )
     if args.residual:
         kwargs["residual"] = args.residual
@@ -107,6 +133,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 f"{s['input']} -> {s['output']}: {s['frames']} frames"
                 f" ({s['frames_per_s']:.0f} frames/s, {s['bad_now']} with a non-zero status)"
                 + (f", derived {'/'.join(s['derived'])} from q" if s["derived"] else "")
+                + (
+                    f"; cones: {s['cones']['converged']:.2%} of {s['cones']['solved']} solves"
+                    f" converged, {s['cones']['iterations_mean']:.1f} iterations on average"
+                    if "cones" in s
+                    else ""
+                )
             )
     return 0
 
@@ -310,6 +342,29 @@ def add_parser(subparsers: Any) -> None:
         help="status bit 64 when a reading exceeds the sensor's range: 1 or 6 limits [N; N m]"
         " (repeatable)",
     )
+    est.add_argument(
+        "--constraints",
+        action="store_true",
+        help="friction-cone constrained estimate: pushing contacts stay inside the cone of their"
+        " normal (contact field 'normal'; friction from 'friction'/'cone_angle' or the default)",
+    )
+    est.add_argument(
+        "--friction", type=float, metavar="MU", help="default friction coefficient (--constraints)"
+    )
+    est.add_argument(
+        "--cone-angle", type=float, metavar="RAD", help="default cone half-angle (--constraints)"
+    )
+    est.add_argument(
+        "--cone-iterations",
+        type=int,
+        metavar="N",
+        help="interior-point iteration budget (--constraints; default 25)",
+    )
+    est.add_argument(
+        "--no-warm-start",
+        action="store_true",
+        help="start every frame from the pseudo-inverse, not its predecessor (--constraints)",
+    )
     est.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     est.add_argument("--quiet", action="store_true", help="no progress bar")
     est.set_defaults(func=cmd_estimate)
@@ -328,9 +383,14 @@ def add_parser(subparsers: Any) -> None:
     plot.add_argument("log", help="output of torchcontact estimate")
     plot.add_argument("--robot", help="URDF (default: the bundled tcarm)")
     plot.add_argument(
-        "--frame", type=int, help="row of the robot view (default: a well-posed frame)"
+        "--frame",
+        type=int,
+        help="row of the robot view and of the unobservable directions (default: a well-posed"
+        " frame; for nullspace.png the frame with the most unobservable directions)",
     )
-    plot.add_argument("--input", help="the input log (joint positions for the robot view)")
+    plot.add_argument(
+        "--input", help="the input log (joint positions for robot.png and nullspace.png)"
+    )
     plot.add_argument("--out", help="folder of the PNGs (default: the log's name without suffix)")
     plot.add_argument("--quiet", action="store_true", help="no progress bar")
     plot.set_defaults(func=cmd_plot)

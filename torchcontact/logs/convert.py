@@ -161,19 +161,8 @@ def _contact_records(
         )
     if not parts:
         return ContactRecords.empty()
-    cat = ContactRecords(
-        np.concatenate([p.frame for p in parts]),
-        np.concatenate([p.links for p in parts]),
-        np.concatenate([p.kinds for p in parts]),
-        np.concatenate([p.positions for p in parts]),
-        np.concatenate([_nan_if_none(p.directions, len(p), 3) for p in parts]),
-        np.concatenate([_nan_if_none(p.wrenches, len(p), 6) for p in parts]),
-    )
+    cat = ContactRecords.concat(parts)
     return cat.select(np.argsort(cat.frame, kind="stable"))
-
-
-def _nan_if_none(x: np.ndarray | None, m: int, width: int) -> np.ndarray:
-    return np.full((m, width), np.nan) if x is None else x
 
 
 def _interp(t: np.ndarray, ts: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -229,8 +218,9 @@ def _convert_csv(path: Path, out: Path, spec: ContactSpec | None, select: dict, 
         if arr is None:
             raise ConvertError(f"{path}: ft.{s} needs columns {[f'ft.{s}.{a}' for a in AXES]}")
         cols[ft_column(s)] = fixed_list(arr)
+    rec = _contact_records(t, spec, [])
     cols["contacts"] = contacts_column(
-        _contact_records(t, spec, []), len(t), struct_type=contact_struct_type()
+        rec, len(t), struct_type=contact_struct_type(cone=bool(rec.cone_fields))
     )
     return _write(out, cols, joints, f"csv:{path.name}")
 
@@ -353,8 +343,9 @@ def _convert_bag(
         if col in cols:
             raise ConvertError(f"{path}: two wrench topics would both write {col}: name them")
         cols[col] = fixed_list(_interp(t, ts_a[o], np.asarray(vals)[o]))
+    rec = _contact_records(t, spec, points)
     cols["contacts"] = contacts_column(
-        _contact_records(t, spec, points), len(t), struct_type=contact_struct_type()
+        rec, len(t), struct_type=contact_struct_type(cone=bool(rec.cone_fields))
     )
     return _write(out, cols, joints, f"bag:{path.name}")
 

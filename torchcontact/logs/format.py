@@ -17,15 +17,21 @@ Input columns (see the README section "Processing logs"):
 - ``base.omega``, ``base.domega``, ``base.acc`` (optional): 3 float64 each, IMU on the base, base
   frame (rad/s, rad/s^2, proper acceleration m/s^2).
 - ``contacts``: list of structs ``{link: string, kind: wrench|force|force_dir|known, position: 3
-  float64 (m, link frame), direction: 3 float64 or null, wrench: 6 float64 or null}``; extra
-  struct fields (e.g. ``true_force``) are carried to the output unchanged. In memory these are
+  float64 (m, link frame), direction: 3 float64 or null, wrench: 6 float64 or null}``, and
+  optionally (:data:`CONE_FIELDS`, for ``estimate --constraints``) ``normal: 3 float64 or null``
+  (outward surface normal, link frame), ``friction: float64 or null``, ``cone_angle: float64 or
+  null`` (rad) and ``pushing: bool or null``; extra struct fields (e.g. ``true_force``) are
+  carried to the output unchanged. In memory these are
   :class:`~torchcontact.contacts.ContactRecords` (:func:`read_contacts`, :func:`contacts_column`).
 
 Output (:func:`output_schema`) adds ``force`` and ``moment`` (3 float64, link frame, N and N m) to
 every contact and has ``joint_torques``, ``rank.<sensor>``, ``unknowns.<sensor>``,
-``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status`` (its
-text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log pipeline found, or
-null).
+``nullity.<sensor>`` (``unknowns - rank``: the dimension of the force combinations the sensor
+cannot see), ``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcontact.STATUS`),
+``status`` (its text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log
+pipeline found, or null). A friction-cone constrained estimate also has ``converged.<sensor>``
+(bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and ``cone_active``
+(bool) on every contact.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ from torchcontact.errors import InputError, LogError
 
 __all__ = [
     "BASE_COLUMNS",
+    "CONE_FIELDS",
     "META_DERIVED",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
@@ -111,8 +118,30 @@ def fixed_list(values: np.ndarray) -> Any:
     return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1), pa.float64()), n)
 
 
-def contact_struct_type(extra: Sequence[tuple[str, Any]] = ()) -> Any:
-    """The struct type of one contact: link, kind, position, direction, wrench, then ``extra``."""
+#: Optional contact fields of the friction-cone constrained estimate: log field -> the
+#: :class:`~torchcontact.contacts.ContactRecords` attribute it fills.
+CONE_FIELDS = {"normal": "normals", "friction": "friction", "cone_angle": "cone_angle",
+               "pushing": "pushing"}  # fmt: skip
+
+
+def _cone_types() -> list[tuple[str, Any]]:
+    import pyarrow as pa
+
+    return [("normal", pa.list_(pa.float64(), 3)), ("friction", pa.float64()),
+            ("cone_angle", pa.float64()), ("pushing", pa.bool_())]  # fmt: skip
+
+
+def contact_struct_type(extra: Sequence[tuple[str, Any]] = (), cone: bool = False) -> Any:
+    """The struct type of one contact: link, kind, position, direction, wrench, then ``extra``.
+
+    Args:
+        extra: further ``(name, type)`` fields.
+        cone: also the friction-cone fields (:data:`CONE_FIELDS`) after ``wrench``.
+
+    Example:
+        >>> contact_struct_type(cone=True).names[5:]
+        ['normal', 'friction', 'cone_angle', 'pushing']
+    """
     import pyarrow as pa
 
     return pa.struct(
@@ -122,6 +151,7 @@ def contact_struct_type(extra: Sequence[tuple[str, Any]] = ()) -> Any:
             ("position", pa.list_(pa.float64(), 3)),
             ("direction", pa.list_(pa.float64(), 3)),
             ("wrench", pa.list_(pa.float64(), 6)),
+            *(_cone_types() if cone else []),
             *extra,
         ]
     )
@@ -135,6 +165,7 @@ def input_schema(
     contact_extra: Sequence[tuple[str, Any]] = (),
     extra: Sequence[tuple[str, Any]] = (),
     metadata: Mapping[bytes, bytes | str] | None = None,
+    cone: bool = False,
 ) -> Any:
     """The Parquet schema of an input log with the joint names in its metadata.
 
@@ -145,6 +176,7 @@ def input_schema(
         contact_extra: extra ``(name, type)`` fields of the contact struct.
         extra: extra ``(name, type)`` columns.
         metadata: further schema metadata.
+        cone: contacts with the friction-cone fields (:data:`CONE_FIELDS`).
 
     Example:
         >>> input_schema(["a", "b"], ["base_ft"]).names
@@ -157,7 +189,7 @@ def input_schema(
     if derivatives:
         fields += [("qd", pa.list_(pa.float64(), nv)), ("qdd", pa.list_(pa.float64(), nv))]
     fields += [(ft_column(s), pa.list_(pa.float64(), 6)) for s in sensors]
-    fields += [("contacts", pa.list_(contact_struct_type(contact_extra))), *extra]
+    fields += [("contacts", pa.list_(contact_struct_type(contact_extra, cone))), *extra]
     meta = {META_JOINT_NAMES: json.dumps(list(joint_names)), **(metadata or {})}
     return pa.schema(fields, metadata=meta)
 
@@ -179,6 +211,7 @@ def output_schema(
     sensors: Sequence[str],
     contact_fields: Sequence[tuple[str, Any]],
     metadata: Mapping[bytes, bytes | str],
+    constraints: bool = False,
 ) -> Any:
     """Schema of an estimated log.
 
@@ -188,10 +221,12 @@ def output_schema(
         contact_fields: ``(name, type)`` fields of the input contact struct (empty: no
             ``contacts`` column in the input); ``force`` and ``moment`` are appended.
         metadata: schema metadata (joint names are added).
+        constraints: a friction-cone constrained estimate: contacts get ``cone_active``, each
+            sensor ``converged.<s>`` and ``iterations.<s>``.
 
     Returns:
-        ``t_ns, contacts, joint_torques, rank.<s>, unknowns.<s>, residual.<s>, status_code,
-        status, status_detail``.
+        ``t_ns, contacts, joint_torques, rank.<s>, unknowns.<s>, nullity.<s>, residual.<s>
+        [, converged.<s>, iterations.<s>], status_code, status, status_detail``.
     """
     import pyarrow as pa
 
@@ -201,13 +236,16 @@ def output_schema(
             *[pa.field(n, t) for n, t in contact_fields],
             pa.field("force", pa.list_(pa.float64(), 3)),
             pa.field("moment", pa.list_(pa.float64(), 3)),
+            *([pa.field("cone_active", pa.bool_())] if constraints else []),
         ]
     )
     fields = [("t_ns", pa.int64()), ("contacts", pa.list_(contact))]
     fields.append(("joint_torques", pa.list_(pa.float64(), nv)))
     for s in sensors:
         fields += [(f"rank.{s}", pa.int64()), (f"unknowns.{s}", pa.int64())]
-        fields.append((f"residual.{s}", pa.float64()))
+        fields += [(f"nullity.{s}", pa.int64()), (f"residual.{s}", pa.float64())]
+        if constraints:
+            fields += [(f"converged.{s}", pa.bool_()), (f"iterations.{s}", pa.int64())]
     fields += [("status_code", pa.int64()), ("status", pa.string())]
     fields.append(("status_detail", pa.string()))
     meta = {**metadata, META_JOINT_NAMES: json.dumps(list(joint_names))}
@@ -326,8 +364,13 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
         ``(records, fields, malformed)``: :class:`~torchcontact.contacts.ContactRecords` (frames
         numbered from 0 within ``column``; NaN where a vector is missing or malformed), the
         struct's child arrays by field name (to carry extra fields), and for ``position``,
-        ``direction`` and ``wrench`` an ``(M,)`` bool mask of records whose field is null or of
-        the wrong length (missing fields: all True).
+        ``direction`` and ``wrench`` (and ``normal`` when the struct has it) an ``(M,)`` bool
+        mask of records whose field is null or of the wrong length (missing fields: all True).
+        The friction-cone fields (:data:`CONE_FIELDS`) fill the records' ``normals``,
+        ``friction``, ``cone_angle`` and ``pushing`` when the struct has them (null: NaN).
+
+    Raises:
+        LogError: a friction-cone field of a type that is not a number (``pushing``: bool).
     """
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -345,6 +388,20 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
             vec[name], malformed[name] = vectors(fields[name], width)
         else:
             vec[name], malformed[name] = np.full((M, width), np.nan), np.ones(M, bool)
+    cone: dict[str, np.ndarray] = {}
+    if "normal" in fields:
+        cone["normals"], malformed["normal"] = vectors(fields["normal"], 3)
+    for name in ("friction", "cone_angle", "pushing"):
+        if name in fields:
+            col = fields[name]
+            try:
+                col = pc.cast(col, pa.float64())
+            except (pa.ArrowException, NotImplementedError):
+                raise LogError(
+                    f"contacts.{name} must be {'a bool' if name == 'pushing' else 'a number'},"
+                    f" found {fields[name].type}"
+                ) from None
+            cone[name] = np.asarray(col.fill_null(np.nan).to_numpy(zero_copy_only=False), float)
 
     def names(key: str) -> tuple[np.ndarray, np.ndarray]:
         """Distinct names (None last) and each record's index: Arrow's dictionary encoding."""
@@ -365,6 +422,7 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
         vec["direction"] if "direction" in fields else None,
         vec["wrench"] if "wrench" in fields else None,
         (ln, lc, kn, kc),
+        **cone,
     )
     return records, fields, malformed
 
@@ -386,8 +444,10 @@ def contacts_column(
             extra fields' types).
 
     Returns:
-        A pyarrow ``list<struct>`` array of length ``frames``. Directions and wrenches that are
-        all NaN (not given) are written as null.
+        A pyarrow ``list<struct>`` array of length ``frames``. Directions, wrenches and normals
+        that are all NaN (not given), NaN friction coefficients, cone angles and pushing flags
+        are written as null. The friction-cone fields are written when the records carry one of
+        them (or ``struct_type`` has them).
 
     Raises:
         InputError: records not ordered by frame, or a frame outside ``[0, frames)``.
@@ -408,18 +468,26 @@ def contacts_column(
             arr = pa.FixedSizeListArray.from_arrays(arr.flatten(), width, mask=mask)
         return arr
 
+    def scalars(values: np.ndarray | None, typ: Any) -> Any:
+        if values is None:
+            return pa.nulls(len(f), typ)
+        return pa.array(values, pa.float64(), mask=np.isnan(values)).cast(typ)
+
     children: dict[str, Any] = {
         "link": pa.array(list(records.links), pa.string()),
         "kind": pa.array(list(records.kinds), pa.string()),
         "position": fixed_list(records.positions),
         "direction": nullable(records.directions, 3),
         "wrench": nullable(records.wrenches, 6),
+        "normal": nullable(records.normals, 3),
     }
+    for name, typ in _cone_types()[1:]:
+        children[name] = scalars(getattr(records, CONE_FIELDS[name]), typ)
     for name, value in (extra or {}).items():
         children[name] = fixed_list(value) if isinstance(value, np.ndarray) else value
     if struct_type is None:
         extra_types = [(n, children[n].type) for n in (extra or {})]
-        struct_type = contact_struct_type(extra_types)
+        struct_type = contact_struct_type(extra_types, cone=bool(records.cone_fields))
     return struct_list(children, f, frames, struct_type)
 
 

@@ -16,6 +16,16 @@ Status: every output row has ``status_code`` (the bits of :data:`torchcontact.ST
 (its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
 joint beyond its velocity limit, ...). Frames with a non-zero code have NaN outputs; the rest of
 the log is processed.
+
+Friction cones (:class:`LogConstraints`, ``estimate --constraints``): every pushing contact's force
+is kept inside the friction cone of its ``normal`` (contact field) and friction coefficient
+(``friction`` or ``cone_angle`` field, else the run's default); the output adds per sensor
+``converged.<sensor>`` and ``iterations.<sensor>`` and per contact ``cone_active``. Frames are
+warm-started from their predecessor's estimate (:class:`~torchcontact.PreviousFrame`), across
+chunks too: a chunk's first frame starts from the previous chunk's last estimates, matched by
+link, kind and order. Non-convergence is not a status bit (status bits mean NaN outputs; a frame
+that did not converge keeps its last interior-point iterate, inside the cones): it is
+``converged.<sensor> = false``.
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcontact.constrained import FrictionCones, PreviousFrame
 from torchcontact.contacts import KINDS, ContactRecords, Contacts
 from torchcontact.errors import InputError, LogError
 from torchcontact.estimation import ContactEstimator
@@ -66,6 +77,7 @@ from torchcontact.status import status_messages
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
+    "LogConstraints",
     "LogError",
     "LogEstimator",
     "estimate_file",
@@ -144,6 +156,39 @@ def ft_ranges(ft_range: Mapping[str, Any] | None, sensors: Sequence[str]) -> dic
     return out
 
 
+@dataclass(frozen=True)
+class LogConstraints:
+    """Friction-cone constrained estimation of a log (``estimate --constraints``).
+
+    Attributes:
+        cones: the solver's settings (iteration budget, ``eps``, ``tol``).
+        friction: friction coefficient of the contacts whose records give neither ``friction``
+            nor ``cone_angle`` (None: such a contact is an invalid record, status bit 4).
+        warm_start: start each frame from its predecessor's estimate (else from the
+            pseudo-inverse solution).
+        wave: frames per batched call of the warm-started waves
+            (:class:`~torchcontact.PreviousFrame`).
+
+    Raises:
+        InputError: a friction coefficient that is not a finite number > 0, a wave < 1.
+
+    Example:
+        >>> LogConstraints(friction=0.5).cones.iterations
+        25
+    """
+
+    cones: FrictionCones = field(default_factory=FrictionCones)
+    friction: float | None = None
+    warm_start: bool = True
+    wave: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.friction is not None and not (0 < float(self.friction) < np.inf):
+            raise InputError(f"--friction must be a finite number > 0, got {self.friction}")
+        if not (isinstance(self.wave, int) and self.wave >= 1):
+            raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
+
+
 class _Issues:
     """Per-frame problems found by the pipeline: status bits and details, in priority order."""
 
@@ -182,6 +227,7 @@ class LogEstimator:
             status bit 64 (None: no check).
         ft_range: ``{sensor: (6,) or scalar}`` [N; N m]: frames with a reading beyond it get
             status bit 64.
+        constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -198,6 +244,7 @@ class LogEstimator:
     residual: Any = None
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN
     ft_range: Mapping[str, Any] | None = None
+    constraints: LogConstraints | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
 
@@ -252,7 +299,13 @@ class LogEstimator:
                     "kind": "+".join(self.residual.layers),
                 }
             )
-        return output_schema(self.model.joint_names, self.sensors, self.contact_fields, meta)
+        return output_schema(
+            self.model.joint_names,
+            self.sensors,
+            self.contact_fields,
+            meta,
+            constraints=self.constraints is not None,
+        )
 
     # ------------------------------------------------------------------ helpers
     def _link_problem(self, link: str | None) -> str | None:
@@ -301,6 +354,8 @@ class LogEstimator:
                 else f"{kind} contact without a {width}-float {col}"
             )
             bit[bad] = 4
+        if self.constraints is not None:
+            self._check_cones(records, malformed, reason, bit)
         bad_record = reason != None  # noqa: E711
         for msg in dict.fromkeys(reason[bad_record]):
             rows = np.zeros(n, bool)
@@ -309,9 +364,49 @@ class LogEstimator:
             issues.add(rows, int(bit[sel][0]), msg)
         return bad_record
 
+    def _check_cones(
+        self,
+        records: ContactRecords,
+        malformed: dict[str, np.ndarray],
+        reason: np.ndarray,
+        bit: np.ndarray,
+    ) -> None:
+        """The friction-cone fields of pushing force and wrench records (bits 4 and 8)."""
+        M = len(records)
+        kinds = records.kinds
+        push = (kinds != "known") if records.pushing is None else np.where(
+            np.isnan(records.pushing), kinds != "known", records.pushing > 0.5
+        )  # fmt: skip
+        cone = push & ((kinds == "force") | (kinds == "wrench")) & np.equal(reason, None)
+        nrm = np.full((M, 3), np.nan) if records.normals is None else records.normals
+        no_normal = malformed.get("normal", np.ones(M, bool)) | ~np.isfinite(nrm).all(-1)
+        nan = np.full(M, np.nan)
+        mu = nan if records.friction is None else records.friction
+        angle = nan if records.cone_angle is None else records.cone_angle
+        default = self.constraints.friction
+        checks = (
+            (no_normal, 4, "pushing contact without a finite 3-float normal (--constraints)"),
+            (~no_normal & ~(np.abs(nrm) > 0).any(-1), 8, "zero-length contact normal"),
+            (~np.isnan(mu) & ~np.isnan(angle), 4, "contact gives both friction and cone_angle"),
+            (~np.isnan(mu) & ~((mu > 0) & (mu < np.inf)), 4,
+             "contact friction is not a finite number > 0"),
+            (~np.isnan(angle) & ~((angle > 0) & (angle < np.pi / 2)), 4,
+             "contact cone_angle is not in (0, pi/2) rad"),
+            (np.isnan(mu) & np.isnan(angle) & (default is None), 4,
+             "contact without friction or cone_angle (give --friction or --cone-angle)"),
+        )  # fmt: skip
+        for mask, b, msg in checks:
+            bad = cone & mask & np.equal(reason, None)
+            reason[bad] = msg
+            bit[bad] = b
+
     # ------------------------------------------------------------------ one chunk
     def process(
-        self, table: Any, qd: np.ndarray | None = None, qdd: np.ndarray | None = None
+        self,
+        table: Any,
+        qd: np.ndarray | None = None,
+        qdd: np.ndarray | None = None,
+        previous: Any = None,
     ) -> Any:
         """Estimate every frame of a chunk.
 
@@ -319,6 +414,8 @@ class LogEstimator:
             table: pyarrow table or record batch in the log format.
             qd: ``(N, nv)`` velocities in the model's joint order when derived (else read).
             qdd: ``(N, nv)`` accelerations likewise.
+            previous: the output of the chunk before (with constraints and warm starts, its last
+                frame's estimates start this chunk's first frame), or None.
 
         Returns:
             A pyarrow table with :meth:`output_schema`.
@@ -355,9 +452,11 @@ class LogEstimator:
         else:
             records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
         good = np.flatnonzero(~bad_record)
+        cons = self.constraints
         contacts, slot_good = Contacts.from_records(
-            records.select(good), N, dtype=model.dtype, device=model.device
-        )
+            records.select(good), N, dtype=model.dtype, device=model.device,
+            friction=None if cons is None else cons.friction,
+        )  # fmt: skip
         slot = np.full(len(records), -1, np.int64)
         slot[good] = slot_good
 
@@ -365,6 +464,14 @@ class LogEstimator:
         def t(x: np.ndarray) -> torch.Tensor:
             return torch.tensor(x, dtype=model.dtype, device=model.device)  # copy: arrow is r/o
 
+        cone_args: dict[str, Any] = {}
+        if cons is not None:
+            before = _last_estimates(previous, contacts.links, contacts.kinds)
+            cone_args["constraints"] = cons.cones
+            if cons.warm_start:
+                cone_args["warm_start"] = PreviousFrame(
+                    None if before is None else tuple(t(v) for v in before), cons.wave
+                )
         res = est.estimate(
             t(q),
             t(qd),
@@ -373,6 +480,7 @@ class LogEstimator:
             contacts,
             base=None if not base else _base_motion(base, t),
             tau_measured=None if tau is None else t(tau),
+            **cone_args,
         )
         force = res.force.detach().cpu().numpy()
         moment = res.moment.detach().cpu().numpy()
@@ -398,13 +506,25 @@ class LogEstimator:
         ctype = schema.field("contacts").type.value_type
         children = {n: fields[n] for n, _ in self.contact_fields}
         children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
+        if cons is not None:  # the cone binds; null where the contact was not estimated
+            act = res.cones.active.cpu().numpy()
+            ca = np.zeros(M, bool)
+            ca[ok_c] = act[records.frame[ok_c], slot[ok_c]]
+            children["cone_active"] = pa.array(ca, mask=~ok_c)
         out: dict[str, Any] = {"t_ns": table.column("t_ns").combine_chunks().cast(pa.int64())}
         out["contacts"] = struct_list(children, records.frame, N, ctype)
         out["joint_torques"] = fixed_list(jt)
         for s in self.sensors:
-            out[f"rank.{s}"] = pa.array(res.rank[s].cpu().numpy().astype(np.int64))
-            out[f"unknowns.{s}"] = pa.array(res.unknowns[s].cpu().numpy().astype(np.int64))
+            rank = res.rank[s].cpu().numpy().astype(np.int64)
+            unknowns = res.unknowns[s].cpu().numpy().astype(np.int64)
+            out[f"rank.{s}"], out[f"unknowns.{s}"] = pa.array(rank), pa.array(unknowns)
+            out[f"nullity.{s}"] = pa.array(unknowns - rank)
             out[f"residual.{s}"] = pa.array(resid[s])
+            if cons is not None:  # the solver's status; null on frames with a non-zero status
+                conv = res.cones.converged[s].cpu().numpy()
+                its = res.cones.iterations[s].cpu().numpy().astype(np.int64)
+                out[f"converged.{s}"] = pa.array(conv, mask=bad)
+                out[f"iterations.{s}"] = pa.array(its, mask=bad)
         out["status_code"] = pa.array(code)
         text = np.full(N, "ok", dtype=object)
         for c in np.unique(code[bad]):
@@ -446,6 +566,37 @@ class LogEstimator:
         }
         joints = (torch.as_tensor(v) for v in (q, qd, qdd))
         return self.residual.correct(torch.tensor(ft), *joints, extra).cpu().numpy()
+
+
+def _last_estimates(
+    previous: Any, links: Sequence[str], kinds: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The last frame's estimates of an output table, matched to slots: ``(force, moment)``.
+
+    A slot takes the estimate of the previous frame's contact with its link and kind and the same
+    rank among them (the slot assignment's rule); ``(K, 3)`` each, NaN where none matches (that
+    slot starts cold). None without a previous table or contacts.
+    """
+    if previous is None or previous.num_rows == 0 or not len(links):
+        return None
+    last = previous.column("contacts")[previous.num_rows - 1].as_py() or []
+    seen: dict[tuple[str, str], int] = {}
+    found: dict[tuple[str, str, int], tuple] = {}
+    for c in last:
+        key = (c.get("link"), c.get("kind"))
+        r = seen.get(key, 0)
+        seen[key] = r + 1
+        if c.get("force") is not None and c.get("moment") is not None:
+            found[(*key, r)] = (c["force"], c["moment"])
+    force = np.full((len(links), 3), np.nan)
+    moment = np.full((len(links), 3), np.nan)
+    rank: dict[tuple[str, str], int] = {}
+    for k, key in enumerate(zip(links, kinds, strict=True)):
+        r = rank.get(key, 0)
+        rank[key] = r + 1
+        if (*key, r) in found:
+            force[k], moment[k] = found[(*key, r)]
+    return force, moment
 
 
 def _base_motion(base: dict, t: Any) -> Any:
@@ -505,16 +656,24 @@ def chunks_with_derivatives(
 
 
 def estimate_chunks(
-    le: LogEstimator, chunks: Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]
+    le: LogEstimator,
+    chunks: Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]],
+    previous: Any = None,
 ) -> Iterator[Any]:
     """Output tables of :func:`chunks_with_derivatives`' chunks.
 
-    Derived columns only replace the missing ones; logged ``qd``/``qdd`` are kept.
+    Derived columns only replace the missing ones; logged ``qd``/``qdd`` are kept. Each chunk
+    gets the output of the one before (``previous`` for the first: e.g. the last part of an
+    interrupted run), whose last frame warm-starts a constrained estimate.
     """
     for chunk, qd, qdd in chunks:
-        yield le.process(
-            chunk, qd if "qd" in le.derived else None, qdd if "qdd" in le.derived else None
+        previous = le.process(
+            chunk,
+            qd if "qd" in le.derived else None,
+            qdd if "qdd" in le.derived else None,
+            previous=previous,
         )
+        yield previous
 
 
 def _atomic_json(path: Path, data: dict) -> None:
@@ -568,6 +727,7 @@ def prepare(
     residual: Any = None,
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
+    constraints: LogConstraints | None = None,
 ) -> tuple[Any, LogEstimator, list[str]]:
     """Open a log and build its :class:`LogEstimator`.
 
@@ -580,6 +740,7 @@ def prepare(
         residual: a loaded :class:`~torchcontact.residual.ResidualCorrection` or None.
         velocity_margin: see :class:`LogEstimator`.
         ft_range: see :class:`LogEstimator`.
+        constraints: see :class:`LogEstimator`.
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read)``.
@@ -587,6 +748,8 @@ def prepare(
     Raises:
         LogError: not Parquet, no joint names, mismatched joints, no sensor column, no ``q``, a
             residual whose sensor is not in use or whose feature columns the log lacks.
+        InputError: ``constraints`` on a log whose contacts have no ``normal`` field, or no
+            ``friction``/``cone_angle`` field and no default friction.
     """
     import pyarrow as pa
 
@@ -618,6 +781,18 @@ def prepare(
             UserWarning,
             stacklevel=2,
         )
+    if constraints is not None and contact_fields:
+        names = [n for n, _ in contact_fields]
+        if "normal" not in names:
+            raise InputError(
+                f"--constraints: the contacts of {src} have no 'normal' field (outward surface"
+                f" normal, link frame); found {names}"
+            )
+        if constraints.friction is None and not {"friction", "cone_angle"} & set(names):
+            raise InputError(
+                f"--constraints: the contacts of {src} have no friction or cone_angle field;"
+                " give a default with --friction or --cone-angle"
+            )
     le = LogEstimator(
         model,
         joint_names,
@@ -628,6 +803,7 @@ def prepare(
         residual,
         velocity_margin=velocity_margin,
         ft_range=ft_range,
+        constraints=constraints,
     )
     for col in le.residual_columns():
         if col not in schema.names:
@@ -749,6 +925,8 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
     }
     if le.residual is not None:
         ident["residual_weights_sha256"] = le.residual.meta.get("weights_sha256")
+    if le.constraints is not None:  # a resume must estimate with the same cones
+        ident["constraints"] = repr(le.constraints)
     return ident
 
 
@@ -788,6 +966,7 @@ def estimate_file(
     residual: Any = None,
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
+    constraints: LogConstraints | None = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -810,10 +989,13 @@ def estimate_file(
         velocity_margin: frames with ``|qd|`` beyond this times the URDF velocity limit get
             status bit 64 (None: no check).
         ft_range: ``{sensor: (6,) or scalar}`` [N; N m]; readings beyond it get status bit 64.
+        constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
-        frames_per_s, sensors, derived, resumed_chunks, chunks, engine.
+        frames_per_s, sensors, derived, resumed_chunks, chunks, engine (with constraints also
+        ``cones``: ``converged`` share, ``iterations_mean`` and ``iterations_max`` over the frames
+        estimated now).
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
@@ -842,7 +1024,9 @@ def estimate_file(
             f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
             " its state depends on every earlier frame; rerun from the start"
         )
-    pf, le, columns = prepare(path, model, sensors, residual, velocity_margin, ft_range)
+    pf, le, columns = prepare(
+        path, model, sensors, residual, velocity_margin, ft_range, constraints
+    )
     run = RunState(
         out,
         *RunState.side_paths(out)[:2],
@@ -872,10 +1056,13 @@ def estimate_file(
     counts = {"ok": 0, "bad": 0}
     chunks = iter_chunks(pf, columns, batch_size, path)
     derive = bool(le.derived)
-    if not derive:  # nothing to carry between chunks: skip the done ones cheaply
+    if not derive:  # nothing to carry between chunks but the last estimates: skip the done ones
         chunks = (c for k, c in enumerate(chunks) if k >= done)
+        previous = read_journal(run.part(done - 1)) if done and constraints else None
         stream = enumerate(
-            estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, False, half_window)),
+            estimate_chunks(
+                le, chunks_with_derivatives(chunks, le.perm, False, half_window), previous
+            ),
             done,
         )
     else:
@@ -886,10 +1073,12 @@ def estimate_file(
     try:
         for k in range(done):  # chunks of the interrupted run, from its journal
             writer.write(read_journal(run.part(k)))
+        cones = _ConeTally(le)
         for k, res in stream:
             if k < done:
                 continue
             writer.write(res)
+            cones.add(res)
             rows, ok = write_part(run.part(k), [res])
             counts["ok"] += ok
             counts["bad"] += rows - ok
@@ -913,8 +1102,36 @@ def estimate_file(
         bar.close()
     run.clean()
     return summary(
-        path, out, rows, counts, t0, le, resumed_chunks=done, chunks=n_chunks, engine="local"
-    )
+        path, out, rows, counts, t0, le, resumed_chunks=done, chunks=n_chunks, engine="local",
+        **cones.summary(),
+    )  # fmt: skip
+
+
+class _ConeTally:
+    """Convergence and iterations of the constrained solver over the output tables seen."""
+
+    def __init__(self, le: LogEstimator) -> None:
+        self.sensors = list(le.sensors) if le.constraints is not None else []
+        self.n = self.converged = self.it_sum = self.it_max = 0
+
+    def add(self, table: Any) -> None:
+        for s in self.sensors:
+            conv = table.column(f"converged.{s}").to_numpy(zero_copy_only=False)
+            its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False)
+            ran = ~np.isnan(its.astype(float)) & (its.astype(float) > 0)
+            self.n += int(ran.sum())
+            self.converged += int(np.sum(conv[ran] == True))  # noqa: E712 - object array
+            if ran.any():
+                self.it_sum += int(its[ran].astype(np.int64).sum())
+                self.it_max = max(self.it_max, int(its[ran].astype(np.int64).max()))
+
+    def summary(self) -> dict:
+        if not self.sensors:
+            return {}
+        n = max(self.n, 1)
+        return {"cones": {"solved": self.n, "converged": round(self.converged / n, 4),
+                          "iterations_mean": round(self.it_sum / n, 2),
+                          "iterations_max": self.it_max}}  # fmt: skip
 
 
 def _path_or_none(x: Any) -> str | Path | None:

@@ -10,6 +10,11 @@
   with the contact forces as arrows, like Figure 2 of Del Prete et al. 2012. The view fits the
   robot; by default the frame is a well-posed one (every sensor's rank equals its unknowns) with
   the largest force. Needs the joint positions: from the input log (``input_log``), same rows.
+- ``nullspace.png``: the unobservable directions of one frame (default: the frame with the most):
+  per sensor, an orthonormal basis of the null space of ``A`` among its region's unknowns
+  (:attr:`ContactEstimate.nullspace`, recomputed from the frame's joint positions and contacts),
+  each basis vector drawn as forces (and moments) at the contacts on the robot, and all of them
+  as a table of components by unknown. Also needs the input log.
 
 Legends sit outside the axes.
 """
@@ -17,6 +22,7 @@ Legends sit outside the axes.
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -106,14 +112,17 @@ def plot_log(
     input_log: str | Path | None = None,
     progress: bool = False,
 ) -> list[Path]:
-    """Write ``forces.png``, ``quality.png`` and ``robot.png`` for an estimated log.
+    """Write ``forces.png``, ``quality.png``, ``robot.png`` and ``nullspace.png`` for an estimate.
 
     Args:
         log: output of :func:`torchcontact.logs.estimate_file`.
         robot: the URDF the log was estimated with.
         out_dir: folder for the PNGs (created).
-        frame: row index of the robot view (default: a well-posed frame with the largest force).
-        input_log: the input log, for the joint positions of the robot view (skipped without it).
+        frame: row index of the robot view and of the unobservable directions (default: a
+            well-posed frame with the largest force for the robot view, the frame with the most
+            unobservable directions for ``nullspace.png``).
+        input_log: the input log, for the joint positions of the robot view and of the
+            unobservable directions (both skipped without it).
         progress: show a progress bar over the figures.
 
     Returns:
@@ -132,7 +141,8 @@ def plot_log(
     from torchcontact.logs.format import check_outputs
 
     out_dir = Path(out_dir)
-    names = ["forces.png", "quality.png"] + (["robot.png"] if input_log is not None else [])
+    names = ["forces.png", "quality.png"]
+    names += ["robot.png", "nullspace.png"] if input_log is not None else []
     check_outputs([out_dir / n for n in names], [log, input_log, robot])
     tab, model = _load(log, robot)
     if frame is not None and not 0 <= frame < tab.num_rows:
@@ -153,6 +163,10 @@ def plot_log(
         if input_log is not None:
             written.append(
                 _robot_view(tab, fc, model, input_log, frame, deficient, out_dir / "robot.png")
+            )
+            bar.update(1)
+            written.append(
+                _nullspace_view(tab, model, sensors, input_log, frame, out_dir / "nullspace.png")
             )
             bar.update(1)
     return written
@@ -271,23 +285,19 @@ def _side_view(vectors: list[np.ndarray]) -> tuple[float, float]:
     return view
 
 
-def _robot_view(
-    tab: Any,
-    fc: dict,
-    model: Any,
-    input_log: str | Path,
-    frame: int | None,
-    deficient: np.ndarray,
-    path: Path,
-) -> Path:
-    import matplotlib.pyplot as plt
+def _posed(tab: Any, model: Any, input_log: str | Path, frame: int) -> tuple[Any, Any]:
+    """Joint positions ``(nv,)`` and forward pass of the estimate's row ``frame``.
+
+    The positions come from the input log (same rows), in the model's joint order.
+
+    Raises:
+        LogError: the input log lacks the robot's joints, has other rows, or another ``t_ns``.
+    """
     import torch
 
     import torchcontact as tc
     from torchcontact.logs.format import joint_names_of, open_log, read_rows, vectors
 
-    if frame is None:
-        frame = _default_frame(tab, fc, deficient)
     t_ns = tab.column("t_ns")[frame].as_py()
     pf = open_log(input_log)
     names = joint_names_of(pf.schema_arrow, input_log)
@@ -304,8 +314,46 @@ def _robot_view(
         raise LogError(f"{input_log}: row {frame} has another t_ns than the estimate's")
     q, _ = vectors(row.column("q"), len(names))
     q = q[0, [names.index(n) for n in model.joint_names]]
+    q = torch.as_tensor(q, dtype=model.dtype)
     zero = torch.zeros(model.nv, dtype=model.dtype)
-    fp = tc.forward_pass(model, torch.as_tensor(q, dtype=model.dtype), zero, zero)
+    return q, tc.forward_pass(model, q, zero, zero)
+
+
+def _draw_robot(ax: Any, model: Any, p: np.ndarray) -> None:
+    """Links as segments between body origins (world frame)."""
+    for b in range(1, model.nb):
+        a = p[model.body_parent[b]]
+        ax.plot(*np.stack([a, p[b]]).T, "-o", color="0.35", lw=3, ms=4)
+
+
+def _fit_view(ax: Any, pts: list[np.ndarray], arrows: list[np.ndarray]) -> None:
+    """Equal axes around ``pts``, seen from the side of the arrows."""
+    allp = np.concatenate(pts)
+    mid, half = (allp.min(0) + allp.max(0)) / 2, (allp.max(0) - allp.min(0)).max() / 2 + 0.05
+    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half))
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(*_side_view(arrows))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+
+
+def _robot_view(
+    tab: Any,
+    fc: dict,
+    model: Any,
+    input_log: str | Path,
+    frame: int | None,
+    deficient: np.ndarray,
+    path: Path,
+) -> Path:
+    import matplotlib.pyplot as plt
+
+    if frame is None:
+        frame = _default_frame(tab, fc, deficient)
+    t_ns = tab.column("t_ns")[frame].as_py()
+    _, fp = _posed(tab, model, input_log, frame)
     p = fp.p.numpy()
     sel = np.flatnonzero(fc["frame"] == frame)
     arrows = []  # (point, estimate, truth) in the world frame
@@ -322,9 +370,7 @@ def _robot_view(
     scale = 0.3 * size / fmax  # m per N
     fig = plt.figure(figsize=(7.5, 7))
     ax = fig.add_subplot(projection="3d")
-    for b in range(1, model.nb):  # links as segments between body origins
-        a = p[model.body_parent[b]]
-        ax.plot(*np.stack([a, p[b]]).T, "-o", color="0.35", lw=3, ms=4)
+    _draw_robot(ax, model, p)
     pts = [p]
     for c, f, truth in arrows:
         ax.scatter(*c, color="tab:red", s=25, depthshade=False)
@@ -333,15 +379,7 @@ def _robot_view(
         if truth is not None:
             ax.quiver(*c, *(truth * scale), color="k", lw=1.2, linestyle="--", label="truth")
             pts.append((c + truth * scale)[None])
-    allp = np.concatenate(pts)
-    mid, half = (allp.min(0) + allp.max(0)) / 2, (allp.max(0) - allp.min(0)).max() / 2 + 0.05
-    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half))
-    ax.set_zlim(mid[2] - half, mid[2] + half)
-    ax.set_box_aspect((1, 1, 1))
-    ax.view_init(*_side_view([a[1] for a in arrows]))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    _fit_view(ax, pts, [a[1] for a in arrows])
     posed = "well-posed" if not deficient[frame] else "rank < unknowns: minimum-norm estimate"
     ax.set_title(
         f"t = {(t_ns - tab.column('t_ns')[0].as_py()) * 1e-9:.2f} s (row {frame}), {len(sel)}"
@@ -352,6 +390,173 @@ def _robot_view(
     uniq = dict(zip(labels, handles, strict=True))
     if uniq:
         fig.legend(uniq.values(), uniq.keys(), loc="upper right")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+#: Most null-space directions drawn (each its own 3-D view).
+MAX_DIRECTIONS = 6
+
+
+def _nullity(tab: Any, sensors: list[str]) -> np.ndarray:
+    """``(N, S)`` null-space dimensions (``nullity.<s>``, else ``unknowns - rank``)."""
+    cols = []
+    for s in sensors:
+        if f"nullity.{s}" in tab.column_names:
+            cols.append(tab.column(f"nullity.{s}").to_numpy(zero_copy_only=False))
+        else:
+            cols.append(tab.column(f"unknowns.{s}").to_numpy() - tab.column(f"rank.{s}").to_numpy())
+    return np.stack(cols, -1).astype(float)
+
+
+def _null_directions(
+    tab: Any, model: Any, sensors: list[str], q: Any, fp: Any, frame: int
+) -> tuple[list[tuple], dict[str, list[str]], dict[str, np.ndarray]]:
+    """The null-space basis of row ``frame`` as contact forces in the world frame.
+
+    Recomputes :attr:`ContactEstimate.nullspace` (it depends on the joint positions and the
+    contacts only) for the row's contacts (``known`` ones have no unknowns and are left out).
+
+    Args:
+        tab: the estimate.
+        model: its robot.
+        sensors: the estimate's sensors.
+        q: ``(nv,)`` joint positions of the row.
+        fp: their forward pass.
+        frame: the row.
+
+    Returns:
+        ``(sensor, j, nullity, parts)`` per basis vector ``j`` of each sensor, ``parts`` a list of
+        ``(point, force, moment or None)`` per slot of its region (world frame: m, and the
+        unit basis vector's components as N, N m); the labels of the unknowns per sensor
+        (:meth:`ContactEstimator.unknown_labels`); the bases ``(unknowns, nullity)`` per sensor.
+
+    Raises:
+        LogError: the row's contacts cannot be laid out (an unknown link or kind).
+    """
+    import torch
+
+    import torchcontact as tc
+    from torchcontact.errors import TorchContactError
+    from torchcontact.logs.format import read_contacts
+
+    records, _, _ = read_contacts(tab.column("contacts").slice(frame, 1))
+    keep = [isinstance(k, str) and k in tc.KINDS and k != "known" for k in records.kinds]
+    records = records.select(np.array(keep, bool))
+    est = tc.ContactEstimator(model, sensors)
+    try:
+        contacts, _ = tc.Contacts.from_records(records, 1, dtype=model.dtype)
+        zero = torch.zeros(1, model.nv, dtype=model.dtype)
+        ft = {s: torch.zeros(1, 6, dtype=model.dtype) for s in sensors}
+        res = est.estimate(q[None], zero, zero, ft, contacts, nullspace=True, backend="eager")
+        labels = est.unknown_labels(contacts)
+    except TorchContactError as exc:
+        raise LogError(f"row {frame}: no null space for its contacts ({exc})") from None
+    em = est.layout(contacts.links, contacts.kinds)
+    dirs, bases = [], {}
+    for s, reg in zip(sensors, em.regions, strict=True):
+        d = int(res.nullity[s][0])
+        bases[s] = res.nullspace[s][0, :, :d].numpy()
+        for j in range(d):
+            v, start, parts = bases[s][:, j], 0, []
+            for k in reg.slots:
+                kind = em.slots[k].kind
+                x = v[start : start + tc.KINDS[kind]]
+                start += tc.KINDS[kind]
+                if kind == "force_dir":
+                    u = contacts.directions[0, k].numpy()
+                    f, m = x[0] * u / max(np.linalg.norm(u), 1e-12), None
+                else:
+                    f, m = x[:3], (x[3:] if kind == "wrench" else None)
+                R, pk = (a.numpy() for a in model.frame_pose(fp, contacts.links[k]))
+                c = R @ contacts.positions[0, k].numpy() + pk
+                parts.append((c, R @ f, None if m is None else R @ m))
+            dirs.append((s, j, d, parts))
+    return dirs, labels, bases
+
+
+def _nullspace_view(
+    tab: Any, model: Any, sensors: list[str], input_log: str | Path, frame: int | None, path: Path
+) -> Path:
+    """The unobservable directions of one frame: null-space basis vectors as contact forces.
+
+    Each basis vector (of :attr:`ContactEstimate.nullspace`) is drawn at the contacts, world
+    frame, its largest force 25 % of the robot's size, with a table of its components by unknown.
+    Default frame: the one with the most unobservable directions among those with status 0.
+    """
+    import matplotlib.pyplot as plt
+
+    if frame is None:
+        nullity = np.nan_to_num(_nullity(tab, sensors)).sum(-1)
+        nullity[tab.column("status_code").to_numpy() != 0] = -1
+        frame = int(np.argmax(nullity))
+    q, fp = _posed(tab, model, input_log, frame)
+    p = fp.p.numpy()
+    dirs, labels, bases = _null_directions(tab, model, sensors, q, fp, frame)
+    shown = dirs[:MAX_DIRECTIONS]
+    cols = max(1, min(3, len(shown)))
+    rows = max(1, -(-len(shown) // cols))
+    fig = plt.figure(figsize=(5 * cols, 4.6 * rows + 2.6))
+    grid = fig.add_gridspec(rows + 1, cols, height_ratios=[*([4.6] * rows), 2.6])
+    lo, hi = p.min(0), p.max(0)
+    size = max(float(np.max(hi - lo)), 0.2)
+    t0 = tab.column("t_ns")[0].as_py()
+    t = (tab.column("t_ns")[frame].as_py() - t0) * 1e-9
+    for i, (s, j, d, parts) in enumerate(shown):
+        ax = fig.add_subplot(grid[i // cols, i % cols], projection="3d")
+        _draw_robot(ax, model, p)
+        fmax = max([np.linalg.norm(f) for _, f, _ in parts] + [1e-9])
+        scale = 0.25 * size / fmax
+        pts, arrows = [p], []
+        for c, fw, m in parts:
+            ax.scatter(*c, color="tab:purple", s=20, depthshade=False)
+            ax.quiver(*c, *(fw * scale), color="tab:purple", lw=2.2, label="force")
+            if m is not None and np.linalg.norm(m) > 1e-9:
+                ax.quiver(*c, *(m * scale), color="tab:green", lw=1.5, linestyle=":",
+                          label="moment")  # fmt: skip
+            pts += [c[None], (c + fw * scale)[None]]
+            arrows.append(fw)
+        _fit_view(ax, pts, arrows)
+        ax.set_title(f"{s}: direction {j + 1} of {d}", fontsize=10)
+    if not shown:
+        ax = fig.add_subplot(grid[0, 0], projection="3d")
+        _draw_robot(ax, model, p)
+        _fit_view(ax, [p], [])
+        ax.set_title("every sensor sees every unknown here (nullity 0)", fontsize=10)
+    # the basis as a table: components of each direction by unknown
+    tab_ax = fig.add_subplot(grid[rows, :])
+    if shown:
+        order = [lab for s in sensors for lab in labels[s]]
+        names = sorted({lab for s, _, _, _ in shown for lab in labels[s]}, key=order.index)
+        M = np.zeros((len(shown), len(names)))
+        for i, (s, j, _, _) in enumerate(shown):
+            for r, lab in enumerate(labels[s]):
+                M[i, names.index(lab)] = bases[s][r, j]
+        im = tab_ax.imshow(M, cmap="RdBu_r", vmin=-1, vmax=1, aspect="auto")
+        tab_ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=7)
+        tab_ax.set_yticks(range(len(shown)), [f"{s} #{j + 1}" for s, j, _, _ in shown],
+                          fontsize=8)  # fmt: skip
+        fig.colorbar(im, ax=tab_ax, fraction=0.02, label="component (unit vector, link frames)")
+    else:
+        tab_ax.axis("off")
+    more = f" (first {MAX_DIRECTIONS} of {len(dirs)})" if len(dirs) > len(shown) else ""
+    title = (
+        f"Unobservable directions at t = {t:.2f} s (row {frame}){more}: contact forces the"
+        " sensors cannot tell apart (adding any multiple changes no reading); world frame,"
+        " each direction's largest force drawn at 25 % of the robot's size"
+    )
+    fig.suptitle(textwrap.fill(title, 14 * 5 * cols), fontsize=9)
+    handles, labs = [], []
+    for ax in fig.axes:
+        h, lab = ax.get_legend_handles_labels()
+        handles += h
+        labs += lab
+    uniq = dict(zip(labs, handles, strict=True))
+    if uniq:
+        fig.legend(uniq.values(), uniq.keys(), loc="upper right", bbox_to_anchor=(1, 0.9),
+                   fontsize=8)  # fmt: skip
+    fig.tight_layout(rect=(0, 0, 1, 0.9))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -39,6 +39,7 @@ from torchcontact.logs.pipeline import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
     RunState,
+    _ConeTally,
     chunks_with_derivatives,
     estimate_chunks,
     expand_inputs,
@@ -199,6 +200,7 @@ def _unit_dataset(
         "derived": list(le.derived),
         "velocity_margin": le.velocity_margin,
         "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
+        "constraints": le.constraints,
     }
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
     config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
@@ -233,6 +235,7 @@ def estimate_file_ray(
     residual: str | Path | None = None,
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
+    constraints: Any = None,
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
@@ -256,6 +259,8 @@ def estimate_file_ray(
             worker process loads it once.
         velocity_margin: as :func:`estimate_file`.
         ft_range: as :func:`estimate_file`.
+        constraints: as :func:`estimate_file` (warm starts run within a unit; a unit's first
+            frame starts cold).
 
     Returns:
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units).
@@ -283,7 +288,7 @@ def estimate_file_ray(
             f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
             " order); use --engine local"
         )
-    pf, le, columns = prepare(path, model, sensors, res, velocity_margin, ft_range)
+    pf, le, columns = prepare(path, model, sensors, res, velocity_margin, ft_range, constraints)
     total = pf.metadata.num_rows
     units = plan_units(total, task_rows)
     ident = run_ident(
@@ -305,12 +310,16 @@ def estimate_file_ray(
     counts = {"ok": 0, "bad": 0}
     writer = LogWriter(out, le.output_schema())  # the output, renamed into place when complete
     written = 0  # units written to the output: 0 .. written - 1, in order
+    cones, now = _ConeTally(le), set(todo)
 
     def drain() -> None:
         """Write the units that are done and next in order (journal -> output)."""
         nonlocal written
         while written < len(units) and written in run.done:
-            writer.write(read_journal(run.part(written)))
+            tab = read_journal(run.part(written))
+            writer.write(tab)
+            if written in now:
+                cones.add(tab)
             written += 1
 
     try:
@@ -364,6 +373,7 @@ def estimate_file_ray(
         resumed_chunks=len(units) - len(todo),
         chunks=len(units),
         engine="ray",
+        **cones.summary(),
     )
 
 

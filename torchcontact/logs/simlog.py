@@ -2,7 +2,9 @@
 
 The true contact forces are kept in the contact struct field ``true_force`` (3 float64, link frame,
 N) and carried unchanged into the estimator's output, where :mod:`torchcontact.logs.plot` draws
-them next to the estimates. Contacts are pure forces (kind ``force``) on skin frames.
+them next to the estimates. Contacts are pure forces (kind ``force``) on skin frames; their
+``normal`` is the frame's +z (the simulated patches lie in its xy plane and the forces push
+within 0.62 rad of -z), for ``estimate --constraints``.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int =
         derivatives=derivatives,
         contact_extra=_contact_extra(),
         extra=[("temperature", pa.float64())],
+        cone=True,
     )
     f, k = np.nonzero(log.contact_link >= 0)  # records in (frame, slot) order
     records = ContactRecords(
@@ -60,6 +63,7 @@ def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int =
         np.asarray(log.links, dtype=object)[log.contact_link[f, k]],
         ["force"] * len(f),
         log.contact_position[f, k],
+        normals=np.tile([0.0, 0.0, 1.0], (len(f), 1)),
     )
     ctype = schema.field("contacts").type.value_type
     contacts = contacts_column(records, N, {"true_force": log.contact_force[f, k]}, ctype)
