@@ -220,13 +220,9 @@ class _ConstrainedGraph(nn.Module):
         )
 
 
-def _export_constrained(
-    est: ContactEstimator, links, kinds, constraints: FrictionCones, path: Path, meta: dict, opset
-) -> dict[str, str]:
-    """Trace :class:`_ConstrainedGraph` to ``path`` and write ``meta`` (updated) into it."""
-    m = est.model
-    S, K, nv = len(est.sensor_names), len(links), m.nv
-    shapes = {
+def _base_shapes(nv: int, S: int, K: int) -> dict[str, list]:
+    """Shapes of the inputs every batched estimator graph takes (``N`` dynamic)."""
+    return {
         "q": ["N", nv],
         "qd": ["N", nv],
         "qdd": ["N", nv],
@@ -236,6 +232,17 @@ def _export_constrained(
         "wrenches": ["N", K, 6],
         "active": ["N", K],
         "ft_residual": ["N", S, 6],
+    }
+
+
+def _export_constrained(
+    est: ContactEstimator, links, kinds, constraints: FrictionCones, path: Path, meta: dict, opset
+) -> dict[str, str]:
+    """Trace :class:`_ConstrainedGraph` to ``path`` and write ``meta`` (updated) into it."""
+    m = est.model
+    S, K, nv = len(est.sensor_names), len(links), m.nv
+    shapes = {
+        **_base_shapes(nv, S, K),
         "normals": ["N", K, 3],
         "friction": ["N", K],
         "pushing": ["N", K],
@@ -324,17 +331,7 @@ def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: lis
     moving_base, torque_rows, with_cov = flags
     gb = GraphBuilder(dtype, "torchcontact_estimator")
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
-    shapes = {
-        "q": ["N", nv],
-        "qd": ["N", nv],
-        "qdd": ["N", nv],
-        "ft": ["N", S, 6],
-        "positions": ["N", K, 3],
-        "directions": ["N", K, 3],
-        "wrenches": ["N", K, 6],
-        "active": ["N", K],
-        "ft_residual": ["N", S, 6],
-    }
+    shapes = _base_shapes(nv, S, K)
     if moving_base:
         shapes.update(omega=["N", 3], domega=["N", 3], proper_acc=["N", 3])
     if torque_rows:
