@@ -5,8 +5,10 @@ The same parser runs as ``python -m export`` from the repository root. Example::
     torchcontact export estimator --robot tcarm --slot forearm_skin:force \\
         --slot hand_skin:force --out tcarm.onnx
     torchcontact export estimator --urdf iCubGenova04.urdf --sensor l_arm_ft \\
-        --contacts slots.toml --dtype float32 --out icub_larm.onnx
+        --contacts slots.toml --dtype float32 --joints sensed --out icub_larm.onnx
     torchcontact export residual runs/correction --urdf arm.urdf --out correction.onnx
+    torchcontact export estimator --robot tcarm --slot hand_skin:force \\
+        --residual correction.onnx --out tcarm_corrected.onnx
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ def _estimator(args: argparse.Namespace) -> int:
     import torch
 
     import torchcontact as tc
-    from torchcontact.export import DEFAULT_OPSET, export_estimator
+    from torchcontact.errors import TorchContactError
+    from torchcontact.export import DEFAULT_OPSET, export_estimator, step_graph_path
 
     if (args.robot is None) == (args.urdf is None):
         raise InputError("give exactly one of --robot tcarm or --urdf PATH")
@@ -53,21 +56,41 @@ def _estimator(args: argparse.Namespace) -> int:
     links, kinds = _slots(args)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     opset = args.opset or DEFAULT_OPSET
+    joints = args.joints
+    if joints and joints not in ("all", "sensed"):
+        joints = joints.split(",")
     print(
-        f"export: tracing the estimator of {model.name} ({len(links)} slots) ...", file=sys.stderr
+        f"export: building the estimator graphs of {model.name} ({len(links)} slots) ...",
+        file=sys.stderr,
     )
     try:
-        with _stage(f"estimator graph of {model.name}, {len(links)} slots"):
+        with _stage(f"estimator graphs of {model.name}, {len(links)} slots"):
             cones = None
             if args.constraints or args.cone_iterations is not None:
                 cones = tc.FrictionCones(args.cone_iterations or tc.FrictionCones().iterations)
             meta = export_estimator(
-                model, args.sensor or None, links, kinds, args.out, dtype=dtype, opset=opset,
-                rank_rtol=args.rank_rtol, constraints=cones,
-            )  # fmt: skip
+                model,
+                args.sensor or None,
+                links,
+                kinds,
+                args.out,
+                dtype=dtype,
+                opset=opset,
+                rank_rtol=args.rank_rtol,
+                moving_base=args.moving_base,
+                torque_rows=args.torque_rows,
+                covariance=args.covariance,
+                residual=args.residual or None,
+                joints=None if joints in (None, "all") else joints,
+                velocity_margin=args.velocity_margin,
+                constraints=cones,
+            )
+    except TorchContactError:
+        raise
     except ValueError as e:
         raise InputError(str(e)) from None
-    print(json.dumps({"path": str(args.out), **meta}, indent=1))
+    step = str(step_graph_path(args.out))
+    print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
     return 0
 
 
@@ -120,6 +143,33 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")
     e.add_argument(
+        "--moving-base",
+        action="store_true",
+        help="inputs omega, domega, proper_acc (IMU on the root body)",
+    )
+    e.add_argument(
+        "--torque-rows",
+        action="store_true",
+        help="inputs tau_measured, tau_mask (joint torque sensors)",
+    )
+    e.add_argument("--covariance", action="store_true", help="input ft_cov, output covariance")
+    e.add_argument(
+        "--joints",
+        default=None,
+        help="joint torques to output: all (default), sensed, or NAME,NAME,...",
+    )
+    e.add_argument(
+        "--residual",
+        action="append",
+        help="correction graph to chain (torchcontact export residual; repeat)",
+    )
+    e.add_argument(
+        "--velocity-margin",
+        type=float,
+        default=None,
+        help="status bit 64 beyond this multiple of the URDF velocity limits",
+    )
+    e.add_argument(
         "--constraints",
         action="store_true",
         help="the friction-cone constrained estimator (inputs normals, friction, pushing)",
@@ -127,7 +177,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--cone-iterations", type=int, default=None, help="its iteration budget (default 25)"
     )
-    e.add_argument("--out", required=True, help="output .onnx path")
+    e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")
     r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")

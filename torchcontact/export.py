@@ -1,11 +1,34 @@
 """Export the contact estimator and F/T corrections to ONNX (extra ``export``).
 
 :func:`export_estimator` writes the *whole* estimator of one robot, sensor set and contact-slot
-layout as a single ONNX graph, traced from the same torch code as
-:meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` (RNEA forward pass,
-``b`` assembly, the residual correction of the readings, the minimum-norm solve by pivoted
-Cholesky of :mod:`torchcontact.solve`, and the backward pass). The graph runs with onnxruntime
-alone through :mod:`torchcontact.runtime`.
+layout (RNEA forward pass, ``b``, the contact maps, the minimum-norm solve by pivoted Cholesky of
+:mod:`torchcontact.solve`, the backward pass, the status checks; optionally the moving base, the
+torque-sensor rows, the covariance and a chained residual correction) as two ONNX graphs with the
+same metadata, run with onnxruntime alone through :mod:`torchcontact.runtime`:
+
+* ``<name>.onnx``, the **batched** graph: the estimator program of
+  :mod:`torchcontact.estimation.programs` emitted one node per scalar operation, each node running
+  over the ``N`` frames (throughput). Inputs (``N`` dynamic, ``S`` sensors, ``K`` slots)::
+
+      q, qd, qdd     (N, nv)   joint positions (rad, m), velocities, accelerations
+      ft             (N, S, 6) readings [force N; moment N m], sensor frame and direction
+      ft_residual    (N, S, 6) subtracted from ft (zeros: no correction)
+      positions      (N, K, 3) contact points in the slot's link frame, m
+      active         (N, K)    1 where the slot is in contact, 0 elsewhere
+      directions     (N, K, 3) force directions of force_dir slots (link frame)
+      wrenches       (N, K, 6) given wrenches of known slots (link frame, about the point)
+      omega, domega, proper_acc (N, 3)  base IMU (``moving_base``)
+      tau_measured, tau_mask (N, nv)    measured joint torques and their 0/1 validity
+      ft_cov         (N, S, 6, 6)       reading noise covariance (``covariance``)
+      extra (N, E), h_in.<sensor> (N, L, H)   inputs of chained residual corrections
+
+  Outputs: ``force, moment (N, K, 3)``, ``joint_torques (N, nv)``, ``rank, unknowns (N, S)``
+  int64, ``residual (N, S)``, ``status (N,)`` int64 (bits of :data:`torchcontact.STATUS`;
+  outputs of such frames are NaN), ``covariance (N, K, 6, 6)``, ``h_out.<sensor>``.
+* ``<name>.step.onnx``, the **single-frame** graph (:mod:`torchcontact._onnx_step`): the same
+  function for one frame as a few hundred nodes vectorised over bodies and slots (latency), with
+  one packed input ``x (1, F)`` and one packed output ``out (1, O)`` whose layouts are in the
+  metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]).
 
 :func:`export_residual_checkpoint` writes a correction stack (:mod:`torchcontact.residual`:
 offset, re-identified inertial parameters, learned layer) as one graph from raw joint state to
@@ -13,26 +36,14 @@ the correction ``(N, 6)``; :func:`export_residual` writes any ``nn.Module`` mapp
 ``(N, F)`` to an F/T residual ``(N, 6)`` (optionally with a recurrent state ``h_in -> h_out``);
 :func:`check_parity` compares a file with its module.
 
-Graph inputs of the estimator (``N`` dynamic, ``S`` sensors, ``K`` slots, ``nv`` joints)::
-
-    q, qd, qdd   (N, nv)   joint positions (rad, m), velocities, accelerations
-    ft           (N, S, 6) readings [force N; moment N m], sensor frame and measure direction
-    positions    (N, K, 3) contact points in the slot's link frame, m
-    directions   (N, K, 3) force directions for force_dir slots (link frame; zeros elsewhere)
-    wrenches     (N, K, 6) given wrenches of known slots (link frame, about the point)
-    active       (N, K)    1 where the slot is in contact, 0 elsewhere (float, model dtype)
-    ft_residual  (N, S, 6) subtracted from ft before estimation (zeros: no correction)
-
-Outputs: ``force (N, K, 3)``, ``moment (N, K, 3)``, ``joint_torques (N, nv)``, ``rank (N, S)``
-int64, ``unknowns (N, S)`` int64, ``residual (N, S)``, ``status (N,)`` int64 (bits of
-:data:`torchcontact.STATUS`; outputs of such frames are NaN).
-
-With ``constraints`` (:class:`~torchcontact.FrictionCones`) the graph is the friction-cone
-constrained estimator, its interior-point iterations unrolled to the whole budget; it takes
-:data:`CONE_INPUTS` after the inputs above (``normals (N, K, 3)`` outward surface normals, link
-frame; ``friction (N, K)`` coefficients; ``pushing (N, K)`` 1/0) and returns
-:data:`CONE_OUTPUTS` after the outputs above (``converged (N, S)`` bool, ``iterations (N, S)``
-int64, ``cone_active (N, K)`` bool).
+With ``constraints`` (:class:`~torchcontact.FrictionCones`) :func:`export_estimator` writes the
+friction-cone constrained estimator instead: the eager estimator traced by ``torch.onnx`` with
+its interior-point iterations unrolled to the whole budget (one batched graph, no single-frame
+graph: :meth:`EstimatorRuntime.step <torchcontact.runtime.EstimatorRuntime.step>` runs it with
+``N = 1``). It takes :data:`CONE_INPUTS` after the fixed-base inputs (``normals (N, K, 3)``
+outward surface normals, link frame; ``friction (N, K)`` coefficients; ``pushing (N, K)`` 1/0)
+and returns :data:`CONE_OUTPUTS` after the outputs (``converged (N, S)`` bool,
+``iterations (N, S)`` int64, ``cone_active (N, K)`` bool).
 """
 
 from __future__ import annotations
@@ -50,6 +61,7 @@ from torch import Tensor, nn
 
 from torchcontact.constrained import FrictionCones
 from torchcontact.contacts import KINDS, Contacts
+from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 
@@ -58,15 +70,15 @@ __all__ = [
     "CONE_OUTPUTS",
     "ESTIMATOR_INPUTS",
     "ESTIMATOR_OUTPUTS",
-    "EstimatorGraph",
     "check_parity",
     "export_estimator",
     "export_residual",
     "export_residual_checkpoint",
+    "step_graph_path",
     "RESIDUAL_GRAPH_FORMAT",
 ]
 
-#: Input names of an exported estimator, in order.
+#: Input names of the batched estimator graph, in order (optional ones follow, see the module).
 ESTIMATOR_INPUTS = (
     "q",
     "qd",
@@ -78,7 +90,7 @@ ESTIMATOR_INPUTS = (
     "active",
     "ft_residual",
 )
-#: Output names of an exported estimator, in order.
+#: Output names of the batched estimator graph, in order.
 ESTIMATOR_OUTPUTS = (
     "force",
     "moment",
@@ -88,180 +100,14 @@ ESTIMATOR_OUTPUTS = (
     "residual",
     "status",
 )
-#: Inputs a constrained estimator graph takes after :data:`ESTIMATOR_INPUTS`.
+#: Inputs a constrained estimator graph takes after the fixed-base ones (``constraints``).
 CONE_INPUTS = ("normals", "friction", "pushing")
 #: Outputs a constrained estimator graph returns after :data:`ESTIMATOR_OUTPUTS`.
 CONE_OUTPUTS = ("converged", "iterations", "cone_active")
 #: Format version of the metadata written by :func:`export_estimator`.
-FORMAT = "torchcontact.estimator/1"
+FORMAT = "torchcontact.estimator/2"
 DEFAULT_OPSET = 18
 DYNAMO = False
-
-
-class EstimatorGraph(nn.Module):
-    """The estimator of fixed slots as a tensor-in, tensor-out module (what gets exported).
-
-    Holds no parameters; the robot model's tensors become constants of the traced graph.
-
-    Args:
-        estimator: a :class:`ContactEstimator` (its model's gravity and rank tolerance are baked
-            into the graph).
-        links: K link (or frame) names of the contact slots.
-        kinds: K slot kinds (see :data:`torchcontact.KINDS`).
-        constraints: :class:`~torchcontact.FrictionCones`: the friction-cone constrained
-            estimator (inputs and outputs of :data:`CONE_INPUTS`, :data:`CONE_OUTPUTS` added).
-    """
-
-    def __init__(
-        self,
-        estimator: ContactEstimator,
-        links: Sequence[str],
-        kinds: Sequence[str],
-        constraints: FrictionCones | None = None,
-    ) -> None:
-        super().__init__()
-        self.est = estimator
-        self.links, self.kinds = tuple(links), tuple(kinds)
-        self.constraints = constraints
-        # validate the layout now (unknown links, slots outside every sensor's subtree)
-        estimator.layout(self.links, self.kinds)
-
-    def forward(
-        self,
-        q: Tensor,
-        qd: Tensor,
-        qdd: Tensor,
-        ft: Tensor,
-        positions: Tensor,
-        directions: Tensor,
-        wrenches: Tensor,
-        active: Tensor,
-        ft_residual: Tensor,
-        normals: Tensor | None = None,
-        friction: Tensor | None = None,
-        pushing: Tensor | None = None,
-    ) -> tuple[Tensor, ...]:
-        """Estimate ``N`` frames; shapes as in the module docstring."""
-        est = self.est
-        readings = ft - ft_residual  # residual correction (a learned model's output, or zeros)
-        cones = {}
-        if self.constraints is not None:
-            cones = dict(normals=normals, friction=friction, pushing=pushing > 0.5)
-        out = est.estimate(
-            q,
-            qd,
-            qdd,
-            {s: readings[:, i] for i, s in enumerate(est.sensor_names)},
-            Contacts(self.links, self.kinds, positions, directions, wrenches, active, **cones),
-            backend="eager",
-            constraints=self.constraints,
-        )
-        names = est.sensor_names
-        res = (
-            out.force,
-            out.moment,
-            out.joint_torques,
-            torch.stack([out.rank[s] for s in names], -1),
-            torch.stack([out.unknowns[s] for s in names], -1),
-            torch.stack([out.residual[s] for s in names], -1),
-            out.status,
-        )
-        if out.cones is None:
-            return res
-        return (
-            *res,
-            torch.stack([out.cones.converged[s] for s in names], -1),
-            torch.stack([out.cones.iterations[s] for s in names], -1),
-            out.cones.active,
-        )
-
-
-def _example_inputs(
-    model: RobotModel, S: int, K: int, n: int = 2, cones: bool = False
-) -> tuple[Tensor, ...]:
-    """Finite example inputs (distinct frames) for tracing (with the cone inputs: ``cones``)."""
-    g = torch.Generator().manual_seed(0)
-    dt = model.dtype
-
-    def r(*shape):
-        return torch.rand(*shape, generator=g, dtype=torch.float64).to(dt)
-
-    nv = model.nv
-    return (
-        r(n, nv),
-        r(n, nv),
-        r(n, nv),
-        r(n, S, 6),
-        r(n, K, 3),
-        r(n, K, 3) + 0.5,
-        r(n, K, 6),
-        torch.ones(n, K, dtype=dt),
-        torch.zeros(n, S, 6, dtype=dt),
-        *((r(n, K, 3) + 0.5, r(n, K) + 0.5, torch.ones(n, K, dtype=dt)) if cones else ()),
-    )
-
-
-def estimator_metadata(
-    model: RobotModel,
-    estimator: ContactEstimator,
-    links: Sequence[str],
-    kinds: Sequence[str],
-    opset: int,
-    rank_rtol: float | None,
-) -> dict[str, str]:
-    """The ``metadata_props`` of an exported estimator (all values are strings, JSON inside)."""
-    import torchcontact
-
-    S, K = len(estimator.sensor_names), len(links)
-    shapes = {
-        "q": ["N", model.nv],
-        "qd": ["N", model.nv],
-        "qdd": ["N", model.nv],
-        "ft": ["N", S, 6],
-        "positions": ["N", K, 3],
-        "directions": ["N", K, 3],
-        "wrenches": ["N", K, 6],
-        "active": ["N", K],
-        "ft_residual": ["N", S, 6],
-    }
-    sensors = [
-        {"name": s.name, "joint": s.joint, "frame": s.frame, "direction": s.measure_direction}
-        for s in estimator.sensors
-    ]
-    return {
-        "format": FORMAT,
-        "robot": model.name,
-        "urdf_sha256": model.urdf_sha256,
-        "joint_names": json.dumps(list(model.joint_names)),
-        "sensors": json.dumps(sensors),
-        "slot_links": json.dumps(list(links)),
-        "slot_kinds": json.dumps(list(kinds)),
-        "inputs": json.dumps(list(ESTIMATOR_INPUTS)),
-        "input_shapes": json.dumps(shapes),
-        "outputs": json.dumps(list(ESTIMATOR_OUTPUTS)),
-        "units": json.dumps(
-            {
-                "q": "rad or m",
-                "qd": "rad/s or m/s",
-                "qdd": "rad/s^2 or m/s^2",
-                "ft": "[N, N, N, N m, N m, N m]",
-                "positions": "m",
-                "force": "N",
-                "moment": "N m",
-                "joint_torques": "N m or N",
-                "gravity": "m/s^2",
-            }
-        ),
-        "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
-        "moments about the contact point; ft: each sensor's declared frame and direction",
-        "gravity": json.dumps([float(g) for g in model.gravity]),
-        "dtype": str(model.dtype).removeprefix("torch."),
-        "solver": "pivoted cholesky",
-        "rank_rtol": "default" if rank_rtol is None else repr(float(rank_rtol)),
-        "torchcontact_version": torchcontact.__version__,
-        "torch_version": torch.__version__,
-        "opset": str(opset),
-    }
 
 
 def _export(module, args, path, input_names, output_names, dynamic_axes, opset) -> None:
@@ -315,6 +161,274 @@ def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> No
     onnx.save(m, str(path))
 
 
+class _ConstrainedGraph(nn.Module):
+    """The friction-cone constrained estimator of fixed slots, tensors in and out (traced).
+
+    ``forward(q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual, normals,
+    friction, pushing)`` returns :data:`ESTIMATOR_OUTPUTS` then :data:`CONE_OUTPUTS`.
+    """
+
+    def __init__(
+        self,
+        estimator: ContactEstimator,
+        links: Sequence[str],
+        kinds: Sequence[str],
+        constraints: FrictionCones,
+    ) -> None:
+        super().__init__()
+        self.est, self.constraints = estimator, constraints
+        self.links, self.kinds = tuple(links), tuple(kinds)
+
+    def forward(self, *x: Tensor) -> tuple[Tensor, ...]:
+        """Estimate ``N`` frames (shapes in the module docstring)."""
+        q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual = x[:9]
+        normals, friction, pushing = x[9:]
+        est, names = self.est, self.est.sensor_names
+        readings = ft - ft_residual
+        contacts = Contacts(
+            self.links,
+            self.kinds,
+            positions,
+            directions,
+            wrenches,
+            active > 0.5,
+            normals=normals,
+            friction=friction,
+            pushing=pushing > 0.5,
+        )
+        out = est.estimate(
+            q,
+            qd,
+            qdd,
+            {s: readings[:, i] for i, s in enumerate(names)},
+            contacts,
+            backend="eager",
+            constraints=self.constraints,
+        )
+        cones = out.cones
+        return (
+            out.force,
+            out.moment,
+            out.joint_torques,
+            torch.stack([out.rank[s] for s in names], -1),
+            torch.stack([out.unknowns[s] for s in names], -1),
+            torch.stack([out.residual[s] for s in names], -1),
+            out.status,
+            torch.stack([cones.converged[s] for s in names], -1),
+            torch.stack([cones.iterations[s] for s in names], -1),
+            cones.active,
+        )
+
+
+def _base_shapes(nv: int, S: int, K: int) -> dict[str, list]:
+    """Shapes of the inputs every batched estimator graph takes (``N`` dynamic)."""
+    return {
+        "q": ["N", nv],
+        "qd": ["N", nv],
+        "qdd": ["N", nv],
+        "ft": ["N", S, 6],
+        "positions": ["N", K, 3],
+        "directions": ["N", K, 3],
+        "wrenches": ["N", K, 6],
+        "active": ["N", K],
+        "ft_residual": ["N", S, 6],
+    }
+
+
+def _export_constrained(
+    est: ContactEstimator, links, kinds, constraints: FrictionCones, path: Path, meta: dict, opset
+) -> dict[str, str]:
+    """Trace :class:`_ConstrainedGraph` to ``path`` and write ``meta`` (updated) into it."""
+    m = est.model
+    S, K, nv = len(est.sensor_names), len(links), m.nv
+    shapes = {
+        **_base_shapes(nv, S, K),
+        "normals": ["N", K, 3],
+        "friction": ["N", K],
+        "pushing": ["N", K],
+    }
+    g = torch.Generator().manual_seed(0)
+    ex = {k: torch.rand(2, *sh[1:], generator=g, dtype=torch.float64) for k, sh in shapes.items()}
+    for k in ("directions", "normals", "friction"):
+        ex[k] = ex[k] + 0.5
+    for k in ("active", "pushing"):
+        ex[k] = torch.ones_like(ex[k])
+    ex["ft_residual"] = torch.zeros_like(ex["ft_residual"])
+    example = tuple(v.to(m.dtype) for v in ex.values())
+    names_out = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
+    dyn = {k: {0: "N"} for k in (*shapes, *names_out)}
+    graph = _ConstrainedGraph(est, links, kinds, constraints).eval()
+    with torch.no_grad():
+        _export(graph, example, path, list(shapes), names_out, dyn, opset)
+    iterations, eps, tol, _ = constraints.resolved(m.dtype)
+    meta = {
+        **meta,
+        "inputs": json.dumps(list(shapes)),
+        "input_shapes": json.dumps(shapes),
+        "outputs": json.dumps(names_out),
+        "constraints": json.dumps({"iterations": iterations, "eps": eps, "tol": tol}),
+        "solver": "friction-cone constrained least squares (torchcontact.constrained), unrolled",
+        "step_graph": "",
+        "step_inputs": "{}",
+        "step_outputs": "{}",
+        "graph": "batched",
+    }
+    _set_metadata(path, meta)
+    return meta
+
+
+def _residual_graphs(residual, model: RobotModel, est: ContactEstimator) -> list:
+    """Load and check the residual-correction graphs to chain: ``[(ResidualGraph, ModelProto)]``.
+
+    Raises:
+        ModelMismatchError: a graph made for another robot, joints or sensor, or two for one
+            sensor.
+    """
+    import onnx
+    from onnx import version_converter
+
+    from torchcontact._onnx import OPSET
+    from torchcontact.errors import ModelMismatchError
+    from torchcontact.runtime import ResidualGraph
+
+    if residual is None:
+        return []
+    paths = [residual] if isinstance(residual, (str, os.PathLike)) else list(residual)
+    out = []
+    for p in paths:
+        rg = ResidualGraph.load(p)
+        rg.check(model.joint_names, est.sensor_names, model.urdf_sha256)
+        if any(r.sensor == rg.sensor for r, _ in out):
+            raise ModelMismatchError(f"two residual graphs correct sensor {rg.sensor!r}")
+        m = onnx.load(str(p))
+        version = next(o.version for o in m.opset_import if o.domain in ("", "ai.onnx"))
+        if version != OPSET:
+            m = version_converter.convert_version(m, OPSET)
+        del rg.session  # not needed at export
+        out.append((rg, m))
+    return out
+
+
+def _residual_meta(res: list, files: list[str]) -> list[dict]:
+    return [
+        {
+            "sensor": rg.sensor,
+            "format": rg.format,
+            "extra": list(rg.extra),
+            "state_shape": list(rg.state_shape) if rg.state_shape else None,
+            "file": f,
+            "sha256": hashlib.sha256(Path(rg.path).read_bytes()).hexdigest(),
+        }
+        for (rg, _), f in zip(res, files, strict=True)
+    ]
+
+
+def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list, coords):
+    """The batched graph: the estimator program, one node per scalar operation over ``N``."""
+    from torchcontact._onnx import GraphBuilder, emit_program, inline
+    from torchcontact.estimation.programs import program
+
+    moving_base, torque_rows, with_cov = flags
+    gb = GraphBuilder(dtype, "torchcontact_estimator")
+    S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
+    shapes = _base_shapes(nv, S, K)
+    if moving_base:
+        shapes.update(omega=["N", 3], domega=["N", 3], proper_acc=["N", 3])
+    if torque_rows:
+        shapes.update(tau_measured=["N", nv], tau_mask=["N", nv])
+    if with_cov:
+        shapes["ft_cov"] = ["N", S, 6, 6]
+    extra = list(dict.fromkeys(c for rg, _ in res for c in rg.extra))
+    if res:
+        shapes["extra"] = ["N", len(extra)]
+        for rg, _ in res:
+            if rg.state_shape:
+                shapes[f"h_in.{rg.sensor}"] = ["N", *rg.state_shape]
+    for name, sh in shapes.items():
+        gb.input(name, sh)
+    n = gb.op("Slice", gb.op("Shape", "q"), gb.i([0]), gb.i([1]))
+    readings = gb.op("Reshape", gb.op("Sub", "ft", "ft_residual"), gb.i([-1, 6 * S]))
+    if res:
+        # chained corrections: each reads q, qd, qdd (and extra columns) and corrects a sensor
+        src = gb.op("Concat", "q", "qd", "qdd", "extra", axis=1)
+        outs = []
+        for r, (rg, m) in enumerate(res):
+            feeds = {}
+            for name, cols in rg.inputs:
+                if cols is None:
+                    feeds[name] = gb.op("Cast", f"h_in.{rg.sensor}", to=_onnx_type(rg.dtype))
+                    continue
+                sel = _selection(cols, em.model.joint_names, extra, nv)
+                feeds[name] = gb.op(
+                    "Cast", gb.op("MatMul", src, gb.f(sel)), to=_onnx_type(rg.dtype)
+                )
+            o = inline(gb, m, f"res{r}/", feeds)
+            P = np.zeros((6, 6 * S))
+            s = list(em.sensor_names).index(rg.sensor)
+            P[:, 6 * s : 6 * s + 6] = np.eye(6)
+            readings = gb.op("Sub", readings, gb.op("MatMul", gb.cast(o[rg.output]), gb.f(P)))
+            if rg.state_shape:
+                gb.op("Identity", o[rg.output_names[1]], out=f"h_out.{rg.sensor}")
+                outs.append((f"h_out.{rg.sensor}", ["N", *rg.state_shape], rg.dtype))
+    prog = program(em, "estimate", *flags)
+    ins = {"q": "q", "qd": "qd", "qdd": "qdd", "active": "active"}
+    for i in range(S):
+        ins[f"ft{i}"] = gb.op("Slice", readings, gb.i([6 * i]), gb.i([6 * i + 6]), gb.i([1]))
+    ins["pos"] = gb.op("Reshape", "positions", gb.i([-1, 3 * K]))
+    ins["dir"] = gb.op("Reshape", "directions", gb.i([-1, 3 * K]))
+    ins["wrench"] = gb.op("Reshape", "wrenches", gb.i([-1, 6 * K]))
+    for k in ("omega", "domega", "proper_acc"):
+        ins[k] = k
+    ins["tau_meas"], ins["tau_mask"] = "tau_measured", "tau_mask"
+    if with_cov:
+        ins["ft_cov"] = gb.op("Reshape", "ft_cov", gb.i([-1, 36 * S]))
+    cols = {k: gb.fresh(k) for k in prog.outputs}
+    emit_program(gb, prog, {k: v for k, v in ins.items() if k in prog.inputs}, cols, n)
+    i64 = _onnx_type(np.int64)
+    gb.op("Reshape", cols["force"], gb.i([-1, K, 3]), out="force")
+    gb.op("Reshape", cols["moment"], gb.i([-1, K, 3]), out="moment")
+    if len(coords) < nv:  # torques not asked for: NaN
+        nan = np.full(nv, np.nan)
+        nan[list(coords)] = 0.0
+        gb.op("Add", cols["tau"], gb.f(nan), out="joint_torques")
+    else:
+        gb.op("Identity", cols["tau"], out="joint_torques")
+    gb.op("Cast", cols["rank"], to=i64, out="rank")
+    gb.op("Cast", cols["unknowns"], to=i64, out="unknowns")
+    gb.op("Identity", cols["residual"], out="residual")
+    gb.op("Cast", gb.op("Reshape", cols["status"], gb.i([-1])), to=i64, out="status")
+    for name, sh in (("force", ["N", K, 3]), ("moment", ["N", K, 3]), ("joint_torques", ["N", nv])):
+        gb.output(name, sh)
+    for name in ("rank", "unknowns"):
+        gb.output(name, ["N", S], np.int64)
+    gb.output("residual", ["N", S])
+    gb.output("status", ["N"], np.int64)
+    if with_cov:
+        gb.op("Reshape", cols["cov"], gb.i([-1, K, 6, 6]), out="covariance")
+        gb.output("covariance", ["N", K, 6, 6])
+    if res:
+        for name, sh, dt in outs:
+            gb.output(name, sh, dt)
+    return gb, shapes
+
+
+def _selection(cols, joint_names, extra, nv: int) -> np.ndarray:
+    """Matrix picking a correction graph's input columns from ``[q, qd, qdd, extra]``."""
+    sel = np.zeros((3 * nv + len(extra), len(cols)))
+    for j, (kind, key) in enumerate(cols):
+        if kind == "extra":
+            sel[3 * nv + extra.index(key), j] = 1.0
+        else:
+            sel[{"q": 0, "qd": nv, "qdd": 2 * nv}[kind] + list(joint_names).index(key), j] = 1.0
+    return sel
+
+
+def _onnx_type(dtype) -> int:
+    from onnx import helper
+
+    return helper.np_dtype_to_tensor_dtype(np.dtype(dtype))
+
+
 def export_estimator(
     model: RobotModel,
     sensors: Sequence[str] | None,
@@ -326,38 +440,62 @@ def export_estimator(
     gravity: Sequence[float] | None = None,
     rank_rtol: float | None = None,
     step_graph: bool = True,
+    *,
+    moving_base: bool = False,
+    torque_rows: bool = False,
+    covariance: bool = False,
+    velocity_margin: float | None = None,
+    ft_range: Mapping[str, float | Sequence[float]] | None = None,
+    residual: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    joints: Sequence[str] | str | None = None,
     constraints: FrictionCones | None = None,
 ) -> dict[str, str]:
-    """Export the estimator of a robot, sensors and contact-slot layout as one ONNX graph.
+    """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
-    With ``step_graph`` a second file, ``<path stem>.step.onnx``, holds the same graph traced for
-    exactly one frame (static shapes ``N = 1``): onnxruntime folds its shape arithmetic away,
-    and :meth:`EstimatorRuntime.step <torchcontact.runtime.EstimatorRuntime.step>` uses it for
-    single-frame latency while :meth:`~torchcontact.runtime.EstimatorRuntime.run` keeps the
-    dynamic-batch graph.
+    Writes ``path`` (the batched graph) and, with ``step_graph``, ``<path stem>.step.onnx`` (the
+    single-frame graph); see the module docstring for their inputs and outputs. Both compute
+    :meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` (same program,
+    same pivots and rank rule), run in float32 or float64 in onnxruntime, and carry the same
+    ``metadata_props``: robot, URDF sha256, joint names, sensors, slots, units, flags, layouts,
+    versions.
 
     Args:
         model: the robot (any dtype; converted to ``dtype``).
         sensors: F/T sensor names (None: all of the model's).
         links: K link (or frame) names of the contact slots.
         kinds: K slot kinds, ``"wrench"``, ``"force"``, ``"force_dir"`` or ``"known"``.
-        path: output ``.onnx`` file (weights and constants inside).
+        path: output ``.onnx`` file (constants inside).
         dtype: ``torch.float32`` or ``torch.float64`` computation (and input/output) dtype.
-        opset: ONNX opset version.
-        gravity: ``(3,)`` gravity in the root frame, m/s^2 (fixed base; baked in); None keeps
+        opset: ONNX opset version (>= 18).
+        gravity: ``(3,)`` gravity in the root frame, m/s^2 (fixed base); None keeps
             ``model.gravity``.
         rank_rtol: rank tolerance of the solve (None: :data:`torchcontact.solve.RANK_RTOL` of
             ``dtype``).
         step_graph: also write the single-frame graph ``<path stem>.step.onnx``.
-        constraints: :class:`~torchcontact.FrictionCones`: export the friction-cone
-            constrained estimator (the whole iteration budget unrolled; more inputs and
-            outputs, see the module docstring; metadata ``constraints``).
+        moving_base: inputs ``omega, domega, proper_acc`` (an IMU on the root body) instead of a
+            fixed base with ``model.gravity``.
+        torque_rows: inputs ``tau_measured, tau_mask``: measured joint torques add equations.
+        covariance: input ``ft_cov``, output ``covariance`` (first-order propagation).
+        velocity_margin: status bit 64 above this multiple of the URDF velocity limits.
+        ft_range: sensor -> measuring range (status bit 64 beyond it).
+        residual: residual-correction graph(s) (``python -m export residual``, or a correction
+            stack graph) chained into both graphs: they then take the raw readings plus the
+            corrections' ``extra`` inputs (and recurrent states).
+        joints: the joints whose torques to output (the others are NaN): None (all), names, or
+            ``"sensed"``, the joints whose torque the sensors determine (inside the sensors'
+            subtrees, and between a sensor and the next moving joint towards the root). The
+            single-frame graph keeps only the bodies the regions and these torques need.
+        constraints: :class:`~torchcontact.FrictionCones`: the friction-cone constrained
+            estimator instead (traced, the whole iteration budget unrolled; one batched graph,
+            more inputs and outputs, see the module docstring; metadata ``constraints``); fixed
+            base and F/T rows only.
 
     Returns:
-        The metadata written into the file's ``metadata_props``.
+        The metadata written into the files' ``metadata_props``.
 
     Raises:
-        ValueError: an unknown sensor, link or kind, or a slot no sensor measures.
+        ValueError: an unknown sensor, link or kind, a slot no sensor measures, a bad option.
+        ModelMismatchError: a residual graph made for another robot, joint set or sensor.
 
     Example:
         >>> import tempfile, torchcontact as tc
@@ -367,38 +505,126 @@ def export_estimator(
         >>> meta["robot"], json.loads(meta["slot_kinds"])
         ('tcarm', ['force'])
     """
+    import onnx
+
+    from torchcontact import __version__
+    from torchcontact._onnx import OPSET
+    from torchcontact._onnx_step import build_step_graph
+
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     for k in kinds:
         if k not in KINDS:
-            raise ValueError(f"unknown kind {k!r}; expected one of {list(KINDS)}")
+            raise InputError(f"unknown kind {k!r}; expected one of {list(KINDS)}")
+    if opset < OPSET:
+        raise ValueError(f"opset must be >= {OPSET}, got {opset}")
     m = model.to(dtype=dtype, device="cpu")
     if gravity is not None:
         m = m.with_gravity(gravity)
-    est = ContactEstimator(m, sensors, rank_rtol=rank_rtol)
-    graph = EstimatorGraph(est, links, kinds, constraints).eval()
-    S, K = len(est.sensor_names), len(links)
-    cones = constraints is not None
-    names_in = [*ESTIMATOR_INPUTS, *(CONE_INPUTS if cones else ())]
-    names_out = [*ESTIMATOR_OUTPUTS, *(CONE_OUTPUTS if cones else ())]
-    dyn = {k: {0: "N"} for k in (*names_in, *names_out)}
-    _export(graph, _example_inputs(m, S, K, cones=cones), path, names_in, names_out, dyn, opset)
-    meta = estimator_metadata(m, est, links, kinds, opset, rank_rtol)
-    if cones:
-        iterations, eps, tol, _ = constraints.resolved(m.dtype)
-        meta["constraints"] = json.dumps({"iterations": iterations, "eps": eps, "tol": tol})
-        meta["inputs"], meta["outputs"] = json.dumps(names_in), json.dumps(names_out)
-        shapes = json.loads(meta["input_shapes"])
-        shapes.update(normals=["N", K, 3], friction=["N", K], pushing=["N", K])
-        meta["input_shapes"] = json.dumps(shapes)
+    est = ContactEstimator(
+        m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin, ft_range=ft_range
+    )
+    em = est.layout(tuple(links), tuple(kinds))
+    res = _residual_graphs(residual, m, est)
+    npd = np.dtype(str(dtype).removeprefix("torch."))
+    flags = (bool(moving_base), bool(torque_rows), bool(covariance))
+    path = Path(path)
+    step = step_graph_path(path)
+    from torchcontact._onnx_step import torque_joints
+
+    coords = torque_joints(em, joints)
+    if constraints is not None:
+        if any(flags) or res or joints is not None:
+            raise InputError(
+                "constraints: the constrained graph takes the fixed-base F/T inputs only (no"
+                " moving_base, torque_rows, covariance, residual or joints)"
+            )
+        shapes = {}
+    else:
+        gb, shapes = _batched_graph(em, flags, npd, res, coords)
+    files = [Path(rg.path).name for rg, _ in res]
+    meta = {
+        "format": FORMAT,
+        "robot": m.name,
+        "urdf_sha256": m.urdf_sha256,
+        "joint_names": json.dumps(list(m.joint_names)),
+        "sensors": json.dumps(
+            [
+                {
+                    "name": s.name,
+                    "joint": s.joint,
+                    "frame": s.frame,
+                    "direction": s.measure_direction,
+                }
+                for s in est.sensors
+            ]
+        ),
+        "slot_links": json.dumps(list(links)),
+        "slot_kinds": json.dumps(list(kinds)),
+        "inputs": json.dumps(list(shapes)),
+        "input_shapes": json.dumps(shapes),
+        "outputs": json.dumps([*ESTIMATOR_OUTPUTS, *(["covariance"] if covariance else [])]),
+        "units": json.dumps(
+            {
+                "q": "rad or m",
+                "qd": "rad/s or m/s",
+                "qdd": "rad/s^2 or m/s^2",
+                "ft": "[N, N, N, N m, N m, N m]",
+                "positions": "m",
+                "force": "N",
+                "moment": "N m",
+                "joint_torques": "N m or N",
+                "omega": "rad/s",
+                "domega": "rad/s^2",
+                "proper_acc": "m/s^2",
+                "tau_measured": "N m or N",
+                "gravity": "m/s^2",
+            }
+        ),
+        "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
+        "moments about the contact point; ft: each sensor's declared frame and direction; "
+        "omega, domega, proper_acc: the root body's frame",
+        "gravity": json.dumps([float(g) for g in m.gravity]),
+        "dtype": str(npd),
+        "moving_base": json.dumps(flags[0]),
+        "torque_rows": json.dumps(flags[1]),
+        "covariance": json.dumps(flags[2]),
+        "velocity_margin": json.dumps(velocity_margin),
+        "ft_range": json.dumps(
+            {
+                k: np.broadcast_to(np.asarray(v, float), (6,)).tolist()
+                for k, v in (ft_range or {}).items()
+            }
+        ),
+        "solver": "pivoted cholesky (torchcontact.solve); step graph: Gauss-Jordan form",
+        "rank_rtol": repr(float(em.rank_rtol)),
+        "torque_joints": json.dumps([m.joint_names[c] for c in coords]),
+        "residuals": json.dumps(_residual_meta(res, files)),
+        "batched_graph": path.name,
+        "step_graph": step.name if step_graph else "",
+        "torchcontact_version": __version__,
+        "torch_version": torch.__version__,
+        "opset": str(opset),
+    }
+    if constraints is not None:
+        return _export_constrained(est, links, kinds, constraints, path, meta, opset)
     if step_graph:
-        step = step_graph_path(path)
-        example = _example_inputs(m, S, K, n=1, cones=cones)
-        _export(graph, example, step, names_in, names_out, None, opset)
-        meta["step_graph"] = step.name
-        _set_metadata(step, {**meta, "batch": "1"})
-    _set_metadata(path, meta)
-    return meta
+        sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
+        meta["step_inputs"] = json.dumps(lin.as_dict())
+        meta["step_outputs"] = json.dumps(lout.as_dict())
+    else:
+        meta["step_inputs"] = meta["step_outputs"] = "{}"
+    for gm, p, kind in (
+        (gb.model(), path, "batched"),
+        *(((sm, step, "step"),) if step_graph else ()),
+    ):
+        gm.opset_import[0].version = opset
+        del gm.metadata_props[:]
+        for k, v in {**meta, "graph": kind}.items():
+            gm.metadata_props.add(key=k, value=v)
+        onnx.checker.check_model(gm)
+        onnx.save(gm, str(p))
+    return {**meta, "graph": "batched"}
 
 
 def step_graph_path(path: str | os.PathLike) -> Path:

@@ -1,4 +1,4 @@
-"""torchcontact.runtime: numpy/onnxruntime only, metadata checks, step equals run."""
+"""torchcontact.runtime: numpy/onnxruntime only, refusals, inputs, chained residual corrections."""
 
 from __future__ import annotations
 
@@ -6,8 +6,13 @@ import subprocess
 import sys
 
 import numpy as np
+import onnx
 import pytest
-from export_scenes import robot_model, scene
+import torch
+from export_scenes import LAYOUTS, correction_checkpoint, reference, robot_model, scene
+
+import torchcontact as tc
+from torchcontact.errors import InputError, ModelMismatchError
 
 
 def test_runtime_does_not_import_torch():
@@ -16,32 +21,246 @@ def test_runtime_does_not_import_torch():
     assert r.returncode == 0, r.stderr
 
 
-def test_step_run_and_refusals(exported):
-    from torchcontact.runtime import EstimatorRuntime, ModelMismatchError
+def test_step_equals_run_and_loads_lazily(exports):
+    from torchcontact.runtime import EstimatorRuntime
 
+    rt = EstimatorRuntime(exports.path("tcarm"), robot="tcarm")
+    assert rt._batched is None  # the batched graph loads on the first run()
+    x = scene("tcarm", 6, seed=5)
+    batch = rt.run(
+        x["q"],
+        x["qd"],
+        x["qdd"],
+        x["ft"],
+        x["positions"],
+        x["active"],
+        ft_residual=x["ft_residual"],
+    )
+    for i in range(6):
+        one = rt.step(
+            x["q"][i],
+            x["qd"][i],
+            x["qdd"][i],
+            x["ft"][i],
+            x["positions"][i],
+            x["active"][i],
+            ft_residual=x["ft_residual"][i],
+        )
+        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-9)
+        np.testing.assert_allclose(one["joint_torques"], batch["joint_torques"][i], atol=1e-9)
+        assert one["status"] == batch["status"][i] and one["rank"].dtype == np.int64
+    # a dict of readings, 1-D readings for one sensor, step through the batched graph
+    d = rt.step(x["q"][0], x["qd"][0], x["qdd"][0], {"base_ft": x["ft"][0, 0]}, x["positions"][0])
+    flat = rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0, 0], x["positions"][0])
+    np.testing.assert_array_equal(d["force"], flat["force"])
+    nostep = EstimatorRuntime(exports.path("tcarm"), step_graph=False)
+    assert nostep.step_session is None
+    o = nostep.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0, 0], x["positions"][0])
+    np.testing.assert_allclose(o["force"], flat["force"], atol=1e-9)
+
+
+def test_refuses_another_robot_or_layout(exports, tmp_path):
+    from torchcontact.runtime import EstimatorRuntime, robot_identity
+
+    path = exports.path("tcarm")
     model = robot_model("tcarm")
-    rt = EstimatorRuntime(exported["tcarm"], expect_robot_sha256=model.urdf_sha256,
-                          expect_joint_names=model.joint_names)  # fmt: skip
-    # step runs the static single-frame graph written beside the file, run the dynamic one
-    assert rt.step_session is not rt.session
-    assert all(d == 1 for i in rt.step_session.get_inputs() for d in i.shape[:1])
-    dyn = EstimatorRuntime(exported["tcarm"], step_graph=False)
-    assert dyn.step_session is dyn.session
-    _, _, _, _, x, _ = scene("tcarm", 5, seed=5)
-    x = {k: v.numpy() for k, v in x.items()}
-    batch = rt.run(x["q"], x["qd"], x["qdd"], x["ft"], x["positions"], x["active"])
-    for i in range(5):
-        one = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], x["positions"][i],
-                      x["active"][i])  # fmt: skip
-        assert one["force"].shape == (2, 3)
-        # two graphs, optimised separately by onnxruntime: float32 rounding differs, most on
-        # rank-deficient frames (both slots active); 1e-4 N is the float32 parity tolerance
-        np.testing.assert_allclose(one["force"], batch["force"][i], atol=1e-4)
+    assert robot_identity("tcarm")[0] == model.urdf_sha256 == robot_identity(model)[0]
+    EstimatorRuntime(path, robot=model)
+    EstimatorRuntime(path, robot=tc.robots.tcarm_path())
+    other = tmp_path / "pendulum.urdf"
+    other.write_text(tc.robots.pendulum_urdf())
+    with pytest.raises(ModelMismatchError, match="exported for robot 'tcarm'.*not for this robot"):
+        EstimatorRuntime(path, robot=other)
+    renamed = type("M", (), {"urdf_sha256": model.urdf_sha256, "joint_names": ("a",) * 7})()
+    with pytest.raises(ModelMismatchError, match="expects joints"):
+        EstimatorRuntime(path, robot=renamed)
+    with pytest.raises(ModelMismatchError, match="no such URDF"):
+        EstimatorRuntime(path, robot=tmp_path / "missing.urdf")
     with pytest.raises(ModelMismatchError, match="sha256"):
-        EstimatorRuntime(exported["tcarm"], expect_robot_sha256="0" * 64)
-    with pytest.raises(ModelMismatchError, match="joints"):
-        EstimatorRuntime(exported["tcarm"], expect_joint_names=["a"] * 7)
+        EstimatorRuntime(path, expect_robot_sha256="0" * 64)
+    with pytest.raises(ModelMismatchError, match="expects joints"):
+        EstimatorRuntime(path, expect_joint_names=["a"] * 7)
+    with pytest.raises(ModelMismatchError, match="expects sensors"):
+        EstimatorRuntime(path, expect_sensors=["tool_ft"])
     with pytest.raises(ModelMismatchError, match="slots"):
-        EstimatorRuntime(exported["tcarm"], expect_slots=(["hand_skin"], ["force"]))
-    with pytest.raises(ValueError, match="positions"):
-        rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], np.zeros((3, 3)))
+        EstimatorRuntime(path, expect_slots=(["hand_skin"], ["force"]))
+    # a graph of the previous format (one Jacobi graph, no layouts) is refused with the fix
+    old = onnx.load(str(path))
+    for p in old.metadata_props:
+        if p.key == "format":
+            p.value = "torchcontact.estimator/1"
+    onnx.save(old, str(tmp_path / "old.onnx"))
+    with pytest.raises(ModelMismatchError, match="re-export"):
+        EstimatorRuntime(tmp_path / "old.onnx")
+    with pytest.raises(InputError, match="no such file"):
+        EstimatorRuntime(tmp_path / "none.onnx")
+
+
+def test_input_errors_name_the_input(exports):
+    rt = exports.runtime("panda")  # moving base, torque rows, covariance
+    x = scene("panda", 1, seed=6)
+    kw = {
+        k: x[k][0]
+        for k in ("omega", "domega", "proper_acc", "tau_measured", "ft_cov", "directions")
+    }
+    ok = rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0], **kw)
+    assert ok["covariance"].shape == (3, 6, 6) and ok["status"] == 0
+    zero = rt.step(
+        x["q"][0],
+        x["qd"][0],
+        x["qdd"][0],
+        x["ft"][0],
+        x["positions"][0],
+        **{**kw, "directions": None},
+    )
+    assert zero["status"] == 8  # the active force_dir slot has no direction
+    with pytest.raises(InputError, match=r"positions must have shape \(3, 3\)"):
+        rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], np.zeros((2, 3)), **kw)
+    with pytest.raises(InputError, match="omega is required"):
+        rt.step(
+            x["q"][0],
+            x["qd"][0],
+            x["qdd"][0],
+            x["ft"][0],
+            x["positions"][0],
+            **{k: v for k, v in kw.items() if k != "omega"},
+        )
+    with pytest.raises(InputError, match="tau_measured must have shape"):
+        rt.step(
+            x["q"][0],
+            x["qd"][0],
+            x["qdd"][0],
+            x["ft"][0],
+            x["positions"][0],
+            **{**kw, "tau_measured": np.zeros(3)},
+        )
+    with pytest.raises(InputError, match="ft is missing readings"):
+        rt.step(x["q"][0], x["qd"][0], x["qdd"][0], {"other": np.zeros(6)}, x["positions"][0])
+    with pytest.raises(InputError, match=r"q must have shape \(1, 8\)"):
+        rt.run(
+            np.zeros((1, 3)), x["qd"], x["qdd"], x["ft"], x["positions"], **{k: x[k] for k in kw}
+        )
+    plain = exports.runtime("tcarm")
+    with pytest.raises(InputError, match="no input 'omega'"):
+        plain.step(*(np.zeros(7),) * 3, np.zeros((1, 6)), np.zeros((2, 3)), omega=np.zeros(3))
+
+
+@pytest.fixture(scope="module")
+def residuals(tmp_path_factory):
+    """Correction stacks of the bundled arm (offset + MLP, offset + GRU; random weights, an extra
+    column) as checkpoints and as their graphs (``export_residual_checkpoint``)."""
+    from torchcontact.export import export_residual_checkpoint
+
+    d = tmp_path_factory.mktemp("residual")
+    model = robot_model("tcarm")
+    out = {}
+    for kind in ("mlp", "gru"):
+        ckpt = correction_checkpoint(d / kind, model, "base_ft", kind)
+        export_residual_checkpoint(ckpt, d / f"{kind}.onnx", model)
+        out[kind] = (ckpt, d / f"{kind}.onnx")
+    return out
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
+    """The correction inside the graph (export) or chained by the runtime: the same estimate."""
+    import onnxruntime as ort
+
+    from torchcontact.residual import ResidualCorrection
+    from torchcontact.runtime import EstimatorRuntime
+
+    ckpt, graph = residuals[kind]
+    x = scene("tcarm", 8, seed=7)
+    temp = np.linspace(20.0, 40.0, 8)
+    inside = EstimatorRuntime(exports.path("tcarm", residual=str(graph)), robot="tcarm")
+    chained = EstimatorRuntime(exports.path("tcarm"), robot="tcarm", residual=graph)
+    assert inside.extra == chained.extra == ("temperature",)
+    # reference: the correction graph's own output (float32, raw joint state in), subtracted,
+    # then the torch estimator in float64; a GRU keeps its state from frame to frame
+    sess = ort.InferenceSession(str(graph), providers=["CPUExecutionProvider"])
+    names = [i.name for i in sess.get_inputs()]
+    assert names == ["q", "qd", "qdd", "extra"] + (["h_in"] if kind == "gru" else [])
+    h = np.zeros((1, 1, 8), np.float32)
+    fixed = dict(x)
+    fixed["ft"] = x["ft"].copy()
+    for i in range(8):
+        feed = {k: x[k][i : i + 1].astype(np.float32) for k in ("q", "qd", "qdd")}
+        feed["extra"] = np.array([[temp[i]]], np.float32)
+        if kind == "gru":
+            feed["h_in"] = h
+        o = sess.run(None, feed)
+        if kind == "gru":
+            h = o[1]
+        fixed["ft"][i, 0] -= o[0][0]
+    # and the torch correction stack agrees with its graph (float32)
+    corr = ResidualCorrection.load(ckpt, robot_model("tcarm"))
+    want = corr.correction(
+        *(torch.as_tensor(x[k]) for k in ("q", "qd", "qdd")), {"temperature": torch.as_tensor(temp)}
+    )
+    np.testing.assert_allclose(x["ft"][:, 0] - fixed["ft"][:, 0], want.numpy(), atol=1e-4)
+    ref = reference("tcarm", fixed)
+    for rt in (inside, chained):
+        rt.reset()
+        for i in range(8):
+            out = rt.step(
+                x["q"][i],
+                x["qd"][i],
+                x["qdd"][i],
+                x["ft"][i],
+                x["positions"][i],
+                x["active"][i],
+                ft_residual=x["ft_residual"][i],
+                extra={"temperature": temp[i]},
+            )
+            np.testing.assert_allclose(out["force"], ref.force[i].numpy(), atol=1e-9)
+            np.testing.assert_allclose(
+                out["joint_torques"], ref.joint_torques[i].numpy(), atol=1e-9
+            )
+        with pytest.raises(InputError, match="temperature"):
+            rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0])
+    if kind == "mlp":  # the batched graph takes the correction too
+        b = inside.run(
+            x["q"],
+            x["qd"],
+            x["qdd"],
+            x["ft"],
+            x["positions"],
+            x["active"],
+            ft_residual=x["ft_residual"],
+            extra={"temperature": temp},
+        )
+        # the reference evaluates the correction on the same batch (float32 sums in the
+        # batched MatMuls round differently from one frame at a time, ~1e-5 N)
+        feed = {k: x[k].astype(np.float32) for k in ("q", "qd", "qdd")}
+        (corr_b,) = sess.run(None, {**feed, "extra": temp[:, None].astype(np.float32)})
+        fixed["ft"] = x["ft"].copy()
+        fixed["ft"][:, 0] -= corr_b
+        ref = reference("tcarm", fixed)
+        np.testing.assert_allclose(b["force"], ref.force.numpy(), atol=1e-9)
+        np.testing.assert_allclose(b["joint_torques"], ref.joint_torques.numpy(), atol=1e-9)
+
+
+def test_residual_for_another_robot_or_sensor_is_refused(exports, residuals, tmp_path):
+    from torchcontact.export import export_estimator
+    from torchcontact.runtime import EstimatorRuntime
+
+    _, graph = residuals["mlp"]
+    m = onnx.load(str(graph))
+    for p in m.metadata_props:
+        if p.key == "sensor":
+            p.value = "wrist_ft"
+    onnx.save(m, str(tmp_path / "wrist.onnx"))
+    with pytest.raises(ModelMismatchError, match="corrects sensor 'wrist_ft'"):
+        EstimatorRuntime(exports.path("tcarm"), residual=tmp_path / "wrist.onnx")
+    lay = LAYOUTS["panda"]
+    with pytest.raises(ModelMismatchError, match="trained on a robot"):
+        export_estimator(
+            robot_model("panda"),
+            None,
+            lay["links"],
+            lay["kinds"],
+            tmp_path / "p.onnx",
+            residual=graph,
+        )
+    with pytest.raises(ModelMismatchError, match="already holds"):
+        EstimatorRuntime(exports.path("tcarm", residual=str(graph)), residual=graph)

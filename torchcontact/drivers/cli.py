@@ -186,6 +186,75 @@ def cmd_read(args: argparse.Namespace) -> int:
     return 0
 
 
+def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
+    """``run --onnx``: the exported estimator and its F/T source (a group for several sensors).
+
+    ``--contacts SPEC`` (the contact-spec file) fills the graph's slots; without it every slot is
+    inactive. The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the graph's
+    first); ``--source NAME=ADDRESS`` adds the others (``tcp://HOST:PORT`` or a serial port, same
+    profile). ``--extra NAME=VALUE`` gives constant extra inputs of the residual corrections.
+    """
+    from torchcontact.contacts import SlotLayout, load_contact_spec
+    from torchcontact.drivers.live import OnnxEstimator, SensorGroup
+
+    extra = {}
+    for item in args.extra or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise InputError(f"--extra takes NAME=VALUE, got {item!r}")
+        try:
+            extra[name] = float(value)
+        except ValueError:
+            raise InputError(f"--extra takes NAME=VALUE (a number), got {item!r}") from None
+    est = OnnxEstimator(args.onnx, None, robot=args.robot, residual=args.residual or None)
+    rt = est.runtime
+    spec: dict[str, Any] = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
+    if args.contacts:
+        records = load_contact_spec(args.contacts).static()
+        layout = SlotLayout(rt.slot_links, rt.slot_kinds)
+        arrays, slot = layout.fill(records, 1)
+        if (slot < 0).any():
+            left = [f"{records.links[i]}:{records.kinds[i]}" for i in np.flatnonzero(slot < 0)]
+            slots = [f"{a}:{b}" for a, b in zip(layout.links, layout.kinds, strict=True)]
+            raise InputError(
+                f"--contacts {args.contacts}: {left} find no free slot in {args.onnx}, whose"
+                f" slots are {slots}"
+            )
+        spec = {k: v[0] for k, v in arrays.items()}
+    if extra:
+        spec["extra"] = extra
+    est.set_inputs(spec)
+    primary = args.sensor or rt.sensor_names[0]
+    if primary not in rt.sensor_names:
+        raise InputError(f"--sensor {primary!r} is not one of the graph's {list(rt.sensor_names)}")
+    addresses = {primary: None}
+    for item in args.source or []:
+        name, sep, address = item.partition("=")
+        if not sep or name not in rt.sensor_names:
+            raise InputError(
+                f"--source takes SENSOR=ADDRESS with SENSOR one of"
+                f" {list(rt.sensor_names)}, got {item!r}"
+            )
+        addresses[name] = address
+    missing = [s for s in rt.sensor_names if s not in addresses]
+    if missing:
+        raise InputError(
+            f"{args.onnx} reads sensors {list(rt.sensor_names)}; give the others with --source"
+            f" NAME=tcp://HOST:PORT (or a serial port): missing {missing}"
+        )
+    sources = []
+    for name in rt.sensor_names:
+        sub = argparse.Namespace(**vars(args))
+        sub.sensor = name
+        if addresses[name] is not None:
+            a = addresses[name]
+            sub.tcp, sub.port = (
+                (a.removeprefix("tcp://"), None) if a.startswith("tcp://") else (None, a)
+            )
+        sources.append(_make_source(sub))
+    return est, sources[0] if len(sources) == 1 else SensorGroup(sources)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
     from torchcontact.drivers.live import (
@@ -197,14 +266,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     from torchcontact.drivers.log import FTLogWriter
     from torchcontact.drivers.modbus import parse_hostport
+    from torchcontact.errors import ModelMismatchError
 
     with _user_errors():
         if args.contacts and not args.onnx:
             raise InputError("--contacts applies to --onnx (the exported estimator) only")
         if args.onnx:
-            estimator = _onnx_estimator(args.onnx, args.contacts)
+            estimator, src = _onnx_estimator(args)
         else:
+            if args.source or args.residual or args.robot or args.extra:
+                raise InputError("--source, --residual, --robot and --extra go with --onnx")
             estimator = load_estimator(args.estimator)
+            src = None
         joints_at = parse_hostport(args.joints.removeprefix("udp://")) if args.joints else None
         publish_at = None
         if args.publish != "stdout":
@@ -214,7 +287,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             publishers.append(JsonLinesPublisher(sys.stdout))
         else:
             publishers.append(UdpPublisher(*publish_at, allow_remote=args.allow_remote))
-        src = _make_source(args)
+        if src is None:
+            src = _make_source(args)
         src.open()
     joints = None
     if joints_at is not None:
@@ -224,6 +298,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints)
     try:
         summary = loop.run(duration=args.duration)
+    except ModelMismatchError as exc:  # the joint states come from another robot: stop
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     finally:
         src.close()
         if log is not None:
@@ -275,7 +352,29 @@ def add_parser(subparsers: Any) -> None:
     which.add_argument(
         "--onnx",
         metavar="FILE.onnx",
-        help="exported contact estimator (python -m export estimator, one sensor) via onnxruntime",
+        help="exported contact estimator (python -m export estimator) via onnxruntime",
+    )
+    run.add_argument(
+        "--robot",
+        help="with --onnx: URDF (or tcarm) of the robot; refuses a graph exported for another one",
+    )
+    run.add_argument(
+        "--source",
+        action="append",
+        metavar="SENSOR=ADDRESS",
+        help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial port (repeat)",
+    )
+    run.add_argument(
+        "--residual",
+        action="append",
+        metavar="FILE.onnx",
+        help="with --onnx: a residual-correction graph to chain (repeat)",
+    )
+    run.add_argument(
+        "--extra",
+        action="append",
+        metavar="NAME=VALUE",
+        help="with --onnx: a constant extra input of the corrections (repeat)",
     )
     run.add_argument(
         "--contacts",

@@ -36,8 +36,9 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from torchcontact.drivers.base import FTSource
+from torchcontact.drivers.base import FTSample, FTSource
 from torchcontact.drivers.log import FTLogWriter
+from torchcontact.errors import InputError, ModelMismatchError
 
 MAGIC = b"TCJS"
 VERSION = 1
@@ -266,28 +267,96 @@ def passthrough_estimator(
 ContactSpec = Callable[[np.ndarray], dict[str, Any]]
 
 
+class SensorGroup(FTSource):
+    """Several F/T sources read as one: each sample of the first carries the latest of all.
+
+    The first source sets the pace (one sample of the group per sample of it); each other source
+    is read once without waiting (a polled sensor answers with its current value, a streaming one
+    with its next queued frame) and its latest reading is attached. Samples are withheld until
+    every source has delivered once. Its samples' ``wrench`` is ``(6 S,)``, sources in order.
+
+    Args:
+        sources: the sources, opened or not; the first drives the loop.
+    """
+
+    def __init__(self, sources: Sequence[FTSource]) -> None:
+        if not sources:
+            raise ValueError("SensorGroup needs at least one source")
+        super().__init__(sources[0].name)
+        self.sources = list(sources)
+        self._latest: list[np.ndarray | None] = [None] * len(self.sources)
+        self.stats = self.sources[0].stats
+
+    def describe(self) -> str:
+        """The sources, in order."""
+        return ", ".join(s.describe() for s in self.sources)
+
+    def _connect(self) -> None:
+        for s in self.sources:
+            if not s.connected:
+                s.open()
+
+    def _disconnect(self) -> None:
+        for s in self.sources:
+            s.close()
+
+    def _receive(self, timeout: float):  # pragma: no cover - read() is overridden
+        raise NotImplementedError
+
+    def open(self) -> None:
+        """Open every source."""
+        self._connect()
+        self._connected = True
+
+    def close(self) -> None:
+        """Close every source."""
+        self._disconnect()
+        self._connected = False
+
+    def read(self, timeout: float = 0.1) -> FTSample | None:
+        """The next sample of the first source with the newest of the others, or None."""
+        for i, s in enumerate(self.sources[1:], start=1):
+            x = s.read(0.0)
+            if x is not None:
+                self._latest[i] = x.wrench
+        first = self.sources[0].read(timeout)
+        if first is None:
+            return None
+        self._latest[0] = first.wrench
+        if any(w is None for w in self._latest):
+            return None
+        return FTSample(first.t_ns, first.seq, np.concatenate(self._latest), first.flags)
+
+
 class OnnxEstimator:
     """The exported contact estimator (ONNX, onnxruntime) as a live-loop estimator.
 
     Wraps :class:`torchcontact.runtime.EstimatorRuntime` (numpy and onnxruntime only, no torch):
-    each call estimates one frame from the joint state and the reading of the loop's single F/T
-    sensor. Contact positions and activity come from ``contacts``:
+    each call estimates one frame from the joint state and the readings of the graph's F/T
+    sensors (``(6 S,)``, sensors in the graph's order, e.g. from a :class:`SensorGroup`).
+    Contact positions and activity, and any other per-frame input of the graph, come from
+    ``contacts``:
 
     - ``None``: every slot inactive (no contact; the estimate then explains nothing and the
       forces are zero, while the F/T residual shows any unexplained load);
     - a dict with ``positions (K, 3)`` m in each slot's link frame, ``active (K,)`` and optionally
-      ``directions (K, 3)`` (``force_dir`` slots) and ``wrenches (K, 6)`` (``known`` slots);
+      ``directions (K, 3)`` (``force_dir`` slots), ``wrenches (K, 6)`` (``known`` slots), and the
+      graph's other inputs (``omega``, ``domega``, ``proper_acc``, ``tau_measured``,
+      ``tau_mask``, ``ft_cov``, ``extra``: a dict of the residual corrections' extra columns);
     - a callable ``contacts(q) -> dict`` as above, called every frame (e.g. from a tactile skin).
 
     Args:
-        path: ``.onnx`` file from ``python -m export estimator`` with exactly one F/T sensor.
+        path: ``.onnx`` file from ``python -m export estimator``.
         contacts: the contact spec above.
+        robot: the robot the joint states come from (URDF path, ``"tcarm"`` or a model): a graph
+            exported for another robot is refused.
+        residual: residual-correction graph(s) to chain before the estimator.
         expect_joint_names: refuse a graph with another joint order (the joint-state sender's).
         intra_op_threads: onnxruntime threads (1: lowest single-frame latency).
 
     Raises:
-        torchcontact.runtime.ModelMismatchError: not an estimator graph or other joints.
-        ValueError: a graph with several F/T sensors, or a contact spec of the wrong shape.
+        torchcontact.runtime.ModelMismatchError: not an estimator graph, or another robot.
+        ValueError: a contact spec of the wrong shape.
     """
 
     def __init__(
@@ -295,6 +364,8 @@ class OnnxEstimator:
         path: str,
         contacts: dict[str, Any] | ContactSpec | None = None,
         *,
+        robot: Any = None,
+        residual: Any = None,
         expect_joint_names: Sequence[str] | None = None,
         intra_op_threads: int = 1,
     ) -> None:
@@ -303,16 +374,15 @@ class OnnxEstimator:
         from torchcontact.runtime import EstimatorRuntime
 
         if not os.path.isfile(path):
-            raise ValueError(f"--onnx {path}: no such file")
+            raise InputError(f"--onnx {path}: no such file")
         self.runtime = EstimatorRuntime(
-            path, expect_joint_names=expect_joint_names, intra_op_threads=intra_op_threads
+            path,
+            robot,
+            residual=residual,
+            expect_joint_names=expect_joint_names,
+            intra_op_threads=intra_op_threads,
         )
         rt = self.runtime
-        if rt.S != 1:
-            raise ValueError(
-                f"{path} uses sensors {list(rt.sensor_names)}; the live loop reads one F/T sensor:"
-                " export with a single --sensor"
-            )
         self.contacts = contacts
         self._fixed = None
         if contacts is None:
@@ -320,13 +390,51 @@ class OnnxEstimator:
         elif not callable(contacts):
             self._fixed = self._check(contacts)
 
+    def set_inputs(self, spec: dict[str, Any]) -> None:
+        """Use ``spec`` (the dict form of ``contacts`` above) for every following frame.
+
+        Raises:
+            InputError: a key the graph does not take or a value of the wrong shape.
+        """
+        self.contacts = spec
+        self._fixed = self._check(spec)
+
+    _KEYS = (
+        "positions",
+        "active",
+        "directions",
+        "wrenches",
+        "omega",
+        "domega",
+        "proper_acc",
+        "tau_measured",
+        "tau_mask",
+        "ft_cov",
+        "extra",
+    )
+
     def _check(self, spec: dict[str, Any]) -> dict[str, Any]:
-        K = self.runtime.K
-        shapes = {"positions": (K, 3), "active": (K,), "directions": (K, 3), "wrenches": (K, 6)}
-        out = {}
+        rt = self.runtime
+        K, S, nv = rt.K, rt.S, rt.nv
+        shapes = {
+            "positions": (K, 3),
+            "active": (K,),
+            "directions": (K, 3),
+            "wrenches": (K, 6),
+            "omega": (3,),
+            "domega": (3,),
+            "proper_acc": (3,),
+            "tau_measured": (nv,),
+            "tau_mask": (nv,),
+            "ft_cov": (S, 6, 6),
+        }
+        out: dict[str, Any] = {}
         for key, value in spec.items():
-            if key not in shapes:
-                raise ValueError(f"contact spec key {key!r} not one of {list(shapes)}")
+            if key not in self._KEYS:
+                raise ValueError(f"contact spec key {key!r} not one of {list(self._KEYS)}")
+            if key == "extra":
+                out[key] = {str(k): float(v) for k, v in dict(value).items()}
+                continue
             arr = np.asarray(value, dtype=np.float64)
             if arr.shape != shapes[key]:
                 raise ValueError(
@@ -347,21 +455,34 @@ class OnnxEstimator:
             q: ``(nv,)`` joint positions in the graph's joint order, rad or m.
             qd: ``(nv,)`` joint velocities.
             qdd: ``(nv,)`` joint accelerations.
-            ft: ``(6,)`` reading ``[N; N m]`` in the sensor frame.
+            ft: ``(6 S,)`` or ``(S, 6)`` readings ``[N; N m]`` in the sensors' frames, raw.
 
         Returns:
             ``force (K, 3)`` N and ``moment (K, 3)`` N m in each slot's link frame,
-            ``joint_torques (nv,)``, ``rank``, ``unknowns``, ``residual`` ``(1,)`` and ``status``
+            ``joint_torques (nv,)``, ``rank``, ``unknowns``, ``residual`` ``(S,)`` and ``status``
             (0: ok), numpy arrays.
 
         Raises:
-            ValueError: no joint state (``q`` empty) or the wrong number of joints.
+            ModelMismatchError: the joint state does not have the graph's joint count (another
+                robot: fatal, the loop stops).
+            ValueError: a malformed reading or contact spec.
         """
-        nv = self.runtime.nv
-        if len(q) != nv:
-            raise ValueError(f"joint state has {len(q)} joints, the graph expects {nv}")
+        from torchcontact.runtime import ModelMismatchError
+
+        rt = self.runtime
+        if len(q) != rt.nv:
+            raise ModelMismatchError(
+                f"joint state has {len(q)} joints, the graph expects {rt.nv}"
+                f" ({rt.metadata['robot']}: {list(rt.joint_names)})"
+            )
+        ft = np.asarray(ft, dtype=np.float64)
+        if ft.size != 6 * rt.S:
+            raise ValueError(
+                f"reading has {ft.size} values, the graph reads {rt.S} sensors"
+                f" {list(rt.sensor_names)} (6 each)"
+            )
         spec = self._fixed if self._fixed is not None else self._check(self.contacts(q))  # type: ignore[misc]
-        return self.runtime.step(q, qd, qdd, np.asarray(ft).reshape(1, 6), **spec)
+        return rt.step(q, qd, qdd, ft.reshape(rt.S, 6), **spec)
 
 
 class LiveLoop:
@@ -415,6 +536,8 @@ class LiveLoop:
         q, qd, qdd = (js.q, js.qd, js.qdd) if js is not None else (self._empty,) * 3
         try:
             estimate = self.estimator(q, qd, qdd, sample.wrench)
+        except ModelMismatchError:
+            raise  # another robot: every frame would fail, stop with one error
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the loop
             self.estimator_errors += 1
             estimate = {"error": f"{type(exc).__name__}: {exc}"}

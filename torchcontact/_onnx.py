@@ -1,0 +1,493 @@
+"""ONNX graph construction shared by the estimator exports (private; extra ``export``).
+
+Three tools, used by :mod:`torchcontact.export` and :mod:`torchcontact._onnx_step`:
+
+* :class:`GraphBuilder`: nodes, deduplicated constants, inputs and outputs of one graph, typed in
+  the graph's float dtype (float32 or float64), opset :data:`OPSET`.
+* :func:`bilinear`: one *row-wise bilinear stage*. The physics is written once, on scalars
+  (:mod:`torchcontact._scalar`, :mod:`torchcontact.spatial`); a stage such as
+  ``spatial.motion_to_child(T, v)`` is traced on symbols for every row (body or slot), expanded
+  into monomials of degree <= 2 of its two operands, and emitted as four to five nodes whatever
+  the number of rows: two ``Gather`` of the factors, ``Mul`` (and a ``Mul`` by per-row
+  coefficients when rows differ, e.g. by their inertia), one ``Gemm`` summing the terms into the
+  outputs. This is what keeps the single-frame graph at a few hundred nodes: onnxruntime spends
+  0.3-0.7 µs per node on one frame, whatever its size.
+* :func:`emit_program`: a whole :class:`torchcontact.kernels.Program` as one node per scalar
+  operation on ``(N, 1)`` columns (the batched graph: every node runs over ``N`` frames).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchcontact._scalar import Sym, Trace
+
+__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "inline"]
+
+#: ONNX opset of the graphs written here (onnxruntime >= 1.14 runs it).
+OPSET = 18
+#: IR version of the files (onnxruntime >= 1.16 loads it).
+IR_VERSION = 9
+
+
+class GraphBuilder:
+    """Nodes, constants, inputs and outputs of one ONNX graph.
+
+    Args:
+        dtype: numpy float dtype of the graph's float tensors (float32 or float64).
+        name: graph name.
+    """
+
+    def __init__(self, dtype: np.dtype | type, name: str = "torchcontact") -> None:
+        self.dtype = np.dtype(dtype)
+        self.name = name
+        self.nodes: list = []
+        self.initializers: list = []
+        self.inputs: list = []
+        self.outputs: list = []
+        self._consts: dict = {}
+        self._count = 0
+
+    def fresh(self, hint: str = "t") -> str:
+        """A new value name."""
+        self._count += 1
+        return f"{hint}{self._count}"
+
+    def input(self, name: str, shape: Sequence[int | str], dtype=None) -> str:
+        """Declare a graph input; returns its name."""
+        from onnx import helper
+
+        dt = helper.np_dtype_to_tensor_dtype(np.dtype(dtype or self.dtype))
+        self.inputs.append(helper.make_tensor_value_info(name, dt, list(shape)))
+        return name
+
+    def output(self, name: str, shape: Sequence[int | str] | None = None, dtype=None) -> None:
+        """Declare ``name`` (already produced by a node) as a graph output."""
+        from onnx import helper
+
+        dt = helper.np_dtype_to_tensor_dtype(np.dtype(dtype or self.dtype))
+        self.outputs.append(helper.make_tensor_value_info(name, dt, shape))
+
+    def const(self, value, dtype=None) -> str:
+        """A constant (deduplicated by dtype, shape and bytes); floats take the graph dtype."""
+        from onnx import numpy_helper
+
+        arr = np.asarray(value)
+        if dtype is None:
+            dtype = (
+                np.int64 if arr.dtype.kind in "iu" else (bool if arr.dtype == bool else self.dtype)
+            )
+        arr = np.ascontiguousarray(arr, dtype=dtype)
+        key = (arr.dtype.str, arr.shape, arr.tobytes())
+        name = self._consts.get(key)
+        if name is None:
+            name = self.fresh("c")
+            self.initializers.append(numpy_helper.from_array(arr, name))
+            self._consts[key] = name
+        return name
+
+    def f(self, value) -> str:
+        """A float constant in the graph dtype."""
+        return self.const(np.asarray(value, dtype=float), self.dtype)
+
+    def i(self, value) -> str:
+        """An int64 constant."""
+        return self.const(np.asarray(value, dtype=np.int64), np.int64)
+
+    def op(self, op_type: str, *inputs: str, n_out: int = 1, out: str | None = None, **attrs):
+        """Append a node; returns its output name (a list when ``n_out > 1``)."""
+        from onnx import helper
+
+        outs = [out] if out is not None else [self.fresh() for _ in range(n_out)]
+        self.nodes.append(helper.make_node(op_type, list(inputs), outs, name=outs[0], **attrs))
+        return outs[0] if n_out == 1 else outs
+
+    def cast(self, x: str, to_float: bool = True) -> str:
+        """Cast to the graph float dtype (or to bool)."""
+        from onnx import helper
+
+        to = helper.np_dtype_to_tensor_dtype(self.dtype if to_float else np.dtype(bool))
+        return self.op("Cast", x, to=to)
+
+    def model(self, metadata: dict[str, str] | None = None):
+        """The ``onnx.ModelProto``."""
+        from onnx import helper
+
+        g = helper.make_graph(
+            self.nodes, self.name, self.inputs, self.outputs, initializer=self.initializers
+        )
+        m = helper.make_model(
+            g, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="torchcontact"
+        )
+        m.ir_version = IR_VERSION
+        for k, v in (metadata or {}).items():
+            m.metadata_props.add(key=k, value=v)
+        return m
+
+
+# -------------------------------------------------------------------------------- bilinear stages
+
+
+@dataclass(frozen=True)
+class Operand:
+    """One factor of a :func:`bilinear` stage: where row ``r``'s symbol ``j`` lives.
+
+    Three layouts (``kind``):
+
+    * ``"rows"``: ``tensor`` is ``(rows, n)``; symbol ``j`` of every row is column ``j``
+      (``one``: the index of a column holding 1, or None);
+    * ``"vec"``: ``tensor`` is 1-D; symbol ``j`` of row ``r`` is element ``index[r][j]``
+      (``one``: the element holding 1);
+    * ``"nd"``: ``tensor`` is ``(m, n)``; symbol ``j`` of row ``r`` is
+      ``tensor[row_of[r], j]`` (``one`` as for ``"rows"``).
+    """
+
+    tensor: str
+    n: int
+    kind: str = "rows"
+    one: int | None = None
+    index: np.ndarray | None = None
+    row_of: Sequence[int] | None = None
+
+    def position(self, r: int, j: int):
+        """Gather index of symbol ``j`` of row ``r``."""
+        if self.kind == "rows":
+            return j
+        if self.kind == "vec":
+            return int(self.index[r][j])
+        return (int(self.row_of[r]), j)
+
+
+def _polys(trace: Trace, outs: Sequence) -> list[dict]:
+    """Expand traced outputs into polynomials of the inputs: ``{monomial: coefficient}``.
+
+    A monomial is a sorted tuple of ``(input name, index)``; degrees above 2 and operations other
+    than ``+ - *`` are refused (a stage must be bilinear).
+    """
+    memo: dict[int, dict] = {}
+
+    def poly(x) -> dict:
+        if isinstance(x, bool):
+            raise ValueError("masks are not polynomial")
+        if not isinstance(x, Sym):
+            return {(): float(x)} if float(x) != 0.0 else {}
+        if x.index in memo:
+            return memo[x.index]
+        op, args = x.op, x.args
+        if op == "in":
+            p = {((args[0], args[1]),): 1.0}
+        elif op in ("add", "sub"):
+            a, b = poly(args[0]), poly(args[1])
+            p = dict(a)
+            s = 1.0 if op == "add" else -1.0
+            for m, c in b.items():
+                p[m] = p.get(m, 0.0) + s * c
+        elif op == "neg":
+            p = {m: -c for m, c in poly(args[0]).items()}
+        elif op == "mul":
+            a, b = poly(args[0]), poly(args[1])
+            p = {}
+            for ma, ca in a.items():
+                for mb, cb in b.items():
+                    m = tuple(sorted(ma + mb))
+                    if len(m) > 2:
+                        raise ValueError("a bilinear stage produced a term of degree > 2")
+                    p[m] = p.get(m, 0.0) + ca * cb
+        else:
+            raise ValueError(f"a bilinear stage cannot contain {op!r}")
+        p = {m: c for m, c in p.items() if c != 0.0}
+        memo[x.index] = p
+        return p
+
+    return [poly(o) for o in outs]
+
+
+def bilinear(
+    gb: GraphBuilder,
+    a: Operand,
+    b: Operand | None,
+    rows: int,
+    fn: Callable[[int, list, list], Sequence],
+    n_out: int,
+    one: bool = True,
+    hint: str = "stage",
+) -> str:
+    """Emit the stage ``out[r] = fn(r, A[r], B[r])`` for every row ``r`` as four to five nodes.
+
+    ``fn`` is ordinary scalar physics code (:mod:`torchcontact.spatial`); it must be polynomial of
+    degree <= 2 in the operands' symbols (products of one ``A`` and one ``B`` symbol, or of two
+    ``A`` symbols when ``b`` is None), with any row-dependent constants (inertia, slot frames)
+    folded in by ``fn`` itself. Linear terms pair a symbol with the other operand's ``one``
+    column; constant terms enter through the ``Gemm`` bias.
+
+    Args:
+        gb: the graph.
+        a: first operand.
+        b: second operand, or None for products within ``a``.
+        rows: number of rows.
+        fn: ``fn(r, a_syms, b_syms) -> n_out scalars``.
+        n_out: outputs per row.
+        one: append a column holding 1 to the result (so it can serve as an operand).
+        hint: name prefix of the nodes' values.
+
+    Returns:
+        The ``(rows, n_out [+ 1])`` result.
+    """
+    same = b is None
+    bb = a if same else b
+    per_row = []
+    for r in range(rows):
+        tr = Trace()
+        sa = tr.input("a", a.n)
+        sb = sa if same else tr.input("b", bb.n)
+        outs = list(fn(r, sa, sb))
+        if len(outs) != n_out:
+            raise ValueError(f"stage {hint}: {len(outs)} outputs, expected {n_out}")
+        per_row.append(_polys(tr, outs))
+    n_cols = n_out + (1 if one else 0)
+    bias = np.zeros((rows, n_cols))
+    if one:
+        bias[:, n_out] = 1.0
+
+    def factors(mono) -> tuple[tuple[str, int], tuple[str, int]]:
+        """The (A symbol, B symbol) whose product is ``mono``."""
+        if len(mono) == 1:
+            (src, j) = mono[0]
+            if src == "a" and not same:
+                if bb.one is None:
+                    raise ValueError(f"stage {hint}: linear term in A but B has no 1 column")
+                return ("a", j), ("b", bb.one)
+            if a.one is None:
+                raise ValueError(f"stage {hint}: linear term but A has no 1 column")
+            return ("a", a.one), (src, j)
+        (s1, j1), (s2, j2) = mono
+        if same:
+            return ("a", j1), ("a", j2)
+        if s1 == s2:
+            raise ValueError(f"stage {hint}: product of two {s1!r} symbols ({j1}, {j2})")
+        return ((s1, j1), (s2, j2)) if s1 == "a" else ((s2, j2), (s1, j1))
+
+    def gather(op: Operand, syms: list[tuple[str, int]]) -> str:
+        # columns are selected by a constant 0/1 matrix product: several times cheaper in
+        # onnxruntime than Gather along axis 1 (and than GatherND) at these sizes
+        if op.kind == "vec":
+            idx = [[op.position(r, j) for _, j in syms] for r in range(rows)]
+            return gb.op("Gather", op.tensor, gb.i(idx), axis=0)
+        src = op.tensor
+        if op.kind == "nd" and list(op.row_of) != list(range(rows)):
+            src = gb.op("Gather", src, gb.i(list(op.row_of)), axis=0)
+        cols = [j for _, j in syms]
+        if cols == list(range(op.n)):
+            return src  # every column in order
+        sel = np.zeros((op.n, len(cols)))
+        sel[cols, np.arange(len(cols))] = 1.0
+        return gb.op("MatMul", src, gb.f(sel))
+
+    monos: list = []
+    seen: dict = {}
+    for polys in per_row:
+        for p in polys:
+            for m in p:
+                if m == ():
+                    continue
+                if m not in seen:
+                    seen[m] = len(monos)
+                    monos.append(m)
+    for r, polys in enumerate(per_row):
+        for o, p in enumerate(polys):
+            bias[r, o] += p.get((), 0.0)
+    # shared coefficients when every row expands to the same polynomials
+    coef = np.zeros((rows, len(monos), n_out))
+    for r, polys in enumerate(per_row):
+        for o, p in enumerate(polys):
+            for m, c in p.items():
+                if m != ():
+                    coef[r, seen[m], o] = c
+    uniform = bool(np.all(coef == coef[:1]))
+    if uniform:
+        terms = [(m, None) for m in monos]
+        W = np.zeros((len(terms), n_cols))
+        W[:, :n_out] = coef[0]
+        row_coef = None
+    else:
+        terms = [(m, o) for m in monos for o in range(n_out) if np.any(coef[:, seen[m], o])]
+        W = np.zeros((len(terms), n_cols))
+        row_coef = np.zeros((rows, len(terms)))
+        for t, (m, o) in enumerate(terms):
+            W[t, o] = 1.0
+            row_coef[:, t] = coef[:, seen[m], o]
+    if not terms:
+        return gb.f(np.broadcast_to(bias, (rows, n_cols)).copy())
+    linear = all(len(m) == 1 for m, _ in terms)
+    if linear and (same or len({m[0][0] for m, _ in terms}) == 1):
+        # a linear stage: gather the symbols, no products
+        src = a if same or terms[0][0][0][0] == "a" else bb
+        g = gather(src, [m[0] for m, _ in terms])
+        if row_coef is not None:
+            g = gb.op("Mul", g, gb.f(row_coef))
+        if not np.any(bias):
+            return gb.op("MatMul", g, gb.f(W))
+        return gb.op("Gemm", g, gb.f(W), gb.f(bias))
+    fa = [factors(m) for m, _ in terms]
+
+    ga = gather(a, [x for x, _ in fa])
+    gbb = gather(a if same else bb, [y for _, y in fa])
+    prod = gb.op("Mul", ga, gbb)
+    if row_coef is not None:
+        prod = gb.op("Mul", prod, gb.f(row_coef))
+    if not np.any(bias):
+        return gb.op("MatMul", prod, gb.f(W))
+    return gb.op("Gemm", prod, gb.f(W), gb.f(bias))
+
+
+# ------------------------------------------------------------------------------ batched programs
+
+
+def emit_program(
+    gb: GraphBuilder,
+    program,
+    inputs: dict[str, str],
+    outputs: dict[str, str],
+    n_name: str,
+) -> None:
+    """Emit a :class:`~torchcontact.kernels.Program` as one node per scalar operation.
+
+    Every scalar is an ``(N,)`` vector, so each node processes all ``N`` frames (throughput; an
+    ``(N, 1)`` column took onnxruntime's slow broadcasting path, ~100x slower against scalar
+    constants); constants of the model are folded at trace time, as in the generated C++
+    kernels.
+
+    Args:
+        gb: the graph (its dtype is the program's).
+        program: the program.
+        inputs: program input name -> a ``(N, k)`` value of the graph.
+        outputs: program output name -> the name of the ``(N, k)`` value to produce.
+        n_name: a ``(1,)`` int64 value holding ``N`` (for constant outputs).
+    """
+    tr, out = program.trace()
+    vals: dict[int, str] = {}
+    for name, syms in tr.inputs.items():
+        if not syms:
+            continue
+        # Split + Squeeze: per-column Gathers get fused by onnxruntime into a Split whose
+        # (N, 1) outputs take the slow broadcasting path
+        cols = (
+            [inputs[name]]
+            if len(syms) == 1
+            else gb.op("Split", inputs[name], axis=1, num_outputs=len(syms), n_out=len(syms))
+        )
+        for s, c in zip(syms, cols, strict=True):
+            vals[s.index] = gb.op("Squeeze", c, gb.i([1]))
+    needed = _live(tr, out)
+    binary = {
+        "add": "Add",
+        "sub": "Sub",
+        "mul": "Mul",
+        "div": "Div",
+        "gt": "Greater",
+        "and": "And",
+        "or": "Or",
+    }
+    unary = {"neg": "Neg", "sqrt": "Sqrt", "sin": "Sin", "cos": "Cos", "not": "Not"}
+
+    def v(x) -> str:
+        if isinstance(x, Sym):
+            return vals[x.index]
+        if isinstance(x, bool):
+            return gb.const(np.array(x), bool)
+        return gb.f(float(x))
+
+    for node in tr.nodes:
+        if node.op == "in" or node.index not in needed:
+            continue
+        a = node.args
+        if node.op in binary:
+            r = gb.op(binary[node.op], v(a[0]), v(a[1]))
+        elif node.op in unary:
+            r = gb.op(unary[node.op], v(a[0]))
+        elif node.op == "sel":
+            r = gb.op("Where", v(a[0]), v(a[1]), v(a[2]))
+        elif node.op == "finite":  # x - x is NaN exactly for NaN and inf
+            r = gb.op("Not", gb.op("IsNaN", gb.op("Sub", v(a[0]), v(a[0]))))
+        else:
+            raise ValueError(f"no ONNX emission for {node.op!r}")
+        vals[node.index] = r
+    for name, xs in out.items():
+        cols = []
+        for x in xs:
+            if isinstance(x, Sym):
+                col = vals[x.index]
+                if x.mask:
+                    col = gb.cast(col)
+            else:
+                col = gb.op("Expand", gb.f([float(x)]), n_name)
+            cols.append(col)
+        if not cols:
+            zero_shape = gb.op("Concat", n_name, gb.i([0]), axis=0)
+            gb.op("Expand", gb.f(np.zeros((1, 0))), zero_shape, out=outputs[name])
+        else:
+            flat = cols[0] if len(cols) == 1 else gb.op("Concat", *cols, axis=0)
+            rows = gb.op("Reshape", flat, gb.i([len(cols), -1]))
+            gb.op("Transpose", rows, perm=[1, 0], out=outputs[name])
+
+
+def _live(tr: Trace, out: dict[str, list]) -> set[int]:
+    """Indices of the trace nodes the outputs depend on."""
+    stack = [x for xs in out.values() for x in xs if isinstance(x, Sym)]
+    live: set[int] = set()
+    while stack:
+        s = stack.pop()
+        if s.index in live:
+            continue
+        live.add(s.index)
+        if s.op != "in":
+            stack.extend(a for a in s.args if isinstance(a, Sym))
+    return live
+
+
+def inline(gb: GraphBuilder, model, prefix: str, inputs: dict[str, str]) -> dict[str, str]:
+    """Copy another graph into ``gb`` (names prefixed); returns its outputs' values in ``gb``.
+
+    Args:
+        gb: the graph to extend (same opset as ``model``).
+        model: the ``onnx.ModelProto`` to inline (no control-flow subgraphs).
+        prefix: prepended to its value and initializer names.
+        inputs: its input name -> a value of ``gb`` (of the input's dtype).
+
+    Raises:
+        ValueError: an input without a value, or a control-flow node.
+    """
+    from onnx import AttributeProto, NodeProto, TensorProto
+
+    g = model.graph
+    rename: dict[str, str] = {}
+    for t in g.initializer:
+        new = TensorProto()
+        new.CopyFrom(t)
+        new.name = prefix + t.name
+        gb.initializers.append(new)
+        rename[t.name] = new.name
+    for i in g.input:
+        if i.name in rename:
+            continue
+        if i.name not in inputs:
+            raise ValueError(f"inlined graph input {i.name!r} has no value")
+        rename[i.name] = inputs[i.name]
+    for node in g.node:
+        if any(a.type in (AttributeProto.GRAPH, AttributeProto.GRAPHS) for a in node.attribute):
+            raise ValueError(f"cannot inline control flow ({node.op_type})")
+        n = NodeProto()
+        n.CopyFrom(node)
+        del n.input[:]
+        n.input.extend(rename.get(x, prefix + x) if x else "" for x in node.input)
+        del n.output[:]
+        n.output.extend(prefix + x if x else "" for x in node.output)
+        n.name = prefix + (node.name or node.output[0])
+        for x in node.output:
+            if x:
+                rename[x] = prefix + x
+        gb.nodes.append(n)
+    return {o.name: rename[o.name] for o in g.output}
