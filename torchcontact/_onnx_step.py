@@ -86,6 +86,16 @@ def _skew(v: sp.V3) -> sp.M3:
     return ((0.0, neg(v[2]), v[1]), (v[2], 0.0, neg(v[0])), (neg(v[1]), v[0], 0.0))
 
 
+def _signed(sign: float, f: Sequence) -> sp.Force:
+    """``sign f`` of a wrench given as six scalars or a (force, moment) pair."""
+    if len(f) == 2:
+        f = (*f[0], *f[1])
+    lin, ang = tuple(f[0:3]), tuple(f[3:6])
+    if sign == 1.0:
+        return lin, ang
+    return sp.v_neg(lin), sp.v_neg(ang)
+
+
 def _tp(t: Sequence) -> tuple[sp.M3, sp.V3, sp.M3, sp.V3]:
     """``R``, ``p``, ``pR = [p]x R`` and ``-R^T p`` of a pose's feature row."""
     return (
@@ -233,14 +243,8 @@ def _cut_matrix(em: EstimationModel) -> np.ndarray:
     return D
 
 
-def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
-    """The layout restricted to the bodies its regions and the torques of ``coords`` need.
-
-    Kept: every region body and its ancestors, and every body in the cut subtree of a joint of
-    ``coords``, with their ancestors. Body indices are renumbered (parents first, as before).
-    """
-    from dataclasses import replace
-
+def kept_bodies(em: EstimationModel, coords: Sequence[int]) -> list[int]:
+    """Body indices :func:`prune` keeps (ascending): the regions' bodies, the torques' cuts."""
     tree = em.tree
     need = _region_bodies(em)
     D = _cut_matrix(em)
@@ -251,7 +255,19 @@ def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
                 while j >= 0 and j not in need:
                     need.add(j)
                     j = tree.bodies[j].parent
-    keep = sorted(need)
+    return sorted(need)
+
+
+def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
+    """The layout restricted to the bodies its regions and the torques of ``coords`` need.
+
+    Kept: every region body and its ancestors, and every body in the cut subtree of a joint of
+    ``coords``, with their ancestors. Body indices are renumbered (parents first, as before).
+    """
+    from dataclasses import replace
+
+    tree = em.tree
+    keep = kept_bodies(em, coords)
     if len(keep) == len(tree.bodies):
         return em
     new = {old: k for k, old in enumerate(keep)}
@@ -272,6 +288,116 @@ def prune(em: EstimationModel, coords: Sequence[int]) -> EstimationModel:
     )
 
 
+class _NativeStack:
+    """A correction stack the step graph computes itself (see :meth:`_Step._native_corrections`).
+
+    Attributes:
+        region: index of the corrected sensor's region.
+        subtree: the sensor's subtree as body indices of the pruned tree.
+        offset: ``(6,)`` or None.
+        delta: pruned body index -> ``(m, h, I_origin)`` of the inertial layer, internal frame.
+        columns: per feature-selection column ``(field, coord or extra index)``.
+        sincos: the first ``n_angles`` columns enter as ``sin, cos`` pairs.
+        n_angles: number of angle columns.
+        perm: ``(V, F)`` 0/1 matrix from ``[sin, cos, other columns, nominal]`` to feature order.
+        nominal: the features include the nominal wrench.
+        learned: the learned layer's ``onnx.ModelProto`` or None.
+    """
+
+    def __init__(self, **kw) -> None:
+        self.__dict__.update(kw)
+
+
+def _native_stack(rg, model, em: EstimationModel, full_tree, keep: list[int]):
+    """The parts of a correction stack for a native build, or None (the graph is then inlined).
+
+    Native when the graph carries its layers (``stack`` metadata, written by
+    :func:`torchcontact.export.export_residual_checkpoint`), its sensor is one of the graph's
+    regions, every body of the sensor's subtree is in the pruned tree, and no feature mixes
+    prismatic angles into a sin/cos set.
+    """
+    import base64
+    import json
+
+    import onnx
+    from onnx import version_converter
+
+    from torchcontact._onnx import OPSET
+
+    meta = {m.key: m.value for m in model.metadata_props}
+    if "stack" not in meta or rg.sensor not in em.sensor_names:
+        return None
+    stack = json.loads(meta["stack"])
+    region = list(em.sensor_names).index(rg.sensor)
+    bodies = full_tree.bodies
+    child = keep[em.regions[region].child]
+    inside = [False] * len(bodies)
+    for i, b in enumerate(bodies):
+        inside[i] = i == child or (b.parent >= 0 and inside[b.parent])
+    sub = [i for i in range(len(bodies)) if inside[i]]
+    if not set(sub) <= set(keep):
+        return None
+    new = {old: k for k, old in enumerate(keep)}
+    names = list(em.model.joint_names)
+    body_names = list(em.model.body_names)
+    delta = {}
+    if stack.get("delta") is not None:
+        d = np.asarray(stack["delta"], float).reshape(-1, 10)
+        for name, (m, hx, hy, hz, ixx, ixy, iyy, ixz, iyz, izz) in zip(
+            stack["inertial_bodies"], d, strict=True
+        ):
+            i = body_names.index(name)
+            Q = np.asarray(bodies[i].Q, float)  # R_link_internal
+            Io = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+            delta[new[i]] = (float(m), Q.T @ np.array([hx, hy, hz]), Q.T @ Io @ Q)
+    spec = stack.get("features")
+    columns, n_angles, sincos, perm, nominal, learned = [], 0, False, None, False, None
+    if stack.get("learned") is not None and spec is not None:
+        types = dict(zip(names, em.model.joint_types, strict=True))
+        joints = spec["joints"]
+        prismatic = [types[j] == "prismatic" for j in joints]
+        sincos = spec["angles"] == "sincos"
+        if sincos and any(prismatic) and not all(prismatic):
+            return None
+        sincos = sincos and not any(prismatic)
+        nominal = bool(spec["nominal"])
+        angle_cols = [("q", names.index(j)) for j in joints]
+        other = [] if sincos else list(angle_cols)
+        other += [("qd", names.index(j)) for j in joints if spec["velocities"]]
+        other += [("qdd", names.index(j)) for j in joints if spec["accelerations"]]
+        extra_cols = [("extra", c) for c in spec["extra"]]
+        n_angles = len(joints) if sincos else 0
+        columns = (angle_cols if sincos else []) + other + extra_cols
+        # V = [sin (n_angles), cos (n_angles), other, extra, nominal (6)] -> feature order
+        nv_ = 2 * n_angles + len(other) + len(extra_cols) + (6 if nominal else 0)
+        order = []
+        for k in range(n_angles):
+            order += [k, n_angles + k]
+        base = 2 * n_angles
+        order += [base + k for k in range(len(other))]
+        if nominal:
+            order += [base + len(other) + len(extra_cols) + k for k in range(6)]
+        order += [base + len(other) + k for k in range(len(extra_cols))]
+        perm = np.zeros((nv_, len(order)))
+        perm[order, np.arange(len(order))] = 1.0
+        learned = onnx.load_from_string(base64.b64decode(meta["learned_graph"]))
+        version = next(o.version for o in learned.opset_import if o.domain in ("", "ai.onnx"))
+        if version != OPSET:
+            learned = version_converter.convert_version(learned, OPSET)
+    return _NativeStack(
+        region=region,
+        subtree=[new[i] for i in sub],
+        offset=None if stack.get("offset") is None else np.asarray(stack["offset"], float),
+        delta=delta,
+        columns=columns,
+        sincos=sincos,
+        n_angles=n_angles,
+        perm=perm,
+        nominal=nominal,
+        learned=learned,
+    )
+
+
 class _Step:
     """Builder of one step graph (see the module docstring for the stages)."""
 
@@ -286,12 +412,20 @@ class _Step:
         coords: Sequence[int] | None = None,
     ) -> None:
         self.coords = tuple(range(em.tree.nv)) if coords is None else tuple(coords)
+        self.keep = kept_bodies(em, self.coords)
+        full_tree = em.tree
         em = prune(em, self.coords)
         self.em, self.tree = em, em.tree
         self.moving_base, self.torque_rows, self.with_cov = moving_base, torque_rows, with_cov
         self.gb = GraphBuilder(dtype, "torchcontact_step")
         self.residuals = list(residuals)
         self.extra = list(dict.fromkeys(c for rg, _ in self.residuals for c in rg.extra))
+        # correction stacks whose physics this graph computes itself (the others are inlined)
+        self.native = {
+            r: st
+            for r, (rg, model) in enumerate(self.residuals)
+            if (st := _native_stack(rg, model, em, full_tree, self.keep)) is not None
+        }
         self.dtype = np.dtype(dtype)
         self.nb = len(self.tree.bodies)
         self.nv = self.tree.nv
@@ -372,7 +506,7 @@ class _Step:
         F = lay.size
         x = gb.input("x", [1, F])
         self.h_out = []
-        if self.residuals:
+        if len(self.native) < len(self.residuals):
             x = self._chain(x)
         e_aff = _Affine(F)
         self.e_aff = e_aff
@@ -398,6 +532,8 @@ class _Step:
         # ---- 4. body wrenches and transmitted wrenches
         f0 = self._body_wrenches(TP, VA)
         W0 = self._readings_root(TP, e, idx)
+        if self.native:
+            W0 = self._native_corrections(x, TP, f0, W0)
         D = self._cut_matrix()
         self.D = D
         E = D[:, [self.tree.bodies[reg.child].parent for reg in self.em.regions]]
@@ -461,6 +597,8 @@ class _Step:
         names = list(self.em.model.joint_names)
         corr_all = None
         for r, (rg, model) in enumerate(self.residuals):
+            if r in self.native:
+                continue
             to = gb_type(rg.dtype)
             feeds = {}
             for name, cols in rg.inputs:
@@ -493,6 +631,164 @@ class _Step:
                 h = gb.op("Reshape", gb.cast(outs[rg.output_names[1]]), gb.i([1, L * H]))
                 self.h_out.append((rg.sensor, (L, H), h))
         return gb.op("Sub", x, corr_all)
+
+    def _native_corrections(self, x: str, TP: str, f0: str, W0: str) -> str:
+        """The sensors' wrenches ``W0`` with the natively built correction stacks subtracted.
+
+        A correction ``c`` (sensor frame and measure direction) is subtracted from its reading
+        twice over: from the region's ``b`` (``sign c``, sensor frame: :attr:`ws_corr`, used by
+        :meth:`_region_b`) and from the wrench the reading transmits towards the root
+        (``sign X_root_sensor c``: the returned ``W0``). Its inertial layer ``Y delta`` is the
+        subtree's Newton-Euler wrenches with the parameter change ``delta`` as inertias, summed
+        and moved to the sensor frame; the nominal-wrench feature is the same with the nominal
+        body wrenches ``f0``. The learned layer is the only inlined graph.
+        """
+        from torchcontact._onnx import inline
+
+        gb, nb = self.gb, self.nb
+        S = len(self.em.regions)
+        W, ws_corr = W0, None
+        for r, st in self.native.items():
+            rg = self.residuals[r][0]
+            reg = self.em.regions[st.region]
+            pick = gb.f(np.isin(np.arange(nb), st.subtree)[None, :].astype(float))
+            sums = []  # root-frame subtree sums to move to the sensor frame
+            if st.nominal:
+                sums.append(gb.op("MatMul", pick, f0))
+            if st.delta:
+                sums.append(gb.op("MatMul", pick, self._delta_wrenches(TP, st.delta)))
+            in_sensor = []
+            if sums:
+                k = len(sums)
+                both = gb.op("Concat", *sums, gb.f(np.ones((k, 1))), axis=1) if k == 1 else (
+                    gb.op("Concat", gb.op("Concat", *sums, axis=0), gb.f(np.ones((k, 1))),
+                          axis=1))  # fmt: skip
+
+                def to_sensor(_i, tp: list, w: list, reg=reg) -> list:
+                    R, _, pR, _ = _tp(tp)
+                    wc = _force_to_child(R, pR, (tuple(w[0:3]), tuple(w[3:6])))
+                    out = _signed(reg.sign, sp.force_to_child(reg.T_child_sensor, wc))
+                    return [*out[0], *out[1]]
+
+                ws = bilinear(
+                    gb,
+                    Operand(TP, 25, "nd", one=_TP_ONE, row_of=[reg.child] * k),
+                    Operand(both, 7, one=6),
+                    k,
+                    to_sensor,
+                    6,
+                    one=False,
+                    hint=f"ysum{r}",
+                )
+                in_sensor = [
+                    gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)
+                ]
+            nominal = in_sensor[0] if st.nominal else None
+            c = gb.f(st.offset[None, :]) if st.offset is not None else None
+            if st.delta:
+                yd = in_sensor[-1]
+                c = yd if c is None else gb.op("Add", c, yd)
+            if st.learned is not None:
+                out = self._learned(x, nominal, r, rg, st, inline)
+                c = out if c is None else gb.op("Add", c, out)
+            if c is None:
+                continue
+            col = np.zeros((S, 1))
+            col[st.region, 0] = 1.0
+            d = gb.op("MatMul", gb.f(col * reg.sign), c)
+            ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
+            one = gb.op("Concat", c, gb.f([[1.0]]), axis=1)
+
+            def to_root(_i, tp: list, cs: list, reg=reg) -> list:
+                w = sp.force_to_parent(reg.T_child_sensor, _signed(reg.sign, cs))
+                R, _, pR, _ = _tp(tp)
+                out = _force_to_parent(R, pR, w)
+                return [*out[0], *out[1]]
+
+            w = bilinear(
+                gb,
+                Operand(TP, 25, "nd", one=_TP_ONE, row_of=[reg.child]),
+                Operand(one, 7, one=6),
+                1,
+                to_root,
+                6,
+                one=False,
+                hint=f"cres{r}",
+            )
+            W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
+        self.ws_corr = ws_corr
+        return W
+
+    def _delta_wrenches(self, TP: str, delta: dict) -> str:
+        """``(nb, 6)`` root-frame wrenches of the bodies with inertias ``delta`` (0 elsewhere)."""
+        gb, nb = self.gb, self.nb
+
+        def apply(i: int, va: list, _b: list) -> list:
+            if i not in delta:
+                return [0.0] * 6
+            m, h, Io = delta[i]
+            h, Io = sp.const_vec(h), sp.const_mat(Io)
+            v, a = (tuple(va[0:3]), tuple(va[3:6])), (tuple(va[6:9]), tuple(va[9:12]))
+
+            def inertia(mo: sp.Motion) -> sp.Force:  # I(m, h, I_origin) applied to a motion
+                lin, ang = mo
+                return (
+                    sp.v_sub(sp.v_scale(m, lin), sp.v_cross(h, ang)),
+                    sp.v_add(sp.m_vec(Io, ang), sp.v_cross(h, lin)),
+                )
+
+            Ia, vxIv = inertia(a), sp.motion_cross_force(v, inertia(v))
+            return [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+
+        fd = bilinear(gb, Operand(self.VAb, 13, one=12), None, nb, apply, 6, hint="fdelta")
+
+        def to_root(_i: int, tp: list, f: list) -> list:
+            R, _, pR, _ = _tp(tp)
+            w = _force_to_parent(R, pR, (tuple(f[0:3]), tuple(f[3:6])))
+            return [*w[0], *w[1]]
+
+        return bilinear(
+            gb, Operand(TP, 25, one=_TP_ONE), Operand(fd, 7, one=6), nb, to_root, 6, one=False,
+            hint="fdelta_root",
+        )  # fmt: skip
+
+    def _learned(self, x, nominal, r, rg, st, inline) -> str:
+        """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``."""
+        gb, lay = self.gb, self.lay
+        F = lay.size
+        to = gb_type(rg.dtype)
+        parts = []
+        if st.columns:
+            sel = np.zeros((F, len(st.columns)))
+            for j, (field, key) in enumerate(st.columns):
+                i = lay.index("extra", self.extra.index(key)) if field == "extra" else (
+                    lay.index(field, key))  # fmt: skip
+                sel[i, j] = 1.0
+            xs = gb.op("MatMul", x, gb.f(sel))
+            if st.sincos:
+                na = st.n_angles
+                q = gb.op("Slice", xs, gb.i([0]), gb.i([na]), gb.i([1]))
+                rest = gb.op("Slice", xs, gb.i([na]), gb.i([len(st.columns)]), gb.i([1]))
+                parts += [gb.op("Sin", q), gb.op("Cos", q), rest]
+            else:
+                parts.append(xs)
+        if st.nominal:
+            parts.append(nominal)
+        v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
+        feeds = {"features": gb.op("Cast", gb.op("MatMul", v, gb.f(st.perm)), to=to)}
+        if rg.state_shape:
+            L, H = rg.state_shape
+            sel = np.zeros((F, L * H))
+            o = lay.fields[f"h_in.{rg.sensor}"][0]
+            sel[o : o + L * H, :] = np.eye(L * H)
+            h = gb.op("Reshape", gb.op("MatMul", x, gb.f(sel)), gb.i([1, L, H]))
+            feeds["h_in"] = gb.op("Cast", h, to=to)
+        outs = inline(gb, st.learned, f"res{r}/", feeds)
+        if rg.state_shape:
+            L, H = rg.state_shape
+            h = gb.op("Reshape", gb.cast(outs["h_out"]), gb.i([1, L * H]))
+            self.h_out.append((rg.sensor, (L, H), h))
+        return gb.cast(outs["residual"])
 
     def _plan_affine(self, ea: _Affine) -> dict:
         """Register the entries of ``e``; returns their indices by purpose."""
@@ -836,6 +1132,7 @@ class _Step:
         VAb = bilinear(
             gb, Operand(TP, 25, one=_TP_ONE), Operand(VA, 13, one=12), nb, to_body, 12, hint="vab"
         )
+        self.VAb = VAb
 
         def newton_euler(i: int, va: list, _b: list) -> list:
             b = tree.bodies[i]
@@ -1046,6 +1343,8 @@ class _Step:
                 hint="fs",
             )
         Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
+        if getattr(self, "ws_corr", None) is not None:  # natively built corrections
+            Ws = gb.op("Sub", Ws, self.ws_corr)
         b6 = gb.op("Sub", Fsens, Ws)
         out = []
         for r, reg in enumerate(regs):

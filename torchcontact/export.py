@@ -862,12 +862,53 @@ def export_residual_checkpoint(
     }
     if recurrent:
         meta["state_shape"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
+    meta.update(_stack_parts(corr, opset))
     written = {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
     _set_metadata(path, written)
     if check:
         for n in (1, 7):
             check_parity(wrapper, path, example(n), atol=1e-4)
     return written
+
+
+def _stack_parts(corr, opset: int) -> dict[str, object]:
+    """The stack's layers as data, so that an estimator's step graph can rebuild them natively.
+
+    ``stack``: ``offset`` (6 values or None), ``inertial_bodies`` and ``delta`` (the inertial
+    layer's bodies and their ten parameters each, :data:`torchcontact.residual.PARAM_NAMES`, link
+    frame), ``features`` (the learned layer's :class:`~torchcontact.residual.FeatureSpec`) and
+    ``learned`` (its kind). ``learned_graph``: the learned layer alone (``features (N, F)`` [and
+    ``h_in``] -> ``residual (N, 6)`` [and ``h_out``], float32) as a base64 ONNX model. The
+    single-frame estimator graph computes the physics layers from its own forward pass (a few
+    nodes instead of the thousands of a traced forward pass) and inlines only the network.
+    """
+    import base64
+    import tempfile
+
+    stack = {
+        "offset": None if corr.offset is None else corr.offset.double().tolist(),
+        "inertial_bodies": list(corr.inertial_bodies),
+        "delta": None if corr.delta is None else corr.delta.double().tolist(),
+        "features": None if corr.features is None else corr.features.to_json(),
+        "learned": None if corr.learned is None else corr.learned.kind,
+    }
+    out: dict[str, object] = {"stack": stack}
+    net = corr.learned
+    if net is not None:
+        F = net.in_features
+        x = torch.zeros(1, F)
+        with tempfile.TemporaryDirectory() as d:
+            f = Path(d) / "learned.onnx"
+            if corr.recurrent:
+                h = torch.zeros(1, net.layers, net.hidden)
+                ins, outs = ["features", "h_in"], ["residual", "h_out"]
+                args: tuple = (x, h)
+            else:
+                ins, outs, args = ["features"], ["residual"], (x,)
+            with torch.no_grad():
+                _export(net.eval(), args, f, ins, outs, {k: {0: "N"} for k in ins + outs}, opset)
+            out["learned_graph"] = base64.b64encode(f.read_bytes()).decode()
+    return out
 
 
 def check_parity(

@@ -154,18 +154,42 @@ def residuals(tmp_path_factory):
     d = tmp_path_factory.mktemp("residual")
     model = robot_model("tcarm")
     out = {}
-    for kind in ("mlp", "gru"):
-        ckpt = correction_checkpoint(d / kind, model, "base_ft", kind)
+    for kind in ("mlp", "gru", "inertial"):
+        ckpt = correction_checkpoint(
+            d / kind, model, "base_ft", "mlp" if kind == "inertial" else kind
+        )
+        if kind == "inertial":  # plus an inertial layer (a parameter change of two bodies)
+            from torchcontact.residual import ResidualCorrection
+
+            c = ResidualCorrection.load(ckpt, model)
+            delta = torch.randn(20, generator=torch.Generator().manual_seed(5)).double() * 0.3
+            names = model.body_names
+            ckpt = ResidualCorrection(
+                model, "base_ft", offset=c.offset, inertial_bodies=(names[-1], names[-3]),
+                delta=delta, learned=c.learned, features=c.features,
+            ).save(d / "inertial-stack")  # fmt: skip
         export_residual_checkpoint(ckpt, d / f"{kind}.onnx", model)
         out[kind] = (ckpt, d / f"{kind}.onnx")
     return out
 
 
-@pytest.mark.parametrize("kind", ["mlp", "gru"])
+#: the learned layer runs in float32: its features are rounded to float32 (computed in float64
+#: by the step graph and torch, in float32 by the stand-alone correction graph)
+LEARNED_FLOAT32 = 2e-5  # N, N m: a float32 ulp of a 50 N feature, through the network
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru", "inertial"])
 def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
-    """The correction inside the graph (export) or chained by the runtime: the same estimate."""
+    """The correction inside the graph (export) or chained by the runtime: the same estimate.
+
+    Chained by the runtime, the correction graph's own output is subtracted (reference: that
+    output, then the torch estimator, 1e-9); inside the single-frame graph the stack is rebuilt
+    from its layers on the graph's forward pass (reference: the torch correction stack, then the
+    torch estimator, to the learned layer's float32 rounding), in a few hundred nodes.
+    """
     import onnxruntime as ort
 
+    from torchcontact.export import step_graph_path
     from torchcontact.residual import ResidualCorrection
     from torchcontact.runtime import EstimatorRuntime
 
@@ -199,7 +223,13 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
     )
     np.testing.assert_allclose(x["ft"][:, 0] - fixed["ft"][:, 0], want.numpy(), atol=1e-4)
     ref = reference("tcarm", fixed)
-    for rt in (inside, chained):
+    native = dict(x)
+    native["ft"] = x["ft"].copy()
+    native["ft"][:, 0] -= want.numpy()
+    ref_native = reference("tcarm", native)
+    step_file = step_graph_path(exports.path("tcarm", residual=str(graph)))
+    assert len(onnx.load(str(step_file)).graph.node) < 600  # the stack built natively
+    for rt, rf, tol in ((inside, ref_native, LEARNED_FLOAT32), (chained, ref, 1e-9)):
         rt.reset()
         for i in range(8):
             out = rt.step(
@@ -212,9 +242,9 @@ def test_one_call_from_raw_reading_with_the_residual(exports, residuals, kind):
                 ft_residual=x["ft_residual"][i],
                 extra={"temperature": temp[i]},
             )
-            np.testing.assert_allclose(out["force"], ref.force[i].numpy(), atol=1e-9)
+            np.testing.assert_allclose(out["force"], rf.force[i].numpy(), atol=tol, rtol=0)
             np.testing.assert_allclose(
-                out["joint_torques"], ref.joint_torques[i].numpy(), atol=1e-9
+                out["joint_torques"], rf.joint_torques[i].numpy(), atol=tol, rtol=0
             )
         with pytest.raises(InputError, match="temperature"):
             rt.step(x["q"][0], x["qd"][0], x["qdd"][0], x["ft"][0], x["positions"][0])
