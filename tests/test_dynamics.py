@@ -212,7 +212,9 @@ def test_compiled_path_agrees_with_eager():
 def test_gravity_on_the_model_and_autograd_gradcheck():
     model = tc.RobotModel.from_urdf(io.StringIO(CONTINUOUS_URDF))
     q, qd, qdd = (x.requires_grad_() for x in random_state(model, 3, seed=12))
-    torch.autograd.gradcheck(lambda q, qd, qdd: tc.inverse_dynamics(model, q, qd, qdd), (q, qd, qdd))
+    torch.autograd.gradcheck(
+        lambda q, qd, qdd: tc.inverse_dynamics(model, q, qd, qdd), (q, qd, qdd)
+    )
     # gravity lives on the model; a per-frame gravity is a base acceleration of -g (at rest)
     grav = torch.tensor([[0.0, 0, -9.81], [0, -9.81, 0], [1.0, 2, 3]], dtype=torch.float64)
     q, qd, qdd = (x.detach() for x in (q, qd, qdd))

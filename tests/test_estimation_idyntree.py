@@ -328,7 +328,10 @@ def test_moving_base_matches_idyntree_floating_base(icub, backend):
     for i in range(n):
         ref.kinematics_floating(q[i], qd[i], qdd[i], *(x[i].numpy() for x in base))
         theirs = ref.predict(
-            [(lk, "known", pos[i, k].numpy(), None, wr[i, k].numpy()) for k, lk in enumerate(B_LINKS)]
+            [
+                (lk, "known", pos[i, k].numpy(), None, wr[i, k].numpy())
+                for k, lk in enumerate(B_LINKS)
+            ]
         )
         for s in ref.ft_names:
             np.testing.assert_allclose(ft[s][i].numpy(), theirs[s], atol=ATOL, rtol=0)

@@ -68,7 +68,9 @@ def test_joint_columns_reordered_by_name_and_plain_lists(model, sim_log, tmp_pat
     )
 
 
-@pytest.mark.parametrize("change,match", [("drop", "lacks joints \\['wrist_roll'\\]"), ("add", "extra")])
+@pytest.mark.parametrize(
+    "change,match", [("drop", "lacks joints \\['wrist_roll'\\]"), ("add", "extra")]
+)
 def test_missing_or_extra_joints_are_clear_errors(model, sim_log, tmp_path, change, match):
     tab = pq.read_table(sim_log)
     names = list(model.joint_names)
