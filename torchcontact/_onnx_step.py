@@ -296,7 +296,8 @@ class _NativeStack:
         subtree: the sensor's subtree as body indices of the pruned tree.
         offset: ``(6,)`` or None.
         delta: pruned body index -> ``(m, h, I_origin)`` of the inertial layer, internal frame.
-        columns: per feature-selection column ``(field, coord or extra index)``.
+        columns: per selected input column ``("q" | "qd" | "qdd", joint)`` or
+            ``("extra", name)`` (:meth:`_Step._select`).
         sincos: the first ``n_angles`` columns enter as ``sin, cos`` pairs.
         n_angles: number of angle columns.
         perm: ``(V, F)`` 0/1 matrix from ``[sin, cos, other columns, nominal]`` to feature order.
@@ -329,12 +330,8 @@ def _native_stack(rg, model, em: EstimationModel, full_tree, keep: list[int]):
         return None
     stack = json.loads(meta["stack"])
     region = list(em.sensor_names).index(rg.sensor)
-    bodies = full_tree.bodies
-    child = keep[em.regions[region].child]
-    inside = [False] * len(bodies)
-    for i, b in enumerate(bodies):
-        inside[i] = i == child or (b.parent >= 0 and inside[b.parent])
-    sub = [i for i in range(len(bodies)) if inside[i]]
+    bodies = full_tree.bodies  # indexed like the model's bodies
+    sub = em.model.subtree(keep[em.regions[region].child])
     if not set(sub) <= set(keep):
         return None
     new = {old: k for k, old in enumerate(keep)}
@@ -361,10 +358,10 @@ def _native_stack(rg, model, em: EstimationModel, full_tree, keep: list[int]):
             return None
         sincos = sincos and not any(prismatic)
         nominal = bool(spec["nominal"])
-        angle_cols = [("q", names.index(j)) for j in joints]
+        angle_cols = [("q", j) for j in joints]
         other = [] if sincos else list(angle_cols)
-        other += [("qd", names.index(j)) for j in joints if spec["velocities"]]
-        other += [("qdd", names.index(j)) for j in joints if spec["accelerations"]]
+        other += [("qd", j) for j in joints if spec["velocities"]]
+        other += [("qdd", j) for j in joints if spec["accelerations"]]
         extra_cols = [("extra", c) for c in spec["extra"]]
         n_angles = len(joints) if sincos else 0
         columns = (angle_cols if sincos else []) + other + extra_cols
@@ -594,31 +591,17 @@ class _Step:
 
         gb, lay = self.gb, self.lay
         F = lay.size
-        names = list(self.em.model.joint_names)
         corr_all = None
         for r, (rg, model) in enumerate(self.residuals):
             if r in self.native:
                 continue
             to = gb_type(rg.dtype)
-            feeds = {}
-            for name, cols in rg.inputs:
-                if cols is None:
-                    L, H = rg.state_shape
-                    sel = np.zeros((F, L * H))
-                    o = lay.fields[f"h_in.{rg.sensor}"][0]
-                    sel[o : o + L * H, :] = np.eye(L * H)
-                    h = gb.op("Reshape", gb.op("MatMul", x, gb.f(sel)), gb.i([1, L, H]))
-                    feeds[name] = gb.op("Cast", h, to=to)
-                    continue
-                sel = np.zeros((F, len(cols)))
-                for j, (kind, key) in enumerate(cols):
-                    i = (
-                        lay.index("extra", self.extra.index(key))
-                        if kind == "extra"
-                        else lay.index(kind, names.index(key))
-                    )
-                    sel[i, j] = 1.0
-                feeds[name] = gb.op("Cast", gb.op("MatMul", x, gb.f(sel)), to=to)
+            feeds = {
+                name: self._state_in(x, rg, to)
+                if cols is None
+                else gb.op("Cast", self._select(x, cols), to=to)
+                for name, cols in rg.inputs
+            }
             outs = inline(gb, model, f"res{r}/", feeds)
             P = np.zeros((6, F))
             s = list(self.em.sensor_names).index(rg.sensor)
@@ -627,10 +610,42 @@ class _Step:
             c = gb.op("MatMul", gb.cast(outs[rg.output]), gb.f(P))
             corr_all = c if corr_all is None else gb.op("Add", corr_all, c)
             if rg.state_shape:
-                L, H = rg.state_shape
-                h = gb.op("Reshape", gb.cast(outs[rg.output_names[1]]), gb.i([1, L * H]))
-                self.h_out.append((rg.sensor, (L, H), h))
+                self._state_out(rg, outs[rg.output_names[1]])
         return gb.op("Sub", x, corr_all)
+
+    def _select(self, x: str, cols) -> str:
+        """Entries of ``x`` as ``(1, len(cols))``.
+
+        Args:
+            x: the packed input ``(1, F)``.
+            cols: per column ``("q" | "qd" | "qdd", joint name)`` or ``("extra", name)``.
+        """
+        lay, names = self.lay, list(self.em.model.joint_names)
+        sel = np.zeros((lay.size, len(cols)))
+        for j, (kind, key) in enumerate(cols):
+            i = (
+                lay.index("extra", self.extra.index(key))
+                if kind == "extra"
+                else lay.index(kind, names.index(key))
+            )
+            sel[i, j] = 1.0
+        return self.gb.op("MatMul", x, self.gb.f(sel))
+
+    def _state_in(self, x: str, rg, to: int) -> str:
+        """The recurrent state ``h_in.<sensor>`` of ``x``, ``(1, L, H)`` of type ``to``."""
+        gb, lay = self.gb, self.lay
+        L, H = rg.state_shape
+        sel = np.zeros((lay.size, L * H))
+        o = lay.fields[f"h_in.{rg.sensor}"][0]
+        sel[o : o + L * H, :] = np.eye(L * H)
+        h = gb.op("Reshape", gb.op("MatMul", x, gb.f(sel)), gb.i([1, L, H]))
+        return gb.op("Cast", h, to=to)
+
+    def _state_out(self, rg, h: str) -> None:
+        """Record a recurrent correction's next state (an output of the graph)."""
+        L, H = rg.state_shape
+        flat = self.gb.op("Reshape", self.gb.cast(h), self.gb.i([1, L * H]))
+        self.h_out.append((rg.sensor, (L, H), flat))
 
     def _native_corrections(self, x: str, TP: str, f0: str, W0: str) -> str:
         """The sensors' wrenches ``W0`` with the natively built correction stacks subtracted.
@@ -754,17 +769,11 @@ class _Step:
 
     def _learned(self, x, nominal, r, rg, st, inline) -> str:
         """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``."""
-        gb, lay = self.gb, self.lay
-        F = lay.size
+        gb = self.gb
         to = gb_type(rg.dtype)
         parts = []
         if st.columns:
-            sel = np.zeros((F, len(st.columns)))
-            for j, (field, key) in enumerate(st.columns):
-                i = lay.index("extra", self.extra.index(key)) if field == "extra" else (
-                    lay.index(field, key))  # fmt: skip
-                sel[i, j] = 1.0
-            xs = gb.op("MatMul", x, gb.f(sel))
+            xs = self._select(x, st.columns)
             if st.sincos:
                 na = st.n_angles
                 q = gb.op("Slice", xs, gb.i([0]), gb.i([na]), gb.i([1]))
@@ -777,17 +786,10 @@ class _Step:
         v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
         feeds = {"features": gb.op("Cast", gb.op("MatMul", v, gb.f(st.perm)), to=to)}
         if rg.state_shape:
-            L, H = rg.state_shape
-            sel = np.zeros((F, L * H))
-            o = lay.fields[f"h_in.{rg.sensor}"][0]
-            sel[o : o + L * H, :] = np.eye(L * H)
-            h = gb.op("Reshape", gb.op("MatMul", x, gb.f(sel)), gb.i([1, L, H]))
-            feeds["h_in"] = gb.op("Cast", h, to=to)
+            feeds["h_in"] = self._state_in(x, rg, to)
         outs = inline(gb, st.learned, f"res{r}/", feeds)
         if rg.state_shape:
-            L, H = rg.state_shape
-            h = gb.op("Reshape", gb.cast(outs["h_out"]), gb.i([1, L * H]))
-            self.h_out.append((rg.sensor, (L, H), h))
+            self._state_out(rg, outs["h_out"])
         return gb.cast(outs["residual"])
 
     def _plan_affine(self, ea: _Affine) -> dict:
