@@ -1,6 +1,7 @@
 """URDF reading (private): the robot tree and iDynTree's F/T ``<sensor>`` extension.
 
-Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors.
+Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors, and
+:mod:`torchcontact.meshes` loads the ``<visual>``/``<collision>`` geometry :func:`geometry` lists.
 """
 
 from __future__ import annotations
@@ -205,6 +206,77 @@ def parse(text: str, source: str) -> dict:
             }
         )
     return {"name": root.get("name", ""), "links": links, "joints": joints, "sensors": sensors}
+
+
+_SHAPES = ("mesh", "box", "cylinder", "sphere")
+
+
+def geometry(text: str, source: str, kind: str) -> list[dict]:
+    """The ``<visual>`` or ``<collision>`` elements of every link, in document order.
+
+    Args:
+        text: URDF XML text.
+        source: a name for messages (the file path).
+        kind: ``"visual"`` or ``"collision"``.
+
+    Returns:
+        One dict per element: ``link``, ``R``/``p`` (the element's ``<origin>`` in the link frame,
+        numpy ``(3, 3)``/``(3,)``, m), ``type`` (``"mesh"``, ``"box"``, ``"cylinder"``,
+        ``"sphere"``), ``filename`` and ``scale`` ``(3,)`` for meshes, ``size`` for primitives
+        (box ``(3,)`` edge lengths, cylinder ``(radius, length)``, sphere ``(radius,)``, m), and
+        ``rgba`` ``(4,)`` or ``None`` (a visual's material colour, inline or named at robot level).
+
+    Raises:
+        URDFError: malformed XML, or an element without a known shape or with malformed numbers.
+    """
+    from xml.etree import ElementTree
+
+    if kind not in ("visual", "collision"):
+        raise ValueError(f"kind must be 'visual' or 'collision', got {kind!r}")
+    try:
+        root = ElementTree.fromstring(text)
+    except ElementTree.ParseError as e:
+        raise URDFError(f"{source}: malformed XML: {e}") from None
+    colours = {}
+    for me in root.findall("material"):
+        ce = me.find("color")
+        if me.get("name") and ce is not None:
+            colours[me.get("name")] = _floats(ce.get("rgba"), 4, "material rgba", source)
+    out = []
+    for le in root.findall("link"):
+        link = le.get("name", "")
+        for ge in le.findall(kind):
+            what = f"link {link!r} <{kind}>"
+            R, p = _origin(ge, what, source)
+            shape = ge.find("geometry")
+            el = None if shape is None else next(iter(shape), None)
+            if el is None or el.tag not in _SHAPES:
+                raise URDFError(f"{source}: {what} needs <geometry> with one of {_SHAPES}")
+            item = {"link": link, "R": R, "p": p, "type": el.tag, "filename": None,
+                    "scale": np.ones(3), "size": None, "rgba": None}  # fmt: skip
+            if el.tag == "mesh":
+                if not el.get("filename"):
+                    raise URDFError(f"{source}: {what} <mesh> needs filename=...")
+                item["filename"] = el.get("filename")
+                if el.get("scale") is not None:
+                    item["scale"] = _floats(el.get("scale"), 3, f"{what} <mesh scale>", source)
+            elif el.tag == "box":
+                item["size"] = _floats(el.get("size"), 3, f"{what} <box size>", source)
+            elif el.tag == "cylinder":
+                item["size"] = np.array(
+                    [_number(el, k, f"{what} <cylinder>", source) for k in ("radius", "length")]
+                )
+            else:
+                item["size"] = np.array([_number(el, "radius", f"{what} <sphere>", source)])
+            me = ge.find("material")
+            if me is not None:
+                ce = me.find("color")
+                if ce is not None:
+                    item["rgba"] = _floats(ce.get("rgba"), 4, f"{what} <material rgba>", source)
+                else:
+                    item["rgba"] = colours.get(me.get("name", ""))
+            out.append(item)
+    return out
 
 
 def axis_rotation_terms(R0: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

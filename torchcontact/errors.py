@@ -19,6 +19,7 @@ __all__ = [
     "InputError",
     "KernelBuildError",
     "LogError",
+    "MissingExtraError",
     "ModelMismatchError",
     "ProfileError",
     "TorchContactError",
@@ -77,3 +78,19 @@ class FTConnectionError(FTError):
 
 class KernelBuildError(TorchContactError, RuntimeError):
     """A generated kernel could not be compiled or loaded (callers fall back to eager torch)."""
+
+
+class MissingExtraError(TorchContactError, ImportError):
+    """An optional dependency is not installed; the message names the extra that brings it.
+
+    Example:
+        >>> raise MissingExtraError("trimesh", "meshes")
+        Traceback (most recent call last):
+        ...
+        torchcontact.errors.MissingExtraError: this needs the package 'trimesh': pip install ...
+    """
+
+    def __init__(self, package: str, extra: str) -> None:
+        super().__init__(f"this needs the package {package!r}: pip install 'torchcontact[{extra}]'")
+        self.package = package
+        self.extra = extra
