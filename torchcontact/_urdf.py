@@ -1,6 +1,7 @@
 """URDF reading (private): the robot tree and iDynTree's F/T ``<sensor>`` extension.
 
-Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors.
+Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors. Imports
+neither torch nor the model (the model imports this module, not the reverse).
 """
 
 from __future__ import annotations
@@ -10,9 +11,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from torchcontact.model import URDFError
+from torchcontact.errors import URDFError
 
 
 def read_text(urdf) -> tuple[str, str]:
@@ -28,9 +28,16 @@ def read_text(urdf) -> tuple[str, str]:
 
 
 def _rotation(rpy: np.ndarray) -> np.ndarray:
-    from torchcontact.spatial import rpy_to_matrix
-
-    return rpy_to_matrix(torch.as_tensor(rpy, dtype=torch.float64)).numpy()
+    """``R = Rz(yaw) Ry(pitch) Rx(roll)`` of URDF roll-pitch-yaw angles (fixed axes x, y, z)."""
+    cr, cp, cy = np.cos(rpy)
+    sr, sp, sy = np.sin(rpy)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def _floats(text: str | None, n: int, what: str, source: str) -> np.ndarray:
@@ -206,8 +213,3 @@ def parse(text: str, source: str) -> dict:
         )
     return {"name": root.get("name", ""), "links": links, "joints": joints, "sensors": sensors}
 
-
-def axis_rotation_terms(R0: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Terms of ``R0 @ Rot(axis, q) = R0 + sin(q) C1 + (1 - cos(q)) C2`` (Rodrigues)."""
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return R0 @ K, R0 @ K @ K

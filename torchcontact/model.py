@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from torchcontact.errors import InputError, URDFError
+from torchcontact.identity import RobotIdentity, entry
 from torchcontact.spatial import combine_inertias
 
 __all__ = ["FTSensor", "Frame", "RobotModel", "URDFError"]
@@ -93,10 +94,7 @@ _TENSOR_FIELDS = (
     "q_to_body",
     "q_offset",
     "C0",
-    "C1",
-    "C2",
     "p0",
-    "prismatic_dir",
     "axis",
     "is_revolute",
     "is_prismatic",
@@ -131,10 +129,8 @@ class RobotModel:
         q_to_body: ``(nv, nb)`` maps joint coordinates to each body's joint coordinate (mimic
             included).
         q_offset: ``(nb,)`` mimic offsets added to body joint positions, rad or m.
-        C0, C1, C2: ``(nb, 3, 3)`` so that ``R_parent_body(q) = C0 + sin(q) C1 + (1 - cos(q)) C2``
-            (Rodrigues' formula folded into the joint placement; C1 = C2 = 0 unless revolute).
+        C0: ``(nb, 3, 3)`` rotation of the joint frame in the parent body frame at q = 0.
         p0: ``(nb, 3)`` joint origin in the parent body frame at q = 0, m.
-        prismatic_dir: ``(nb, 3)`` prismatic axis in the parent body frame (0 unless prismatic).
         axis: ``(nb, 3)`` unit joint axis in the body frame (0 for the root and fixed joints).
         is_revolute: ``(nb,)`` 1.0 where the body's joint is revolute or continuous.
         is_prismatic: ``(nb,)`` 1.0 where the body's joint is prismatic.
@@ -144,7 +140,11 @@ class RobotModel:
         gravity: ``(3,)`` gravity acceleration in the root frame, m/s^2 (default ``(0, 0, -9.81)``;
             :meth:`with_gravity` changes it). Used by every algorithm on a fixed base; a moving base
             measured by an IMU brings its own proper acceleration instead.
-        urdf_sha256: hash of the URDF text the model was built from.
+        urdf_sha256: hash of the URDF text the model was built from (what checkpoints and
+            graphs of earlier versions recorded; :attr:`identity` is what they record now).
+        identity: the robot's :class:`~torchcontact.identity.RobotIdentity`, a canonical
+            description of the parsed model (``identity.sha256`` keys checkpoints and graphs);
+            set by :meth:`from_urdf` and kept up to date by the ``with_*`` methods.
         joint_parent_link: joint name -> its URDF parent link.
         joint_limits: ``"lower"``, ``"upper"`` (rad or m), ``"velocity"`` (rad/s or m/s),
             ``"effort"`` (N m or N) -> ``(nv,)`` numpy float64 in ``joint_names`` order, from the
@@ -164,10 +164,7 @@ class RobotModel:
     q_to_body: Tensor
     q_offset: Tensor
     C0: Tensor
-    C1: Tensor
-    C2: Tensor
     p0: Tensor
-    prismatic_dir: Tensor
     axis: Tensor
     is_revolute: Tensor
     is_prismatic: Tensor
@@ -176,6 +173,7 @@ class RobotModel:
     inertia_com: Tensor
     gravity: Tensor
     urdf_sha256: str = ""
+    identity: RobotIdentity = field(default_factory=lambda: RobotIdentity(()))
     joint_parent_link: dict[str, str] = field(default_factory=dict)
     joint_limits: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -278,7 +276,8 @@ class RobotModel:
         mass_t[b] = m1
         com_t[b] = torch.as_tensor(c1, dtype=self.dtype, device=self.device)
         in_t[b] = torch.as_tensor(I1, dtype=self.dtype, device=self.device)
-        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t)
+        ident = self.identity.replace(_body_entries(self.body_names[b], m1, c1, I1))
+        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t, identity=ident)
 
     def body_of(self, name: str) -> int:
         """Index of the body a link or joint frame named ``name`` is attached to.
@@ -432,7 +431,8 @@ class RobotModel:
         sensor = _make_sensor(
             name, joint, self.body_parent[b], b, frame, measure_direction, R_cs, p_cs
         )
-        return replace(self, ft_sensors={**self.ft_sensors, name: sensor})
+        ident = self.identity.replace(_sensor_entries(sensor))
+        return replace(self, ft_sensors={**self.ft_sensors, name: sensor}, identity=ident)
 
 
 def _make_sensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs) -> FTSensor:
@@ -461,8 +461,6 @@ def _reading_frame(frame: str, R_pc, p_pc, R_origin, p_origin):
 
 
 def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
-    from torchcontact._urdf import axis_rotation_terms
-
     links, joints, sensors = parsed["links"], parsed["joints"], parsed["sensors"]
     # Tree structure: every joint names existing links; each link has at most one parent.
     child_of: dict[str, dict] = {}
@@ -616,10 +614,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     q_to_body = np.zeros((nv, nb))
     q_offset = np.zeros(nb)
     C0 = np.tile(np.eye(3), (nb, 1, 1))
-    C1 = np.zeros((nb, 3, 3))
-    C2 = np.zeros((nb, 3, 3))
     p0 = np.zeros((nb, 3))
-    pdir = np.zeros((nb, 3))
     axis = np.zeros((nb, 3))
     is_rev = np.zeros(nb)
     is_pri = np.zeros(nb)
@@ -641,10 +636,8 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         q_offset[b] = off
         if j["type"] == "prismatic":
             is_pri[b] = 1.0
-            pdir[b] = R0 @ a
         else:
             is_rev[b] = 1.0
-            C1[b], C2[b] = axis_rotation_terms(R0, a)
 
     frames: dict[str, Frame] = {}
     for name, (b, R, p) in link_in_body.items():
@@ -664,10 +657,10 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             raise URDFError(f"{source}: sensor {s['name']!r} is declared twice")
         ft[s["name"]] = sensor
 
-    def t(x):
-        return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
+    def t(x):  # float64 first: the identity is computed from float64 values
+        return torch.as_tensor(np.asarray(x), dtype=torch.float64, device=device)
 
-    return RobotModel(
+    model = RobotModel(
         name=parsed["name"],
         joint_names=tuple(joint_order),
         joint_types=tuple(joint_by_name[n]["type"] for n in joint_order),
@@ -681,10 +674,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         q_to_body=t(q_to_body),
         q_offset=t(q_offset),
         C0=t(C0),
-        C1=t(C1),
-        C2=t(C2),
         p0=t(p0),
-        prismatic_dir=t(pdir),
         axis=t(axis),
         is_revolute=t(is_rev),
         is_prismatic=t(is_pri),
@@ -706,3 +696,61 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             for key in ("lower", "upper", "velocity", "effort")
         },
     )
+    model = replace(model, identity=_describe(model))
+    return model if dtype == torch.float64 else model.to(dtype=dtype)
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().to("cpu", torch.float64).numpy()
+
+
+def _body_entries(name: str, mass: float, com: np.ndarray, inertia: np.ndarray) -> list[tuple]:
+    """Identity entries of a body's inertial parameters (merged over its fixed links)."""
+    I = np.asarray(inertia, float)  # noqa: E741 - the inertia tensor
+    return [
+        entry(f"link {name}", "mass", [mass], "kg"),
+        entry(f"link {name}", "centre of mass", np.asarray(com, float), "m"),
+        entry(f"link {name}", "inertia", [I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2], I[2, 2]],
+              "kg m^2"),
+    ]  # fmt: skip
+
+
+def _sensor_entries(s: FTSensor) -> list[tuple]:
+    """Identity entries of an F/T sensor: joint, reading frame (child body frame), direction."""
+    where = f"sensor {s.name}"
+    return [
+        entry(where, "joint", [s.joint, s.measure_direction]),
+        entry(where, "frame", [*np.asarray(s.R_child_sensor).ravel(), *s.p_child_sensor], "m"),
+    ]
+
+
+def _describe(m: RobotModel) -> RobotIdentity:
+    """The :class:`~torchcontact.identity.RobotIdentity` of a model (see that module)."""
+    C0, p0, axis = _np(m.C0), _np(m.p0), _np(m.axis)
+    q_to_body, q_offset = _np(m.q_to_body), _np(m.q_offset)
+    mass, com, inertia = _np(m.mass), _np(m.com), _np(m.inertia_com)
+    is_rev, is_pri = _np(m.is_revolute), _np(m.is_prismatic)
+    out = [entry("robot", "joints", m.joint_names)]
+    for b in range(1, m.nb):
+        j = m.body_joint[b]
+        kind = "revolute" if is_rev[b] else "prismatic" if is_pri[b] else "fixed"
+        out.append(entry(f"link {m.body_names[b]}", "parent", [m.body_names[m.body_parent[b]], j]))
+        out.append(entry(f"joint {j}", "type", [kind]))
+        out.append(entry(f"joint {j}", "origin", [*C0[b].ravel(), *p0[b]], "m"))
+        if kind != "fixed":
+            lead = int(np.flatnonzero(q_to_body[:, b])[0])
+            coupling = [m.joint_names[lead], q_to_body[lead, b], q_offset[b]]
+            out.append(entry(f"joint {j}", "axis", axis[b]))
+            out.append(entry(f"joint {j}", "coordinate", coupling))
+    for b in range(m.nb):
+        out += _body_entries(m.body_names[b], mass[b], com[b], inertia[b])
+    for s in m.ft_sensors.values():
+        out += _sensor_entries(s)
+    vel = m.joint_limits.get("velocity", np.full(m.nv, np.inf))
+    for j, v in zip(m.joint_names, vel, strict=True):
+        out.append(entry(f"joint {j}", "velocity limit", [v], "rad/s or m/s"))
+    for name in sorted(m.frames):
+        fr = m.frames[name]
+        place = [m.body_names[fr.body], *fr.R_body_frame.ravel(), *fr.p_body_frame]
+        out.append(entry(f"frame {name}", "placement", place, "m"))
+    return RobotIdentity(tuple(out))

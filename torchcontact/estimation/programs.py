@@ -41,6 +41,7 @@ from torchcontact.contacts import KINDS
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.solve import solve_program
+from torchcontact.status import Status
 
 __all__ = ["estimate_program", "predict_program", "program"]
 
@@ -65,8 +66,8 @@ def _finite(xs: Sequence[Scalar]) -> Scalar:
     return _all([isfinite(x) for x in xs])
 
 
-def _bit(m: Scalar, value: float) -> Scalar:
-    return select(m, value, 0.0)
+def _bit(m: Scalar, bit: Status) -> Scalar:
+    return select(m, float(bit), 0.0)
 
 
 def estimate_program(
@@ -174,8 +175,16 @@ def estimate_program(
         before = _any([b1, b2, b4, b8, b16])
         b64 = logical_and(logical_not(before), _any(implausible))
         ok = logical_not(logical_or(before, b64))
-        status = sum_([_bit(b1, 1.0), _bit(b2, 2.0), _bit(b4, 4.0), _bit(b8, 8.0),
-                       _bit(b16, 16.0), _bit(b64, 64.0)])  # fmt: skip
+        status = sum_(
+            [
+                _bit(b1, Status.FT_NONFINITE),
+                _bit(b2, Status.JOINT_NONFINITE),
+                _bit(b4, Status.CONTACT_NONFINITE),
+                _bit(b8, Status.ZERO_DIRECTION),
+                _bit(b16, Status.TORQUE_NONFINITE),
+                _bit(b64, Status.IMPLAUSIBLE),
+            ]
+        )
 
         # a bad frame computes on zeros (its outputs become NaN below)
         def clean(v: Scalar) -> Scalar:
@@ -249,7 +258,7 @@ def estimate_program(
             "rank": ranks,
             "unknowns": n_unk,
             "residual": [out(v) for v in resid],
-            "status": [add(status, _bit(b32, 32.0))],
+            "status": [add(status, _bit(b32, Status.OUTPUT_NONFINITE))],
         }
         if with_cov:
             result["cov"] = [out(v) for v in cov]
