@@ -23,6 +23,7 @@ from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.estimation.programs import program
+from torchcontact.kernels.runner import run_program
 from torchcontact.model import RobotModel
 
 __all__ = ["ConeStatus", "ContactEstimate", "ContactEstimator"]
@@ -331,7 +332,7 @@ class ContactEstimator:
                        "warm" in tensors or waves is not None, bool(nullspace))  # fmt: skip
         backend = self.backend if backend is None else backend
         if waves is None:
-            out = _dyn._run(prog, tensors, backend, chunk_size)
+            out = run_program(prog, tensors, backend, chunk_size)
         else:
             out = _run_waves(prog, tensors, waves, K, backend, chunk_size)
         rank = out["rank"].round().to(torch.long)
@@ -426,7 +427,7 @@ class ContactEstimator:
             tensors.update(pos=like.new_zeros(n, 0), wrench=like.new_zeros(n, 0),
                            active=like.new_zeros(n, 0))  # fmt: skip
         prog = program(em, "predict", base is not None)
-        out = _dyn._run(prog, tensors, self.backend if backend is None else backend, 16384)
+        out = run_program(prog, tensors, self.backend if backend is None else backend, 16384)
         ft = out["ft"]
         return {s: ft[:, 6 * i : 6 * i + 6].reshape(*batch, 6)
                 for i, s in enumerate(self.sensor_names)}  # fmt: skip
@@ -465,7 +466,7 @@ def _run_waves(
         elif warm.before is not None:
             start[0] = torch.cat([warm.before[0], warm.before[1]], -1).reshape(6 * K)
         sub["warm"] = start
-        o = _dyn._run(prog, sub, backend, chunk_size)
+        o = run_program(prog, sub, backend, chunk_size)
         for k, v in o.items():
             if k not in out:
                 out[k] = v.new_empty(n, v.shape[1])

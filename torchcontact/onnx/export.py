@@ -25,7 +25,7 @@ same metadata, run with onnxruntime alone through :mod:`torchcontact.runtime`:
   Outputs: ``force, moment (N, K, 3)``, ``joint_torques (N, nv)``, ``rank, unknowns (N, S)``
   int64, ``residual (N, S)``, ``status (N,)`` int64 (bits of :data:`torchcontact.STATUS`;
   outputs of such frames are NaN), ``covariance (N, K, 6, 6)``, ``h_out.<sensor>``.
-* ``<name>.step.onnx``, the **single-frame** graph (:mod:`torchcontact._onnx_step`): the same
+* ``<name>.step.onnx``, the **single-frame** graph (:mod:`torchcontact.onnx.step`): the same
   function for one frame as a few hundred nodes vectorised over bodies and slots (latency), with
   one packed input ``x (1, F)`` and one packed output ``out (1, O)`` whose layouts are in the
   metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]).
@@ -37,8 +37,8 @@ the correction ``(N, 6)``; :func:`export_residual` writes any ``nn.Module`` mapp
 :func:`check_parity` compares a file with its module.
 
 With ``constraints`` (:class:`~torchcontact.FrictionCones`) :func:`export_estimator` writes the
-friction-cone constrained estimator instead: the eager estimator traced by ``torch.onnx`` with
-its interior-point iterations unrolled to the whole budget (one batched graph, no single-frame
+friction-cone constrained estimator instead: its program emitted like the batched graph, the
+interior-point iterations one ONNX ``Loop`` (one batched graph, no single-frame
 graph: :meth:`EstimatorRuntime.step <torchcontact.runtime.EstimatorRuntime.step>` runs it with
 ``N = 1``). It takes :data:`CONE_INPUTS` after the fixed-base inputs (``normals (N, K, 3)``
 outward surface normals, link frame; ``friction (N, K)`` coefficients; ``pushing (N, K)`` 1/0)
@@ -60,10 +60,21 @@ import torch
 from torch import Tensor, nn
 
 from torchcontact.constrained import FrictionCones
-from torchcontact.contacts import KINDS, Contacts
+from torchcontact.contacts import KINDS
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
+from torchcontact.onnx import format as fmt
+from torchcontact.onnx.format import (
+    CONE_INPUTS,
+    CONE_OUTPUTS,
+    ESTIMATOR_FORMAT,
+    ESTIMATOR_INPUTS,
+    ESTIMATOR_OUTPUTS,
+    RESIDUAL_FORMAT,
+    RESIDUAL_GRAPH_FORMAT,
+    Key,
+)
 
 __all__ = [
     "CONE_INPUTS",
@@ -78,34 +89,8 @@ __all__ = [
     "RESIDUAL_GRAPH_FORMAT",
 ]
 
-#: Input names of the batched estimator graph, in order (optional ones follow, see the module).
-ESTIMATOR_INPUTS = (
-    "q",
-    "qd",
-    "qdd",
-    "ft",
-    "positions",
-    "directions",
-    "wrenches",
-    "active",
-    "ft_residual",
-)
-#: Output names of the batched estimator graph, in order.
-ESTIMATOR_OUTPUTS = (
-    "force",
-    "moment",
-    "joint_torques",
-    "rank",
-    "unknowns",
-    "residual",
-    "status",
-)
-#: Inputs a constrained estimator graph takes after the fixed-base ones (``constraints``).
-CONE_INPUTS = ("normals", "friction", "pushing")
-#: Outputs a constrained estimator graph returns after :data:`ESTIMATOR_OUTPUTS`.
-CONE_OUTPUTS = ("converged", "iterations", "cone_active")
-#: Format version of the metadata written by :func:`export_estimator`.
-FORMAT = "torchcontact.estimator/2"
+#: Format of the metadata written by :func:`export_estimator` (the runtime's name for it).
+FORMAT = ESTIMATOR_FORMAT
 DEFAULT_OPSET = 18
 DYNAMO = False
 
@@ -159,274 +144,6 @@ def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> No
         m.metadata_props.add(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
     onnx.checker.check_model(m)
     onnx.save(m, str(path))
-
-
-class _ConstrainedGraph(nn.Module):
-    """The friction-cone constrained estimator of fixed slots, tensors in and out (traced).
-
-    ``forward(q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual, normals,
-    friction, pushing)`` returns :data:`ESTIMATOR_OUTPUTS` then :data:`CONE_OUTPUTS`.
-    """
-
-    def __init__(
-        self,
-        estimator: ContactEstimator,
-        links: Sequence[str],
-        kinds: Sequence[str],
-        constraints: FrictionCones,
-    ) -> None:
-        super().__init__()
-        self.est, self.constraints = estimator, constraints
-        self.links, self.kinds = tuple(links), tuple(kinds)
-
-    def forward(self, *x: Tensor) -> tuple[Tensor, ...]:
-        """Estimate ``N`` frames (shapes in the module docstring)."""
-        q, qd, qdd, ft, positions, directions, wrenches, active, ft_residual = x[:9]
-        normals, friction, pushing = x[9:]
-        est, names = self.est, self.est.sensor_names
-        readings = ft - ft_residual
-        contacts = Contacts(
-            self.links,
-            self.kinds,
-            positions,
-            directions,
-            wrenches,
-            active > 0.5,
-            normals=normals,
-            friction=friction,
-            pushing=pushing > 0.5,
-        )
-        out = est.estimate(
-            q,
-            qd,
-            qdd,
-            {s: readings[:, i] for i, s in enumerate(names)},
-            contacts,
-            backend="eager",
-            constraints=self.constraints,
-        )
-        cones = out.cones
-        return (
-            out.force,
-            out.moment,
-            out.joint_torques,
-            torch.stack([out.rank[s] for s in names], -1),
-            torch.stack([out.unknowns[s] for s in names], -1),
-            torch.stack([out.residual[s] for s in names], -1),
-            out.status,
-            torch.stack([cones.converged[s] for s in names], -1),
-            torch.stack([cones.iterations[s] for s in names], -1),
-            cones.active,
-        )
-
-
-def _base_shapes(nv: int, S: int, K: int) -> dict[str, list]:
-    """Shapes of the inputs every batched estimator graph takes (``N`` dynamic)."""
-    return {
-        "q": ["N", nv],
-        "qd": ["N", nv],
-        "qdd": ["N", nv],
-        "ft": ["N", S, 6],
-        "positions": ["N", K, 3],
-        "directions": ["N", K, 3],
-        "wrenches": ["N", K, 6],
-        "active": ["N", K],
-        "ft_residual": ["N", S, 6],
-    }
-
-
-def _export_constrained(
-    est: ContactEstimator, links, kinds, constraints: FrictionCones, path: Path, meta: dict, opset
-) -> dict[str, str]:
-    """Trace :class:`_ConstrainedGraph` to ``path`` and write ``meta`` (updated) into it."""
-    m = est.model
-    S, K, nv = len(est.sensor_names), len(links), m.nv
-    shapes = {
-        **_base_shapes(nv, S, K),
-        "normals": ["N", K, 3],
-        "friction": ["N", K],
-        "pushing": ["N", K],
-    }
-    g = torch.Generator().manual_seed(0)
-    ex = {k: torch.rand(2, *sh[1:], generator=g, dtype=torch.float64) for k, sh in shapes.items()}
-    for k in ("directions", "normals", "friction"):
-        ex[k] = ex[k] + 0.5
-    for k in ("active", "pushing"):
-        ex[k] = torch.ones_like(ex[k])
-    ex["ft_residual"] = torch.zeros_like(ex["ft_residual"])
-    example = tuple(v.to(m.dtype) for v in ex.values())
-    names_out = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
-    dyn = {k: {0: "N"} for k in (*shapes, *names_out)}
-    graph = _ConstrainedGraph(est, links, kinds, constraints).eval()
-    with torch.no_grad():
-        _export(graph, example, path, list(shapes), names_out, dyn, opset)
-    iterations, eps, tol, _ = constraints.resolved(m.dtype)
-    meta = {
-        **meta,
-        "inputs": json.dumps(list(shapes)),
-        "input_shapes": json.dumps(shapes),
-        "outputs": json.dumps(names_out),
-        "constraints": json.dumps({"iterations": iterations, "eps": eps, "tol": tol}),
-        "solver": "friction-cone constrained least squares (torchcontact.constrained), unrolled",
-        "step_graph": "",
-        "step_inputs": "{}",
-        "step_outputs": "{}",
-        "graph": "batched",
-    }
-    _set_metadata(path, meta)
-    return meta
-
-
-def _residual_graphs(residual, model: RobotModel, est: ContactEstimator) -> list:
-    """Load and check the residual-correction graphs to chain: ``[(ResidualGraph, ModelProto)]``.
-
-    Raises:
-        ModelMismatchError: a graph made for another robot, joints or sensor, or two for one
-            sensor.
-    """
-    import onnx
-    from onnx import version_converter
-
-    from torchcontact._onnx import OPSET
-    from torchcontact.errors import ModelMismatchError
-    from torchcontact.runtime import ResidualGraph
-
-    if residual is None:
-        return []
-    paths = [residual] if isinstance(residual, (str, os.PathLike)) else list(residual)
-    out = []
-    for p in paths:
-        rg = ResidualGraph.load(p)
-        rg.check(model.joint_names, est.sensor_names, model.urdf_sha256)
-        if any(r.sensor == rg.sensor for r, _ in out):
-            raise ModelMismatchError(f"two residual graphs correct sensor {rg.sensor!r}")
-        m = onnx.load(str(p))
-        version = next(o.version for o in m.opset_import if o.domain in ("", "ai.onnx"))
-        if version != OPSET:
-            m = version_converter.convert_version(m, OPSET)
-        del rg.session  # not needed at export
-        out.append((rg, m))
-    return out
-
-
-def _residual_meta(res: list, files: list[str]) -> list[dict]:
-    return [
-        {
-            "sensor": rg.sensor,
-            "format": rg.format,
-            "extra": list(rg.extra),
-            "state_shape": list(rg.state_shape) if rg.state_shape else None,
-            "file": f,
-            "sha256": hashlib.sha256(Path(rg.path).read_bytes()).hexdigest(),
-        }
-        for (rg, _), f in zip(res, files, strict=True)
-    ]
-
-
-def _batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list, coords):
-    """The batched graph: the estimator program, one node per scalar operation over ``N``."""
-    from torchcontact._onnx import GraphBuilder, emit_program, inline
-    from torchcontact.estimation.programs import program
-
-    moving_base, torque_rows, with_cov = flags
-    gb = GraphBuilder(dtype, "torchcontact_estimator")
-    S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
-    shapes = _base_shapes(nv, S, K)
-    if moving_base:
-        shapes.update(omega=["N", 3], domega=["N", 3], proper_acc=["N", 3])
-    if torque_rows:
-        shapes.update(tau_measured=["N", nv], tau_mask=["N", nv])
-    if with_cov:
-        shapes["ft_cov"] = ["N", S, 6, 6]
-    extra = list(dict.fromkeys(c for rg, _ in res for c in rg.extra))
-    if res:
-        shapes["extra"] = ["N", len(extra)]
-        for rg, _ in res:
-            if rg.state_shape:
-                shapes[f"h_in.{rg.sensor}"] = ["N", *rg.state_shape]
-    for name, sh in shapes.items():
-        gb.input(name, sh)
-    n = gb.op("Slice", gb.op("Shape", "q"), gb.i([0]), gb.i([1]))
-    readings = gb.op("Reshape", gb.op("Sub", "ft", "ft_residual"), gb.i([-1, 6 * S]))
-    if res:
-        # chained corrections: each reads q, qd, qdd (and extra columns) and corrects a sensor
-        src = gb.op("Concat", "q", "qd", "qdd", "extra", axis=1)
-        outs = []
-        for r, (rg, m) in enumerate(res):
-            feeds = {}
-            for name, cols in rg.inputs:
-                if cols is None:
-                    feeds[name] = gb.op("Cast", f"h_in.{rg.sensor}", to=_onnx_type(rg.dtype))
-                    continue
-                sel = _selection(cols, em.model.joint_names, extra, nv)
-                feeds[name] = gb.op(
-                    "Cast", gb.op("MatMul", src, gb.f(sel)), to=_onnx_type(rg.dtype)
-                )
-            o = inline(gb, m, f"res{r}/", feeds)
-            P = np.zeros((6, 6 * S))
-            s = list(em.sensor_names).index(rg.sensor)
-            P[:, 6 * s : 6 * s + 6] = np.eye(6)
-            readings = gb.op("Sub", readings, gb.op("MatMul", gb.cast(o[rg.output]), gb.f(P)))
-            if rg.state_shape:
-                gb.op("Identity", o[rg.output_names[1]], out=f"h_out.{rg.sensor}")
-                outs.append((f"h_out.{rg.sensor}", ["N", *rg.state_shape], rg.dtype))
-    prog = program(em, "estimate", *flags)
-    ins = {"q": "q", "qd": "qd", "qdd": "qdd", "active": "active"}
-    for i in range(S):
-        ins[f"ft{i}"] = gb.op("Slice", readings, gb.i([6 * i]), gb.i([6 * i + 6]), gb.i([1]))
-    ins["pos"] = gb.op("Reshape", "positions", gb.i([-1, 3 * K]))
-    ins["dir"] = gb.op("Reshape", "directions", gb.i([-1, 3 * K]))
-    ins["wrench"] = gb.op("Reshape", "wrenches", gb.i([-1, 6 * K]))
-    for k in ("omega", "domega", "proper_acc"):
-        ins[k] = k
-    ins["tau_meas"], ins["tau_mask"] = "tau_measured", "tau_mask"
-    if with_cov:
-        ins["ft_cov"] = gb.op("Reshape", "ft_cov", gb.i([-1, 36 * S]))
-    cols = {k: gb.fresh(k) for k in prog.outputs}
-    emit_program(gb, prog, {k: v for k, v in ins.items() if k in prog.inputs}, cols, n)
-    i64 = _onnx_type(np.int64)
-    gb.op("Reshape", cols["force"], gb.i([-1, K, 3]), out="force")
-    gb.op("Reshape", cols["moment"], gb.i([-1, K, 3]), out="moment")
-    if len(coords) < nv:  # torques not asked for: NaN
-        nan = np.full(nv, np.nan)
-        nan[list(coords)] = 0.0
-        gb.op("Add", cols["tau"], gb.f(nan), out="joint_torques")
-    else:
-        gb.op("Identity", cols["tau"], out="joint_torques")
-    gb.op("Cast", cols["rank"], to=i64, out="rank")
-    gb.op("Cast", cols["unknowns"], to=i64, out="unknowns")
-    gb.op("Identity", cols["residual"], out="residual")
-    gb.op("Cast", gb.op("Reshape", cols["status"], gb.i([-1])), to=i64, out="status")
-    for name, sh in (("force", ["N", K, 3]), ("moment", ["N", K, 3]), ("joint_torques", ["N", nv])):
-        gb.output(name, sh)
-    for name in ("rank", "unknowns"):
-        gb.output(name, ["N", S], np.int64)
-    gb.output("residual", ["N", S])
-    gb.output("status", ["N"], np.int64)
-    if with_cov:
-        gb.op("Reshape", cols["cov"], gb.i([-1, K, 6, 6]), out="covariance")
-        gb.output("covariance", ["N", K, 6, 6])
-    if res:
-        for name, sh, dt in outs:
-            gb.output(name, sh, dt)
-    return gb, shapes
-
-
-def _selection(cols, joint_names, extra, nv: int) -> np.ndarray:
-    """Matrix picking a correction graph's input columns from ``[q, qd, qdd, extra]``."""
-    sel = np.zeros((3 * nv + len(extra), len(cols)))
-    for j, (kind, key) in enumerate(cols):
-        if kind == "extra":
-            sel[3 * nv + extra.index(key), j] = 1.0
-        else:
-            sel[{"q": 0, "qd": nv, "qdd": 2 * nv}[kind] + list(joint_names).index(key), j] = 1.0
-    return sel
-
-
-def _onnx_type(dtype) -> int:
-    from onnx import helper
-
-    return helper.np_dtype_to_tensor_dtype(np.dtype(dtype))
 
 
 def export_estimator(
@@ -508,8 +225,14 @@ def export_estimator(
     import onnx
 
     from torchcontact import __version__
-    from torchcontact._onnx import OPSET
-    from torchcontact._onnx_step import build_step_graph
+    from torchcontact.onnx.batched import (
+        batched_graph,
+        constrained_graph,
+        load_residual_graphs,
+        residual_meta,
+    )
+    from torchcontact.onnx.builder import OPSET
+    from torchcontact.onnx.step import build_step_graph
 
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -525,106 +248,105 @@ def export_estimator(
         m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin, ft_range=ft_range
     )
     em = est.layout(tuple(links), tuple(kinds))
-    res = _residual_graphs(residual, m, est)
+    res = load_residual_graphs(residual, m, est.sensor_names)
     npd = np.dtype(str(dtype).removeprefix("torch."))
     flags = (bool(moving_base), bool(torque_rows), bool(covariance))
     path = Path(path)
     step = step_graph_path(path)
-    from torchcontact._onnx_step import torque_joints
-
-    coords = torque_joints(em, joints)
+    coords = em.torque_joints(joints)
     if constraints is not None:
         if any(flags) or res or joints is not None:
             raise InputError(
                 "constraints: the constrained graph takes the fixed-base F/T inputs only (no"
                 " moving_base, torque_rows, covariance, residual or joints)"
             )
-        shapes = {}
+        cones = constraints.resolved(m.dtype)
+        gb, shapes = constrained_graph(em, cones, npd)
+        outputs = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
     else:
-        gb, shapes = _batched_graph(em, flags, npd, res, coords)
-    files = [Path(rg.path).name for rg, _ in res]
+        gb, shapes = batched_graph(em, flags, npd, res, coords)
+        outputs = [*ESTIMATOR_OUTPUTS, *(["covariance"] if covariance else [])]
     meta = {
-        "format": FORMAT,
-        "robot": m.name,
-        "urdf_sha256": m.urdf_sha256,
-        "joint_names": json.dumps(list(m.joint_names)),
-        "sensors": json.dumps(
-            [
-                {
-                    "name": s.name,
-                    "joint": s.joint,
-                    "frame": s.frame,
-                    "direction": s.measure_direction,
-                }
-                for s in est.sensors
-            ]
-        ),
-        "slot_links": json.dumps(list(links)),
-        "slot_kinds": json.dumps(list(kinds)),
-        "inputs": json.dumps(list(shapes)),
-        "input_shapes": json.dumps(shapes),
-        "outputs": json.dumps([*ESTIMATOR_OUTPUTS, *(["covariance"] if covariance else [])]),
-        "units": json.dumps(
-            {
-                "q": "rad or m",
-                "qd": "rad/s or m/s",
-                "qdd": "rad/s^2 or m/s^2",
-                "ft": "[N, N, N, N m, N m, N m]",
-                "positions": "m",
-                "force": "N",
-                "moment": "N m",
-                "joint_torques": "N m or N",
-                "omega": "rad/s",
-                "domega": "rad/s^2",
-                "proper_acc": "m/s^2",
-                "tau_measured": "N m or N",
-                "gravity": "m/s^2",
-            }
-        ),
-        "frames": "positions, directions, wrenches, force, moment: the slot's link frame; "
+        Key.FORMAT: FORMAT,
+        Key.ROBOT: m.name,
+        Key.URDF_SHA256: m.urdf_sha256,
+        Key.ROBOT_IDENTITY_SHA256: m.identity.sha256,
+        Key.ROBOT_IDENTITY: m.identity.to_json(),
+        Key.JOINT_NAMES: list(m.joint_names),
+        Key.SENSORS: [
+            {"name": s.name, "joint": s.joint, "frame": s.frame, "direction": s.measure_direction}
+            for s in est.sensors
+        ],
+        Key.SLOT_LINKS: list(links),
+        Key.SLOT_KINDS: list(kinds),
+        Key.INPUTS: list(shapes),
+        Key.INPUT_SHAPES: shapes,
+        Key.OUTPUTS: outputs,
+        Key.UNITS: {
+            **{i.name: i.unit for i in fmt.INPUTS},
+            "force": "N",
+            "moment": "N m",
+            "joint_torques": "N m or N",
+            "gravity": "m/s^2",
+        },
+        Key.FRAMES: "positions, directions, wrenches, force, moment: the slot's link frame; "
         "moments about the contact point; ft: each sensor's declared frame and direction; "
         "omega, domega, proper_acc: the root body's frame",
-        "gravity": json.dumps([float(g) for g in m.gravity]),
-        "dtype": str(npd),
-        "moving_base": json.dumps(flags[0]),
-        "torque_rows": json.dumps(flags[1]),
-        "covariance": json.dumps(flags[2]),
-        "velocity_margin": json.dumps(velocity_margin),
-        "ft_range": json.dumps(
-            {
-                k: np.broadcast_to(np.asarray(v, float), (6,)).tolist()
-                for k, v in (ft_range or {}).items()
-            }
-        ),
-        "solver": "pivoted cholesky (torchcontact.solve); step graph: Gauss-Jordan form",
-        "rank_rtol": repr(float(em.rank_rtol)),
-        "torque_joints": json.dumps([m.joint_names[c] for c in coords]),
-        "residuals": json.dumps(_residual_meta(res, files)),
-        "batched_graph": path.name,
-        "step_graph": step.name if step_graph else "",
-        "torchcontact_version": __version__,
-        "torch_version": torch.__version__,
-        "opset": str(opset),
+        Key.GRAVITY: [float(g) for g in m.gravity],
+        Key.DTYPE: str(npd),
+        Key.MOVING_BASE: flags[0],
+        Key.TORQUE_ROWS: flags[1],
+        Key.COVARIANCE: flags[2],
+        Key.VELOCITY_MARGIN: velocity_margin,
+        Key.FT_RANGE: {
+            k: np.broadcast_to(np.asarray(v, float), (6,)).tolist()
+            for k, v in (ft_range or {}).items()
+        },
+        Key.SOLVER: "pivoted cholesky (torchcontact.solve); step graph: Gauss-Jordan form",
+        Key.RANK_RTOL: repr(float(em.rank_rtol)),
+        Key.TORQUE_JOINTS: [m.joint_names[c] for c in coords],
+        Key.RESIDUALS: residual_meta(res),
+        Key.BATCHED_GRAPH: path.name,
+        Key.STEP_GRAPH: step.name if step_graph and constraints is None else "",
+        Key.VERSION: __version__,
+        Key.TORCH_VERSION: torch.__version__,
+        Key.OPSET: str(opset),
+        Key.STEP_INPUTS: {},
+        Key.STEP_OUTPUTS: {},
     }
+    graphs = [(gb.model(), path, "batched")]
     if constraints is not None:
-        return _export_constrained(est, links, kinds, constraints, path, meta, opset)
-    if step_graph:
+        iterations, eps, tol, _ = cones
+        meta[Key.CONSTRAINTS] = {"iterations": iterations, "eps": eps, "tol": tol}
+        meta[Key.SOLVER] = (
+            "friction-cone constrained least squares (torchcontact.constrained), one ONNX Loop"
+        )
+    elif step_graph:
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
-        meta["step_inputs"] = json.dumps(lin.as_dict())
-        meta["step_outputs"] = json.dumps(lout.as_dict())
-    else:
-        meta["step_inputs"] = meta["step_outputs"] = "{}"
-    for gm, p, kind in (
-        (gb.model(), path, "batched"),
-        *(((sm, step, "step"),) if step_graph else ()),
-    ):
+        meta[Key.STEP_INPUTS] = lin.as_dict()
+        meta[Key.STEP_OUTPUTS] = lout.as_dict()
+        graphs.append((sm, step, "step"))
+    written = fmt.encode(meta)
+    for gm, p, kind in graphs:
         gm.opset_import[0].version = opset
         del gm.metadata_props[:]
-        for k, v in {**meta, "graph": kind}.items():
+        for k, v in {**written, Key.GRAPH: kind}.items():
             gm.metadata_props.add(key=k, value=v)
         onnx.checker.check_model(gm)
-        onnx.save(gm, str(p))
-    return {**meta, "graph": "batched"}
+        _save_atomic(gm, p)
+    return {**written, Key.GRAPH: "batched"}
+
+
+def _save_atomic(model, path: Path) -> None:
+    """Write an ONNX model beside ``path`` under a temporary name, then rename it into place."""
+    import onnx
+
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        onnx.save(model, str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def step_graph_path(path: str | os.PathLike) -> Path:
@@ -678,7 +400,7 @@ def export_residual(
         h.update(v.detach().cpu().contiguous().numpy().tobytes())
     meta = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in (metadata or {}).items()}
     meta.update(
-        format="torchcontact.residual/1",
+        format=RESIDUAL_FORMAT,
         opset=str(opset),
         torch_version=torch.__version__,
         sha256_weights=h.hexdigest(),
@@ -687,10 +409,6 @@ def export_residual(
     )
     _set_metadata(path, meta)
     return meta
-
-
-#: Format of the metadata of an exported correction stack (:func:`export_residual_checkpoint`).
-RESIDUAL_GRAPH_FORMAT = "torchcontact.residual-graph/1"
 
 
 class _CorrectionInputs(nn.Module):
@@ -831,7 +549,7 @@ def export_residual_checkpoint(
         h.update(v.numpy().tobytes())
     info = corr.describe()
     meta: dict[str, object] = {
-        "format": RESIDUAL_GRAPH_FORMAT,
+        Key.FORMAT: RESIDUAL_GRAPH_FORMAT,
         "inputs": ins,
         "input_shapes": shapes,
         "outputs": outs,
@@ -846,7 +564,9 @@ def export_residual_checkpoint(
         "joint_names": list(model.joint_names),
         "sensor": corr.sensor,
         "robot": model.name,
-        "robot_sha256": model.urdf_sha256,
+        Key.ROBOT_SHA256: model.urdf_sha256,
+        Key.ROBOT_IDENTITY_SHA256: model.identity.sha256,
+        Key.ROBOT_IDENTITY: model.identity.to_json(),
         "layers": corr.layers,
         "extra_columns": corr.extra_columns,
         "feature_names": info.get("learned", {}).get("feature_names", []),
@@ -885,14 +605,7 @@ def _stack_parts(corr, opset: int) -> dict[str, object]:
     import base64
     import tempfile
 
-    stack = {
-        "offset": None if corr.offset is None else corr.offset.double().tolist(),
-        "inertial_bodies": list(corr.inertial_bodies),
-        "delta": None if corr.delta is None else corr.delta.double().tolist(),
-        "features": None if corr.features is None else corr.features.to_json(),
-        "learned": None if corr.learned is None else corr.learned.kind,
-    }
-    out: dict[str, object] = {"stack": stack}
+    out: dict[str, object] = {Key.STACK: corr.spec.to_json()}
     net = corr.learned
     if net is not None:
         F = net.in_features
@@ -907,7 +620,7 @@ def _stack_parts(corr, opset: int) -> dict[str, object]:
                 ins, outs, args = ["features"], ["residual"], (x,)
             with torch.no_grad():
                 _export(net.eval(), args, f, ins, outs, {k: {0: "N"} for k in ins + outs}, opset)
-            out["learned_graph"] = base64.b64encode(f.read_bytes()).decode()
+            out[Key.LEARNED_GRAPH] = base64.b64encode(f.read_bytes()).decode()
     return out
 
 

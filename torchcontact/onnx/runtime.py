@@ -14,18 +14,23 @@ export), or :class:`EstimatorRuntime` chains a separate correction graph (``resi
 way one call goes from the raw reading to the estimate. :class:`ResidualGraph` is the one place
 that knows the correction graphs' interfaces.
 
+:meth:`EstimatorRuntime.step` and :meth:`EstimatorRuntime.run` take one :class:`Inputs` value
+(or a mapping) holding the inputs by their names (:data:`torchcontact.onnx.format.INPUTS`; the
+older spellings are accepted); a new input of a graph is one more name, not one more parameter.
+
 Example:
     >>> rt = EstimatorRuntime("tcarm.onnx", robot="tcarm")  # doctest: +SKIP
-    >>> out = rt.step(q, qd, qdd, ft, positions, active)  # doctest: +SKIP
+    >>> out = rt.step(Inputs(q=q, qd=qd, qdd=qdd, ft=ft, positions=p))  # doctest: +SKIP
     >>> out["force"].shape  # (K, 3), N, in each slot's link frame  # doctest: +SKIP
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-import json
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +38,115 @@ import numpy as np
 import onnxruntime as ort
 
 from torchcontact.errors import InputError, ModelMismatchError
+from torchcontact.identity import RobotIdentity
+from torchcontact.onnx import format as fmt
+from torchcontact.onnx.format import (
+    ESTIMATOR_FORMAT,
+    RESIDUAL_FORMAT,
+    RESIDUAL_FORMATS,
+    RESIDUAL_GRAPH_FORMAT,
+    Key,
+)
 
-__all__ = ["EstimatorRuntime", "ModelMismatchError", "ResidualGraph", "session_options"]
+__all__ = [
+    "EstimatorRuntime",
+    "Inputs",
+    "ModelMismatchError",
+    "ResidualGraph",
+    "robot_identity",
+    "session_options",
+]
 
 #: Format of the estimator graphs this runtime reads (``metadata_props["format"]``).
-FORMAT = "torchcontact.estimator/2"
-#: Formats of residual-correction graphs (:class:`ResidualGraph`).
-RESIDUAL_FORMATS = ("torchcontact.residual/1", "torchcontact.residual-graph/1")
+FORMAT = ESTIMATOR_FORMAT
+#: The positional order of :meth:`EstimatorRuntime.step` and ``run`` of earlier versions.
+_POSITIONAL = ("q", "qd", "qdd", "ft", "positions", "active", "directions", "wrenches",
+               "ft_residual")  # fmt: skip
+
+
+@dataclass
+class Inputs:
+    """The inputs of one frame (:meth:`EstimatorRuntime.step`) or of ``N`` (``run``), by name.
+
+    Every field is optional here; the graph says which it needs (a missing required one is an
+    :class:`~torchcontact.errors.InputError` naming it), the others default to zeros
+    (``active`` and ``pushing`` to ones, ``tau_mask`` to the finite entries of
+    ``tau_measured``). Shapes per frame (``run`` adds a leading ``N``); names, units and frames in
+    :data:`torchcontact.onnx.format.INPUTS`.
+
+    Attributes:
+        q: ``(nv,)`` joint positions, rad or m. ``qd``, ``qdd`` likewise.
+        ft: ``(S, 6)`` raw readings ``[N; N m]``, or sensor name -> ``(6,)``.
+        positions: ``(K, 3)`` contact points, link frames, m.
+        active: ``(K,)`` 1/0 slot activity.
+        directions: ``(K, 3)`` force directions of ``force_dir`` slots.
+        wrenches: ``(K, 6)`` wrenches of ``known`` slots.
+        ft_residual: ``(S, 6)`` a further correction subtracted from ``ft``.
+        omega: ``(3,)`` base angular velocity, rad/s (moving base); ``domega``, ``proper_acc``.
+        tau_measured: ``(nv,)`` measured joint torques (torque rows); ``tau_mask`` ``(nv,)``.
+        ft_cov: ``(S, 6, 6)`` reading noise covariances (covariance).
+        normals: ``(K, 3)``, ``friction`` ``(K,)``, ``pushing`` ``(K,)`` (constrained graphs).
+        extra: column name -> value, the extra columns chained corrections read.
+        h_in: sensor -> ``(N, L, H)`` recurrent states of corrections inside the graph (``run``).
+    """
+
+    q: Any = None
+    qd: Any = None
+    qdd: Any = None
+    ft: Any = None
+    positions: Any = None
+    active: Any = None
+    directions: Any = None
+    wrenches: Any = None
+    ft_residual: Any = None
+    omega: Any = None
+    domega: Any = None
+    proper_acc: Any = None
+    tau_measured: Any = None
+    tau_mask: Any = None
+    ft_cov: Any = None
+    normals: Any = None
+    friction: Any = None
+    pushing: Any = None
+    extra: Mapping[str, Any] | None = None
+    h_in: Mapping[str, Any] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The given fields (None left out)."""
+        return {f.name: v for f in dataclasses.fields(self) if (v := getattr(self, f.name)) is not None}
+
+
+_FIELDS = frozenset(f.name for f in dataclasses.fields(Inputs))
+#: Inputs a graph may not read (its layout has no slot of that kind), silently unused then.
+_SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
+
+
+def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
+    """One dict of inputs by their one name, from an :class:`Inputs`, a mapping or old-style
+    positional and keyword arguments.
+
+    Raises:
+        InputError: an unknown input name, or too many positional values.
+    """
+    if isinstance(inputs, Inputs):
+        given = inputs.as_dict()
+    elif isinstance(inputs, Mapping) and not args:
+        given = dict(inputs)
+    else:  # q, qd, qdd, ft, positions, ... as earlier versions took them
+        args = args if inputs is None else (inputs, *args)
+        if len(args) > len(_POSITIONAL):
+            raise InputError(f"at most {len(_POSITIONAL)} positional inputs {_POSITIONAL}")
+        given = dict(zip(_POSITIONAL, args, strict=False))
+    given.update(named)
+    if not given.keys() <= _FIELDS:
+        renamed = {}
+        for k, v in given.items():
+            c = fmt.canonical(k)
+            if c not in _FIELDS:
+                raise InputError(f"unknown input {k!r}; the inputs are {sorted(_FIELDS)}")
+            renamed[c] = v
+        given = renamed
+    return {k: v for k, v in given.items() if v is not None}
 
 
 def session_options(intra_op_threads: int = 1) -> ort.SessionOptions:
@@ -62,13 +169,32 @@ def session_options(intra_op_threads: int = 1) -> ort.SessionOptions:
 
 
 def _metadata(session: ort.InferenceSession) -> dict[str, Any]:
-    meta: dict[str, Any] = {}
-    for k, v in session.get_modelmeta().custom_metadata_map.items():
-        try:
-            meta[k] = json.loads(v)
-        except (ValueError, TypeError):
-            meta[k] = v
-    return meta
+    return fmt.decode(session.get_modelmeta().custom_metadata_map)
+
+
+def identity_of(robot: Any) -> RobotIdentity:
+    """The :class:`~torchcontact.identity.RobotIdentity` of a model, URDF path or ``"tcarm"``.
+
+    A model carries its identity; for a URDF the model is built (this imports torch).
+
+    Raises:
+        ModelMismatchError: ``robot`` names no readable URDF file, or torch is not installed.
+    """
+    ident = getattr(robot, "identity", None)
+    if isinstance(ident, RobotIdentity):
+        return ident
+    try:
+        from torchcontact.model import RobotModel
+    except ImportError:  # pragma: no cover - a deployment without torch
+        raise ModelMismatchError(
+            "the URDF's text differs from the one the graph was exported with; comparing the"
+            " parsed robots needs torch (pip install torch) or a re-export"
+        ) from None
+    if str(robot) == "tcarm":
+        from torchcontact.robots import tcarm_path
+
+        robot = tcarm_path()
+    return RobotModel.from_urdf(robot).identity
 
 
 def robot_identity(robot: Any) -> tuple[str, tuple[str, ...] | None]:
@@ -134,24 +260,25 @@ class ResidualGraph:
         output_names: Sequence[str],
     ) -> None:
         self.path = str(path)
-        fmt = metadata.get("format")
-        if fmt not in RESIDUAL_FORMATS:
+        fmt_ = metadata.get(Key.FORMAT)
+        if fmt_ not in RESIDUAL_FORMATS:
             raise ModelMismatchError(
-                f"{path} is not a residual-correction graph (format {fmt!r}, expected one of"
+                f"{path} is not a residual-correction graph (format {fmt_!r}, expected one of"
                 f" {list(RESIDUAL_FORMATS)})"
             )
-        self.format = fmt
-        self.sensor = str(metadata.get("sensor", ""))
-        self.joint_names = tuple(metadata.get("joint_names", []))
-        self.robot_sha256 = str(metadata.get("robot_sha256", ""))
-        recurrent = str(metadata.get("recurrent", "false")).lower() == "true"
-        shape = metadata.get("state_shape")
+        self.format = fmt_
+        self.sensor = str(metadata.get(Key.SENSOR, ""))
+        self.joint_names = tuple(metadata.get(Key.JOINT_NAMES, []))
+        self.robot_sha256 = str(metadata.get(Key.ROBOT_SHA256, ""))
+        self.identity = fmt.recorded_identity(metadata)
+        recurrent = str(metadata.get(Key.RECURRENT, "false")).lower() == "true"
+        shape = metadata.get(Key.STATE_SHAPE)
         self.state_shape = tuple(int(s) for s in shape[1:]) if recurrent and shape else None
         inputs: list[tuple[str, list | None]] = []
-        if fmt == "torchcontact.residual/1":
+        if fmt_ == RESIDUAL_FORMAT:
             cols: list = []
             extra: list[str] = []
-            for name in metadata.get("feature_names", []):
+            for name in metadata.get(Key.FEATURE_NAMES, []):
                 prefix, _, joint = name.partition(".")
                 if prefix in ("q", "qd", "qdd") and joint in self.joint_names:
                     cols.append((prefix, joint))
@@ -161,7 +288,7 @@ class ResidualGraph:
             inputs.append((input_names[0], cols))
             self.output = output_names[0]
         else:
-            extra = list(metadata.get("extra_columns", []))
+            extra = list(metadata.get(Key.EXTRA_COLUMNS, []))
             for name in input_names:
                 if name in ("q", "qd", "qdd"):
                     inputs.append((name, [(name, j) for j in self.joint_names]))
@@ -173,7 +300,7 @@ class ResidualGraph:
         self.extra = tuple(extra)
         self.inputs = inputs
         self.output_names = tuple(output_names)
-        self.dtype = np.dtype(str(metadata.get("dtype", "float32")))
+        self.dtype = np.dtype(str(metadata.get(Key.DTYPE, "float32")))
 
     @classmethod
     def load(cls, path: str | os.PathLike, intra_op_threads: int = 1) -> ResidualGraph:
@@ -197,16 +324,34 @@ class ResidualGraph:
         obj.session = sess
         return obj
 
-    def check(self, joint_names: Sequence[str], sensors: Sequence[str], urdf_sha256: str) -> None:
+    def check(self, joint_names: Sequence[str], sensors: Sequence[str], robot: Any) -> None:
         """Refuse a correction made for another robot, joint set or sensor.
 
+        Args:
+            joint_names: the estimator's joints.
+            sensors: the estimator's sensors.
+            robot: the estimator's robot: a model (its identity and URDF text hash), or the
+                metadata of an estimator graph (the identity and text hash it records).
+
         Raises:
-            ModelMismatchError: naming what differs.
+            ModelMismatchError: naming what differs (the first differing quantity when both
+                record an identity).
         """
-        if self.robot_sha256 and self.robot_sha256 != urdf_sha256:
+        if isinstance(robot, Mapping):
+            text, ident = str(robot.get(Key.URDF_SHA256, "")), fmt.recorded_identity(robot)
+        else:
+            text, ident = str(robot.urdf_sha256), robot.identity
+        if self.identity is not None and ident is not None:  # compare the parsed robots
+            why = self.identity.difference(ident)
+            if why is not None:
+                raise ModelMismatchError(
+                    f"residual graph {self.path} was trained on a robot with sha256"
+                    f" {self.identity.sha256[:12]}..., not this one ({why})"
+                )
+        elif self.robot_sha256 and self.robot_sha256 != text:  # earlier graphs: the URDF text
             raise ModelMismatchError(
                 f"residual graph {self.path} was trained on a robot with URDF sha256"
-                f" {self.robot_sha256}, not {urdf_sha256}"
+                f" {self.robot_sha256[:12]}..., not this one ({text[:12]}...)"
             )
         missing = [j for j in self.joint_names if j not in joint_names]
         if missing:
@@ -241,25 +386,22 @@ class ResidualGraph:
         Raises:
             InputError: an extra column is missing.
         """
-        src = {"q": q, "qd": qd, "qdd": qdd}
-        pos = {j: i for i, j in enumerate(joint_names)}
+        missing = [c for c in self.extra if c not in extra]
+        if missing:
+            raise InputError(
+                f"the residual correction of {self.sensor!r} needs extra input"
+                f" {missing[0]!r} (got {sorted(extra)})"
+            )
+        n = q.shape[0]
+        cols = [np.asarray(extra[c], dtype=np.float64).reshape(n, 1) for c in self.extra]
+        src = np.concatenate([q, qd, qdd, *cols], axis=1)
+        position = fmt.JointColumns(joint_names, self.extra)
         feed = {}
-        for name, cols in self.inputs:
-            if cols is None:
+        for name, columns in self.inputs:
+            if columns is None:
                 feed[name] = state.astype(self.dtype, copy=False)
-                continue
-            out = []
-            for kind, key in cols:
-                if kind == "extra":
-                    if key not in extra:
-                        raise InputError(
-                            f"the residual correction of {self.sensor!r} needs extra input"
-                            f" {key!r} (got {sorted(extra)})"
-                        )
-                    out.append(np.asarray(extra[key], dtype=np.float64).reshape(-1))
-                else:
-                    out.append(src[kind][:, pos[key]])
-            feed[name] = np.stack(out, -1).astype(self.dtype)
+            else:
+                feed[name] = src[:, [position(*c) for c in columns]].astype(self.dtype)
         return feed
 
 
@@ -319,26 +461,26 @@ class EstimatorRuntime:
             first = ort.InferenceSession(
                 str(step_file), self._so, providers=["CPUExecutionProvider"]
             )
-            if _metadata(first).get("batched_graph") != path.name:
+            if _metadata(first).get(Key.BATCHED_GRAPH) != path.name:
                 first = ort.InferenceSession(
                     str(path), self._so, providers=["CPUExecutionProvider"]
                 )
         else:
             first = ort.InferenceSession(str(path), self._so, providers=["CPUExecutionProvider"])
         meta = _metadata(first)
-        if meta.get("format") != FORMAT:
+        if meta.get(Key.FORMAT) != FORMAT:
             raise ModelMismatchError(
                 f"{path} is not a torchcontact estimator graph of format {FORMAT!r} (found"
                 f" {meta.get('format')!r}): re-export it with python -m export estimator"
             )
         self.metadata = meta
         self.path = str(path)
-        graph = meta.get("graph")
+        graph = meta.get(Key.GRAPH)
         self._batched: ort.InferenceSession | None = first if graph == "batched" else None
-        self._batched_path = path.parent / str(meta.get("batched_graph"))
+        self._batched_path = path.parent / str(meta.get(Key.BATCHED_GRAPH))
         self.step_session: ort.InferenceSession | None = first if graph == "step" else None
-        other = path.parent / str(meta.get("step_graph"))
-        if graph == "batched" and step_graph and meta.get("step_graph") and other.is_file():
+        other = path.parent / str(meta.get(Key.STEP_GRAPH))
+        if graph == "batched" and step_graph and meta.get(Key.STEP_GRAPH) and other.is_file():
             self.step_session = ort.InferenceSession(
                 str(other), self._so, providers=["CPUExecutionProvider"]
             )
@@ -349,19 +491,19 @@ class EstimatorRuntime:
                 raise ModelMismatchError(
                     f"{other} is not the single-frame graph of {path} (re-export both)"
                 )
-        self.joint_names = tuple(meta["joint_names"])
-        self.sensor_names = tuple(s["name"] for s in meta["sensors"])
-        self.slot_links, self.slot_kinds = tuple(meta["slot_links"]), tuple(meta["slot_kinds"])
+        self.joint_names = tuple(meta[Key.JOINT_NAMES])
+        self.sensor_names = tuple(s["name"] for s in meta[Key.SENSORS])
+        self.slot_links, self.slot_kinds = tuple(meta[Key.SLOT_LINKS]), tuple(meta[Key.SLOT_KINDS])
         self.nv, self.S, self.K = (
             len(self.joint_names),
             len(self.sensor_names),
             len(self.slot_links),
         )
-        self.dtype = np.dtype(meta["dtype"])
+        self.dtype = np.dtype(meta[Key.DTYPE])
         self._check(robot, expect_robot_sha256, expect_joint_names, expect_sensors, expect_slots)
         # chained corrections: inside the graphs (export --residual) or run here
         self.residuals: list[ResidualGraph] = []
-        inside = list(meta.get("residuals", []))
+        inside = list(meta.get(Key.RESIDUALS, []))
         if residual is not None:
             if inside:
                 raise ModelMismatchError(
@@ -370,7 +512,7 @@ class EstimatorRuntime:
             paths = [residual] if isinstance(residual, (str, os.PathLike)) else list(residual)
             for p in paths:
                 rg = ResidualGraph.load(p, intra_op_threads)
-                rg.check(self.joint_names, self.sensor_names, meta["urdf_sha256"])
+                rg.check(self.joint_names, self.sensor_names, meta)
                 self.residuals.append(rg)
             extra = [c for rg in self.residuals for c in rg.extra]
         else:
@@ -385,21 +527,30 @@ class EstimatorRuntime:
 
     def _check(self, robot, sha256, joints, sensors, slots) -> None:
         meta, path = self.metadata, self.path
-        name = meta.get("robot")
+        name = meta.get(Key.ROBOT)
+        recorded = fmt.recorded_identity(meta)
         if robot is not None:
             h, names = robot_identity(robot)
-            if h != meta["urdf_sha256"]:
-                raise ModelMismatchError(
-                    f"{path} was exported for robot {name!r} (URDF sha256"
-                    f" {meta['urdf_sha256'][:12]}...), not for this robot (sha256 {h[:12]}...):"
-                    " re-export it for this robot"
-                )
+            if h != meta[Key.URDF_SHA256]:
+                # another text: the same robot when the parsed models agree (graphs that record
+                # the robot's identity; earlier graphs compare the text only)
+                why = f"URDF sha256 {h[:12]}..."
+                if recorded is not None:
+                    ident = identity_of(robot)
+                    why = recorded.difference(ident)
+                if why is not None:
+                    raise ModelMismatchError(
+                        f"{path} was exported for robot {name!r} (URDF sha256"
+                        f" {meta[Key.URDF_SHA256][:12]}...), not for this robot ({why}):"
+                        " re-export it for this robot"
+                    )
             if names is not None and tuple(names) != self.joint_names:
                 raise ModelMismatchError(
                     f"{path} expects joints {list(self.joint_names)} (robot {name!r}), the robot"
                     f" has {list(names)}"
                 )
-        if sha256 is not None and meta["urdf_sha256"] != sha256:
+        accepted = {meta[Key.URDF_SHA256], meta.get(Key.ROBOT_IDENTITY_SHA256)}
+        if sha256 is not None and sha256 not in accepted:
             raise ModelMismatchError(
                 f"{path} was exported for robot {name!r} with URDF sha256 {meta['urdf_sha256']},"
                 f" not {sha256}: re-export it for this robot"
@@ -447,11 +598,11 @@ class EstimatorRuntime:
             return
         lay = {
             k: (int(o), tuple(int(s) for s in sh))
-            for k, (o, sh) in self.metadata["step_inputs"].items()
+            for k, (o, sh) in self.metadata[Key.STEP_INPUTS].items()
         }
         out = {
             k: (int(o), tuple(int(s) for s in sh))
-            for k, (o, sh) in self.metadata["step_outputs"].items()
+            for k, (o, sh) in self.metadata[Key.STEP_OUTPUTS].items()
         }
         size = max(o + int(np.prod(sh)) for o, sh in lay.values())
         self._x = np.zeros((1, size), self.dtype)
@@ -461,6 +612,8 @@ class EstimatorRuntime:
         self._lay = lay
         self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in out.items()}
         self._fresh: set[str] = set()
+        # no default (None): required; ones for the activity flags; zeros for the rest
+        self._defaults = {k: None for k in fmt.REQUIRED} | {k: 1.0 for k in fmt.ONES}
         self._in_name = self.step_session.get_inputs()[0].name
         # the binding's own run (skips the Python wrapper's per-call checks)
         self._run = self.step_session._sess.run
@@ -497,125 +650,65 @@ class EstimatorRuntime:
                 raise InputError(f"{name} must have shape {view.shape}, got {arr.shape}")
         view[...] = arr
 
-    def step(
-        self,
-        q: np.ndarray,
-        qd: np.ndarray,
-        qdd: np.ndarray,
-        ft: np.ndarray | Mapping[str, np.ndarray],
-        positions: np.ndarray | None = None,
-        active: np.ndarray | None = None,
-        directions: np.ndarray | None = None,
-        wrenches: np.ndarray | None = None,
-        ft_residual: np.ndarray | None = None,
-        *,
-        omega: np.ndarray | None = None,
-        domega: np.ndarray | None = None,
-        proper_acc: np.ndarray | None = None,
-        tau_measured: np.ndarray | None = None,
-        tau_mask: np.ndarray | None = None,
-        ft_cov: np.ndarray | None = None,
-        extra: Mapping[str, float] | None = None,
-        normals: np.ndarray | None = None,
-        friction: np.ndarray | None = None,
-        pushing: np.ndarray | None = None,
-    ) -> dict[str, Any]:
+    def step(self, inputs: Inputs | Mapping[str, Any] | None = None, /, *args: Any,
+             **named: Any) -> dict[str, Any]:  # fmt: skip
         """Estimate one frame from the raw readings.
 
         Args:
-            q: ``(nv,)`` joint positions in :attr:`joint_names` order, rad or m.
-            qd: ``(nv,)`` joint velocities.
-            qdd: ``(nv,)`` joint accelerations.
-            ft: ``(S, 6)`` readings ``[N; N m]`` (sensor frames and directions, raw: the chained
-                corrections are subtracted inside), or sensor name -> ``(6,)``.
-            positions: ``(K, 3)`` contact points in the slots' link frames, m (default zeros).
-            active: ``(K,)`` 1/0 (or bool) slot activity (default all active).
-            directions: ``(K, 3)`` force directions of ``force_dir`` slots (default zeros).
-            wrenches: ``(K, 6)`` wrenches of ``known`` slots (default zeros).
-            ft_residual: ``(S, 6)`` a further correction subtracted from ``ft`` (default zeros).
-            omega: ``(3,)`` base angular velocity, rad/s (graphs exported with a moving base).
-            domega: ``(3,)`` base angular acceleration, rad/s^2 (moving base).
-            proper_acc: ``(3,)`` base proper acceleration, m/s^2 (moving base).
-            tau_measured: ``(nv,)`` measured joint torques (graphs with torque rows).
-            tau_mask: ``(nv,)`` which torques are measured (default: the finite ones).
-            ft_cov: ``(S, 6, 6)`` reading noise covariances (graphs with the covariance).
-            extra: the extra columns the corrections read, name -> value (e.g. temperature).
-            normals: ``(K, 3)`` outward surface normals, link frames (constrained graphs,
-                ``export_estimator(..., constraints=...)``; required there).
-            friction: ``(K,)`` friction coefficients (constrained graphs; required there).
-            pushing: ``(K,)`` 1/0: the contact can only push (constrained graphs; default 1).
+            inputs: an :class:`Inputs` or a mapping name -> value (one frame's shapes, see
+                :class:`Inputs`; the older spellings of :data:`~torchcontact.onnx.format.INPUTS`
+                are accepted). Earlier versions' form ``step(q, qd, qdd, ft, positions, active,
+                directions, wrenches, ft_residual, **keywords)`` is accepted too.
+            *args: the positional values of that earlier form.
+            **named: inputs by name (added to ``inputs``).
 
         Returns:
             ``force``, ``moment`` ``(K, 3)`` (N, N m; link frames, moment about the point),
             ``joint_torques (nv,)``, ``rank``, ``unknowns`` ``(S,)`` int64, ``residual (S,)``,
-            ``status`` (int, 0 ok; bits of ``torchcontact.STATUS``), ``covariance
+            ``status`` (int, 0 ok; bits of :class:`torchcontact.Status`), ``covariance
             (K, 6, 6)`` when exported with it, and a constrained graph's ``converged``,
             ``iterations`` ``(S,)`` and ``cone_active (K,)``.
 
         Raises:
-            InputError: a wrong shape, a missing required input or extra column.
+            InputError: a wrong shape, an unknown input, a missing required input or extra
+                column.
         """
+        given = _given(inputs, args, named)
         if self.step_session is None:  # the batched graph with N = 1
-            ft = np.asarray(self._ft_array(ft), dtype=np.float64).reshape(self.S, 6)
-            out = self.run(
-                *(
-                    np.asarray(a)[None] if a is not None else None
-                    for a in (q, qd, qdd, ft, positions, active, directions, wrenches, ft_residual)
-                ),
-                **{
-                    k: (np.asarray(v)[None] if v is not None else None)
-                    for k, v in dict(
-                        omega=omega,
-                        domega=domega,
-                        proper_acc=proper_acc,
-                        tau_measured=tau_measured,
-                        tau_mask=tau_mask,
-                        ft_cov=ft_cov,
-                        normals=normals,
-                        friction=friction,
-                        pushing=pushing,
-                    ).items()
-                },
-                extra={k: np.atleast_1d(v) for k, v in (extra or {}).items()},
-            )
+            one = {k: (np.asarray(v)[None] if k not in ("extra", "h_in") else v)
+                   for k, v in given.items()}  # fmt: skip
+            if "ft" in given:
+                one["ft"] = np.asarray(self._ft_array(given["ft"]), np.float64).reshape(1, self.S, 6)
+            if "extra" in given:
+                one["extra"] = {k: np.atleast_1d(v) for k, v in given["extra"].items()}
+            out = self.run(one)
             return {k: (v[0] if k != "status" else int(v[0])) for k, v in out.items()}
-        ft = self._ft_array(ft)
+        if "ft" not in given:
+            raise InputError(f"ft is required by this graph, shape {self._xv['ft'].shape}")
+        ft = self._ft_array(given["ft"])
+        extra = given.get("extra")
         if self.residuals:
-            ft = ft - self._correct(q, qd, qdd, extra, batch=False)
+            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
+                                    batch=False)  # fmt: skip
+        given["ft"] = ft
+        # a layout without force_dir (known) slots does not read directions (wrenches)
+        unknown = [k for k in given if k not in self._xv and k not in _SLOT_DATA]
+        if unknown:
+            raise InputError(f"this graph has no input {unknown[0]!r} (exported without it)")
         put = self._put
-        put("q", q, None)
-        put("qd", qd, None)
-        put("qdd", qdd, None)
-        put("ft", ft, None)
-        put("positions", positions)
-        put("active", active, 1.0)
-        if "directions" in self._xv:  # (a layout without such slots does not read them)
-            put("directions", directions)
-        if "wrenches" in self._xv:
-            put("wrenches", wrenches)
-        put("ft_residual", ft_residual)
-        for name, value in (("normals", normals), ("friction", friction), ("pushing", pushing)):
-            put(name, value)  # only a constrained graph has them (it has no step graph)
-        if "omega" in self._xv or omega is not None:
-            put("omega", omega, None)
-            put("domega", domega, None)
-            put("proper_acc", proper_acc, None)
-        if "tau_measured" in self._xv or tau_measured is not None:
-            put("tau_measured", tau_measured, None)
-            if tau_mask is None:
-                tau_mask = np.isfinite(np.asarray(tau_measured, dtype=float))
-            put("tau_mask", tau_mask, None)
-        if "ft_cov" in self._xv or ft_cov is not None:
-            put("ft_cov", ft_cov, None)
-        if "extra" in self._xv:
-            vals = extra or {}
-            missing = [c for c in self.extra if c not in vals]
-            if missing:
-                raise InputError(f"extra inputs {missing} are required by the corrections")
-            self._xv["extra"][...] = [vals[c] for c in self.extra]
-        for r in self._inside:
-            if r.get("state_shape"):
-                self._xv[f"h_in.{r['sensor']}"][...] = self._state[r["sensor"]]
+        for name in self._xv:
+            value = given.get(name)
+            if name == "tau_mask" and value is None and "tau_measured" in given:
+                value = np.isfinite(np.asarray(given["tau_measured"], dtype=float))
+            elif name == fmt.EXTRA:
+                vals = extra or {}
+                missing = [c for c in self.extra if c not in vals]
+                if missing:
+                    raise InputError(f"extra inputs {missing} are required by the corrections")
+                value = [vals[c] for c in self.extra]
+            elif name.startswith("h_in."):
+                value = self._state[name[5:]]
+            put(name, value, self._defaults.get(name, 0.0))
         out = self._run(self._out_names, {self._in_name: self._x}, self._ro)[0][0]
         lo = self._out
         a, b, sh = lo["fm"]
@@ -633,7 +726,7 @@ class EstimatorRuntime:
             res["covariance"] = self._view(out, "covariance")
         for r in self._inside:
             if r.get("state_shape"):
-                self._state[r["sensor"]] = self._view(out, f"h_out.{r['sensor']}").copy()
+                self._state[r["sensor"]] = self._view(out, fmt.state_out(r["sensor"])).copy()
         return res
 
     def _view(self, out: np.ndarray, name: str) -> np.ndarray:
@@ -681,100 +774,46 @@ class EstimatorRuntime:
             )
         return self._batched
 
-    def run(
-        self,
-        q: np.ndarray,
-        qd: np.ndarray,
-        qdd: np.ndarray,
-        ft: np.ndarray,
-        positions: np.ndarray | None = None,
-        active: np.ndarray | None = None,
-        directions: np.ndarray | None = None,
-        wrenches: np.ndarray | None = None,
-        ft_residual: np.ndarray | None = None,
-        *,
-        omega: np.ndarray | None = None,
-        domega: np.ndarray | None = None,
-        proper_acc: np.ndarray | None = None,
-        tau_measured: np.ndarray | None = None,
-        tau_mask: np.ndarray | None = None,
-        ft_cov: np.ndarray | None = None,
-        extra: Mapping[str, np.ndarray] | None = None,
-        h_in: Mapping[str, np.ndarray] | None = None,
-        chunk_size: int = 16384,
-        normals: np.ndarray | None = None,
-        friction: np.ndarray | None = None,
-        pushing: np.ndarray | None = None,
-    ) -> dict[str, np.ndarray]:
+    def run(self, inputs: Inputs | Mapping[str, Any] | None = None, /, *args: Any,
+            chunk_size: int = 16384, **named: Any) -> dict[str, np.ndarray]:  # fmt: skip
         """Estimate ``N`` independent frames with the batched graph.
 
         Args:
-            q: ``(N, nv)``; the other arguments as in :meth:`step` with a leading ``N``.
-            qd: ``(N, nv)``.
-            qdd: ``(N, nv)``.
-            ft: ``(N, S, 6)`` raw readings.
-            positions: ``(N, K, 3)``.
-            active: ``(N, K)``.
-            directions: ``(N, K, 3)``.
-            wrenches: ``(N, K, 6)``.
-            ft_residual: ``(N, S, 6)``.
-            omega: ``(N, 3)`` (moving base).
-            domega: ``(N, 3)``.
-            proper_acc: ``(N, 3)``.
-            tau_measured: ``(N, nv)`` (torque rows).
-            tau_mask: ``(N, nv)``.
-            ft_cov: ``(N, S, 6, 6)`` (covariance).
-            extra: column -> ``(N,)`` for the corrections.
-            h_in: sensor -> ``(N, L, H)`` recurrent states of corrections inside the graph
-                (default zeros; each row is an independent frame).
+            inputs: an :class:`Inputs` or a mapping name -> value, each with a leading ``N``
+                (``ft`` ``(N, S, 6)``, ``extra`` column -> ``(N,)``, ``h_in`` sensor ->
+                ``(N, L, H)`` recurrent states of corrections inside the graph, default zeros,
+                each row an independent frame). The earlier form ``run(q, qd, qdd, ft, ...)``
+                is accepted too.
+            *args: the positional values of that earlier form.
             chunk_size: frames per graph call (bounds memory, keeps the working set in cache).
-            normals: ``(N, K, 3)`` (constrained graphs).
-            friction: ``(N, K)`` (constrained graphs).
-            pushing: ``(N, K)`` (constrained graphs; default ones).
+            **named: inputs by name (added to ``inputs``).
 
         Returns:
             As :meth:`step` with a leading ``N``; ``status`` ``(N,)`` int64.
 
         Raises:
-            InputError: a wrong shape or a missing required input.
+            InputError: a wrong shape, an unknown input or a missing required input.
         """
+        given = _given(inputs, args, named)
         sess = self._batched_session()
-        n = int(np.shape(q)[0])
-        if self.residuals:
-            ft = np.asarray(ft, dtype=np.float64) - self._correct(q, qd, qdd, extra, batch=True)
-        given = dict(
-            q=q,
-            qd=qd,
-            qdd=qdd,
-            ft=ft,
-            positions=positions,
-            active=active,
-            directions=directions,
-            wrenches=wrenches,
-            ft_residual=ft_residual,
-            omega=omega,
-            domega=domega,
-            proper_acc=proper_acc,
-            tau_measured=tau_measured,
-            tau_mask=tau_mask,
-            ft_cov=ft_cov,
-            normals=normals,
-            friction=friction,
-            pushing=pushing,
-        )
-        inputs = {i.name for i in sess.get_inputs()}
-        optional = ("omega", "domega", "proper_acc", "tau_measured", "tau_mask", "ft_cov")
-        optional += ("normals", "friction", "pushing")
-        unknown = [k for k in optional if given[k] is not None and k not in inputs]
+        if "q" not in given:
+            raise InputError("q is required by this graph, shape (N, nv)")
+        n = int(np.shape(given["q"])[0])
+        extra, h_in = given.pop("extra", None), given.pop("h_in", None)
+        if self.residuals and "ft" in given:
+            corr = self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra, True)
+            given["ft"] = np.asarray(given["ft"], dtype=np.float64) - corr
+        inputs_ = {i.name for i in sess.get_inputs()}
+        unknown = [k for k in given if k not in inputs_]
         if unknown:
             raise InputError(f"this graph has no inputs {unknown} (exported without them)")
-        if tau_measured is not None and tau_mask is None:
-            given["tau_mask"] = np.isfinite(np.asarray(tau_measured, dtype=float))
+        if "tau_measured" in given and "tau_mask" not in given:
+            given["tau_mask"] = np.isfinite(np.asarray(given["tau_measured"], dtype=float))
         feed = {}
         for i in sess.get_inputs():
             trailing = tuple(int(d) for d in i.shape[1:])
             name = i.name
-            if name == "extra":
+            if name == fmt.EXTRA:
                 vals = extra or {}
                 missing = [c for c in self.extra if c not in vals]
                 if missing:
@@ -791,25 +830,12 @@ class EstimatorRuntime:
             else:
                 x = given.get(name)
                 if x is None:
-                    if name in (
-                        "q",
-                        "qd",
-                        "qdd",
-                        "ft",
-                        "omega",
-                        "domega",
-                        "proper_acc",
-                        "tau_measured",
-                        "ft_cov",
-                        "normals",
-                        "friction",
-                    ):
+                    if name in fmt.REQUIRED:
                         raise InputError(
                             f"{name} is required by this graph, shape (N, "
                             f"{', '.join(map(str, trailing))})"
                         )
-                    ones = name in ("active", "pushing")
-                    x = np.ones((n, *trailing)) if ones else np.zeros((n, *trailing))
+                    x = (np.ones if name in fmt.ONES else np.zeros)((n, *trailing))
             x = np.asarray(x, dtype=self.dtype)
             if x.shape != (n, *trailing):
                 raise InputError(
