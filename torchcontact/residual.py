@@ -931,6 +931,8 @@ class ResidualCorrection:
             "joint_names": list(self.model.joint_names),
             "robot": self.model.name,
             "robot_sha256": self.model.urdf_sha256,
+            "robot_identity_sha256": self.model.identity.sha256,
+            "robot_identity": self.model.identity.to_json(),
             "extra_columns": self.extra_columns,
         }
         if self.delta is not None:
@@ -1025,11 +1027,8 @@ class ResidualCorrection:
                 f" {meta.get('weights_sha256')}: the weights were modified or belong to another"
                 " checkpoint"
             )
-        if check_robot and meta.get("robot_sha256") != model.urdf_sha256:
-            raise CheckpointError(
-                f"{d}: trained for robot {meta.get('robot_sha256')} ({meta.get('robot')}), not"
-                f" this robot ({model.urdf_sha256}, {model.name})"
-            )
+        if check_robot:
+            _check_robot(d, meta, model)
         sensor = meta.get("sensor")
         if sensor not in model.ft_sensors:
             raise CheckpointError(
@@ -1104,6 +1103,32 @@ class ResidualCorrection:
             features=features,
             meta=rest,
             source=str(d.resolve()),
+        )
+
+
+def _check_robot(d: Path, meta: Mapping[str, Any], model: RobotModel) -> None:
+    """Refuse a checkpoint trained for another robot, naming the first thing that differs.
+
+    A checkpoint records its robot's identity (:attr:`RobotModel.identity`, the parsed model);
+    one of an earlier version only the URDF text's hash, which must then match.
+    """
+    from torchcontact.identity import RobotIdentity
+
+    recorded = meta.get("robot_identity")
+    if recorded:
+        try:
+            why = RobotIdentity.from_json(recorded).difference(model.identity)
+        except ValueError as e:
+            raise CheckpointError(f"{d}: malformed robot_identity ({e})") from None
+        if why is not None:
+            raise CheckpointError(
+                f"{d}: trained for robot {meta.get('robot')!r}, not this robot ({model.name}):"
+                f" {why}"
+            )
+    elif meta.get("robot_sha256") != model.urdf_sha256:
+        raise CheckpointError(
+            f"{d}: trained for robot {meta.get('robot_sha256')} ({meta.get('robot')}), not"
+            f" this robot ({model.urdf_sha256}, {model.name})"
         )
 
 
