@@ -212,4 +212,3 @@ def parse(text: str, source: str) -> dict:
             }
         )
     return {"name": root.get("name", ""), "links": links, "joints": joints, "sensors": sensors}
-

@@ -368,7 +368,9 @@ class CorrectionSpec:
         return cls(
             sensor=str(d.get("sensor", sensor)),
             offset=None if d.get("offset") is None else tuple(float(v) for v in d["offset"]),
-            inertial=tuple((n, tuple(float(v) for v in p)) for n, p in zip(names, delta, strict=True)),
+            inertial=tuple(
+                (n, tuple(float(v) for v in p)) for n, p in zip(names, delta, strict=True)
+            ),
             features=None if feats is None else FeatureSpec(**feats),
             learned=d.get("learned"),
         )

@@ -1,4 +1,4 @@
-"""Run an exported contact estimator with onnxruntime and numpy only: :mod:`torchcontact.onnx.runtime`.
+"""Run an exported estimator with onnxruntime and numpy only: :mod:`torchcontact.onnx.runtime`.
 
 This module re-exports the public names where users import them (``from torchcontact.runtime
 import EstimatorRuntime``); the implementation lives in :mod:`torchcontact.onnx.runtime`. It

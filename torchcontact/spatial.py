@@ -231,7 +231,7 @@ def inertia_apply(mass: float, com: V3, inertia_com: M3, v: Motion) -> Force:
 
 
 def inertia_apply_origin(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> Force:
-    """Spatial inertia given about the frame's origin times a twist: ``[m v - h x w; I_o w + h x v]``.
+    """Spatial inertia about the frame's origin times a twist: ``[m v - h x w; I_o w + h x v]``.
 
     The form in which the inertia is linear in its ten parameters (a parameter *change*, whose
     mass may be zero or negative, has no centre of mass).

@@ -37,7 +37,8 @@ __all__ = [
 def base_shapes(nv: int, S: int, K: int) -> dict[str, list]:
     """Shapes of the inputs every batched estimator graph takes (``N`` dynamic)."""
     shapes = {"q": [nv], "qd": [nv], "qdd": [nv], "ft": [S, 6], "positions": [K, 3],
-              "directions": [K, 3], "wrenches": [K, 6], "active": [K], "ft_residual": [S, 6]}  # fmt: skip
+              "directions": [K, 3], "wrenches": [K, 6], "active": [K],
+              "ft_residual": [S, 6]}  # fmt: skip
     return {k: ["N", *shapes[k]] for k in fmt.ESTIMATOR_INPUTS}
 
 

@@ -51,7 +51,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -92,58 +91,16 @@ __all__ = [
 #: Format of the metadata written by :func:`export_estimator` (the runtime's name for it).
 FORMAT = ESTIMATOR_FORMAT
 DEFAULT_OPSET = 18
-DYNAMO = False
 
 
-def _export(module, args, path, input_names, output_names, dynamic_axes, opset) -> None:
-    """``torch.onnx.export`` with the TorchScript-based exporter (``dynamo=False``).
-
-    The estimator is straight-line elementwise code, which the tracing exporter handles without
-    extra dependencies; constant folding removes the model-constant arithmetic. Inputs a layout
-    does not read (directions without ``force_dir`` slots, wrenches without ``known`` slots) are
-    pruned by the exporter and put back, unused, so every graph has the same inputs.
-    """
-    import onnx
-    from onnx import helper
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # deprecation notice of the TorchScript exporter
-        torch.onnx.export(
-            module,
-            args,
-            str(path),
-            input_names=list(input_names),
-            output_names=list(output_names),
-            dynamic_axes=dynamic_axes,
-            opset_version=opset,
-            dynamo=DYNAMO,
-            do_constant_folding=True,
-        )
-    m = onnx.load(str(path))
-    present = {i.name: i for i in m.graph.input}
-    if [n for n in input_names if n in present] != list(input_names):
-        elem = helper.np_dtype_to_tensor_dtype(args[0].numpy().dtype)
-        inputs = []
-        for name, x in zip(input_names, args, strict=True):
-            if name in present:
-                inputs.append(present[name])
-                continue
-            dims = [("N" if dynamic_axes and d == 0 else int(n)) for d, n in enumerate(x.shape)]
-            inputs.append(helper.make_tensor_value_info(name, elem, dims))
-        del m.graph.input[:]
-        m.graph.input.extend(inputs)
-        onnx.save(m, str(path))
-
-
-def _set_metadata(path: str | os.PathLike, metadata: Mapping[str, object]) -> None:
+def _write(gb, path: str | os.PathLike, metadata: Mapping[str, object], opset: int) -> None:
+    """Write a builder's graph with its metadata (checked, published atomically)."""
     import onnx
 
-    m = onnx.load(str(path))
-    del m.metadata_props[:]
-    for k, v in metadata.items():
-        m.metadata_props.add(key=str(k), value=v if isinstance(v, str) else json.dumps(v))
+    m = gb.model(fmt.encode(metadata))
+    m.opset_import[0].version = opset
     onnx.checker.check_model(m)
-    onnx.save(m, str(path))
+    _save_atomic(m, Path(path))
 
 
 def export_estimator(
@@ -381,24 +338,33 @@ def export_residual(
     Returns:
         The metadata written.
     """
+    from torchcontact.onnx.builder import GraphBuilder
+    from torchcontact.onnx.networks import emit_module
+
+    gb = GraphBuilder(example_features.detach().cpu().numpy().dtype, "torchcontact_residual")
+    ins = [gb.input("features", ["N", int(example_features.shape[-1])])]
+    if example_state is not None:
+        ins.append(gb.input("h_in", ["N", *map(int, example_state.shape[1:])]))
     was_training = module.training
     module.eval()
     try:
-        if example_state is None:
-            args, ins, outs = (example_features,), ["features"], ["residual"]
-        else:
-            args, ins = (example_features, example_state), ["features", "h_in"]
-            outs = ["residual", "h_out"]
-        dyn = {k: {0: "N"} for k in (*ins, *outs)}
         with torch.no_grad():
-            _export(module, args, path, ins, outs, dyn, opset)
+            outs = emit_module(gb, module, ins)
+    except ValueError as e:
+        raise InputError(f"export_residual: {e}") from None
     finally:
         module.train(was_training)
+    names = ["residual", "h_out"] if example_state is not None else ["residual"]
+    if len(outs) != len(names):
+        raise InputError(f"export_residual: the module returns {len(outs)} values, not {names}")
+    for o, name in zip(outs, names, strict=True):
+        gb.op("Identity", o, out=name)
+        gb.output(name, ["N", "R" if name == "residual" else "H"])
     h = hashlib.sha256()
     for k, v in module.state_dict().items():
         h.update(k.encode())
         h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    meta = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in (metadata or {}).items()}
+    meta = fmt.encode(dict(metadata or {}))
     meta.update(
         format=RESIDUAL_FORMAT,
         opset=str(opset),
@@ -407,7 +373,7 @@ def export_residual(
         features=str(int(example_features.shape[-1])),
         recurrent="true" if example_state is not None else "false",
     )
-    _set_metadata(path, meta)
+    _write(gb, path, meta, opset)
     return meta
 
 
@@ -428,30 +394,6 @@ class _CorrectionInputs(nn.Module):
         h_in = args[-1] if self.recurrent else None
         c, h_out = self.graph(q, qd, qdd, extra, h_in)
         return (c, h_out) if self.recurrent else c
-
-
-def _positive_transpose_perms(path: str | os.PathLike) -> None:
-    """Rewrite negative ``perm`` entries of ``Transpose`` nodes as positive ones.
-
-    The TorchScript exporter writes ``movedim(-1, 0)`` (used by
-    :func:`torchcontact.forward_pass` to return batch-first fields) as ``perm = [-1, 0, ...]``,
-    which ONNX does not allow; ``perm`` has one entry per axis, so ``-1`` is ``len(perm) - 1``.
-    """
-    import onnx
-
-    m = onnx.load(str(path))
-    changed = False
-    for node in m.graph.node:
-        if node.op_type != "Transpose":
-            continue
-        for attr in node.attribute:
-            if attr.name == "perm" and any(p < 0 for p in attr.ints):
-                fixed = [p + len(attr.ints) if p < 0 else p for p in attr.ints]
-                del attr.ints[:]
-                attr.ints.extend(fixed)
-                changed = True
-    if changed:
-        onnx.save(m, str(path))
 
 
 def export_residual_checkpoint(
@@ -534,15 +476,12 @@ def export_residual_checkpoint(
             x.append(torch.randn(n, learned.layers, learned.hidden, generator=gen))  # type: ignore[union-attr]
         return x
 
-    dyn = {k: {0: "N"} for k in (*ins, *outs)}
-    with torch.no_grad():
-        _export(wrapper, tuple(example(2)), path, ins, outs, dyn, opset)
-    _positive_transpose_perms(path)
     shapes: dict[str, list] = {"q": ["N", nv], "qd": ["N", nv], "qdd": ["N", nv]}
     if E:
         shapes["extra"] = ["N", E]
     if recurrent:
         shapes["h_in"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
+    gb = _correction_graph(model, corr, shapes)
     h = hashlib.sha256()
     for k, v in sorted(corr.tensors().items()):
         h.update(k.encode())
@@ -583,8 +522,8 @@ def export_residual_checkpoint(
     if recurrent:
         meta["state_shape"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
     meta.update(_stack_parts(corr, opset))
-    written = {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
-    _set_metadata(path, written)
+    written = fmt.encode(meta)
+    _write(gb, path, written, opset)
     if check:
         for n in (1, 7):
             check_parity(wrapper, path, example(n), atol=1e-4)
@@ -603,25 +542,60 @@ def _stack_parts(corr, opset: int) -> dict[str, object]:
     nodes instead of the thousands of a traced forward pass) and inlines only the network.
     """
     import base64
-    import tempfile
+
+    from torchcontact.onnx.builder import GraphBuilder
+    from torchcontact.onnx.networks import emit_learned
 
     out: dict[str, object] = {Key.STACK: corr.spec.to_json()}
     net = corr.learned
     if net is not None:
-        F = net.in_features
-        x = torch.zeros(1, F)
-        with tempfile.TemporaryDirectory() as d:
-            f = Path(d) / "learned.onnx"
-            if corr.recurrent:
-                h = torch.zeros(1, net.layers, net.hidden)
-                ins, outs = ["features", "h_in"], ["residual", "h_out"]
-                args: tuple = (x, h)
-            else:
-                ins, outs, args = ["features"], ["residual"], (x,)
-            with torch.no_grad():
-                _export(net.eval(), args, f, ins, outs, {k: {0: "N"} for k in ins + outs}, opset)
-            out[Key.LEARNED_GRAPH] = base64.b64encode(f.read_bytes()).decode()
+        gb = GraphBuilder(np.float32, "torchcontact_learned")
+        x = gb.input("features", ["N", net.in_features])
+        h = gb.input("h_in", ["N", net.layers, net.hidden]) if corr.recurrent else None
+        r, h_out = emit_learned(gb, net, x, h)
+        gb.op("Identity", r, out="residual")
+        gb.output("residual", ["N", 6])
+        if h_out is not None:
+            gb.op("Identity", h_out, out="h_out")
+            gb.output("h_out", ["N", net.layers, net.hidden])
+        m = gb.model()
+        m.opset_import[0].version = opset
+        out[Key.LEARNED_GRAPH] = base64.b64encode(m.SerializeToString()).decode()
     return out
+
+
+def _correction_graph(model: RobotModel, corr, shapes: dict[str, list]):
+    """The whole correction stack from raw joint state, float32, through the builder.
+
+    The physics layers are :func:`~torchcontact.onnx.networks.correction_program` emitted over
+    ``N`` frames; the learned layer's features are one selection from ``[q, qd, qdd, extra,
+    sin q, cos q, nominal]``, its network :func:`~torchcontact.onnx.networks.emit_learned`.
+    """
+    from torchcontact.onnx.builder import GraphBuilder, emit_program
+    from torchcontact.onnx.networks import correction_program, emit_learned, feature_matrix
+
+    gb = GraphBuilder(np.float32, "torchcontact_correction")
+    for name, sh in shapes.items():
+        gb.input(name, sh)
+    n = gb.op("Slice", gb.op("Shape", "q"), gb.i([0]), gb.i([1]))
+    phys, nominal = gb.fresh("physics"), gb.fresh("nominal")
+    prog = correction_program(model, corr.spec)
+    emit_program(gb, prog, {"q": "q", "qd": "qd", "qdd": "qdd"},
+                 {"physics": phys, "nominal": nominal}, n)  # fmt: skip
+    c, h_out = phys, None
+    if corr.learned is not None:
+        parts = ["q", "qd", "qdd", *(["extra"] if "extra" in shapes else [])]
+        src = gb.op("Concat", *parts, gb.op("Sin", "q"), gb.op("Cos", "q"), nominal, axis=1)
+        sel = feature_matrix(model, corr.features, corr.extra_columns)
+        feats = gb.op("MatMul", src, gb.f(sel))
+        r, h_out = emit_learned(gb, corr.learned, feats, "h_in" if corr.recurrent else None)
+        c = gb.op("Add", c, r)
+    gb.op("Identity", c, out="correction")
+    gb.output("correction", ["N", 6])
+    if h_out is not None:
+        gb.op("Identity", h_out, out="h_out")
+        gb.output("h_out", shapes["h_in"])
+    return gb
 
 
 def check_parity(

@@ -44,7 +44,6 @@ from torchcontact.onnx.format import (
     ESTIMATOR_FORMAT,
     RESIDUAL_FORMAT,
     RESIDUAL_FORMATS,
-    RESIDUAL_GRAPH_FORMAT,
     Key,
 )
 
@@ -113,7 +112,9 @@ class Inputs:
 
     def as_dict(self) -> dict[str, Any]:
         """The given fields (None left out)."""
-        return {f.name: v for f in dataclasses.fields(self) if (v := getattr(self, f.name)) is not None}
+        return {
+            f.name: v for f in dataclasses.fields(self) if (v := getattr(self, f.name)) is not None
+        }
 
 
 _FIELDS = frozenset(f.name for f in dataclasses.fields(Inputs))
@@ -122,8 +123,7 @@ _SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
 
 
 def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
-    """One dict of inputs by their one name, from an :class:`Inputs`, a mapping or old-style
-    positional and keyword arguments.
+    """One dict of inputs by their one name (an :class:`Inputs`, a mapping, or old-style args).
 
     Raises:
         InputError: an unknown input name, or too many positional values.
@@ -678,7 +678,9 @@ class EstimatorRuntime:
             one = {k: (np.asarray(v)[None] if k not in ("extra", "h_in") else v)
                    for k, v in given.items()}  # fmt: skip
             if "ft" in given:
-                one["ft"] = np.asarray(self._ft_array(given["ft"]), np.float64).reshape(1, self.S, 6)
+                one["ft"] = np.asarray(self._ft_array(given["ft"]), np.float64).reshape(
+                    1, self.S, 6
+                )
             if "extra" in given:
                 one["extra"] = {k: np.atleast_1d(v) for k, v in given["extra"].items()}
             out = self.run(one)

@@ -192,8 +192,9 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
 
             def to_sensor(_i, t: list, w: list, reg=reg) -> list:
                 R, _, pR, _ = tp(t)
-                out = signed(reg.sign, sp.force_to_child(reg.T_child_sensor,
-                                                         force_to_child(R, pR, split(w))))
+                out = signed(
+                    reg.sign, sp.force_to_child(reg.T_child_sensor, force_to_child(R, pR, split(w)))
+                )
                 return [*out[0], *out[1]]  # fmt: skip
 
             ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
@@ -266,4 +267,3 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
     return gb.cast(outs["residual"])
-

@@ -206,7 +206,9 @@ def check(ctx: StepContext, x: str, ea: Affine, idx: dict) -> Checked:
     M, off = ea.matrix()
     e = gb.op("Reshape", gb.op("Gemm", xc, gb.f(M), gb.f(off)), gb.i([M.shape[1]]))
     act = _activity(ctx, e, idx)
-    actK = gb.op("Slice", act, gb.i([0]), gb.i([ctx.K]), gb.i([0])) if ctx.flags.torque_rows else act
+    actK = (
+        gb.op("Slice", act, gb.i([0]), gb.i([ctx.K]), gb.i([0])) if ctx.flags.torque_rows else act
+    )
     return Checked(e, act, actK, _status(ctx, x, bad, act, e, idx))
 
 

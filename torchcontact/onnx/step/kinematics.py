@@ -93,7 +93,9 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int) -> str:
     while hop < max(depth):
 
         def compose(_i: int, ta: list, tb: list) -> list:
-            R, p = sp.pose_compose((rows(ta[0:9]), tuple(ta[9:12])), (rows(tb[0:9]), tuple(tb[9:12])))
+            R, p = sp.pose_compose(
+                (rows(ta[0:9]), tuple(ta[9:12])), (rows(tb[0:9]), tuple(tb[9:12]))
+            )
             return [*flat(R), *p]
 
         T = bilinear(gb, Operand(T, 13, "nd", one=T_ONE, row_of=list(anc)),
@@ -129,7 +131,8 @@ def subspace(ctx: StepContext, i: int, t: list) -> tuple:
 def subspaces(ctx: StepContext, TP: str) -> str:
     """Motion subspaces of every body, root frame, ``(nb, 6)``."""
     return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), None, ctx.nb,
-                    lambda i, t, _b: list(subspace(ctx, i, t)), 6, one=False, hint="s0")  # fmt: skip
+                    lambda i, t, _b: list(subspace(ctx, i, t)), 6, one=False,
+                    hint="s0")  # fmt: skip
 
 
 def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None) -> str:
@@ -176,8 +179,12 @@ def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None
 
 
 def body_wrenches(ctx: StepContext, TP: str, VA: str) -> tuple[str, str]:
-    """Body wrenches ``I_i a_i + v_i x* I_i v_i``, root frame ``(nb, 6)``, and ``[v, a, 1]``
-    in each body frame ``(nb, 13)`` (what the inertial corrections apply their inertias to)."""
+    """Body wrenches ``I_i a_i + v_i x* I_i v_i`` and the motion in each body frame.
+
+    Returns:
+        ``(f0, VAb)``: the wrenches in the root frame ``(nb, 6)``, and ``[v, a, 1]`` in each
+        body frame ``(nb, 13)`` (what the inertial corrections apply their inertias to).
+    """
     gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
 
     def to_body(_i: int, t: list, va: list) -> list:

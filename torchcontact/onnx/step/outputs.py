@@ -117,8 +117,9 @@ def contact_wrenches(ctx, gr: Grams, ys, s_rows, pairs, e, idx, actK, known: boo
             if kinds[slot_of[n]] != "force_dir":
                 return list(m[0:12])
             mag = m[0]
-            return [*sp.v_scale(mag, tuple(g[15:18])), 0.0, 0.0, 0.0,
-                    *sp.v_scale(mag, tuple(g[12:15])), *sp.v_scale(mag, tuple(g[18:21]))]  # fmt: skip
+            u, d, cu = tuple(g[12:15]), tuple(g[15:18]), tuple(g[18:21])
+            return [*sp.v_scale(mag, d), 0.0, 0.0, 0.0, *sp.v_scale(mag, u),
+                    *sp.v_scale(mag, cu)]  # fmt: skip
 
         fm = bilinear(gb, Operand(fm, 13, one=12), geo, len(rws), scale, 12, one=False, hint="fd")
     if known:  # known slots report their given wrench (link frame)
@@ -199,7 +200,9 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states) -> StepLa
     # a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
     nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
     bit = float(Status.OUTPUT_NONFINITE)
-    status = gb.op("Add", status_in, gb.op("Mul", gb.op("Where", nonfin, gb.f(bit), gb.f(0.0)), okf))
+    status = gb.op(
+        "Add", status_in, gb.op("Mul", gb.op("Where", nonfin, gb.f(bit), gb.f(0.0)), okf)
+    )
     # NaN outputs where the status is not 0; torques the graph does not compute: NaN always
     always = np.zeros((1, out.size))
     t0 = out.fields["joint_torques"][0]
