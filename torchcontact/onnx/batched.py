@@ -122,14 +122,11 @@ def chain_corrections(
 
 
 def _program_inputs(gb: GraphBuilder, em: EstimationModel, readings: str) -> dict[str, str]:
-    """The program's inputs from the graph's: readings split per sensor, slot data flattened."""
-    S, K = len(em.regions), len(em.slots)
-    ins = {"q": "q", "qd": "qd", "qdd": "qdd", "active": "active"}
-    for i in range(S):
-        ins[f"ft{i}"] = gb.op("Slice", readings, gb.i([6 * i]), gb.i([6 * i + 6]), gb.i([1]))
-    ins["pos"] = gb.op("Reshape", "positions", gb.i([-1, 3 * K]))
-    ins["dir"] = gb.op("Reshape", "directions", gb.i([-1, 3 * K]))
-    ins["wrench"] = gb.op("Reshape", "wrenches", gb.i([-1, 6 * K]))
+    """The program's inputs from the graph's (the same names): readings and slot data flat."""
+    K = len(em.slots)
+    ins = {"q": "q", "qd": "qd", "qdd": "qdd", "active": "active", "ft": readings}
+    for name, width in (("positions", 3), ("directions", 3), ("wrenches", 6)):
+        ins[name] = gb.op("Reshape", name, gb.i([-1, width * K]))
     return ins
 
 
@@ -208,7 +205,7 @@ def batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list
     ins = _program_inputs(gb, em, readings)
     for k in fmt.BASE_INPUTS:
         ins[k] = k
-    ins["tau_meas"], ins["tau_mask"] = "tau_measured", "tau_mask"
+    ins.update({k: k for k in fmt.TORQUE_INPUTS})
     if with_cov:
         ins["ft_cov"] = gb.op("Reshape", fmt.COVARIANCE_INPUT, gb.i([-1, 36 * S]))
     cols = {k: gb.fresh(k) for k in prog.outputs}
@@ -252,7 +249,7 @@ def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype):
     readings = gb.op("Reshape", gb.op("Sub", "ft", "ft_residual"), gb.i([-1, 6 * S]))
     prog = program(em, "estimate", False, False, False, tuple(cones), False, False)
     ins = _program_inputs(gb, em, readings)
-    ins["normal"] = gb.op("Reshape", "normals", gb.i([-1, 3 * K]))
+    ins["normals"] = gb.op("Reshape", "normals", gb.i([-1, 3 * K]))
     ins["friction"] = "friction"
     # known slots never push (as the estimator's cone inputs)
     ins["pushing"] = gb.op("Mul", "pushing", gb.f([float(k != "known") for k in em.kinds]))

@@ -29,13 +29,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from torchcontact.estimation.layout import EstimationModel
-from torchcontact.onnx.builder import GraphBuilder, Operand, bilinear
+from torchcontact.onnx.builder import GraphBuilder
 from torchcontact.onnx.format import StepLayout
 from torchcontact.onnx.step import corrections, inputs, kinematics, outputs, regions, solve
 from torchcontact.onnx.step.context import Flags, StepContext
-from torchcontact.onnx.step.forms import TP_ONE
 
-__all__ = ["Flags", "StepContext", "build_step_graph", "context"]
+__all__ = ["Flags", "StepContext", "build_step_graph", "context", "stages"]
 
 
 def context(em: EstimationModel, flags: Flags, dtype, residuals: Sequence = (),
@@ -86,11 +85,26 @@ def build_step_graph(
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
+    ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords)
+    x = ctx.gb.input("x", [1, ctx.lay.size])
+    v = stages(ctx, x, residuals)
+    lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
+                           v["status"], v["e"], v["idx"], v["states"])  # fmt: skip
+    return ctx.gb.model(), ctx.lay, lay_out
+
+
+def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
+    """Emit every stage on the packed input ``x``; returns the graph values by stage.
+
+    Keys: ``status`` (the inputs' bits), ``T``, ``TP`` (poses), ``VA`` (motion), ``f0`` (body
+    wrenches), ``W0`` (readings, root frame), ``Fb`` (transmitted wrenches), ``b``, ``G`` (per
+    region), ``y``, ``rank``, ``resid`` (per region), ``fm`` (contact wrenches), ``tau``,
+    and what packing the output needs (``e``, ``idx``, ``actK``, ``states``). The stage tests
+    read them; :func:`build_step_graph` packs the output from them.
+    """
     from torchcontact.onnx.batched import chain_corrections
 
-    ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords)
     gb, em = ctx.gb, ctx.em
-    x = gb.input("x", [1, ctx.lay.size])
     wiring = corrections.Wiring(ctx, x)
     # ---- corrections: native stacks (built on this graph's forward pass) or inlined graphs
     native = {r: (rg, st) for r, (rg, model) in enumerate(residuals)
@@ -155,10 +169,6 @@ def build_step_graph(
         ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
         F_tot = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, ws), Fb, alpha=-1.0)
     tau = outputs.torques(ctx, S0, F_tot)
-    lay_out = outputs.pack(ctx, fm, tau, ranks, resids, chk.actK, chk.status, e, idx,
-                           wiring.states)  # fmt: skip
-    return gb.model(), ctx.lay, lay_out
-
-
-# bilinear stages are public through the builder; keep the names importable here for tools
-_ = (Operand, bilinear, TP_ONE)
+    return dict(status=chk.status, T=T, TP=TP, VA=VA, f0=f0, W0=W0, Fb=Fb, b=b_all, G=gr.G,
+                y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=chk.actK,
+                states=wiring.states)  # fmt: skip
