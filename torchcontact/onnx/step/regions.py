@@ -152,14 +152,7 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
     childs = [reg.child for reg in regs]
 
     def to_sensor(r: int, t: list | None, F: list) -> list:
-        reg = regs[r]
-        static = ctx.static_pose(reg.child)
-        if static is not None:
-            Fc = sp.force_to_child((sp.const_mat(static[0]), sp.const_vec(static[1])), split(F))
-        else:
-            R, _, pR, _ = tp(t)
-            Fc = force_to_child(R, pR, split(F))
-        Fs = sp.force_to_child(reg.T_child_sensor, Fc)
+        Fs = sp.force_to_child(regs[r].T_child_sensor, root_to_child(ctx, regs[r].child, t, F))
         return [*Fs[0], *Fs[1]]
 
     F_nd = Operand(Fb, 6, "nd", row_of=childs)
@@ -180,6 +173,20 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
             b = gb.op("Concat", b, _torque_b(ctx, r, S0, Fb, e, idx), axis=0)
         out.append(b)
     return out
+
+
+def root_to_child(ctx: StepContext, child: int, t: list | None, v: list, motion: bool = False):
+    """A root-frame wrench (or twist, ``motion``) in body ``child``'s frame.
+
+    The body's pose is a constant when no joint moves it (:meth:`StepContext.static_pose`),
+    else its pose feature row ``t``.
+    """
+    static = ctx.static_pose(child)
+    if static is not None:
+        T = (sp.const_mat(static[0]), sp.const_vec(static[1]))
+        return (sp.motion_to_child if motion else sp.force_to_child)(T, split(v))
+    R, _, pR, _ = tp(t)
+    return (motion_to_child if motion else force_to_child)(R, pR, split(v))
 
 
 def _coord_matrix(ctx: StepContext, coords) -> np.ndarray:
@@ -229,12 +236,7 @@ def torque_row_coefs(ctx, TP, S0, e, idx) -> tuple[str, list[tuple[int, int, int
 
     def to_sensor(n: int, t: list, s: list) -> list:
         reg = em.regions[em.slots[pairs[n][0]].region]
-        static = ctx.static_pose(reg.child)
-        if static is not None:
-            vc = sp.motion_to_child((sp.const_mat(static[0]), sp.const_vec(static[1])), split(s))
-        else:
-            R, _, pR, _ = tp(t)
-            vc = motion_to_child(R, pR, split(s))
+        vc = root_to_child(ctx, reg.child, t, s, motion=True)
         vs = sp.motion_to_child(reg.T_child_sensor, vc)
         return [*vs[0], *vs[1]]
 
