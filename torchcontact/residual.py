@@ -18,9 +18,10 @@ stack of layers whose outputs add up:
   can move the sensor or its load (:func:`sensor_joints`), the nominal wrench ``ft_nominal`` and
   extra logged columns such as ``temperature``.
 
-The stack evaluates as one traceable torch function (:class:`CorrectionGraph`): the same code runs
-in ``torchcontact estimate --residual`` and in the ONNX graph of
-:func:`torchcontact.export.export_residual_checkpoint`. Physics layers compute in the model's
+The stack evaluates as one torch function (:class:`CorrectionGraph`, ``torchcontact estimate
+--residual``); its structure is a frozen :class:`CorrectionSpec`, which the ONNX graph of
+:func:`torchcontact.export.export_residual_checkpoint` and the single-frame estimator graph read
+as well. Physics layers compute in the model's
 dtype; the networks train and run in float32 and cast at their boundary.
 
 Checkpoint directory (``python -m training`` writes it, :meth:`ResidualCorrection.load` reads

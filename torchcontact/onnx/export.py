@@ -160,7 +160,7 @@ def export_estimator(
             subtrees, and between a sensor and the next moving joint towards the root). The
             single-frame graph keeps only the bodies the regions and these torques need.
         constraints: :class:`~torchcontact.FrictionCones`: the friction-cone constrained
-            estimator instead (traced, the whole iteration budget unrolled; one batched graph,
+            estimator instead (its program, the iterations one ONNX ``Loop``; one batched graph,
             more inputs and outputs, see the module docstring; metadata ``constraints``); fixed
             base and F/T rows only.
 
@@ -322,6 +322,10 @@ def export_residual(
 ) -> dict[str, str]:
     """Export a learned F/T residual model ``features (N, F) -> residual (N, 6)`` to ONNX.
 
+    The graph is written by the builder from the module's ``torch.fx`` graph (``nn.Linear``,
+    ``nn.GRUCell``, ``Tanh``/``Sigmoid``/``ReLU``/``SiLU``, elementwise arithmetic,
+    ``torch.cat``); another operation is refused with an :class:`InputError` naming it.
+
     With ``example_state`` the module is recurrent: ``module(features, h_in) -> (residual,
     h_out)`` with ``h_in``, ``h_out`` shaped ``(N, H)``. The batch axis ``N`` is dynamic, the
     weights are stored inside the file and ``metadata`` goes to ``metadata_props`` (non-string
@@ -337,6 +341,9 @@ def export_residual(
 
     Returns:
         The metadata written.
+
+    Raises:
+        InputError: the module uses an operation the builder does not emit.
     """
     from torchcontact.onnx.builder import GraphBuilder
     from torchcontact.onnx.networks import emit_module
@@ -539,7 +546,7 @@ def _stack_parts(corr, opset: int) -> dict[str, object]:
     ``learned`` (its kind). ``learned_graph``: the learned layer alone (``features (N, F)`` [and
     ``h_in``] -> ``residual (N, 6)`` [and ``h_out``], float32) as a base64 ONNX model. The
     single-frame estimator graph computes the physics layers from its own forward pass (a few
-    nodes instead of the thousands of a traced forward pass) and inlines only the network.
+    nodes instead of the thousands of the stack's own forward pass) and inlines only the network.
     """
     import base64
 

@@ -7,7 +7,7 @@ Correction graphs are inlined and fed through the one wiring of
 *natively* on this graph's own forward pass instead: the offset, the inertial layer as the
 subtree's Newton-Euler wrenches with the parameter change as inertias, the nominal-wrench feature
 from the body wrenches; only the learned network is inlined (a few nodes instead of the
-thousands of a traced forward pass).
+thousands of the stack's own forward pass).
 """
 
 from __future__ import annotations
