@@ -132,8 +132,10 @@ def latency(calls: int, d: Path) -> None:
         f = _frame(model, K)
         kw = {"extra": extra} if extra else {}
 
-        def step(rt=rt, f=f, kw=kw):
-            return rt.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"], **kw)
+        inputs = {**f, **kw}
+
+        def step(rt=rt, inputs=inputs):
+            return rt.step(inputs)
 
         out = step()
         assert out["status"] == 0, name
@@ -201,7 +203,7 @@ def session_choices(calls: int, d: Path) -> None:
     step = path.with_name("opts.step.onnx")
     rt = EstimatorRuntime(path)
     f = _frame(arm, 2)
-    rt.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"])
+    rt.step(f)
     x = rt._x.copy()
 
     def opts(**kw):
@@ -273,11 +275,11 @@ def throughput(frames: int, d: Path) -> None:
             active=np.ones((n, 2)),
         )
         x = {k: v.astype(f) for k, v in x.items()}
-        rt.run(**{k: v[:1000] for k, v in x.items()})
+        rt.run({k: v[:1000] for k, v in x.items()})
         best = []
         for _ in range(3):
             t0 = time.perf_counter()
-            rt.run(**x)
+            rt.run(x)
             best.append(time.perf_counter() - t0)
         nodes = len(onnx.load(str(path)).graph.node)
         rows.append((f"ONNX batched graph, {tag} ({nodes:,} nodes), 1 thread", n / min(best)))

@@ -120,33 +120,49 @@ class Inputs:
 _FIELDS = frozenset(f.name for f in dataclasses.fields(Inputs))
 #: Inputs a graph may not read (its layout has no slot of that kind), silently unused then.
 _SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
+#: How :meth:`EstimatorRuntime.step` fills a field of the packed input.
+_PLAIN, _FT, _MASK, _EXTRA, _STATE = range(5)
 
 
 def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
-    """One dict of inputs by their one name (an :class:`Inputs`, a mapping, or old-style args).
+    """One dict of inputs (an :class:`Inputs`, a mapping, or old-style args), as given.
+
+    Names are not checked here (:func:`_named` does, when a name is not a graph's); a dict is
+    returned as it is (never modified).
 
     Raises:
-        InputError: an unknown input name, or too many positional values.
+        InputError: too many positional values.
     """
-    if isinstance(inputs, Inputs):
-        given = inputs.as_dict()
-    elif isinstance(inputs, Mapping) and not args:
-        given = dict(inputs)
-    else:  # q, qd, qdd, ft, positions, ... as earlier versions took them
-        args = args if inputs is None else (inputs, *args)
-        if len(args) > len(_POSITIONAL):
-            raise InputError(f"at most {len(_POSITIONAL)} positional inputs {_POSITIONAL}")
-        given = dict(zip(_POSITIONAL, args, strict=False))
+    if not args:
+        if type(inputs) is dict and not named:
+            return inputs  # the common case
+        if isinstance(inputs, Inputs):
+            return {**inputs.as_dict(), **named}
+        if isinstance(inputs, Mapping):
+            return {**inputs, **named}
+    # q, qd, qdd, ft, positions, ... as earlier versions took them
+    args = args if inputs is None else (inputs, *args)
+    if len(args) > len(_POSITIONAL):
+        raise InputError(f"at most {len(_POSITIONAL)} positional inputs {_POSITIONAL}")
+    given = dict(zip(_POSITIONAL, args, strict=False))
     given.update(named)
-    if not given.keys() <= _FIELDS:
-        renamed = {}
-        for k, v in given.items():
-            c = fmt.canonical(k)
-            if c not in _FIELDS:
-                raise InputError(f"unknown input {k!r}; the inputs are {sorted(_FIELDS)}")
-            renamed[c] = v
-        given = renamed
-    return {k: v for k, v in given.items() if v is not None}
+    return given
+
+
+def _named(given: Mapping[str, Any]) -> dict[str, Any]:
+    """``given`` by the one name of each input, the None values left out.
+
+    Raises:
+        InputError: an unknown input name.
+    """
+    out = {}
+    for k, v in given.items():
+        c = fmt.canonical(k)
+        if c not in _FIELDS:
+            raise InputError(f"unknown input {k!r}; the inputs are {sorted(_FIELDS)}")
+        if v is not None:
+            out[c] = v
+    return out
 
 
 def session_options(intra_op_threads: int = 1) -> ort.SessionOptions:
@@ -612,21 +628,28 @@ class EstimatorRuntime:
         self._lay = lay
         self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in out.items()}
         self._fresh: set[str] = set()
-        # no default (None): required; ones for the activity flags; zeros for the rest
-        self._defaults = {k: None for k in fmt.REQUIRED} | {k: 1.0 for k in fmt.ONES}
+        # per field of the packed input: how step() fills it, and its default (None: required;
+        # ones for the activity flags; zeros for the rest)
+        defaults = {k: None for k in fmt.REQUIRED} | {k: 1.0 for k in fmt.ONES}
+        special = {"ft": _FT, "tau_mask": _MASK, fmt.EXTRA: _EXTRA}
+        self._fill = [
+            (
+                k,
+                v,
+                _STATE if k.startswith("h_in.") else special.get(k, _PLAIN),
+                defaults.get(k, 0.0),
+            )
+            for k, v in self._xv.items()
+        ]
+        self._accepts = frozenset(self._xv) | _SLOT_DATA
         self._in_name = self.step_session.get_inputs()[0].name
         # the binding's own run (skips the Python wrapper's per-call checks)
         self._run = self.step_session._sess.run
         self._out_names = [o.name for o in self.step_session.get_outputs()]
         self._ro = ort.RunOptions()
 
-    def _put(self, name: str, value: Any, default: float | None = 0.0) -> None:
+    def _put(self, name: str, view: np.ndarray, value: Any, default: float | None) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
-        view = self._xv.get(name)
-        if view is None:
-            if value is not None:
-                raise InputError(f"this graph has no input {name!r} (exported without it)")
-            return
         if value is None:
             if default is None:
                 raise InputError(f"{name} is required by this graph, shape {view.shape}")
@@ -674,6 +697,8 @@ class EstimatorRuntime:
                 column.
         """
         given = _given(inputs, args, named)
+        if self.step_session is None or not given.keys() <= self._accepts:
+            given = _named(given)  # old spellings, None for absent
         if self.step_session is None:  # the batched graph with N = 1
             one = {k: (np.asarray(v)[None] if k not in ("extra", "h_in") else v)
                    for k, v in given.items()}  # fmt: skip
@@ -692,25 +717,29 @@ class EstimatorRuntime:
         if self.residuals:
             ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
                                     batch=False)  # fmt: skip
-        given["ft"] = ft
-        # a layout without force_dir (known) slots does not read directions (wrenches)
-        unknown = [k for k in given if k not in self._xv and k not in _SLOT_DATA]
-        if unknown:
-            raise InputError(f"this graph has no input {unknown[0]!r} (exported without it)")
+        if not given.keys() <= self._accepts:
+            # a layout without force_dir (known) slots does not read directions (wrenches)
+            bad = sorted(given.keys() - self._accepts)
+            raise InputError(f"this graph has no input {bad[0]!r} (exported without it)")
         put = self._put
-        for name in self._xv:
-            value = given.get(name)
-            if name == "tau_mask" and value is None and "tau_measured" in given:
-                value = np.isfinite(np.asarray(given["tau_measured"], dtype=float))
-            elif name == fmt.EXTRA:
+        for name, view, kind, default in self._fill:  # the packed input's fields, in order
+            if kind == _PLAIN:
+                put(name, view, given.get(name), default)
+            elif kind == _FT:
+                put(name, view, ft, None)
+            elif kind == _MASK:
+                value = given.get(name)
+                if value is None and given.get("tau_measured") is not None:
+                    value = np.isfinite(np.asarray(given["tau_measured"], dtype=float))
+                put(name, view, value, default)
+            elif kind == _EXTRA:
                 vals = extra or {}
                 missing = [c for c in self.extra if c not in vals]
                 if missing:
                     raise InputError(f"extra inputs {missing} are required by the corrections")
-                value = [vals[c] for c in self.extra]
-            elif name.startswith("h_in."):
-                value = self._state[name[5:]]
-            put(name, value, self._defaults.get(name, 0.0))
+                view[...] = [vals[c] for c in self.extra]
+            else:  # a recurrent correction's state, carried from the previous step
+                view[...] = self._state[name[5:]]
         out = self._run(self._out_names, {self._in_name: self._x}, self._ro)[0][0]
         lo = self._out
         a, b, sh = lo["fm"]
