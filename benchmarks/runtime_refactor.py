@@ -183,8 +183,9 @@ def main() -> None:
         p = {k: np.percentile(np.asarray(v) / 1e3, [50, 99]) for k, v in t.items()}
         so, sn, ro, rn = p["old step"], p["new step"], p["old run"], p["new run"]
         n_old, n_new = runs[name]["nodes"]
-        print(f"| {name} | {n_old} / {n_new} | {so[0]:.0f} / {sn[0]:.0f} ({sn[0] / so[0]:.2f}) |"
-              f" {so[1]:.0f} / {sn[1]:.0f} | {ro[0]:.0f} / {rn[0]:.0f} ({rn[0] / ro[0]:.2f}) |")  # fmt: skip
+        step = f"{so[0]:.0f} / {sn[0]:.0f} ({sn[0] / so[0]:.2f})"
+        run = f"{ro[0]:.0f} / {rn[0]:.0f} ({rn[0] / ro[0]:.2f})"
+        print(f"| {name} | {n_old} / {n_new} | {step} | {so[1]:.0f} / {sn[1]:.0f} | {run} |")
 
 
 if __name__ == "__main__":
