@@ -76,18 +76,16 @@ def _nodes(path: Path) -> tuple[int, int]:
         return len(onnx.load(str(path)).graph.node), len(onnx.load(f"{d}/opt.onnx").graph.node)
 
 
-def latency(calls: int, d: Path) -> None:
-    """Section 1: single-frame latency of the step graph, interleaved configurations."""
-    arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
-    icub = tc.RobotModel.from_urdf(icub_path())
-    # a correction stack as training writes it: offset, inertial layer on the sensor's subtree,
-    # the default MLP on the default features plus a temperature column (random weights)
+def icub_correction(icub: tc.RobotModel, d: Path) -> Path:
+    """A correction stack as training writes it, for iCub ``l_arm_ft``: offset, inertial layer
+    on the sensor's subtree, the default MLP on the default features plus a temperature column
+    (random weights); returns its checkpoint directory."""
     spec = FeatureSpec.default(icub, "l_arm_ft", extra=("temperature",))
     torch.manual_seed(0)
     mlp = ResidualMLP(len(spec.names(icub)))
     mlp.set_normalisation(torch.randn(64, len(spec.names(icub))), torch.randn(64, 6))
     bodies = tuple(icub.body_names[b] for b in subtree_bodies(icub, "l_arm_ft"))
-    ckpt = ResidualCorrection(
+    return ResidualCorrection(
         icub,
         "l_arm_ft",
         offset=torch.randn(6, dtype=torch.float64),
@@ -96,6 +94,13 @@ def latency(calls: int, d: Path) -> None:
         learned=mlp,
         features=spec,
     ).save(d / "residual")
+
+
+def latency(calls: int, d: Path) -> None:
+    """Section 1: single-frame latency of the step graph, interleaved configurations."""
+    arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    icub = tc.RobotModel.from_urdf(icub_path())
+    ckpt = icub_correction(icub, d)
     export_residual_checkpoint(ckpt, d / "residual.onnx", icub)
     configs = {}  # name -> (runtime, frame, extra, path)
     for dt in (torch.float32, torch.float64):

@@ -32,15 +32,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "tests"))
 from _meta import metadata  # noqa: E402
 from robots import icub_path  # noqa: E402
+from runtime import icub_correction  # noqa: E402 - benchmarks/runtime.py
 
 import torchcontact as tc  # noqa: E402
 from torchcontact.export import export_estimator, export_residual_checkpoint  # noqa: E402
-from torchcontact.residual import (  # noqa: E402
-    FeatureSpec,
-    ResidualCorrection,
-    ResidualMLP,
-    subtree_bodies,
-)
 from torchcontact.runtime import EstimatorRuntime  # noqa: E402
 
 TCARM = (("forearm_skin", "hand_skin"), ("force", "force"))
@@ -90,20 +85,6 @@ def _old_runtime(tree: Path):
     return mod
 
 
-def _checkpoint(d: Path) -> Path:
-    icub = tc.RobotModel.from_urdf(icub_path())
-    spec = FeatureSpec.default(icub, "l_arm_ft", extra=("temperature",))
-    torch.manual_seed(0)
-    mlp = ResidualMLP(len(spec.names(icub)))
-    mlp.set_normalisation(torch.randn(64, len(spec.names(icub))), torch.randn(64, 6))
-    bodies = tuple(icub.body_names[b] for b in subtree_bodies(icub, "l_arm_ft"))
-    return ResidualCorrection(
-        icub, "l_arm_ft", offset=torch.randn(6, dtype=torch.float64), inertial_bodies=bodies,
-        delta=0.01 * torch.randn(10 * len(bodies), dtype=torch.float64), learned=mlp,
-        features=spec,
-    ).save(d / "residual")  # fmt: skip
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", default="4b41f9f", help="the earlier commit (default 4b41f9f)")
@@ -119,7 +100,7 @@ def main() -> None:
         (d / "old.tar").write_bytes(arch)
         with tarfile.open(d / "old.tar") as t:
             t.extractall(tree, filter="data")
-        ckpt = _checkpoint(d)
+        ckpt = icub_correction(tc.RobotModel.from_urdf(icub_path()), d)
         configs = list(CONFIGS.values())
         job = [configs, str(d), str(icub_path()), str(ckpt)]
         env = {"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"}
