@@ -6,12 +6,16 @@ made for one robot. They record its :class:`RobotIdentity`, computed by
 comment, a re-indentation or a reordering of elements leaves it unchanged, while every number the
 estimator reads changes it (a 10 g mass change does). It lists, in a fixed order:
 
-- the joint coordinates (the order of ``q``), and per body its parent, joint and joint type;
-- each moving joint's axis and mimic coupling, each body's joint origin in its parent;
-- each body's mass, centre of mass and rotational inertia (merged over fixed joints);
-- each F/T sensor's joint, reading frame and measure direction;
-- the joint velocity limits (the implausibility check reads them);
-- every link and joint frame's placement on its body (contact slots are given in them).
+- the joint coordinates (the order of ``q``);
+- per link, as the URDF declares it: its mass, inertial origin and rotational inertia (and the
+  point masses :meth:`~torchcontact.RobotModel.with_point_mass` added);
+- per joint: its type, parent and child links, origin, and for a moving joint its axis, velocity
+  limit (the implausibility check reads it) and mimic coupling;
+- each F/T sensor's joint, measure direction and reading frame.
+
+It is per link and joint, so how a model is built from the URDF (fixed joints merged into
+bodies or kept as boundaries) does not change it; position and effort limits, which the
+estimator does not read, are not listed.
 
 Numbers are rounded to 10 significant digits (and to 1e-12 absolutely), so that the same robot
 parsed from text that writes a number differently, or merged in another order, has the same

@@ -276,7 +276,11 @@ class RobotModel:
         mass_t[b] = m1
         com_t[b] = torch.as_tensor(c1, dtype=self.dtype, device=self.device)
         in_t[b] = torch.as_tensor(I1, dtype=self.dtype, device=self.device)
-        ident = self.identity.replace(_body_entries(self.body_names[b], m1, c1, I1))
+        added = sum(1 for e in self.identity.entries if e[0] == f"link {link}" and
+                    e[1].startswith("added mass"))  # fmt: skip
+        ident = self.identity.replace(
+            [entry(f"link {link}", f"added mass {added + 1}", [mass, *com_link], "kg, m")]
+        )
         return replace(self, mass=mass_t, com=com_t, inertia_com=in_t, identity=ident)
 
     def body_of(self, name: str) -> int:
@@ -696,23 +700,12 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             for key in ("lower", "upper", "velocity", "effort")
         },
     )
-    model = replace(model, identity=_describe(model))
+    model = replace(model, identity=_describe(parsed, joint_order, ft))
     return model if dtype == torch.float64 else model.to(dtype=dtype)
 
 
 def _np(t: Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float64).numpy()
-
-
-def _body_entries(name: str, mass: float, com: np.ndarray, inertia: np.ndarray) -> list[tuple]:
-    """Identity entries of a body's inertial parameters (merged over its fixed links)."""
-    I = np.asarray(inertia, float)  # noqa: E741 - the inertia tensor
-    return [
-        entry(f"link {name}", "mass", [mass], "kg"),
-        entry(f"link {name}", "centre of mass", np.asarray(com, float), "m"),
-        entry(f"link {name}", "inertia", [I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2], I[2, 2]],
-              "kg m^2"),
-    ]  # fmt: skip
 
 
 def _sensor_entries(s: FTSensor) -> list[tuple]:
@@ -724,33 +717,36 @@ def _sensor_entries(s: FTSensor) -> list[tuple]:
     ]
 
 
-def _describe(m: RobotModel) -> RobotIdentity:
-    """The :class:`~torchcontact.identity.RobotIdentity` of a model (see that module)."""
-    C0, p0, axis = _np(m.C0), _np(m.p0), _np(m.axis)
-    q_to_body, q_offset = _np(m.q_to_body), _np(m.q_offset)
-    mass, com, inertia = _np(m.mass), _np(m.com), _np(m.inertia_com)
-    is_rev, is_pri = _np(m.is_revolute), _np(m.is_prismatic)
-    out = [entry("robot", "joints", m.joint_names)]
-    for b in range(1, m.nb):
-        j = m.body_joint[b]
-        kind = "revolute" if is_rev[b] else "prismatic" if is_pri[b] else "fixed"
-        out.append(entry(f"link {m.body_names[b]}", "parent", [m.body_names[m.body_parent[b]], j]))
-        out.append(entry(f"joint {j}", "type", [kind]))
-        out.append(entry(f"joint {j}", "origin", [*C0[b].ravel(), *p0[b]], "m"))
-        if kind != "fixed":
-            lead = int(np.flatnonzero(q_to_body[:, b])[0])
-            coupling = [m.joint_names[lead], q_to_body[lead, b], q_offset[b]]
-            out.append(entry(f"joint {j}", "axis", axis[b]))
-            out.append(entry(f"joint {j}", "coordinate", coupling))
-    for b in range(m.nb):
-        out += _body_entries(m.body_names[b], mass[b], com[b], inertia[b])
-    for s in m.ft_sensors.values():
+def _describe(parsed: dict, joint_order: Sequence[str], sensors: dict) -> RobotIdentity:
+    """The :class:`~torchcontact.identity.RobotIdentity` of a parsed URDF (see that module).
+
+    Per link and joint as the URDF declares them, so that how the model is built from it (fixed
+    joints merged or kept as body boundaries) does not change it.
+    """
+    out = [entry("robot", "joints", joint_order)]
+    for name in sorted(parsed["links"]):
+        inertial = parsed["links"][name]["inertial"]
+        where = f"link {name}"
+        if inertial is None:
+            out.append(entry(where, "inertial", ["none"]))
+            continue
+        m, R, p, I = inertial  # noqa: E741 - the inertia tensor
+        out += [
+            entry(where, "mass", [m], "kg"),
+            entry(where, "inertial origin", [*np.asarray(R).ravel(), *p], "m"),
+            entry(where, "inertia", [I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2], I[2, 2]],
+                  "kg m^2"),
+        ]  # fmt: skip
+    for j in sorted(parsed["joints"], key=lambda j: j["name"]):
+        where = f"joint {j['name']}"
+        out.append(entry(where, "type", [j["type"], j["parent"], j["child"]]))
+        out.append(entry(where, "origin", [*np.asarray(j["R"]).ravel(), *j["p"]], "m"))
+        if j["type"] in _MOVING:
+            out.append(entry(where, "axis", j["axis"]))
+            out.append(entry(where, "velocity limit", [j["limit"]["velocity"]], "rad/s or m/s"))
+            if j["mimic"] is not None:
+                mm = j["mimic"]
+                out.append(entry(where, "mimic", [mm["joint"], mm["multiplier"], mm["offset"]]))
+    for s in sensors.values():
         out += _sensor_entries(s)
-    vel = m.joint_limits.get("velocity", np.full(m.nv, np.inf))
-    for j, v in zip(m.joint_names, vel, strict=True):
-        out.append(entry(f"joint {j}", "velocity limit", [v], "rad/s or m/s"))
-    for name in sorted(m.frames):
-        fr = m.frames[name]
-        place = [m.body_names[fr.body], *fr.R_body_frame.ravel(), *fr.p_body_frame]
-        out.append(entry(f"frame {name}", "placement", place, "m"))
     return RobotIdentity(tuple(out))
