@@ -156,7 +156,9 @@ def test_identity_is_the_parsed_model_not_the_text():
     b = tc.RobotModel.from_urdf(urdf(reordered.replace('value="1"', 'value="1.0e0"')))
     assert a.urdf_sha256 != b.urdf_sha256 and a.identity.sha256 == b.identity.sha256
     assert a.to(dtype=torch.float32).identity == a.identity
-    heavier = tc.RobotModel.from_urdf(urdf(MINI.replace('<mass value="1"/>', '<mass value="1.01"/>')))
+    heavier = tc.RobotModel.from_urdf(
+        urdf(MINI.replace('<mass value="1"/>', '<mass value="1.01"/>'))
+    )
     assert heavier.identity.sha256 != a.identity.sha256
     assert a.identity.difference(heavier.identity) == "link l1: mass 1 vs 1.01 kg"
     moved = tc.RobotModel.from_urdf(urdf(MINI.replace('xyz="0 0 0.5"', 'xyz="0 0 0.51"')))

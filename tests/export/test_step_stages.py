@@ -65,7 +65,7 @@ class Probe:
         """The probed values of one frame (``scene`` arrays of one frame)."""
         lay = self.ctx.lay
         x = np.zeros((1, lay.size))
-        for name, (_off, shape) in lay.fields.items():
+        for name in lay.fields:
             start, stop, _ = lay.span(name)
             x[0, start:stop] = np.asarray(frame[name], float).reshape(-1)
         outs = self.session.run(self.names, {"x": x})

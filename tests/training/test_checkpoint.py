@@ -292,7 +292,9 @@ def test_checkpoint_keyed_by_the_parsed_robot(tmp_path, arm):
     ResidualCorrection.load(d, model)
     m = re.search(r'<link name="hand">.*?<mass value="([0-9.]+)"', text, re.S)
     heavier = text[: m.start(1)] + f"{float(m.group(1)) + 0.01:g}" + text[m.end(1) :]
-    with pytest.raises(CheckpointError, match=r"not this robot .*: link hand: mass 0\.6 vs 0\.61 kg"):
+    with pytest.raises(
+        CheckpointError, match=r"not this robot .*: link hand: mass 0\.6 vs 0\.61 kg"
+    ):
         ResidualCorrection.load(d, tc.RobotModel.from_urdf(io.StringIO(heavier)))
     meta = json.loads((d / "checkpoint.json").read_text())
     del meta["robot_identity"], meta["robot_identity_sha256"]  # as written before identities
