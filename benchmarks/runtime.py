@@ -76,18 +76,16 @@ def _nodes(path: Path) -> tuple[int, int]:
         return len(onnx.load(str(path)).graph.node), len(onnx.load(f"{d}/opt.onnx").graph.node)
 
 
-def latency(calls: int, d: Path) -> None:
-    """Section 1: single-frame latency of the step graph, interleaved configurations."""
-    arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
-    icub = tc.RobotModel.from_urdf(icub_path())
-    # a correction stack as training writes it: offset, inertial layer on the sensor's subtree,
-    # the default MLP on the default features plus a temperature column (random weights)
+def icub_correction(icub: tc.RobotModel, d: Path) -> Path:
+    """A correction stack as training writes it, for iCub ``l_arm_ft``: offset, inertial layer
+    on the sensor's subtree, the default MLP on the default features plus a temperature column
+    (random weights); returns its checkpoint directory."""
     spec = FeatureSpec.default(icub, "l_arm_ft", extra=("temperature",))
     torch.manual_seed(0)
     mlp = ResidualMLP(len(spec.names(icub)))
     mlp.set_normalisation(torch.randn(64, len(spec.names(icub))), torch.randn(64, 6))
     bodies = tuple(icub.body_names[b] for b in subtree_bodies(icub, "l_arm_ft"))
-    ckpt = ResidualCorrection(
+    return ResidualCorrection(
         icub,
         "l_arm_ft",
         offset=torch.randn(6, dtype=torch.float64),
@@ -96,6 +94,13 @@ def latency(calls: int, d: Path) -> None:
         learned=mlp,
         features=spec,
     ).save(d / "residual")
+
+
+def latency(calls: int, d: Path) -> None:
+    """Section 1: single-frame latency of the step graph, interleaved configurations."""
+    arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    icub = tc.RobotModel.from_urdf(icub_path())
+    ckpt = icub_correction(icub, d)
     export_residual_checkpoint(ckpt, d / "residual.onnx", icub)
     configs = {}  # name -> (runtime, frame, extra, path)
     for dt in (torch.float32, torch.float64):
@@ -132,8 +137,10 @@ def latency(calls: int, d: Path) -> None:
         f = _frame(model, K)
         kw = {"extra": extra} if extra else {}
 
-        def step(rt=rt, f=f, kw=kw):
-            return rt.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"], **kw)
+        inputs = {**f, **kw}
+
+        def step(rt=rt, inputs=inputs):
+            return rt.step(inputs)
 
         out = step()
         assert out["status"] == 0, name
@@ -201,7 +208,7 @@ def session_choices(calls: int, d: Path) -> None:
     step = path.with_name("opts.step.onnx")
     rt = EstimatorRuntime(path)
     f = _frame(arm, 2)
-    rt.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"])
+    rt.step(f)
     x = rt._x.copy()
 
     def opts(**kw):
@@ -273,11 +280,11 @@ def throughput(frames: int, d: Path) -> None:
             active=np.ones((n, 2)),
         )
         x = {k: v.astype(f) for k, v in x.items()}
-        rt.run(**{k: v[:1000] for k, v in x.items()})
+        rt.run({k: v[:1000] for k, v in x.items()})
         best = []
         for _ in range(3):
             t0 = time.perf_counter()
-            rt.run(**x)
+            rt.run(x)
             best.append(time.perf_counter() - t0)
         nodes = len(onnx.load(str(path)).graph.node)
         rows.append((f"ONNX batched graph, {tag} ({nodes:,} nodes), 1 thread", n / min(best)))

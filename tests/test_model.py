@@ -144,3 +144,30 @@ def test_bad_urdf_names_the_element(case):
 def test_missing_file():
     with pytest.raises(FileNotFoundError, match="nope.urdf"):
         tc.RobotModel.from_urdf("/nonexistent/nope.urdf")
+
+
+def test_identity_is_the_parsed_model_not_the_text():
+    """Comments, indentation, number spelling and element order keep the identity; every
+    number the estimator reads changes it, and the difference is named."""
+    a = tc.RobotModel.from_urdf(urdf(MINI))
+    reordered = MINI.replace('<link name="tool"/>\n', "").replace(
+        "</robot>", '  <link name="tool"/>\n<!-- moved -->\n</robot>'
+    )
+    b = tc.RobotModel.from_urdf(urdf(reordered.replace('value="1"', 'value="1.0e0"')))
+    assert a.urdf_sha256 != b.urdf_sha256 and a.identity.sha256 == b.identity.sha256
+    assert a.to(dtype=torch.float32).identity == a.identity
+    heavier = tc.RobotModel.from_urdf(
+        urdf(MINI.replace('<mass value="1"/>', '<mass value="1.01"/>'))
+    )
+    assert heavier.identity.sha256 != a.identity.sha256
+    assert a.identity.difference(heavier.identity) == "link l1: mass 1 vs 1.01 kg"
+    moved = tc.RobotModel.from_urdf(urdf(MINI.replace('xyz="0 0 0.5"', 'xyz="0 0 0.51"')))
+    assert a.identity.difference(moved.identity).startswith("joint tool_joint: origin")
+    slower = tc.RobotModel.from_urdf(urdf(MINI.replace('velocity="1"', 'velocity="2"')))
+    assert a.identity.difference(slower.identity) == "joint j1: velocity limit 1 vs 2 rad/s or m/s"
+    # how the model is built from the URDF does not change it; the with_* methods keep it current
+    assert tc.RobotModel.from_urdf(urdf(MINI), keep_fixed=["tool_joint"]).identity == a.identity
+    heavy = a.with_point_mass("l1", 0.01).identity
+    assert a.identity.difference(heavy) == "link l1: added mass 1 absent vs 0.01 0 0 0 kg, m"
+    kept = tc.RobotModel.from_urdf(urdf(MINI), keep_fixed=["tool_joint"])
+    assert "sensor s" in kept.identity.difference(kept.with_ft_sensor("s", "tool_joint").identity)

@@ -19,6 +19,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "KINDS": "torchcontact.contacts",
     "STATUS": "torchcontact.status",
+    "Status": "torchcontact.status",
     "InputError": "torchcontact.errors",
     "TorchContactError": "torchcontact.errors",
     "BaseMotion": "torchcontact.dynamics",
@@ -32,7 +33,7 @@ _LAZY = {
     "FrictionCones": "torchcontact.constrained",
     "PreviousFrame": "torchcontact.constrained",
     "RobotModel": "torchcontact.model",
-    "URDFError": "torchcontact.model",
+    "URDFError": "torchcontact.errors",
     "body_wrenches": "torchcontact.dynamics",
     "compiled_inverse_dynamics": "torchcontact.dynamics",
     "forward_pass": "torchcontact.dynamics",
@@ -57,6 +58,7 @@ __all__ = [
     "InputError",
     "PreviousFrame",
     "RobotModel",
+    "Status",
     "TorchContactError",
     "URDFError",
     "__version__",
@@ -80,7 +82,7 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
         forward_pass,
         inverse_dynamics,
     )
-    from torchcontact.errors import InputError, TorchContactError
+    from torchcontact.errors import InputError, TorchContactError, URDFError
     from torchcontact.estimation import (
         KINDS,
         STATUS,
@@ -90,7 +92,8 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
         Contacts,
         status_messages,
     )
-    from torchcontact.model import Frame, FTSensor, RobotModel, URDFError
+    from torchcontact.model import Frame, FTSensor, RobotModel
+    from torchcontact.status import Status
 
 
 def __getattr__(name: str):

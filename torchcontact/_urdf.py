@@ -2,6 +2,7 @@
 
 Returns plain numpy/float data; :mod:`torchcontact.model` turns it into tensors, and
 :mod:`torchcontact.meshes` loads the ``<visual>``/``<collision>`` geometry :func:`geometry` lists.
+Imports neither torch nor the model (the model imports this module, not the reverse).
 """
 
 from __future__ import annotations
@@ -11,9 +12,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from torchcontact.model import URDFError
+from torchcontact.errors import URDFError
 
 
 def read_text(urdf) -> tuple[str, str]:
@@ -29,9 +29,16 @@ def read_text(urdf) -> tuple[str, str]:
 
 
 def _rotation(rpy: np.ndarray) -> np.ndarray:
-    from torchcontact.spatial import rpy_to_matrix
-
-    return rpy_to_matrix(torch.as_tensor(rpy, dtype=torch.float64)).numpy()
+    """``R = Rz(yaw) Ry(pitch) Rx(roll)`` of URDF roll-pitch-yaw angles (fixed axes x, y, z)."""
+    cr, cp, cy = np.cos(rpy)
+    sr, sp, sy = np.sin(rpy)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def _floats(text: str | None, n: int, what: str, source: str) -> np.ndarray:

@@ -37,9 +37,10 @@ from torch import Tensor
 
 from torchcontact import kernels
 from torchcontact import spatial as sp
-from torchcontact._internal import check_input, flatten_batch, in_tracing
+from torchcontact._internal import check_input, flatten_batch
 from torchcontact._scalar import Scalar, add, cos, mul, sin
 from torchcontact.errors import InputError
+from torchcontact.kernels.runner import run_program
 from torchcontact.model import RobotModel
 
 __all__ = [
@@ -511,33 +512,6 @@ def _prepare(model: RobotModel, q: Tensor, qd: Tensor, qdd: Tensor, base: BaseMo
     return batch, tensors
 
 
-def _chunked(fn, tensors: dict[str, Tensor], chunk_size: int | None) -> dict[str, Tensor]:
-    n = next(iter(tensors.values())).shape[0]
-    if chunk_size is None or n <= chunk_size or in_tracing():
-        return fn(tensors)
-    parts = [fn({k: x[s : s + chunk_size] for k, x in tensors.items()})
-             for s in range(0, n, chunk_size)]  # fmt: skip
-    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-
-
-def _run(prog: kernels.Program, tensors: dict[str, Tensor], backend: str, chunk_size):
-    """Run a program; the eager backend in cache-sized chunks, kernels in one call."""
-    first = next(iter(tensors.values()))
-    if backend in ("cpu", "cuda"):
-        return kernels.run(prog, tensors, backend)
-    if backend == "auto" and not first.requires_grad and not in_tracing():
-        k = None
-        if first.shape[0] >= kernels.AUTO_BUILD_MIN_FRAMES or kernels._ready(prog, first):
-            if first.dtype in (torch.float32, torch.float64) and first.device.type in (
-                "cpu",
-                "cuda",
-            ):
-                k = kernels.compiled(prog, first.dtype, first.device, wait=False)
-        if k is not None:
-            return k(tensors)
-    return _chunked(lambda t: kernels.run_eager(prog, t), tensors, chunk_size)
-
-
 def forward_pass(
     model: RobotModel,
     q: Tensor,
@@ -574,7 +548,7 @@ def forward_pass(
     """
     batch, tensors = _prepare(model, q, qd, qdd, base)
     tree_of(model)
-    out = _run(program(model, "fp", base is not None), tensors, backend, 16384)
+    out = run_program(program(model, "fp", base is not None), tensors, backend, 16384)
     nb = model.nb
     return ForwardPass(
         out["R"].reshape(*batch, nb, 3, 3),
@@ -666,7 +640,7 @@ def inverse_dynamics(
             )
         tensors["f_ext"] = flatten_batch(f_ext, batch, 2).reshape(-1, 6 * model.nb)
     prog = program(model, "id", base is not None, f_ext is not None)
-    out = _run(prog, tensors, backend, chunk_size)
+    out = run_program(prog, tensors, backend, chunk_size)
     return out["tau"].reshape(*batch, model.nv)
 
 

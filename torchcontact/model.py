@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from torchcontact.errors import InputError, URDFError
+from torchcontact.identity import RobotIdentity, entry
 from torchcontact.spatial import combine_inertias
 
 __all__ = ["FTSensor", "Frame", "RobotModel", "URDFError"]
@@ -93,10 +94,7 @@ _TENSOR_FIELDS = (
     "q_to_body",
     "q_offset",
     "C0",
-    "C1",
-    "C2",
     "p0",
-    "prismatic_dir",
     "axis",
     "is_revolute",
     "is_prismatic",
@@ -131,10 +129,8 @@ class RobotModel:
         q_to_body: ``(nv, nb)`` maps joint coordinates to each body's joint coordinate (mimic
             included).
         q_offset: ``(nb,)`` mimic offsets added to body joint positions, rad or m.
-        C0, C1, C2: ``(nb, 3, 3)`` so that ``R_parent_body(q) = C0 + sin(q) C1 + (1 - cos(q)) C2``
-            (Rodrigues' formula folded into the joint placement; C1 = C2 = 0 unless revolute).
+        C0: ``(nb, 3, 3)`` rotation of the joint frame in the parent body frame at q = 0.
         p0: ``(nb, 3)`` joint origin in the parent body frame at q = 0, m.
-        prismatic_dir: ``(nb, 3)`` prismatic axis in the parent body frame (0 unless prismatic).
         axis: ``(nb, 3)`` unit joint axis in the body frame (0 for the root and fixed joints).
         is_revolute: ``(nb,)`` 1.0 where the body's joint is revolute or continuous.
         is_prismatic: ``(nb,)`` 1.0 where the body's joint is prismatic.
@@ -144,7 +140,11 @@ class RobotModel:
         gravity: ``(3,)`` gravity acceleration in the root frame, m/s^2 (default ``(0, 0, -9.81)``;
             :meth:`with_gravity` changes it). Used by every algorithm on a fixed base; a moving base
             measured by an IMU brings its own proper acceleration instead.
-        urdf_sha256: hash of the URDF text the model was built from.
+        urdf_sha256: hash of the URDF text the model was built from (what checkpoints and
+            graphs of earlier versions recorded; :attr:`identity` is what they record now).
+        identity: the robot's :class:`~torchcontact.identity.RobotIdentity`, a canonical
+            description of the parsed model (``identity.sha256`` keys checkpoints and graphs);
+            set by :meth:`from_urdf` and kept up to date by the ``with_*`` methods.
         joint_parent_link: joint name -> its URDF parent link.
         joint_limits: ``"lower"``, ``"upper"`` (rad or m), ``"velocity"`` (rad/s or m/s),
             ``"effort"`` (N m or N) -> ``(nv,)`` numpy float64 in ``joint_names`` order, from the
@@ -164,10 +164,7 @@ class RobotModel:
     q_to_body: Tensor
     q_offset: Tensor
     C0: Tensor
-    C1: Tensor
-    C2: Tensor
     p0: Tensor
-    prismatic_dir: Tensor
     axis: Tensor
     is_revolute: Tensor
     is_prismatic: Tensor
@@ -176,6 +173,7 @@ class RobotModel:
     inertia_com: Tensor
     gravity: Tensor
     urdf_sha256: str = ""
+    identity: RobotIdentity = field(default_factory=lambda: RobotIdentity(()))
     joint_parent_link: dict[str, str] = field(default_factory=dict)
     joint_limits: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -278,7 +276,12 @@ class RobotModel:
         mass_t[b] = m1
         com_t[b] = torch.as_tensor(c1, dtype=self.dtype, device=self.device)
         in_t[b] = torch.as_tensor(I1, dtype=self.dtype, device=self.device)
-        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t)
+        added = sum(1 for e in self.identity.entries if e[0] == f"link {link}" and
+                    e[1].startswith("added mass"))  # fmt: skip
+        ident = self.identity.replace(
+            [entry(f"link {link}", f"added mass {added + 1}", [mass, *com_link], "kg, m")]
+        )
+        return replace(self, mass=mass_t, com=com_t, inertia_com=in_t, identity=ident)
 
     def body_of(self, name: str) -> int:
         """Index of the body a link or joint frame named ``name`` is attached to.
@@ -432,7 +435,8 @@ class RobotModel:
         sensor = _make_sensor(
             name, joint, self.body_parent[b], b, frame, measure_direction, R_cs, p_cs
         )
-        return replace(self, ft_sensors={**self.ft_sensors, name: sensor})
+        ident = self.identity.replace(_sensor_entries(sensor))
+        return replace(self, ft_sensors={**self.ft_sensors, name: sensor}, identity=ident)
 
 
 def _make_sensor(name, joint, parent_body, child_body, frame, direction, R_cs, p_cs) -> FTSensor:
@@ -461,8 +465,6 @@ def _reading_frame(frame: str, R_pc, p_pc, R_origin, p_origin):
 
 
 def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
-    from torchcontact._urdf import axis_rotation_terms
-
     links, joints, sensors = parsed["links"], parsed["joints"], parsed["sensors"]
     # Tree structure: every joint names existing links; each link has at most one parent.
     child_of: dict[str, dict] = {}
@@ -616,10 +618,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
     q_to_body = np.zeros((nv, nb))
     q_offset = np.zeros(nb)
     C0 = np.tile(np.eye(3), (nb, 1, 1))
-    C1 = np.zeros((nb, 3, 3))
-    C2 = np.zeros((nb, 3, 3))
     p0 = np.zeros((nb, 3))
-    pdir = np.zeros((nb, 3))
     axis = np.zeros((nb, 3))
     is_rev = np.zeros(nb)
     is_pri = np.zeros(nb)
@@ -641,10 +640,8 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         q_offset[b] = off
         if j["type"] == "prismatic":
             is_pri[b] = 1.0
-            pdir[b] = R0 @ a
         else:
             is_rev[b] = 1.0
-            C1[b], C2[b] = axis_rotation_terms(R0, a)
 
     frames: dict[str, Frame] = {}
     for name, (b, R, p) in link_in_body.items():
@@ -664,10 +661,10 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             raise URDFError(f"{source}: sensor {s['name']!r} is declared twice")
         ft[s["name"]] = sensor
 
-    def t(x):
-        return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
+    def t(x):  # float64 first: the identity is computed from float64 values
+        return torch.as_tensor(np.asarray(x), dtype=torch.float64, device=device)
 
-    return RobotModel(
+    model = RobotModel(
         name=parsed["name"],
         joint_names=tuple(joint_order),
         joint_types=tuple(joint_by_name[n]["type"] for n in joint_order),
@@ -681,10 +678,7 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
         q_to_body=t(q_to_body),
         q_offset=t(q_offset),
         C0=t(C0),
-        C1=t(C1),
-        C2=t(C2),
         p0=t(p0),
-        prismatic_dir=t(pdir),
         axis=t(axis),
         is_revolute=t(is_rev),
         is_prismatic=t(is_pri),
@@ -706,3 +700,53 @@ def _build(parsed, dtype, device, keep_fixed, root, source, text) -> RobotModel:
             for key in ("lower", "upper", "velocity", "effort")
         },
     )
+    model = replace(model, identity=_describe(parsed, joint_order, ft))
+    return model if dtype == torch.float64 else model.to(dtype=dtype)
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().to("cpu", torch.float64).numpy()
+
+
+def _sensor_entries(s: FTSensor) -> list[tuple]:
+    """Identity entries of an F/T sensor: joint, reading frame (child body frame), direction."""
+    where = f"sensor {s.name}"
+    return [
+        entry(where, "joint", [s.joint, s.measure_direction]),
+        entry(where, "frame", [*np.asarray(s.R_child_sensor).ravel(), *s.p_child_sensor], "m"),
+    ]
+
+
+def _describe(parsed: dict, joint_order: Sequence[str], sensors: dict) -> RobotIdentity:
+    """The :class:`~torchcontact.identity.RobotIdentity` of a parsed URDF (see that module).
+
+    Per link and joint as the URDF declares them, so that how the model is built from it (fixed
+    joints merged or kept as body boundaries) does not change it.
+    """
+    out = [entry("robot", "joints", joint_order)]
+    for name in sorted(parsed["links"]):
+        inertial = parsed["links"][name]["inertial"]
+        where = f"link {name}"
+        if inertial is None:
+            out.append(entry(where, "inertial", ["none"]))
+            continue
+        m, R, p, I = inertial  # noqa: E741 - the inertia tensor
+        out += [
+            entry(where, "mass", [m], "kg"),
+            entry(where, "inertial origin", [*np.asarray(R).ravel(), *p], "m"),
+            entry(where, "inertia", [I[0, 0], I[0, 1], I[0, 2], I[1, 1], I[1, 2], I[2, 2]],
+                  "kg m^2"),
+        ]  # fmt: skip
+    for j in sorted(parsed["joints"], key=lambda j: j["name"]):
+        where = f"joint {j['name']}"
+        out.append(entry(where, "type", [j["type"], j["parent"], j["child"]]))
+        out.append(entry(where, "origin", [*np.asarray(j["R"]).ravel(), *j["p"]], "m"))
+        if j["type"] in _MOVING:
+            out.append(entry(where, "axis", j["axis"]))
+            out.append(entry(where, "velocity limit", [j["limit"]["velocity"]], "rad/s or m/s"))
+            if j["mimic"] is not None:
+                mm = j["mimic"]
+                out.append(entry(where, "mimic", [mm["joint"], mm["multiplier"], mm["offset"]]))
+    for s in sensors.values():
+        out += _sensor_entries(s)
+    return RobotIdentity(tuple(out))

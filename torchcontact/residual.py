@@ -18,9 +18,10 @@ stack of layers whose outputs add up:
   can move the sensor or its load (:func:`sensor_joints`), the nominal wrench ``ft_nominal`` and
   extra logged columns such as ``temperature``.
 
-The stack evaluates as one traceable torch function (:class:`CorrectionGraph`): the same code runs
-in ``torchcontact estimate --residual`` and in the ONNX graph of
-:func:`torchcontact.export.export_residual_checkpoint`. Physics layers compute in the model's
+The stack evaluates as one torch function (:class:`CorrectionGraph`, ``torchcontact estimate
+--residual``); its structure is a frozen :class:`CorrectionSpec`, which the ONNX graph of
+:func:`torchcontact.export.export_residual_checkpoint` and the single-frame estimator graph read
+as well. Physics layers compute in the model's
 dtype; the networks train and run in float32 and cast at their boundary.
 
 Checkpoint directory (``python -m training`` writes it, :meth:`ResidualCorrection.load` reads
@@ -67,6 +68,7 @@ __all__ = [
     "PARAM_NAMES",
     "CheckpointError",
     "CorrectionGraph",
+    "CorrectionSpec",
     "FeatureSpec",
     "ResidualCorrection",
     "ResidualGRU",
@@ -315,6 +317,103 @@ class FeatureSpec:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
+@dataclass(frozen=True)
+class CorrectionSpec:
+    """The structure of a correction stack, built once from a checkpoint (a frozen value).
+
+    What every consumer of a stack reads: :class:`CorrectionGraph` (the torch function), the
+    single-frame estimator graph (which rebuilds the physics layers natively) and the exported
+    metadata (``stack``, as :meth:`to_json`).
+
+    Attributes:
+        sensor: the corrected sensor.
+        offset: 6 values ``[N; N m]`` or None.
+        inertial: per body of the inertial layer ``(link name, 10 parameters)``
+            (:data:`PARAM_NAMES`, link frame, about the body origin).
+        features: the learned layer's inputs, or None.
+        learned: the learned layer's kind (``"mlp"``, ``"gru"``) or None.
+    """
+
+    sensor: str
+    offset: tuple[float, ...] | None = None
+    inertial: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    features: FeatureSpec | None = None
+    learned: str | None = None
+
+    @property
+    def nominal(self) -> bool:
+        """The learned layer reads the nominal wrench."""
+        return self.features is not None and self.features.nominal
+
+    def offset_array(self) -> np.ndarray | None:
+        """``(6,)`` float64 offset, or None."""
+        return None if self.offset is None else np.asarray(self.offset, float)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``stack`` metadata of an exported correction graph."""
+        return {
+            "sensor": self.sensor,
+            "offset": None if self.offset is None else list(self.offset),
+            "inertial_bodies": [name for name, _ in self.inertial],
+            "delta": [v for _, p in self.inertial for v in p] if self.inertial else None,
+            "features": None if self.features is None else self.features.to_json(),
+            "learned": self.learned,
+        }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any], sensor: str = "") -> CorrectionSpec:
+        """Inverse of :meth:`to_json` (also reads the ``stack`` of graphs without ``sensor``)."""
+        names = list(d.get("inertial_bodies") or [])
+        delta = np.asarray(d.get("delta") or [], float).reshape(-1, 10)
+        feats = d.get("features")
+        return cls(
+            sensor=str(d.get("sensor", sensor)),
+            offset=None if d.get("offset") is None else tuple(float(v) for v in d["offset"]),
+            inertial=tuple(
+                (n, tuple(float(v) for v in p)) for n, p in zip(names, delta, strict=True)
+            ),
+            features=None if feats is None else FeatureSpec(**feats),
+            learned=d.get("learned"),
+        )
+
+    def columns(self, model: RobotModel) -> tuple[list, int, np.ndarray] | None:
+        """The learned layer's raw input columns and their map to its feature order.
+
+        Returns:
+            ``(columns, n_angles, perm)``: per column ``("q" | "qd" | "qdd", joint)`` or
+            ``("extra", name)``, the first ``n_angles`` of them entering as ``sin, cos`` pairs;
+            ``perm`` ``(V, F)`` maps ``[sin (n_angles), cos (n_angles), other columns, extra,
+            nominal (6)]`` to the feature order of :meth:`FeatureSpec.names`. None when a
+            sin/cos set mixes prismatic joints in (their features interleave).
+        """
+        spec = self.features
+        if spec is None:
+            return None
+        types = dict(zip(model.joint_names, model.joint_types, strict=True))
+        prismatic = [types[j] == "prismatic" for j in spec.joints]
+        sincos = spec.angles == "sincos"
+        if sincos and any(prismatic) and not all(prismatic):
+            return None
+        sincos = sincos and not any(prismatic)
+        angle_cols = [("q", j) for j in spec.joints]
+        other = [] if sincos else list(angle_cols)
+        other += [("qd", j) for j in spec.joints if spec.velocities]
+        other += [("qdd", j) for j in spec.joints if spec.accelerations]
+        extra_cols = [("extra", c) for c in spec.extra]
+        n_angles = len(spec.joints) if sincos else 0
+        columns = (angle_cols if sincos else []) + other + extra_cols
+        n_in = 2 * n_angles + len(other) + len(extra_cols) + (6 if spec.nominal else 0)
+        order = [i for k in range(n_angles) for i in (k, n_angles + k)]
+        base = 2 * n_angles
+        order += [base + k for k in range(len(other))]
+        if spec.nominal:
+            order += [base + len(other) + len(extra_cols) + k for k in range(6)]
+        order += [base + len(other) + k for k in range(len(extra_cols))]
+        perm = np.zeros((n_in, len(order)))
+        perm[order, np.arange(len(order))] = 1.0
+        return columns, n_angles, perm
+
+
 # ---------------------------------------------------------------------- learned layers
 class _Normalised(nn.Module):
     """Feature/target standardisation held as buffers (saved with the weights)."""
@@ -534,6 +633,28 @@ class CorrectionGraph(nn.Module):
             self._all_revolute = bool(self._revolute.all()) and len(jidx) > 0
             self._none_revolute = not bool(self._revolute.any())
 
+    @classmethod
+    def from_spec(
+        cls, model: RobotModel, spec: CorrectionSpec, learned: ResidualMLP | ResidualGRU | None
+    ) -> CorrectionGraph:
+        """The stack of a :class:`CorrectionSpec` (its network given: the spec holds no weights).
+
+        Raises:
+            ModelMismatchError: a sensor or body ``model`` lacks.
+            ValueError: inconsistent layers.
+        """
+        unknown = [b for b, _ in spec.inertial if b not in model.body_names]
+        if unknown:
+            raise ModelMismatchError(f"inertial layer bodies {unknown} not in {model.name}")
+        offset = None if spec.offset is None else torch.tensor(spec.offset, dtype=torch.float64)
+        bodies = [model.body_names.index(b) for b, _ in spec.inertial] or None
+        delta = (
+            torch.tensor([v for _, p in spec.inertial for v in p], dtype=torch.float64)
+            if spec.inertial
+            else None
+        )
+        return cls(model, spec.sensor, offset, bodies, delta, learned, spec.features)
+
     @property
     def extra_columns(self) -> tuple[str, ...]:
         """Logged columns the stack reads besides the joint state, in ``extra`` order."""
@@ -669,21 +790,31 @@ class ResidualCorrection:
         unknown = [b for b in self.inertial_bodies if b not in self.model.body_names]
         if unknown:
             raise ModelMismatchError(f"inertial layer bodies {unknown} not in {self.model.name}")
-        bodies = [self.model.body_names.index(b) for b in self.inertial_bodies]
         if self.learned is not None:
             self.learned = self.learned.eval()
-        self.graph = CorrectionGraph(
-            self.model,
-            self.sensor,
-            self.offset,
-            bodies if self.delta is not None else None,
-            self.delta,
-            self.learned,
-            self.features,
+        if self.delta is not None and self.delta.numel() != 10 * len(self.inertial_bodies):
+            raise ValueError(
+                f"inertial layer: {self.delta.numel()} values for bodies {self.inertial_bodies}"
+            )
+        delta = () if self.delta is None else self.delta.detach().cpu().double().reshape(-1, 10)
+        self._spec = CorrectionSpec(
+            sensor=self.sensor,
+            offset=None if self.offset is None else tuple(self.offset.double().reshape(6).tolist()),
+            inertial=tuple(
+                (b, tuple(d.tolist())) for b, d in zip(self.inertial_bodies, delta, strict=True)
+            ),
+            features=self.features,
+            learned=None if self.learned is None else self.learned.kind,
         )
+        self.graph = CorrectionGraph.from_spec(self.model, self._spec, self.learned)
         self._h: Tensor | None = None
 
     # ------------------------------------------------------------------ description
+    @property
+    def spec(self) -> CorrectionSpec:
+        """The stack's :class:`CorrectionSpec` (built once)."""
+        return self._spec
+
     @property
     def layers(self) -> list[str]:
         """Layer kinds of the stack, e.g. ``["offset", "inertial", "mlp"]``."""
@@ -803,6 +934,8 @@ class ResidualCorrection:
             "joint_names": list(self.model.joint_names),
             "robot": self.model.name,
             "robot_sha256": self.model.urdf_sha256,
+            "robot_identity_sha256": self.model.identity.sha256,
+            "robot_identity": self.model.identity.to_json(),
             "extra_columns": self.extra_columns,
         }
         if self.delta is not None:
@@ -897,11 +1030,8 @@ class ResidualCorrection:
                 f" {meta.get('weights_sha256')}: the weights were modified or belong to another"
                 " checkpoint"
             )
-        if check_robot and meta.get("robot_sha256") != model.urdf_sha256:
-            raise CheckpointError(
-                f"{d}: trained for robot {meta.get('robot_sha256')} ({meta.get('robot')}), not"
-                f" this robot ({model.urdf_sha256}, {model.name})"
-            )
+        if check_robot:
+            _check_robot(d, meta, model)
         sensor = meta.get("sensor")
         if sensor not in model.ft_sensors:
             raise CheckpointError(
@@ -976,6 +1106,32 @@ class ResidualCorrection:
             features=features,
             meta=rest,
             source=str(d.resolve()),
+        )
+
+
+def _check_robot(d: Path, meta: Mapping[str, Any], model: RobotModel) -> None:
+    """Refuse a checkpoint trained for another robot, naming the first thing that differs.
+
+    A checkpoint records its robot's identity (:attr:`RobotModel.identity`, the parsed model);
+    one of an earlier version only the URDF text's hash, which must then match.
+    """
+    from torchcontact.identity import RobotIdentity
+
+    recorded = meta.get("robot_identity")
+    if recorded:
+        try:
+            why = RobotIdentity.from_json(recorded).difference(model.identity)
+        except ValueError as e:
+            raise CheckpointError(f"{d}: malformed robot_identity ({e})") from None
+        if why is not None:
+            raise CheckpointError(
+                f"{d}: trained for robot {meta.get('robot')!r}, not this robot ({model.name}):"
+                f" {why}"
+            )
+    elif meta.get("robot_sha256") != model.urdf_sha256:
+        raise CheckpointError(
+            f"{d}: trained for robot {meta.get('robot_sha256')} ({meta.get('robot')}), not"
+            f" this robot ({model.urdf_sha256}, {model.name})"
         )
 
 

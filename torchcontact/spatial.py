@@ -230,6 +230,25 @@ def inertia_apply(mass: float, com: V3, inertia_com: M3, v: Motion) -> Force:
     return h, v_add(m_vec(inertia_com, w), v_cross(com, h))
 
 
+def inertia_apply_origin(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> Force:
+    """Spatial inertia about the frame's origin times a twist: ``[m v - h x w; I_o w + h x v]``.
+
+    The form in which the inertia is linear in its ten parameters (a parameter *change*, whose
+    mass may be zero or negative, has no centre of mass).
+
+    Args:
+        mass: kg.
+        h: first moment of mass ``m c`` in the frame, kg m.
+        inertia_origin: rotational inertia about the frame's origin, frame axes, kg m^2.
+        v: twist (or acceleration) at the frame's origin.
+    """
+    lin, w = v
+    return (
+        v_sub(v_scale(mass, lin), v_cross(h, w)),
+        v_add(m_vec(inertia_origin, w), v_cross(h, lin)),
+    )
+
+
 def add_forces(fs: Sequence[Force]) -> Force:
     """Sum of wrenches."""
     return v_sum([f[0] for f in fs]), v_sum([f[1] for f in fs])

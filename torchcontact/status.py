@@ -1,28 +1,65 @@
 """Per-frame status codes: one meaning in Python, in Parquet logs and in exported ONNX graphs.
 
 A frame's status is an int64 bit field; 0 means the frame was estimated and every output is
-finite. Each set bit names one reason. The estimator sets the bits, the log pipeline stores the
-code (``status_code`` column) and its text (``status`` column, :func:`status_messages`), and
-exported graphs return the same integer. Frames with a non-zero status have NaN outputs, the rest
-of a batch is unaffected. Bit 128 is set by the log pipeline only: in Python and ONNX a contact on
-an unknown link is an error when the estimate is called.
+finite. Each set bit names one reason (:class:`Status`). The estimator sets the bits, the log
+pipeline stores the code (``status_code`` column) and its text (``status`` column,
+:func:`status_messages`), and exported graphs return the same integer. Frames with a non-zero
+status have NaN outputs, the rest of a batch is unaffected. :attr:`Status.INVALID_CONTACT` is set
+by the log pipeline only: in Python and ONNX a contact on an unknown link is an error when the
+estimate is called.
+
+This module imports nothing heavy (the torch-free runtime reads it).
 """
 
 from __future__ import annotations
 
-__all__ = ["STATUS", "status_messages"]
+import enum
 
-#: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok).
-STATUS: dict[int, str] = {
-    1: "non-finite F/T reading",
-    2: "non-finite joint state or base motion",
-    4: "non-finite contact position, direction or wrench",
-    8: "zero-length contact direction",
-    16: "non-finite measured joint torque",
-    32: "non-finite output (the inputs were finite but the computation overflowed)",
-    64: "implausible input (joint velocity beyond the URDF limit, or reading beyond sensor range)",
-    128: "invalid contact (unknown link or kind, or a link outside every F/T sensor's subtree)",
+__all__ = ["STATUS", "Status", "status_messages"]
+
+
+class Status(enum.IntFlag):
+    """The status bits of a frame (0, ``Status(0)``, means ok).
+
+    Example:
+        >>> int(Status.FT_NONFINITE | Status.ZERO_DIRECTION)
+        9
+    """
+
+    #: a non-finite F/T reading
+    FT_NONFINITE = 1
+    #: a non-finite joint state or base motion
+    JOINT_NONFINITE = 2
+    #: a non-finite contact position, direction or wrench of an active slot
+    CONTACT_NONFINITE = 4
+    #: an active force_dir slot (or pushing cone) with a zero-length direction
+    ZERO_DIRECTION = 8
+    #: a non-finite measured joint torque where the mask says it is measured
+    TORQUE_NONFINITE = 16
+    #: the inputs were finite but an output is not (overflow)
+    OUTPUT_NONFINITE = 32
+    #: joint velocity beyond the URDF limit, or reading beyond sensor range
+    IMPLAUSIBLE = 64
+    #: a contact on an unknown link or kind, or outside every F/T sensor's subtree (logs only)
+    INVALID_CONTACT = 128
+
+
+_TEXT = {
+    Status.FT_NONFINITE: "non-finite F/T reading",
+    Status.JOINT_NONFINITE: "non-finite joint state or base motion",
+    Status.CONTACT_NONFINITE: "non-finite contact position, direction or wrench",
+    Status.ZERO_DIRECTION: "zero-length contact direction",
+    Status.TORQUE_NONFINITE: "non-finite measured joint torque",
+    Status.OUTPUT_NONFINITE: "non-finite output (the inputs were finite but the computation"
+    " overflowed)",
+    Status.IMPLAUSIBLE: "implausible input (joint velocity beyond the URDF limit, or reading"
+    " beyond sensor range)",
+    Status.INVALID_CONTACT: "invalid contact (unknown link or kind, or a link outside every F/T"
+    " sensor's subtree)",
 }
+
+#: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok): bit -> text.
+STATUS: dict[int, str] = {int(bit): text for bit, text in _TEXT.items()}
 
 
 def status_messages(code: int) -> str:

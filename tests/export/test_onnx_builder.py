@@ -10,9 +10,12 @@ import torch
 import torchcontact as tc
 from torchcontact import kernels
 from torchcontact import spatial as sp
-from torchcontact._onnx import GraphBuilder, Operand, bilinear, emit_program
-from torchcontact._onnx_step import _force_to_child, _force_to_parent, _motion_to_child, _skew
 from torchcontact._scalar import mul
+from torchcontact.onnx.builder import GraphBuilder, Operand, bilinear, emit_program
+from torchcontact.onnx.step.forms import force_to_child as _force_to_child
+from torchcontact.onnx.step.forms import force_to_parent as _force_to_parent
+from torchcontact.onnx.step.forms import motion_to_child as _motion_to_child
+from torchcontact.onnx.step.forms import skew as _skew
 
 
 def _run(gb, feeds):

@@ -276,3 +276,29 @@ def test_wrong_robot_and_inconsistent_structure_refused(tmp_path, arm):
         ResidualCorrection.load(d, arm)
     with pytest.raises(CheckpointError, match="missing"):
         ResidualCorrection.load(tmp_path / "nowhere", arm)
+
+
+def test_checkpoint_keyed_by_the_parsed_robot(tmp_path, arm):
+    """A comment or re-indentation of the URDF keeps a checkpoint; a 10 g mass change voids it,
+    naming what differs; a checkpoint of an earlier version (text hash only) still loads."""
+    import io
+    import re
+
+    d = _saved(tmp_path, arm)
+    text = open(tc.robots.tcarm_path()).read()
+    same = text.replace("<robot", "<!-- a comment -->\n<robot", 1).replace("  ", "\t")
+    model = tc.RobotModel.from_urdf(io.StringIO(same))
+    assert model.urdf_sha256 != arm.urdf_sha256
+    ResidualCorrection.load(d, model)
+    m = re.search(r'<link name="hand">.*?<mass value="([0-9.]+)"', text, re.S)
+    heavier = text[: m.start(1)] + f"{float(m.group(1)) + 0.01:g}" + text[m.end(1) :]
+    with pytest.raises(
+        CheckpointError, match=r"not this robot .*: link hand: mass 0\.6 vs 0\.61 kg"
+    ):
+        ResidualCorrection.load(d, tc.RobotModel.from_urdf(io.StringIO(heavier)))
+    meta = json.loads((d / "checkpoint.json").read_text())
+    del meta["robot_identity"], meta["robot_identity_sha256"]  # as written before identities
+    (d / "checkpoint.json").write_text(json.dumps(meta))
+    ResidualCorrection.load(d, arm)
+    with pytest.raises(CheckpointError, match="not this robot"):
+        ResidualCorrection.load(d, model)  # only the text hash to go by

@@ -39,6 +39,7 @@ import numpy as np
 from torchcontact.drivers.base import FTSample, FTSource
 from torchcontact.drivers.log import FTLogWriter
 from torchcontact.errors import InputError, ModelMismatchError
+from torchcontact.onnx import format as fmt
 
 MAGIC = b"TCJS"
 VERSION = 1
@@ -399,39 +400,27 @@ class OnnxEstimator:
         self.contacts = spec
         self._fixed = self._check(spec)
 
-    _KEYS = (
-        "positions",
-        "active",
-        "directions",
-        "wrenches",
-        "omega",
-        "domega",
-        "proper_acc",
-        "tau_measured",
-        "tau_mask",
-        "ft_cov",
-        "extra",
+    #: The inputs a contact spec may hold (the names of :data:`torchcontact.onnx.format.INPUTS`
+    #: besides the joint state, the readings and the friction-cone inputs).
+    _KEYS = tuple(
+        i.name
+        for i in fmt.INPUTS
+        if i.name not in ("q", "qd", "qdd", "ft", "ft_residual", *fmt.CONE_INPUTS)
     )
 
     def _check(self, spec: dict[str, Any]) -> dict[str, Any]:
         rt = self.runtime
-        K, S, nv = rt.K, rt.S, rt.nv
+        dims = {"K": rt.K, "S": rt.S, "nv": rt.nv}
         shapes = {
-            "positions": (K, 3),
-            "active": (K,),
-            "directions": (K, 3),
-            "wrenches": (K, 6),
-            "omega": (3,),
-            "domega": (3,),
-            "proper_acc": (3,),
-            "tau_measured": (nv,),
-            "tau_mask": (nv,),
-            "ft_cov": (S, 6, 6),
+            i.name: tuple(dims[d] if d in dims else int(d) for d in i.shape.split(", "))
+            for i in fmt.INPUTS
+            if i.name in self._KEYS and i.name != fmt.EXTRA
         }
         out: dict[str, Any] = {}
-        for key, value in spec.items():
+        for name, value in spec.items():
+            key = fmt.canonical(name)
             if key not in self._KEYS:
-                raise ValueError(f"contact spec key {key!r} not one of {list(self._KEYS)}")
+                raise ValueError(f"contact spec key {name!r} not one of {list(self._KEYS)}")
             if key == "extra":
                 out[key] = {str(k): float(v) for k, v in dict(value).items()}
                 continue
@@ -443,7 +432,7 @@ class OnnxEstimator:
             out[key] = arr
         if "positions" not in out:
             raise ValueError("contact spec needs positions (K, 3)")
-        out.setdefault("active", np.ones(K))
+        out.setdefault("active", np.ones(rt.K))
         return out
 
     def __call__(
@@ -482,7 +471,7 @@ class OnnxEstimator:
                 f" {list(rt.sensor_names)} (6 each)"
             )
         spec = self._fixed if self._fixed is not None else self._check(self.contacts(q))  # type: ignore[misc]
-        return rt.step(q, qd, qdd, ft.reshape(rt.S, 6), **spec)
+        return rt.step({**spec, "q": q, "qd": qd, "qdd": qdd, "ft": ft.reshape(rt.S, 6)})
 
 
 class LiveLoop:

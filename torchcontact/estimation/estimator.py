@@ -23,6 +23,7 @@ from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.estimation.programs import program
+from torchcontact.kernels.runner import run_program
 from torchcontact.model import RobotModel
 
 __all__ = ["ConeStatus", "ContactEstimate", "ContactEstimator"]
@@ -258,17 +259,17 @@ class ContactEstimator:
             return flatten_batch(x, batch, len(trailing)).reshape(n, -1)
 
         tensors = {k: flatten_batch(x, batch, 1) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
-        for i, s in enumerate(self.sensor_names):
-            tensors[f"ft{i}"] = per_frame(f"ft[{s!r}]", ft[s], (6,))
-        tensors["pos"] = per_frame("contacts.positions", contacts.positions, (K, 3))
+        readings = [per_frame(f"ft[{s!r}]", ft[s], (6,)) for s in self.sensor_names]
+        tensors["ft"] = readings[0] if S == 1 else torch.cat(readings, -1)
+        tensors["positions"] = per_frame("contacts.positions", contacts.positions, (K, 3))
         if "force_dir" in em.kinds:
             if contacts.directions is None:
                 raise InputError("contacts.directions is required for force_dir slots")
-            tensors["dir"] = per_frame("contacts.directions", contacts.directions, (K, 3))
+            tensors["directions"] = per_frame("contacts.directions", contacts.directions, (K, 3))
         if "known" in em.kinds:
             if contacts.wrenches is None:
                 raise InputError("contacts.wrenches is required for known slots")
-            tensors["wrench"] = per_frame("contacts.wrenches", contacts.wrenches, (K, 6))
+            tensors["wrenches"] = per_frame("contacts.wrenches", contacts.wrenches, (K, 6))
         if contacts.active is not None:
             act = contacts.active
             if not isinstance(act, Tensor) or act.shape != (*batch, K):
@@ -282,9 +283,9 @@ class ContactEstimator:
             for k in BaseMotion._fields:
                 tensors[k] = per_frame(f"base.{k}", getattr(base, k), (3,))
         if tau_measured is not None:
-            tensors["tau_meas"] = per_frame("tau_measured", tau_measured, (nv,))
+            tensors["tau_measured"] = per_frame("tau_measured", tau_measured, (nv,))
             if tau_mask is None:
-                mask = torch.isfinite(tensors["tau_meas"])
+                mask = torch.isfinite(tensors["tau_measured"])
             else:
                 mask = tau_mask.to(device=device, dtype=torch.bool).expand(*batch, nv)
             tensors["tau_mask"] = mask.reshape(n, nv).to(dtype)
@@ -331,7 +332,7 @@ class ContactEstimator:
                        "warm" in tensors or waves is not None, bool(nullspace))  # fmt: skip
         backend = self.backend if backend is None else backend
         if waves is None:
-            out = _dyn._run(prog, tensors, backend, chunk_size)
+            out = run_program(prog, tensors, backend, chunk_size)
         else:
             out = _run_waves(prog, tensors, waves, K, backend, chunk_size)
         rank = out["rank"].round().to(torch.long)
@@ -417,16 +418,16 @@ class ContactEstimator:
                 check_input(f"contacts.{name}", x, (K, feat), model, f"(*B, {K}, {feat})")
                 if x.shape[:-2] != batch:
                     raise InputError(f"contacts.{name} must be (*B, {K}, {feat}) with B={batch}")
-            tensors["pos"] = flatten_batch(contacts.positions, batch, 2).reshape(n, 3 * K)
-            tensors["wrench"] = flatten_batch(contacts.wrenches, batch, 2).reshape(n, 6 * K)
+            tensors["positions"] = flatten_batch(contacts.positions, batch, 2).reshape(n, 3 * K)
+            tensors["wrenches"] = flatten_batch(contacts.wrenches, batch, 2).reshape(n, 6 * K)
             act = contacts.active
             tensors["active"] = (act.reshape(n, K).to(like) if act is not None
                                  else like.new_ones(n, K))  # fmt: skip
         else:
-            tensors.update(pos=like.new_zeros(n, 0), wrench=like.new_zeros(n, 0),
+            tensors.update(positions=like.new_zeros(n, 0), wrenches=like.new_zeros(n, 0),
                            active=like.new_zeros(n, 0))  # fmt: skip
         prog = program(em, "predict", base is not None)
-        out = _dyn._run(prog, tensors, self.backend if backend is None else backend, 16384)
+        out = run_program(prog, tensors, self.backend if backend is None else backend, 16384)
         ft = out["ft"]
         return {s: ft[:, 6 * i : 6 * i + 6].reshape(*batch, 6)
                 for i, s in enumerate(self.sensor_names)}  # fmt: skip
@@ -465,7 +466,7 @@ def _run_waves(
         elif warm.before is not None:
             start[0] = torch.cat([warm.before[0], warm.before[1]], -1).reshape(6 * K)
         sub["warm"] = start
-        o = _dyn._run(prog, sub, backend, chunk_size)
+        o = run_program(prog, sub, backend, chunk_size)
         for k, v in o.items():
             if k not in out:
                 out[k] = v.new_empty(n, v.shape[1])
@@ -487,7 +488,7 @@ def _split_nullspace(em: EstimationModel, flat: Tensor, batch: torch.Size) -> di
 def _cone_inputs(
     contacts: Contacts, kinds: Sequence[str], batch: torch.Size, active: Tensor, model: RobotModel
 ) -> dict[str, Tensor]:
-    """``normal (N, 3K)``, ``friction (N, K)``, ``pushing (N, K)`` of the constrained program.
+    """``normals (N, 3K)``, ``friction (N, K)``, ``pushing (N, K)`` of the constrained program.
 
     Raises:
         InputError: bad shapes; missing normals or friction for pushing force/wrench slots; a
@@ -544,4 +545,4 @@ def _cone_inputs(
             f" coefficient {float(mu[f, k])!r}; it must be a finite number > 0"
             " (cone half-angle in (0, pi/2))"
         )
-    return {"normal": normal, "friction": mu, "pushing": pushing}
+    return {"normals": normal, "friction": mu, "pushing": pushing}

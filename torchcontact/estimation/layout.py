@@ -121,6 +121,101 @@ class EstimationModel:
         """A copy whose robot model lives on ``device`` with ``dtype``."""
         return replace(self, model=self.model.to(device, dtype), _programs={})
 
+    # ------------------------------------------------------------------ tree queries
+    def cut_matrix(self) -> np.ndarray:
+        """``D[i, j] = 1`` where a wrench on body ``j`` reaches body ``i``'s joint.
+
+        The path from ``j`` towards the root stops at the first sensor's child body (the sensor
+        measures the wrench there; beyond it the reading stands in for the subtree).
+        """
+        bodies = self.tree.bodies
+        sensor_child = {reg.child for reg in self.regions}
+        D = np.zeros((len(bodies), len(bodies)))
+        for j in range(len(bodies)):
+            i = j
+            D[i, j] = 1.0
+            while i not in sensor_child and bodies[i].parent >= 0:
+                i = bodies[i].parent
+                D[i, j] = 1.0
+        return D
+
+    def region_bodies(self) -> set[int]:
+        """Bodies the regions need: every region body and its ancestors."""
+        need: set[int] = set()
+        for b, r in enumerate(self.region_of_body):
+            if r >= 0:
+                while b >= 0 and b not in need:
+                    need.add(b)
+                    b = self.tree.bodies[b].parent
+        return need
+
+    def torque_joints(self, joints: Sequence[str] | str | None) -> tuple[int, ...]:
+        """Coordinates whose torques are wanted: all (None), named ones, or ``"sensed"``.
+
+        ``"sensed"``: the coordinates whose torque the chosen sensors determine, i.e. every body
+        in their joint's subtree, cut at the sensors, is an ancestor of (or in) a sensor region:
+        the joints inside the regions and those between a sensor and the next body outside.
+
+        Raises:
+            InputError: an unknown joint name.
+        """
+        tree, model = self.tree, self.model
+        if joints is None:
+            return tuple(range(tree.nv))
+        if joints == "sensed":
+            need = self.region_bodies()
+            D = self.cut_matrix()
+            out = []
+            for c in range(tree.nv):
+                drivers = [i for i, b in enumerate(tree.bodies) if b.coord == c]
+                if drivers and all(set(np.flatnonzero(D[i])) <= need for i in drivers):
+                    out.append(c)
+            return tuple(out)
+        names = list(model.joint_names)
+        bad = [j for j in joints if j not in names]
+        if bad:
+            raise InputError(f"unknown joints {bad}; the model has {names}")
+        return tuple(sorted(names.index(j) for j in joints))
+
+    def kept_bodies(self, coords: Sequence[int]) -> list[int]:
+        """Body indices :meth:`prune` keeps (ascending): the regions', the torques' cut subtrees."""
+        bodies = self.tree.bodies
+        need = self.region_bodies()
+        D = self.cut_matrix()
+        for i, b in enumerate(bodies):
+            if b.coord in coords:
+                for j in np.flatnonzero(D[i]):
+                    j = int(j)
+                    while j >= 0 and j not in need:
+                        need.add(j)
+                        j = bodies[j].parent
+        return sorted(need)
+
+    def prune(self, coords: Sequence[int]) -> EstimationModel:
+        """The layout restricted to the bodies its regions and the torques of ``coords`` need.
+
+        Kept: every region body and its ancestors, and every body in the cut subtree of a joint
+        of ``coords``, with their ancestors. Body indices are renumbered (parents first, as
+        before); ``model`` keeps the full robot (index it through :meth:`kept_bodies`).
+        """
+        tree = self.tree
+        keep = self.kept_bodies(coords)
+        if len(keep) == len(tree.bodies):
+            return self
+        new = {old: k for k, old in enumerate(keep)}
+        bodies = tuple(
+            replace(tree.bodies[o], parent=new[tree.bodies[o].parent] if o else -1) for o in keep
+        )
+        order = tuple(new[o] for o in tree.order if o in new)
+        return replace(
+            self,
+            tree=replace(tree, bodies=bodies, order=order),
+            slots=tuple(replace(sl, body=new[sl.body]) for sl in self.slots),
+            regions=tuple(replace(r, child=new[r.child]) for r in self.regions),
+            region_of_body=tuple(self.region_of_body[o] for o in keep),
+            _programs={},
+        )
+
     @classmethod
     def build(
         cls,

@@ -41,6 +41,7 @@ from torchcontact.contacts import KINDS
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.solve import solve_program
+from torchcontact.status import Status
 
 __all__ = ["estimate_program", "predict_program", "program"]
 
@@ -65,8 +66,8 @@ def _finite(xs: Sequence[Scalar]) -> Scalar:
     return _all([isfinite(x) for x in xs])
 
 
-def _bit(m: Scalar, value: float) -> Scalar:
-    return select(m, value, 0.0)
+def _bit(m: Scalar, bit: Status) -> Scalar:
+    return select(m, float(bit), 0.0)
 
 
 def estimate_program(
@@ -80,10 +81,12 @@ def estimate_program(
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
-    Inputs (per frame): ``q, qd, qdd`` (nv), ``ft0 ... ft{S-1}`` (6 each), ``pos`` (3K),
-    ``active`` (K, 0/1), ``dir`` (3K, with ``force_dir`` slots), ``wrench`` (6K, with ``known``
-    slots), ``omega, domega, proper_acc`` (3 each, moving base), ``tau_meas, tau_mask`` (nv each,
-    torque rows), ``ft_cov`` (36 S, covariance), ``normal`` (3K), ``friction`` and ``pushing``
+    Inputs (per frame, the names of :data:`torchcontact.onnx.format.INPUTS`, flattened):
+    ``q, qd, qdd`` (nv), ``ft`` (6 S, sensor after sensor), ``positions`` (3K), ``active``
+    (K, 0/1), ``directions`` (3K, with ``force_dir`` slots), ``wrenches`` (6K, with ``known``
+    slots), ``omega, domega, proper_acc`` (3 each, moving base), ``tau_measured, tau_mask``
+    (nv each, torque rows), ``ft_cov`` (36 S, covariance), ``normals`` (3K), ``friction`` and
+    ``pushing``
     (K each, with ``cones``), ``warm`` (6K, force and moment per slot, with ``warm``). Outputs:
     ``force, moment`` (3K), ``tau`` (nv), ``rank, unknowns, residual`` (S), ``status`` (1),
     ``cov`` (36 K), ``converged, iterations`` (S) and ``cone_active`` (K) with ``cones``,
@@ -101,20 +104,19 @@ def estimate_program(
     has_dir = "force_dir" in kinds
     has_known = "known" in kinds
     inputs = {"q": nv, "qd": nv, "qdd": nv}
-    inputs.update({f"ft{i}": 6 for i in range(S)})
-    inputs.update(pos=3 * K, active=K)
+    inputs.update(ft=6 * S, positions=3 * K, active=K)
     if has_dir:
-        inputs["dir"] = 3 * K
+        inputs["directions"] = 3 * K
     if has_known:
-        inputs["wrench"] = 6 * K
+        inputs["wrenches"] = 6 * K
     if moving_base:
         inputs.update(omega=3, domega=3, proper_acc=3)
     if torque_rows:
-        inputs.update(tau_meas=nv, tau_mask=nv)
+        inputs.update(tau_measured=nv, tau_mask=nv)
     if with_cov:
         inputs["ft_cov"] = 36 * S
     if cones is not None:
-        inputs.update(normal=3 * K, friction=K, pushing=K)
+        inputs.update(normals=3 * K, friction=K, pushing=K)
         if warm:
             inputs["warm"] = 6 * K
     outputs = {"force": 3 * K, "moment": 3 * K, "tau": nv, "rank": S, "unknowns": S,
@@ -128,11 +130,11 @@ def estimate_program(
         outputs["nullspace"] = sum(u * u for u in n_unknowns)
 
     def fn(x: dict[str, list]) -> dict[str, list]:
-        readings = [x[f"ft{i}"] for i in range(S)]
+        readings = [x["ft"][6 * i : 6 * i + 6] for i in range(S)]
         act_in = [gt(a, 0.5) for a in x["active"]]
-        pos = [x["pos"][3 * k : 3 * k + 3] for k in range(K)]
-        dirs = [x["dir"][3 * k : 3 * k + 3] for k in range(K)] if has_dir else None
-        wr = [x["wrench"][6 * k : 6 * k + 6] for k in range(K)] if has_known else None
+        pos = [x["positions"][3 * k : 3 * k + 3] for k in range(K)]
+        dirs = [x["directions"][3 * k : 3 * k + 3] for k in range(K)] if has_dir else None
+        wr = [x["wrenches"][6 * k : 6 * k + 6] for k in range(K)] if has_known else None
         base_keys = ("omega", "domega", "proper_acc") if moving_base else ()
         # ---- status of the inputs (STATUS bits)
         b1 = logical_not(_finite([v for r in readings for v in r]))
@@ -150,7 +152,7 @@ def estimate_program(
                 fields += list(wr[k])
             if cones is not None and kind in ("force", "wrench"):
                 push = gt(x["pushing"][k], 0.5)
-                nk = x["normal"][3 * k : 3 * k + 3]
+                nk = x["normals"][3 * k : 3 * k + 3]
                 cone_fields = [*nk, x["friction"][k]]
                 fields.append(select(push, sum_(cone_fields), 0.0))  # NaN/inf propagate
                 n2 = sum_([mul(v, v) for v in nk])
@@ -161,7 +163,7 @@ def estimate_program(
         b16: Scalar = False
         if torque_rows:
             b16 = _any([logical_and(gt(m, 0.5), logical_not(isfinite(t)))
-                        for t, m in zip(x["tau_meas"], x["tau_mask"], strict=True)])  # fmt: skip
+                        for t, m in zip(x["tau_measured"], x["tau_mask"], strict=True)])  # fmt: skip
         implausible = []
         if em.velocity_limit is not None:
             for v, lim in zip(x["qd"], em.velocity_limit, strict=True):
@@ -174,8 +176,16 @@ def estimate_program(
         before = _any([b1, b2, b4, b8, b16])
         b64 = logical_and(logical_not(before), _any(implausible))
         ok = logical_not(logical_or(before, b64))
-        status = sum_([_bit(b1, 1.0), _bit(b2, 2.0), _bit(b4, 4.0), _bit(b8, 8.0),
-                       _bit(b16, 16.0), _bit(b64, 64.0)])  # fmt: skip
+        status = sum_(
+            [
+                _bit(b1, Status.FT_NONFINITE),
+                _bit(b2, Status.JOINT_NONFINITE),
+                _bit(b4, Status.CONTACT_NONFINITE),
+                _bit(b8, Status.ZERO_DIRECTION),
+                _bit(b16, Status.TORQUE_NONFINITE),
+                _bit(b64, Status.IMPLAUSIBLE),
+            ]
+        )
 
         # a bad frame computes on zeros (its outputs become NaN below)
         def clean(v: Scalar) -> Scalar:
@@ -190,7 +200,7 @@ def estimate_program(
         base = {k: [clean(v) for v in x[k]] for k in base_keys} if moving_base else None
         tau_meas = tau_mask = None
         if torque_rows:
-            tau_meas = [clean(v) for v in x["tau_meas"]]
+            tau_meas = [clean(v) for v in x["tau_measured"]]
             tau_mask = [select(logical_and(ok, gt(m, 0.5)), 1.0, 0.0) for m in x["tau_mask"]]
 
         # ---- the stages
@@ -249,7 +259,7 @@ def estimate_program(
             "rank": ranks,
             "unknowns": n_unk,
             "residual": [out(v) for v in resid],
-            "status": [add(status, _bit(b32, 32.0))],
+            "status": [add(status, _bit(b32, Status.OUTPUT_NONFINITE))],
         }
         if with_cov:
             result["cov"] = [out(v) for v in cov]
@@ -298,7 +308,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             for k, j in labels:
                 wk = [clean(v) for v in x["warm"][6 * k : 6 * k + 6]]
                 if em.slots[k].kind == "force_dir":
-                    d = x["dir"][3 * k : 3 * k + 3]
+                    d = x["directions"][3 * k : 3 * k + 3]
                     n2 = sum_([mul(v, v) for v in d])
                     xw.append(div(sum_([mul(d[i], wk[i]) for i in range(3)]),
                                   sqrt(select(gt(n2, 0.0), n2, 1.0))))  # fmt: skip
@@ -317,7 +327,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             if slot.kind == "force_dir":
                 cone_list.append(Cone((start,), [[1.0], [0.0], [0.0]], on))
             else:
-                n_in = x["normal"][3 * k : 3 * k + 3]
+                n_in = x["normals"][3 * k : 3 * k + 3]
                 nk = [select(on, clean(v), d) for v, d in zip(n_in, (0.0, 0.0, 1.0), strict=True)]
                 mu = select(on, clean(x["friction"][k]), 1.0)
                 cone_list.append(Cone(tuple(range(start, start + 3)), cone_rows(nk, mu), on))
@@ -351,11 +361,11 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
 def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:
     """The forward model: every sensor's reading for given contact wrenches.
 
-    Inputs: ``q, qd, qdd`` (nv), ``pos`` (3K), ``wrench`` (6K, link frame, about the point),
+    Inputs: ``q, qd, qdd`` (nv), ``positions`` (3K), ``wrenches`` (6K, link frame, about the point),
     ``active`` (K), base motion (moving base). Output: ``ft`` (6 S), sensor frames and directions.
     """
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
-    inputs = {"q": nv, "qd": nv, "qdd": nv, "pos": 3 * K, "wrench": 6 * K, "active": K}
+    inputs = {"q": nv, "qd": nv, "qdd": nv, "positions": 3 * K, "wrenches": 6 * K, "active": K}
     if moving_base:
         inputs.update(omega=3, domega=3, proper_acc=3)
 
@@ -364,8 +374,8 @@ def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:
         X, _, _, f = stages.forward(em, x["q"], x["qd"], x["qdd"], base)
         f = list(f)
         for k, slot in enumerate(em.slots):
-            wk = [mul(x["active"][k], v) for v in x["wrench"][6 * k : 6 * k + 6]]
-            point = stages.contact_point(slot, x["pos"][3 * k : 3 * k + 3])
+            wk = [mul(x["active"][k], v) for v in x["wrenches"][6 * k : 6 * k + 6]]
+            point = stages.contact_point(slot, x["positions"][3 * k : 3 * k + 3])
             wb = stages.wrench_on_body(slot, point, (tuple(wk[:3]), tuple(wk[3:])))
             f[slot.body] = (sp.v_sub(f[slot.body][0], wb[0]), sp.v_sub(f[slot.body][1], wb[1]))
         F, _ = _dyn.backward_pass(em.tree, X, f)

@@ -1,6 +1,7 @@
-"""ONNX graph construction shared by the estimator exports (private; extra ``export``).
+"""ONNX graph construction: the one builder of every graph torchcontact writes (extra ``export``).
 
-Three tools, used by :mod:`torchcontact.export` and :mod:`torchcontact._onnx_step`:
+Used by :mod:`torchcontact.onnx.batched`, :mod:`torchcontact.onnx.step` and
+:mod:`torchcontact.onnx.export`:
 
 * :class:`GraphBuilder`: nodes, deduplicated constants, inputs and outputs of one graph, typed in
   the graph's float dtype (float32 or float64), opset :data:`OPSET`.
@@ -25,12 +26,19 @@ import numpy as np
 
 from torchcontact._scalar import Sym, Trace
 
-__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "inline"]
+__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "inline", "onnx_type"]
 
 #: ONNX opset of the graphs written here (onnxruntime >= 1.14 runs it).
 OPSET = 18
 #: IR version of the files (onnxruntime >= 1.16 loads it).
 IR_VERSION = 9
+
+
+def onnx_type(dtype) -> int:
+    """ONNX element type of a numpy dtype."""
+    from onnx import helper
+
+    return helper.np_dtype_to_tensor_dtype(np.dtype(dtype))
 
 
 class GraphBuilder:
@@ -71,8 +79,12 @@ class GraphBuilder:
         dt = helper.np_dtype_to_tensor_dtype(np.dtype(dtype or self.dtype))
         self.outputs.append(helper.make_tensor_value_info(name, dt, shape))
 
-    def const(self, value, dtype=None) -> str:
-        """A constant (deduplicated by dtype, shape and bytes); floats take the graph dtype."""
+    def const(self, value, dtype=None, scalar: bool = False) -> str:
+        """A constant (deduplicated by dtype, shape and bytes); floats take the graph dtype.
+
+        A single value is stored with shape ``(1,)`` (it broadcasts as a scalar), or ``()`` with
+        ``scalar`` (where ONNX wants a true scalar: a ``Loop``'s trip count and condition).
+        """
         from onnx import numpy_helper
 
         arr = np.asarray(value)
@@ -80,7 +92,7 @@ class GraphBuilder:
             dtype = (
                 np.int64 if arr.dtype.kind in "iu" else (bool if arr.dtype == bool else self.dtype)
             )
-        arr = np.ascontiguousarray(arr, dtype=dtype)
+        arr = np.array(arr, dtype=dtype) if scalar else np.ascontiguousarray(arr, dtype=dtype)
         key = (arr.dtype.str, arr.shape, arr.tobytes())
         name = self._consts.get(key)
         if name is None:
@@ -358,7 +370,10 @@ def emit_program(
     Every scalar is an ``(N,)`` vector, so each node processes all ``N`` frames (throughput; an
     ``(N, 1)`` column took onnxruntime's slow broadcasting path, ~100x slower against scalar
     constants); constants of the model are folded at trace time, as in the generated C++
-    kernels.
+    kernels. A :func:`torchcontact._scalar.loop` (the friction-cone iterations) becomes one ONNX
+    ``Loop`` whose body is the code of one iteration; it leaves early once every frame has
+    stopped (a stopped frame is a fixed point of the body, so the result is that of the whole
+    budget).
 
     Args:
         gb: the graph (its dtype is the program's).
@@ -382,49 +397,21 @@ def emit_program(
         for s, c in zip(syms, cols, strict=True):
             vals[s.index] = gb.op("Squeeze", c, gb.i([1]))
     needed = _live(tr, out)
-    binary = {
-        "add": "Add",
-        "sub": "Sub",
-        "mul": "Mul",
-        "div": "Div",
-        "gt": "Greater",
-        "and": "And",
-        "or": "Or",
-    }
-    unary = {"neg": "Neg", "sqrt": "Sqrt", "sin": "Sin", "cos": "Cos", "not": "Not"}
-
-    def v(x) -> str:
-        if isinstance(x, Sym):
-            return vals[x.index]
-        if isinstance(x, bool):
-            return gb.const(np.array(x), bool)
-        return gb.f(float(x))
-
+    body_of = {}  # body node index -> its loop node
     for node in tr.nodes:
-        if node.op == "in" or node.index not in needed:
+        if node.op == "loop":
+            spec = node.args[0]
+            body_of.update({k: node for k in range(spec.start, spec.end)})
+    em = _Emitter(gb, vals, n_name)
+    for node in tr.nodes:
+        if node.op in ("in", "carry") or node.index not in needed or node.index in body_of:
             continue
-        a = node.args
-        if node.op in binary:
-            r = gb.op(binary[node.op], v(a[0]), v(a[1]))
-        elif node.op in unary:
-            r = gb.op(unary[node.op], v(a[0]))
-        elif node.op == "sel":
-            r = gb.op("Where", v(a[0]), v(a[1]), v(a[2]))
-        elif node.op == "finite":  # x - x is NaN exactly for NaN and inf
-            r = gb.op("Not", gb.op("IsNaN", gb.op("Sub", v(a[0]), v(a[0]))))
+        if node.op == "loop":
+            em.loop(node, tr, needed)
         else:
-            raise ValueError(f"no ONNX emission for {node.op!r}")
-        vals[node.index] = r
+            em.node(node)
     for name, xs in out.items():
-        cols = []
-        for x in xs:
-            if isinstance(x, Sym):
-                col = vals[x.index]
-                if x.mask:
-                    col = gb.cast(col)
-            else:
-                col = gb.op("Expand", gb.f([float(x)]), n_name)
-            cols.append(col)
+        cols = [em.column(x) for x in xs]
         if not cols:
             zero_shape = gb.op("Concat", n_name, gb.i([0]), axis=0)
             gb.op("Expand", gb.f(np.zeros((1, 0))), zero_shape, out=outputs[name])
@@ -434,8 +421,100 @@ def emit_program(
             gb.op("Transpose", rows, perm=[1, 0], out=outputs[name])
 
 
+_BINARY = {"add": "Add", "sub": "Sub", "mul": "Mul", "div": "Div", "gt": "Greater", "and": "And",
+           "or": "Or"}  # fmt: skip
+_UNARY = {"neg": "Neg", "sqrt": "Sqrt", "sin": "Sin", "cos": "Cos", "not": "Not"}
+
+
+class _Emitter:
+    """Emits trace nodes into a graph (or a loop body), one ONNX node each."""
+
+    def __init__(self, gb: GraphBuilder, vals: dict[int, str], n_name: str) -> None:
+        self.gb, self.vals, self.n = gb, vals, n_name
+
+    def value(self, x) -> str:
+        """The graph value of a symbol or constant (constants broadcast)."""
+        if isinstance(x, Sym):
+            return self.vals[x.index]
+        if isinstance(x, bool):
+            return self.gb.const(np.array(x), bool)
+        return self.gb.f(float(x))
+
+    def column(self, x) -> str:
+        """``(N,)`` float values of a symbol, mask or constant."""
+        gb = self.gb
+        if isinstance(x, Sym):
+            col = self.vals[x.index]
+            return gb.cast(col) if x.mask else col
+        return gb.op("Expand", gb.f([float(x)]), self.n)
+
+    def node(self, node: Sym) -> None:
+        """One scalar operation."""
+        gb, a, v = self.gb, node.args, self.value
+        if node.op in _BINARY:
+            r = gb.op(_BINARY[node.op], v(a[0]), v(a[1]))
+        elif node.op in _UNARY:
+            r = gb.op(_UNARY[node.op], v(a[0]))
+        elif node.op == "sel":
+            r = gb.op("Where", v(a[0]), v(a[1]), v(a[2]))
+        elif node.op == "finite":  # x - x is NaN exactly for NaN and inf
+            r = gb.op("Not", gb.op("IsNaN", gb.op("Sub", v(a[0]), v(a[0]))))
+        elif node.op == "loopout":
+            r = self.vals[(a[0].index, a[1])]
+        else:
+            raise ValueError(f"no ONNX emission for {node.op!r}")
+        self.vals[node.index] = r
+
+    def loop(self, node: Sym, tr: Trace, needed: set[int]) -> None:
+        """A ``Loop`` node: the body (one iteration) as its subgraph, early exit when all stop."""
+        from onnx import TensorProto, helper
+
+        gb, spec = self.gb, node.args[0]
+        elem = onnx_type(gb.dtype)
+        outer_nodes = gb.nodes
+        gb.nodes = []
+        try:
+            it, cond_in = gb.fresh("iter"), gb.fresh("cond")
+            carried = [gb.fresh("carry") for _ in spec.carries]
+            for c, name in zip(spec.carries, carried, strict=True):
+                self.vals[c.index] = name
+            for k in range(spec.start, spec.end):
+                body_node = tr.nodes[k]
+                if body_node.op != "carry" and k in needed:
+                    self.node(body_node)
+            stop = spec.stop
+            if isinstance(stop, Sym):  # go on while any frame has not stopped
+                going = gb.cast(gb.op("Not", self.value(stop)))
+                half = gb.const(0.5, gb.dtype, scalar=True)
+                cond_out = gb.op("Greater", gb.op("ReduceMax", going, keepdims=0), half)
+            else:
+                cond_out = gb.const(np.array(not stop), bool, scalar=True)
+            new = [gb.op("Identity", self.column(x)) for x in spec.new]
+            body_nodes = gb.nodes
+        finally:
+            gb.nodes = outer_nodes
+        body = helper.make_graph(
+            body_nodes,
+            gb.fresh("loop_body"),
+            [helper.make_tensor_value_info(it, TensorProto.INT64, []),
+             helper.make_tensor_value_info(cond_in, TensorProto.BOOL, []),
+             *(helper.make_tensor_value_info(c, elem, ["N"]) for c in carried)],
+            [helper.make_tensor_value_info(cond_out, TensorProto.BOOL, []),
+             *(helper.make_tensor_value_info(x, elem, ["N"]) for x in new)],
+        )  # fmt: skip
+        init = [self.column(x) for x in spec.init]
+        trips, go = gb.const(spec.n, np.int64, scalar=True), gb.const(True, bool, scalar=True)
+        outs = gb.op("Loop", trips, go, *init,
+                     n_out=len(init), body=body)  # fmt: skip
+        outs = [outs] if isinstance(outs, str) else outs
+        for i, o in enumerate(outs):
+            self.vals[(node.index, i)] = o
+
+
 def _live(tr: Trace, out: dict[str, list]) -> set[int]:
-    """Indices of the trace nodes the outputs depend on."""
+    """Indices of the trace nodes the outputs depend on (through loops too)."""
+    from torchcontact._scalar import loop_deps
+
     stack = [x for xs in out.values() for x in xs if isinstance(x, Sym)]
     live: set[int] = set()
     while stack:
@@ -443,8 +522,10 @@ def _live(tr: Trace, out: dict[str, list]) -> set[int]:
         if s.index in live:
             continue
         live.add(s.index)
-        if s.op != "in":
-            stack.extend(a for a in s.args if isinstance(a, Sym))
+        if s.op == "loopout":
+            stack.append(s.args[0])
+        else:
+            stack.extend(loop_deps(s))
     return live
 
 

@@ -1,0 +1,269 @@
+"""Corrections in the single-frame graph: chained correction graphs and native stacks.
+
+A correction ``c`` (sensor frame and measure direction) is subtracted from its sensor's reading.
+Correction graphs are inlined and fed through the one wiring of
+:func:`torchcontact.onnx.batched.chain_corrections`. A correction stack that carries its layers
+(``stack`` metadata, :func:`torchcontact.onnx.export.export_residual_checkpoint`) is built
+*natively* on this graph's own forward pass instead: the offset, the inertial layer as the
+subtree's Newton-Euler wrenches with the parameter change as inertias, the nominal-wrench feature
+from the body wrenches; only the learned network is inlined (a few nodes instead of the
+thousands of the stack's own forward pass).
+"""
+
+from __future__ import annotations
+
+import base64
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchcontact import spatial as sp
+from torchcontact.onnx.builder import OPSET, Operand, bilinear, inline, onnx_type
+from torchcontact.onnx.format import Key, decode, selection
+from torchcontact.onnx.step.context import StepContext
+from torchcontact.onnx.step.forms import (
+    TP_ONE,
+    force_to_child,
+    force_to_parent,
+    signed,
+    split,
+    tp,
+)
+from torchcontact.onnx.step.kinematics import bodies_to_root
+
+__all__ = ["NativeStack", "Wiring", "native_corrections", "native_stack"]
+
+
+class Wiring:
+    """How the single-frame graph feeds correction graphs from its packed input ``x``."""
+
+    def __init__(self, ctx: StepContext, x: str) -> None:
+        self.ctx, self.x = ctx, x
+        self.states: list[tuple[str, tuple[int, ...], str]] = []
+
+    def select(self, cols) -> str:
+        """Columns ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)`` of ``x``, ``(1, n)``."""
+        lay, names = self.ctx.lay, self.ctx.full.model.joint_names
+        extra = self.ctx.extra
+
+        def position(kind: str, key: str) -> int:
+            if kind == "extra":
+                return lay.index("extra", extra.index(key))
+            return lay.index(kind, names.index(key))
+
+        position.size = lay.size  # type: ignore[attr-defined]
+        return self.ctx.gb.op("MatMul", self.x, self.ctx.gb.f(selection(cols, position)))
+
+    def state_in(self, rg, to: int) -> str:
+        """The recurrent state ``h_in.<sensor>`` of ``x``, ``(1, L, H)`` of type ``to``."""
+        gb, lay = self.ctx.gb, self.ctx.lay
+        L, H = rg.state_shape
+        start, stop, _ = lay.span(f"h_in.{rg.sensor}")
+        sel = np.zeros((lay.size, L * H))
+        sel[start:stop, :] = np.eye(L * H)
+        h = gb.op("Reshape", gb.op("MatMul", self.x, gb.f(sel)), gb.i([1, L, H]))
+        return gb.op("Cast", h, to=to)
+
+    def state_out(self, rg, h: str) -> None:
+        """Record a recurrent correction's next state (an output of the graph)."""
+        L, H = rg.state_shape
+        flat = self.ctx.gb.op("Reshape", self.ctx.gb.cast(h), self.ctx.gb.i([1, L * H]))
+        self.states.append((rg.sensor, (L, H), flat))
+
+    def project(self, sensor: str) -> np.ndarray:
+        """``(6, F)``: a sensor's correction onto its reading's entries of ``x``."""
+        lay = self.ctx.lay
+        P = np.zeros((6, lay.size))
+        s = list(self.ctx.em.sensor_names).index(sensor)
+        for i in range(6):
+            P[i, lay.index("ft", s, i)] = 1.0
+        return P
+
+
+@dataclass(frozen=True)
+class NativeStack:
+    """A correction stack the graph computes itself.
+
+    Attributes:
+        region: index of the corrected sensor's region.
+        subtree: the sensor's subtree as body indices of the pruned tree.
+        offset: ``(6,)`` or None.
+        delta: pruned body index -> ``(m, h, I_origin)`` of the inertial layer, internal frame.
+        columns: per selected input column ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)``.
+        sincos: the first ``n_angles`` columns enter as ``sin, cos`` pairs.
+        n_angles: number of angle columns.
+        perm: ``(V, F)`` 0/1 matrix from ``[sin, cos, other columns, nominal]`` to feature order.
+        nominal: the features include the nominal wrench.
+        learned: the learned layer's ``onnx.ModelProto`` or None.
+    """
+
+    region: int
+    subtree: list[int]
+    offset: np.ndarray | None
+    delta: dict
+    columns: list
+    sincos: bool
+    n_angles: int
+    perm: np.ndarray | None
+    nominal: bool
+    learned: object
+
+
+def native_stack(ctx: StepContext, rg, model) -> NativeStack | None:
+    """The parts of a correction stack for a native build, or None (the graph is then inlined).
+
+    Native when the graph carries its layers (``stack`` metadata), its sensor is one of the
+    graph's regions, every body of the sensor's subtree is in the pruned tree, and no feature
+    mixes prismatic angles into a sin/cos set.
+    """
+    import onnx
+    from onnx import version_converter
+
+    from torchcontact.residual import CorrectionSpec
+
+    meta = decode({m.key: m.value for m in model.metadata_props})
+    em, full = ctx.em, ctx.full
+    if Key.STACK not in meta or rg.sensor not in em.sensor_names:
+        return None
+    spec = CorrectionSpec.from_json(meta[Key.STACK])
+    region = list(em.sensor_names).index(rg.sensor)
+    keep = list(ctx.keep)
+    sub = full.model.subtree(keep[em.regions[region].child])
+    if not set(sub) <= set(keep):
+        return None
+    new = {old: k for k, old in enumerate(keep)}
+    body_names = list(full.model.body_names)
+    delta = {}
+    for name, params in spec.inertial:
+        i = body_names.index(name)
+        m, hx, hy, hz, ixx, ixy, iyy, ixz, iyz, izz = params
+        Q = np.asarray(full.tree.bodies[i].Q, float)  # R_link_internal
+        Io = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+        delta[new[i]] = (float(m), Q.T @ np.array([hx, hy, hz]), Q.T @ Io @ Q)
+    columns, n_angles, sincos, perm, nominal, learned = [], 0, False, None, False, None
+    if spec.learned is not None:
+        cols = spec.columns(full.model)
+        if cols is None:  # prismatic angles inside a sin/cos set
+            return None
+        columns, n_angles, perm = cols
+        sincos, nominal = n_angles > 0, spec.nominal
+        learned = onnx.load_from_string(base64.b64decode(meta[Key.LEARNED_GRAPH]))
+        version = next(o.version for o in learned.opset_import if o.domain in ("", "ai.onnx"))
+        if version != OPSET:
+            learned = version_converter.convert_version(learned, OPSET)
+    return NativeStack(region, [new[i] for i in sub], spec.offset_array(), delta, columns,
+                       sincos, n_angles, perm, nominal, learned)  # fmt: skip
+
+
+def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[str, str | None]:
+    """The sensors' wrenches ``W0`` with the native stacks subtracted, and ``ws_corr``.
+
+    A correction ``c`` (sensor frame and measure direction) is subtracted twice over: from the
+    region's ``b`` (``sign c``, sensor frame: ``ws_corr``, ``(S, 6)``) and from the wrench the
+    reading transmits towards the root (``sign X_root_sensor c``: the returned ``W0``). Its
+    inertial layer ``Y delta`` is the subtree's Newton-Euler wrenches with the parameter change
+    ``delta`` as inertias, summed and moved to the sensor frame; the nominal-wrench feature is the
+    same with the nominal body wrenches ``f0``.
+
+    Args:
+        ctx: the graph.
+        wiring: the input wiring (selections, recurrent states).
+        stacks: ``{r: (ResidualGraph, NativeStack)}``.
+        TP: pose features.
+        VAb: ``[v, a, 1]`` in each body frame.
+        f0: body wrenches, root frame.
+        W0: the readings' wrenches, root frame, ``(S, 6)``.
+    """
+    gb, nb, S = ctx.gb, ctx.nb, ctx.S
+    W, ws_corr = W0, None
+    for r, (rg, st) in stacks.items():
+        reg = ctx.em.regions[st.region]
+        pick = gb.f(np.isin(np.arange(nb), st.subtree)[None, :].astype(float))
+        sums = []  # root-frame subtree sums to move to the sensor frame
+        if st.nominal:
+            sums.append(gb.op("MatMul", pick, f0))
+        if st.delta:
+            sums.append(gb.op("MatMul", pick, _delta_wrenches(ctx, TP, VAb, st.delta)))
+        in_sensor = []
+        if sums:
+            k = len(sums)
+            stacked = sums[0] if k == 1 else gb.op("Concat", *sums, axis=0)
+            both = gb.op("Concat", stacked, gb.f(np.ones((k, 1))), axis=1)
+
+            def to_sensor(_i, t: list, w: list, reg=reg) -> list:
+                R, _, pR, _ = tp(t)
+                out = signed(
+                    reg.sign, sp.force_to_child(reg.T_child_sensor, force_to_child(R, pR, split(w)))
+                )
+                return [*out[0], *out[1]]  # fmt: skip
+
+            ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
+                          Operand(both, 7, one=6), k, to_sensor, 6, one=False,
+                          hint=f"ysum{r}")  # fmt: skip
+            in_sensor = [gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)]
+        c = gb.f(st.offset[None, :]) if st.offset is not None else None
+        if st.delta:
+            c = in_sensor[-1] if c is None else gb.op("Add", c, in_sensor[-1])
+        if st.learned is not None:
+            out = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st)
+            c = out if c is None else gb.op("Add", c, out)
+        if c is None:
+            continue
+        col = np.zeros((S, 1))
+        col[st.region, 0] = 1.0
+        d = gb.op("MatMul", gb.f(col * reg.sign), c)
+        ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
+        one = gb.op("Concat", c, gb.f([[1.0]]), axis=1)
+
+        def to_root(_i, t: list, cs: list, reg=reg) -> list:
+            R, _, pR, _ = tp(t)
+            w = force_to_parent(R, pR, sp.force_to_parent(reg.T_child_sensor, signed(reg.sign, cs)))
+            return [*w[0], *w[1]]
+
+        w = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
+                     Operand(one, 7, one=6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
+        W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
+    return W, ws_corr
+
+
+def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
+    """``(nb, 6)`` root-frame wrenches of the bodies with inertias ``delta`` (0 elsewhere)."""
+
+    def apply(i: int, va: list, _b: list) -> list:
+        if i not in delta:
+            return [0.0] * 6
+        m, h, Io = delta[i]
+        v, a = split(va[0:6]), split(va[6:12])
+        Ia = sp.inertia_apply_origin(m, sp.const_vec(h), sp.const_mat(Io), a)
+        Iv = sp.inertia_apply_origin(m, sp.const_vec(h), sp.const_mat(Io), v)
+        vxIv = sp.motion_cross_force(v, Iv)
+        return [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+
+    fd = bilinear(ctx.gb, Operand(VAb, 13, one=12), None, ctx.nb, apply, 6, hint="fdelta")
+    return bodies_to_root(ctx, TP, fd, "fdelta_root")
+
+
+def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack) -> str:
+    """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``."""
+    gb = ctx.gb
+    to = onnx_type(rg.dtype)
+    parts = []
+    if st.columns:
+        xs = wiring.select(st.columns)
+        if st.sincos:
+            na = st.n_angles
+            q = gb.op("Slice", xs, gb.i([0]), gb.i([na]), gb.i([1]))
+            rest = gb.op("Slice", xs, gb.i([na]), gb.i([len(st.columns)]), gb.i([1]))
+            parts += [gb.op("Sin", q), gb.op("Cos", q), rest]
+        else:
+            parts.append(xs)
+    if st.nominal:
+        parts.append(nominal)
+    v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
+    feeds = {"features": gb.op("Cast", gb.op("MatMul", v, gb.f(st.perm)), to=to)}
+    if rg.state_shape:
+        feeds["h_in"] = wiring.state_in(rg, to)
+    outs = inline(gb, st.learned, f"res{r}/", feeds)
+    if rg.state_shape:
+        wiring.state_out(rg, outs["h_out"])
+    return gb.cast(outs["residual"])

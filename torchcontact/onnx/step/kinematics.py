@@ -1,0 +1,241 @@
+"""Stage 2 of the single-frame graph: poses, motion and body wrenches of every body at once.
+
+Root frame, about the root origin (Featherstone, *Rigid Body Dynamics Algorithms*, 2008, Ch. 2
+and 5), the tree folded into constant matrices:
+
+* **poses**: each joint transform ``T_parent_i = C_i Rz(q_i)`` is linear in ``(cos q_i, sin
+  q_i)``; poses in the root frame are prefix products along the tree, by pointer doubling
+  (``T_i <- T_{a_k(i)} T_i`` with ``a_k`` the ``2^k``-th ancestor): ``log2`` of the depth
+  compositions of all bodies at once;
+* **motion**: with motion subspaces ``S_i`` in the root frame, ``v_i = v_0 + sum_{j<=i} S_j
+  qd_j`` and ``a_i = a_0 + sum_{j<=i} (S_j qdd_j + v_j x S_j qd_j)``: two products with the
+  constant ancestor matrix;
+* **body wrenches** ``I_i a_i + v_i x* I_i v_i`` in each body frame, moved to the root frame.
+
+Each stage is a :func:`~torchcontact.onnx.builder.bilinear` trace of :mod:`torchcontact.spatial`
+code; :mod:`torchcontact.estimation.stages` ``forward`` is the same function per body.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from torchcontact import spatial as sp
+from torchcontact._scalar import mul
+from torchcontact.onnx.builder import Operand, bilinear
+from torchcontact.onnx.step.context import StepContext
+from torchcontact.onnx.step.forms import (
+    T_ONE,
+    TP_ONE,
+    flat,
+    force_to_parent,
+    motion_to_child,
+    rows,
+    skew,
+    split,
+    tp,
+)
+
+__all__ = [
+    "body_wrenches",
+    "motion",
+    "pose_features",
+    "poses",
+    "readings_root",
+    "subspaces",
+    "wrench_to_root",
+]
+
+
+def _joint_pose(ctx: StepContext, i: int, a: list) -> sp.Pose:
+    """``T_parent_i`` of body ``i`` from ``[cos, sin, displacement, 1]`` (linear in them)."""
+    b = ctx.em.tree.bodies[i]
+    if i == 0:
+        return sp.EYE3, sp.ZERO3
+    c, s, d = a[0], a[1], a[2]
+    if b.kind == "revolute":
+        return sp.m_mul(b.C, sp.rot_z(c, s)), b.p
+    if b.kind == "prismatic":
+        axis = tuple(row[2] for row in b.C)
+        return b.C, sp.v_add(b.p, sp.v_scale(d, axis))
+    return b.C, b.p
+
+
+def poses(ctx: StepContext, e: str, idx: dict, zero: int) -> str:
+    """``T_root_i`` of every body: ``(nb, 13)`` rows ``[R (row-major), p, 1]``.
+
+    Args:
+        ctx: the graph.
+        e: the affine entries.
+        idx: their indices (:func:`~torchcontact.onnx.step.inputs.plan`).
+        zero: the index of a constant 0 entry (``cos 0 = 1``).
+    """
+    gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
+    has_pri = any(b.kind == "prismatic" for b in tree.bodies)
+    ce = gb.op("Cos", e)
+    E = int(idx["n_entries"])
+    src = gb.op("Concat", ce, e, axis=0) if has_pri else ce
+    index = np.array([[idx["cos"][i], idx["sin"][i], E + idx["disp"][i], zero] for i in range(nb)])
+    # the first doubling step directly from the angles: T_parent(i) T_i, bilinear in the
+    # (cos, sin) of the body and of its parent (the root's transform is the identity)
+    par = [max(b.parent, 0) for b in tree.bodies]
+
+    def two(i: int, a: list, b: list) -> list:
+        R, p = sp.pose_compose(_joint_pose(ctx, par[i] if i else 0, a), _joint_pose(ctx, i, b))
+        return [*flat(R), *p]
+
+    T = bilinear(gb, Operand(src, 4, "vec", one=3, index=index[par]),
+                 Operand(src, 4, "vec", one=3, index=index), nb, two, 12, hint="pose")  # fmt: skip
+    # further doubling: T_i <- T_{a(i)} T_i with a(i) the 2^k-th ancestor (or the root)
+    depth = ctx.depths()
+    anc = [par[par[i]] for i in range(nb)]
+    hop = 2
+    while hop < max(depth):
+
+        def compose(_i: int, ta: list, tb: list) -> list:
+            R, p = sp.pose_compose(
+                (rows(ta[0:9]), tuple(ta[9:12])), (rows(tb[0:9]), tuple(tb[9:12]))
+            )
+            return [*flat(R), *p]
+
+        T = bilinear(gb, Operand(T, 13, "nd", one=T_ONE, row_of=list(anc)),
+                     Operand(T, 13, one=T_ONE), nb, compose, 12, hint="pose")  # fmt: skip
+        anc = [anc[anc[i]] for i in range(nb)]
+        hop *= 2
+    return T
+
+
+def pose_features(ctx: StepContext, T: str) -> str:
+    """``[R, p, pR, -R^T p, 1]`` of every pose row, ``(nb, 25)``."""
+
+    def features(_i: int, t: list, _b: list) -> list:
+        R, p = rows(t[0:9]), tuple(t[9:12])
+        return [*flat(R), *p, *flat(sp.m_mul(skew(p), R)), *sp.v_neg(sp.mT_vec(R, p))]
+
+    return bilinear(ctx.gb, Operand(T, 13, one=T_ONE), None, ctx.nb, features, 24, hint="tp")
+
+
+def subspace(ctx: StepContext, i: int, t: list) -> tuple:
+    """Body ``i``'s motion subspace in the root frame, from its pose features.
+
+    ``[p x z; z]`` for revolute bodies (and fixed ones, whose rates are 0), ``[z; 0]`` for
+    prismatic ones, with ``z = R e_z`` and ``p x z = (pR) e_z``.
+    """
+    R, _, pR, _ = tp(t)
+    z = tuple(R[r][2] for r in range(3))
+    if ctx.em.tree.bodies[i].kind == "prismatic":
+        return (*z, 0.0, 0.0, 0.0)
+    return (*(pR[r][2] for r in range(3)), *z)
+
+
+def subspaces(ctx: StepContext, TP: str) -> str:
+    """Motion subspaces of every body, root frame, ``(nb, 6)``."""
+    return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), None, ctx.nb,
+                    lambda i, t, _b: list(subspace(ctx, i, t)), 6, one=False,
+                    hint="s0")  # fmt: skip
+
+
+def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None) -> str:
+    """``[v, a, 1]`` of every body, ``(nb, 13)``, root frame about the root origin.
+
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        e: the affine entries.
+        idx: their indices.
+        base: ``(1, 13)`` constant ``[v0, a0, 1]`` of a fixed base, or None (``idx["base"]``).
+    """
+    gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
+    index = np.array([[idx["qd"][i], idx["qdd"][i], idx["one"]] for i in range(nb)])
+
+    def joint_rates(i: int, t: list, rate: list) -> list:
+        # [S qd; S qdd] (fixed bodies and the root have rates 0)
+        Sv = subspace(ctx, i, t)
+        return [mul(s, rate[0]) for s in Sv] + [mul(s, rate[1]) for s in Sv] + [0.0]
+
+    VA = bilinear(gb, Operand(TP, 25, one=TP_ONE), Operand(e, 3, "vec", one=2, index=index),
+                  nb, joint_rates, 13, one=False, hint="rates")  # fmt: skip
+    anc = np.zeros((nb, nb))
+    for i in range(nb):
+        j = i
+        while j >= 0:
+            anc[i, j] = 1.0
+            j = tree.bodies[j].parent
+    v0a0 = (
+        gb.f(base)
+        if base is not None
+        else gb.op("Reshape", gb.op("Gather", e, gb.i(idx["base"]), axis=0), gb.i([1, 13]))
+    )
+    ancVA = gb.op("Gemm", gb.f(anc), VA, v0a0)
+
+    def bias(_i: int, v: list, vj: list) -> list:
+        # v_j x (S_j qd_j): the acceleration the joint rate adds as the body turns
+        c = sp.motion_cross_motion(split(v[0:6]), split(vj[0:6]))
+        return [0.0] * 6 + [*c[0], *c[1]] + [0.0]
+
+    cross = bilinear(gb, Operand(ancVA, 13, one=12), Operand(VA, 13), nb, bias, 13, one=False,
+                     hint="bias")  # fmt: skip
+    return gb.op("Gemm", gb.f(anc), cross, ancVA)
+
+
+def body_wrenches(ctx: StepContext, TP: str, VA: str) -> tuple[str, str]:
+    """Body wrenches ``I_i a_i + v_i x* I_i v_i`` and the motion in each body frame.
+
+    Returns:
+        ``(f0, VAb)``: the wrenches in the root frame ``(nb, 6)``, and ``[v, a, 1]`` in each
+        body frame ``(nb, 13)`` (what the inertial corrections apply their inertias to).
+    """
+    gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
+
+    def to_body(_i: int, t: list, va: list) -> list:
+        R, _, pR, _ = tp(t)
+        v = motion_to_child(R, pR, split(va[0:6]))
+        a = motion_to_child(R, pR, split(va[6:12]))
+        return [*v[0], *v[1], *a[0], *a[1]]
+
+    VAb = bilinear(gb, Operand(TP, 25, one=TP_ONE), Operand(VA, 13, one=12), nb, to_body, 12,
+                   hint="vab")  # fmt: skip
+
+    def newton_euler(i: int, va: list, _b: list) -> list:
+        b = tree.bodies[i]
+        v, a = split(va[0:6]), split(va[6:12])
+        Ia = sp.inertia_apply(b.mass, b.com, b.inertia, a)
+        vxIv = sp.motion_cross_force(v, sp.inertia_apply(b.mass, b.com, b.inertia, v))
+        return [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+
+    fb = bilinear(gb, Operand(VAb, 13, one=12), None, nb, newton_euler, 6, hint="fb")
+    return bodies_to_root(ctx, TP, fb, "f0"), VAb
+
+
+def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str) -> str:
+    """Per-body wrenches in their body frames ``(nb, 7)`` (a 1 column last), in the root frame."""
+
+    def to_root(_i: int, t: list, f: list) -> list:
+        R, _, pR, _ = tp(t)
+        w = force_to_parent(R, pR, split(f[0:6]))
+        return [*w[0], *w[1]]
+
+    return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), Operand(fb, 7, one=6), ctx.nb, to_root,
+                    6, one=False, hint=hint)  # fmt: skip
+
+
+def wrench_to_root(ctx: StepContext, child: int, t: list | None, w: sp.Force) -> sp.Force:
+    """A wrench in body ``child``'s frame, in the root frame (a constant pose when static)."""
+    static = ctx.static_pose(child)
+    if static is not None:
+        return sp.force_to_parent((sp.const_mat(static[0]), sp.const_vec(static[1])), w)
+    R, _, pR, _ = tp(t)
+    return force_to_parent(R, pR, w)
+
+
+def readings_root(ctx: StepContext, TP: str, e: str, idx: dict) -> str:
+    """Each sensor's wrench on its region, root frame about the root origin, ``(S, 6)``."""
+    childs = [reg.child for reg in ctx.em.regions]
+
+    def to_root(r: int, t: list, w: list) -> list:
+        out = wrench_to_root(ctx, childs[r], t, split(w[0:6]))
+        return [*out[0], *out[1]]
+
+    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs),
+                    Operand(e, 7, "vec", one=6, index=np.array(idx["W_c"])), ctx.S, to_root, 6,
+                    one=False, hint="w0")  # fmt: skip

@@ -1,0 +1,110 @@
+"""Stage 4 of the single-frame graph: the minimum-norm least-squares solve of one region.
+
+:mod:`torchcontact.solve`'s rule (diagonal-pivoted, the pivot the first largest remaining
+diagonal, accepted above ``rtol * max(diag G)``), as Gauss-Jordan elimination on ``[G | I | b]``:
+after the accepted pivots it holds ``G11^{-1}``, ``C = G21 G11^{-1}`` and ``G11^{-1} b1``. The
+least-squares part (``b`` outside the range of ``G``) is the projection on ``range([I; C])``:
+``y1 = G11^{-1} (b1 + C^T s)`` with ``(I + C C^T) s = b2 - C b1``, a well-conditioned system over
+the rejected pivots, eliminated the same way. Same pivots, same rank and the same minimum-norm
+solution as :func:`torchcontact.solve.solve_program` (it only replaces the Gram-Schmidt fix-up by
+this projection); no linear-algebra ops, no atan. A weighting of the solve (noise-weighted rows)
+belongs here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from torchcontact.estimation.layout import Region
+from torchcontact.onnx.step.context import StepContext
+
+__all__ = ["min_rank", "solve_region"]
+
+#: Magnitude marking used pivots in the elimination (a power of two: scaling by it is exact).
+_BIG = {np.dtype(np.float64): 2.0**600, np.dtype(np.float32): 2.0**100}  # > any diagonal
+
+
+def min_rank(ctx: StepContext, reg: Region) -> int:
+    """Smallest rank of ``G`` with one active slot (force_dir 1, force 3, wrench 6)."""
+    ranks = {"force_dir": 1, "force": 3, "wrench": 6}
+    vals = [ranks[ctx.em.slots[k].kind] for k in reg.slots if ctx.em.slots[k].kind in ranks]
+    return min(vals) if vals else 0
+
+
+def solve_region(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int):
+    """Minimum-norm least-squares ``y`` (``(R, ncols)``) and rank (``(1, 1)``) of one region.
+
+    Gauss-Jordan elimination of ``[G | I | b]`` with :mod:`torchcontact.solve`'s pivots: at each
+    step the first largest remaining diagonal, accepted when above ``rtol * max diag``. A second
+    elimination over the rejected pivots projects ``b`` on the range of ``G``.
+
+    Args:
+        ctx: the graph.
+        G: ``(R, R)`` Gram matrix.
+        b: ``(R, 1)`` right side.
+        R: rows.
+        r_min: the rank when any slot is active (the projection is skipped when it is ``R``).
+        ncols: 1, or 7 with the covariance (``d y / d b_j`` for the 6 sensor rows follow ``y``).
+    """
+    gb = ctx.gb
+    big = _BIG[ctx.dtype]
+    eye = np.eye(R)
+    rhs = b
+    if ncols > 1:  # unit right sides for the covariance: d y / d b_j, j < 6
+        E6 = np.zeros((R, 6))
+        E6[:6, :6] = np.eye(6)
+        rhs = gb.op("Concat", b, gb.f(E6), axis=1)
+    Wc = 2 * R + ncols
+    top = gb.op("Concat", G, gb.f(eye), rhs, axis=1)
+    # rows R..2R-1 hold -I in the pivot columns: gathering column p gives [c; -e_p]
+    bottom = np.zeros((R, Wc))
+    bottom[:, :R] = -eye
+    W = gb.op("Concat", top, gb.f(bottom), axis=0)
+    J = np.zeros((2 * R, 2 * R))  # [c; -e_p] -> [c - e_p; 0]
+    J[:R, :R] = eye
+    J[:R, R:] = eye
+    P = np.zeros((2 * R, 2 * R))  # [c; -e_p] -> [-big e_p; 0]: the used-pivot penalty
+    P[:R, R:] = eye * big
+    d0 = gb.op("GatherElements", W, gb.i(np.arange(R)[:, None]), axis=1)
+    # the rank rule: a pivot counts above rtol times the largest diagonal of G
+    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
+    dm = gb.op("Concat", d0, gb.f(np.full((R, 1), -big)), axis=0)
+    pivots, oks = [], []
+    for k in range(R):
+        p = gb.op("ArgMax", dm, axis=0, keepdims=0)  # first largest: solve.py's tie rule
+        m = gb.op("ReduceMax", dm, keepdims=1)
+        c2 = gb.op("Gather", W, p, axis=1)  # (2R, 1)
+        ok = gb.op("Greater", m, tol)
+        f = gb.op("Where", ok, gb.op("Div", gb.op("MatMul", gb.f(J), c2), m), gb.f(0.0))
+        row = gb.op("Gather", W, p, axis=0)
+        W = gb.op("Gemm", f, row, W, alpha=-1.0, beta=1.0)
+        if k < R - 1:
+            dm = gb.op("Gemm", gb.f(P), c2, gb.op("Sub", dm, gb.op("Mul", f, c2)))
+        pivots.append(p)
+        oks.append(ok)
+    # accepted rows (a column), rank
+    okc = gb.cast(gb.op("Concat", *oks, axis=0))  # (R, 1) per step
+    rank = gb.op("ReduceSum", okc, keepdims=1)
+    perm = gb.op("Gather", gb.f(eye), gb.op("Concat", *pivots, axis=0), axis=0)  # row k: e_pk
+    acc = gb.op("Gemm", perm, okc, transA=1)  # (R, 1)
+    Wr = gb.op("Slice", W, gb.i([0, R]), gb.i([R, 2 * R]), gb.i([0, 1]))  # G11^-1 | -C, I
+    b_all = gb.op("Slice", W, gb.i([0, 2 * R]), gb.i([R, Wc]), gb.i([0, 1]))
+    Wacc = gb.op("Mul", Wr, acc)
+    if r_min >= R:  # always full rank when any slot is active
+        return gb.op("MatMul", Wacc, rhs), rank
+    # least squares: (I + C C^T) s = b2 - C b1 over the rejected pivots (they follow the
+    # accepted ones); the rejected rows of Wr are [-C, I], so Wr Wr^T holds I + C C^T there
+    K2 = gb.op("Gemm", Wr, Wr, transB=1)
+    V = gb.op("Concat", gb.op("Concat", K2, b_all, axis=1),
+              gb.f(np.concatenate([-eye, np.zeros((R, ncols))], axis=1)), axis=0)  # fmt: skip
+    for k in range(max(r_min, 1), R):
+        c2 = gb.op("Gather", V, pivots[k], axis=1)
+        piv = gb.op("Gather", c2, pivots[k], axis=0)
+        f = gb.op("Where", oks[k], gb.f(0.0), gb.op("Div", gb.op("MatMul", gb.f(J), c2), piv))
+        row = gb.op("Gather", V, pivots[k], axis=0)
+        V = gb.op("Gemm", f, row, V, alpha=-1.0, beta=1.0)
+    s = gb.op("Slice", V, gb.i([0, R]), gb.i([R, R + ncols]), gb.i([0, 1]))
+    s_rej = gb.op("Sub", s, gb.op("Mul", s, acc))
+    # y = G11^-1 (b1 + C^T s) = Wacc (b - Wr^T s_rej)
+    t = gb.op("Gemm", Wr, s_rej, rhs, alpha=-1.0, beta=1.0, transA=1)
+    return gb.op("MatMul", Wacc, t), rank
