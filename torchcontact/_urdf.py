@@ -285,8 +285,3 @@ def geometry(text: str, source: str, kind: str) -> list[dict]:
             out.append(item)
     return out
 
-
-def axis_rotation_terms(R0: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Terms of ``R0 @ Rot(axis, q) = R0 + sin(q) C1 + (1 - cos(q)) C2`` (Rodrigues)."""
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return R0 @ K, R0 @ K @ K
