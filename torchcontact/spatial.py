@@ -230,6 +230,30 @@ def inertia_apply(mass: float, com: V3, inertia_com: M3, v: Motion) -> Force:
     return h, v_add(m_vec(inertia_com, w), v_cross(com, h))
 
 
+def inertia_params_apply(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> Force:
+    """Spatial inertia in parameter form times a twist: ``[m v + w x h; I_o w + h x v]``.
+
+    The form in which the wrench is linear in the ten inertial parameters (Atkeson, An and
+    Hollerbach 1986), so the parameters may be traced inputs and need not be physical (a change
+    of parameters, a zero mass with a first moment).
+
+    Args:
+        mass: kg.
+        h: first moment ``m c`` in the frame, kg m.
+        inertia_origin: rotational inertia about the frame's origin, frame axes, kg m^2.
+        v: twist (or acceleration) at the frame's origin.
+    """
+    lin, w = v
+    return v_add(v_scale(mass, lin), v_cross(w, h)), v_add(m_vec(inertia_origin, w), v_cross(h, lin))
+
+
+def body_wrench_params(mass: Scalar, h: V3, inertia_origin: M3, v: Motion, a: Motion) -> Force:
+    """``I a + v x* I v`` (Featherstone eq. 5.9) with ``I`` in parameter form (see above)."""
+    Ia = inertia_params_apply(mass, h, inertia_origin, a)
+    vxIv = motion_cross_force(v, inertia_params_apply(mass, h, inertia_origin, v))
+    return v_add(Ia[0], vxIv[0]), v_add(Ia[1], vxIv[1])
+
+
 def add_forces(fs: Sequence[Force]) -> Force:
     """Sum of wrenches."""
     return v_sum([f[0] for f in fs]), v_sum([f[1] for f in fs])
