@@ -184,7 +184,10 @@ def _compiler(compiler: str | None) -> str:
 def build_library(source: Path, out: Path, march: str = "native", compiler: str | None = None) -> str:
     """Compile ``source`` into the shared library ``out`` (written atomically).
 
-    Uses the kernels' flags (:data:`torchcontact.kernels.CFLAGS`) with ``-march=<march>``.
+    Uses the kernels' flags (:data:`torchcontact.kernels.CFLAGS`) with ``-march=<march>``. The
+    build is cached like the kernels' (``$TORCHCONTACT_CACHE/clib/``, keyed by the sha256 of the
+    source, the flags and the compiler's version; one builder at a time per entry): exporting the
+    same estimator again copies the cached library.
 
     Returns:
         The compiler command line used.
@@ -192,16 +195,44 @@ def build_library(source: Path, out: Path, march: str = "native", compiler: str 
     Raises:
         KernelBuildError: no compiler, or the build failed (with the compiler's message).
     """
+    import hashlib
+
+    from torchcontact.kernels import _machine_tag, build_dir_lock, cache_dir
+
     cxx = _compiler(compiler)
     flags = [f for f in CFLAGS if not f.startswith("-march")] + [f"-march={march}"]
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    cmd = [cxx, *flags, "-std=c++17", "-fPIC", "-shared", str(source), "-o", str(tmp)]
+    flags += ["-std=c++17", "-fPIC", "-shared"]
     try:
-        r = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        version = subprocess.run([cxx, "--version"], capture_output=True, text=True).stdout
     except OSError as e:
         raise KernelBuildError(f"running {cxx} failed: {e}") from None
-    if r.returncode != 0:
-        tmp.unlink(missing_ok=True)
-        raise KernelBuildError(f"building {out.name} failed:\n{r.stderr[-3000:]}")
-    os.replace(tmp, out)
-    return " ".join(cmd[:-2] + ["-o", str(out)])
+    text = source.read_text()
+    tag = _machine_tag() if march == "native" else march
+    key = hashlib.sha256(f"{text}|{flags}|{version}|{tag}".encode()).hexdigest()[:24]
+    entry = cache_dir() / "clib" / key
+    cached = entry / "lib.so"
+    command = " ".join([cxx, *flags, str(source), "-o", str(out)])
+    digest = entry / "lib.sha256"
+    with build_dir_lock(entry):
+        if cached.is_file() and (
+            not digest.is_file()
+            or hashlib.sha256(cached.read_bytes()).hexdigest() != digest.read_text().strip()
+        ):
+            cached.unlink()  # a damaged entry is a miss
+        if not cached.is_file():
+            tmp = entry / f".lib.{os.getpid()}.tmp"
+            cmd = [cxx, *flags, str(source), "-o", str(tmp)]
+            try:
+                r = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            except OSError as e:
+                raise KernelBuildError(f"running {cxx} failed: {e}") from None
+            if r.returncode != 0:
+                tmp.unlink(missing_ok=True)
+                raise KernelBuildError(f"building {out.name} failed:\n{r.stderr[-3000:]}")
+            digest.write_text(hashlib.sha256(tmp.read_bytes()).hexdigest() + "\n")
+            os.replace(tmp, cached)
+    part = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    shutil.copyfile(cached, part)
+    os.chmod(part, 0o755)
+    os.replace(part, out)
+    return command

@@ -233,10 +233,8 @@ class BiasTracker:
     @property
     def state(self) -> BiasState:
         """The current :class:`BiasState` (copies)."""
-        return BiasState(
-            self.offset.copy(), self.p[:, None, None] * self.R, self.since.copy(),
-            self.updated.copy(),
-        )  # fmt: skip
+        return BiasState(self.offset.copy(), self.p[:, None, None] * self.R, self.since.copy(),
+                         self.updated.copy())  # fmt: skip
 
     def _advance(self, t: float | None) -> float:
         """Move the clock to ``t`` (s; None: one nominal period); returns the step, s."""
@@ -269,27 +267,45 @@ class BiasTracker:
         Raises:
             InputError: a wrong shape, a time stamp going backwards.
         """
-        z = self._residual(residual)
-        free = _per_sensor(contact_free, len(self.sensors), "contact_free") & np.isfinite(z).all(1)
+        z = residual
+        if not (type(z) is np.ndarray and z.shape == self.offset.shape and z.dtype == np.float64):
+            z = self._residual(z)
+        S = len(self.sensors)
+        if contact_free is True or contact_free is False:
+            free = [contact_free] * S
+        else:
+            free = _per_sensor(contact_free, S, "contact_free").tolist()
         dt = self._advance(t)
-        # predict: the random walk spreads the uncertainty
-        self.p = self.p + self.q_rate * dt
-        self.since = self.since + dt
-        innov = z - self.offset
-        if self.gate is not None and free.any():
-            d2 = np.einsum("si,sij,sj->s", innov, self._R_inv, innov) / (self.p + 1.0)
-            bad = free & (d2 > self.gate)
-            self._rejected = np.where(bad, self._rejected + 1, 0)
-            lost = self._rejected >= self.gate_frames  # a real change: re-acquire it
-            self.p = np.where(lost, self.prior_scale, self.p)
-            self._rejected[lost] = 0
-            free = free & (~bad | lost)
-        # update: scalar gain, the same on every axis (P = p R)
-        gain = np.where(free, self.p / (self.p + 1.0), 0.0)
-        self.offset = self.offset + gain[:, None] * np.where(free[:, None], innov, 0.0)
-        self.p = np.where(free, self.p * (1.0 - gain), self.p)
-        self.since = np.where(free, 0.0, self.since)
-        self.updated = free
+        qdt = self.q_rate * dt
+        off, p, since, rej = self.offset, self.p, self.since, self._rejected
+        updated = np.zeros(S, dtype=bool)
+        for i in range(S):  # a few sensors: scalar work per sensor, one 6-vector update each
+            # predict: the random walk spreads the uncertainty
+            pi = float(p[i]) + qdt
+            since[i] += dt
+            if free[i]:
+                innov = z[i] - off[i]
+                if not np.isfinite(innov).all():  # a NaN reading or model output: skip it
+                    p[i] = pi
+                    continue
+                if self.gate is not None:
+                    d2 = float(innov @ self._R_inv[i] @ innov) / (pi + 1.0)
+                    if d2 > self.gate:
+                        rej[i] += 1
+                        if rej[i] < self.gate_frames:
+                            p[i] = pi
+                            continue
+                        pi, rej[i] = self.prior_scale, 0  # a real change: re-acquire it
+                    else:
+                        rej[i] = 0
+                # update: scalar gain, the same on every axis (P = p R)
+                g = pi / (pi + 1.0)
+                off[i] += g * innov
+                pi *= 1.0 - g
+                since[i] = 0.0
+                updated[i] = True
+            p[i] = pi
+        self.updated = updated
         return self.state
 
     def tare(self, residual: Any, contact_free: Any = True, frames: int = 1) -> BiasState:

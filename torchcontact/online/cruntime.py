@@ -218,7 +218,10 @@ class CStepRuntime:
                 self._fresh.add(name)
             return
         self._fresh.discard(name)
-        arr = value if type(value) is np.ndarray else np.asarray(value, dtype=np.float64)
+        if type(value) is np.ndarray and value.shape == view.shape:
+            view[...] = value
+            return
+        arr = np.asarray(value, dtype=np.float64)
         if arr.shape != view.shape:
             if arr.size != view.size:
                 raise InputError(f"{name} must have shape {view.shape}, got {arr.shape}")
@@ -226,6 +229,8 @@ class CStepRuntime:
         view[...] = arr
 
     def _ft(self, ft: Any) -> np.ndarray:
+        if type(ft) is np.ndarray and ft.shape == (self.S, 6) and ft.dtype == np.float64:
+            return ft
         if isinstance(ft, Mapping):
             missing = [s for s in self.sensor_names if s not in ft]
             if missing:
@@ -316,8 +321,12 @@ class CStepRuntime:
         status = self._step_fn(self._xp, self._op)
         o = self.outputs
         ft_model = o["ft_model"].astype(np.float64)
-        free = st.contact_free(self._in["active"], contact_free) & (status == 0)
-        regs = [o[f"regressor.{s}"].astype(np.float64) for s in self.sensor_names]
+        free = st.contact_free(self._in["active"], contact_free)
+        if status:
+            free[:] = False
+        regs = None
+        if any(i is not None for i in st.identifiers):  # only a running identification needs them
+            regs = [o[f"regressor.{s}"].astype(np.float64) for s in self.sensor_names]
         bias = st.after_step(ftv, ft_model, free, regs, t)
         res = {
             "force": o["force"].copy(),

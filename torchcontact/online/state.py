@@ -84,6 +84,10 @@ class OnlineState:
         if tracker.sensors != names:
             raise InputError(f"the bias tracker tracks {tracker.sensors}, the estimator {names}")
         self.slot_regions = np.asarray(slot_regions, dtype=np.int64)
+        # slot k lies in sensor s's region: busy sensors are active @ _slot_in
+        self._slot_in = np.zeros((len(self.slot_regions), len(self.sensors)), dtype=np.int64)
+        self._slot_in[np.arange(len(self.slot_regions)), self.slot_regions] = 1
+        self._all_free = np.ones(len(self.sensors), dtype=bool)
         self.tracker, self.track = tracker, bool(track)
         self.payloads: list[Payload | None] = [None] * len(self.sensors)
         self._theta = [np.asarray(s.theta0, float).copy() for s in self.sensors]
@@ -125,16 +129,15 @@ class OnlineState:
         ``contact_free`` signal (bool, or ``(S,)`` per sensor, e.g. from a contact localizer or
         a user's switch; None: no signal) does not say otherwise.
         """
-        S = len(self.sensors)
-        free = np.ones(S, dtype=bool)
+        free = self._all_free.copy()
         if active is not None and len(self.slot_regions):
-            on = np.asarray(active, dtype=np.float64).reshape(-1) > 0.5
-            if on.shape != self.slot_regions.shape:
+            on = active if type(active) is np.ndarray else np.asarray(active, dtype=np.float64)
+            if on.size != len(self.slot_regions):
                 raise InputError(f"active must have {len(self.slot_regions)} values")
-            free[np.unique(self.slot_regions[on])] = False
+            free &= (on.reshape(-1) > 0.5) @ self._slot_in == 0
         if contact_free is not None:
             user = np.asarray(contact_free, dtype=bool)
-            free &= np.broadcast_to(user, (S,)) if user.ndim == 0 else user.reshape(S)
+            free &= np.broadcast_to(user, free.shape) if user.ndim == 0 else user.reshape(-1)
         return free
 
     def after_step(
