@@ -18,6 +18,9 @@ import torch
 import torchcontact as tc
 from torchcontact.simulation import UnmodeledEffects, simulate
 
+#: the arm's C step layout in the tests: one force slot per skin frame (the simulated contacts)
+LINKS = ("upper_arm_skin", "forearm_skin", "hand_skin")
+KINDS = ("force", "force", "force")
 OFFSET = (3.0, -2.0, 4.0, 0.3, -0.2, 0.25)  # the training benchmark's offset, [N; N m]
 NOISE = (0.05, 0.05, 0.05, 0.005, 0.005, 0.005)  # its noise, [N; N m]
 #: the 2 N step of the issue, in a direction with every force axis (norm 2 N)
