@@ -135,15 +135,22 @@ class BiasState(NamedTuple):
     Attributes:
         offset: ``(S, 6)`` offset ``[N; N m]`` per sensor (sensor frame and direction): what is
             subtracted from the reading.
-        cov: ``(S, 6, 6)`` its covariance.
+        scale: ``(S,)`` its covariance in units of ``R`` (see :attr:`cov`).
+        R: ``(S, 6, 6)`` the F/T noise covariance (shared, not copied).
         since_update: ``(S,)`` seconds since the last update (``inf`` before the first).
         updated: ``(S,)`` True where this frame updated the offset.
     """
 
     offset: np.ndarray
-    cov: np.ndarray
+    scale: np.ndarray
+    R: np.ndarray
     since_update: np.ndarray
     updated: np.ndarray
+
+    @property
+    def cov(self) -> np.ndarray:
+        """``(S, 6, 6)`` the offset's covariance ``scale R``."""
+        return self.scale[:, None, None] * self.R
 
     def as_dict(self, sensors: Sequence[str]) -> dict[str, dict[str, Any]]:
         """JSON-ready per-sensor dict: ``offset`` (6), ``std`` (6), ``since_update``, ``updated``."""
@@ -233,7 +240,7 @@ class BiasTracker:
     @property
     def state(self) -> BiasState:
         """The current :class:`BiasState` (copies)."""
-        return BiasState(self.offset.copy(), self.p[:, None, None] * self.R, self.since.copy(),
+        return BiasState(self.offset.copy(), self.p.copy(), self.R, self.since.copy(),
                          self.updated.copy())  # fmt: skip
 
     def _advance(self, t: float | None) -> float:

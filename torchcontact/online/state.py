@@ -84,9 +84,7 @@ class OnlineState:
         if tracker.sensors != names:
             raise InputError(f"the bias tracker tracks {tracker.sensors}, the estimator {names}")
         self.slot_regions = np.asarray(slot_regions, dtype=np.int64)
-        # slot k lies in sensor s's region: busy sensors are active @ _slot_in
-        self._slot_in = np.zeros((len(self.slot_regions), len(self.sensors)), dtype=np.int64)
-        self._slot_in[np.arange(len(self.slot_regions)), self.slot_regions] = 1
+        self._regions = self.slot_regions.tolist()
         self._all_free = np.ones(len(self.sensors), dtype=bool)
         self.tracker, self.track = tracker, bool(track)
         self.payloads: list[Payload | None] = [None] * len(self.sensors)
@@ -134,7 +132,8 @@ class OnlineState:
             on = active if type(active) is np.ndarray else np.asarray(active, dtype=np.float64)
             if on.size != len(self.slot_regions):
                 raise InputError(f"active must have {len(self.slot_regions)} values")
-            free &= (on.reshape(-1) > 0.5) @ self._slot_in == 0
+            for k in np.flatnonzero(on.reshape(-1) > 0.5):
+                free[self._regions[k]] = False
         if contact_free is not None:
             user = np.asarray(contact_free, dtype=bool)
             free &= np.broadcast_to(user, free.shape) if user.ndim == 0 else user.reshape(-1)
