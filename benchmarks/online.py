@@ -186,7 +186,7 @@ def latency(calls: int, d: Path) -> None:
                 times[name].append(time.perf_counter_ns() - t)
     cpu = cpu_model()
     ref = _pct(times["iDynTree per-frame estimate (whole iCub)"])
-    print(f"\n1. single-frame latency, iCub l_arm_ft, 4 slots, offset + inertial correction, float64;"
+    print(f"\n1. single-frame latency, iCub l_arm_ft, 4 slots, offset + inertial correction, float64;"  # noqa: E501
           f" {calls:,} calls per path; CPU: {cpu}\n")  # fmt: skip
     print("| path | p50 / p99 µs | p50 / p99 vs iDynTree | CPU |")
     print("|---|---|---|---|")
@@ -205,8 +205,10 @@ def latency(calls: int, d: Path) -> None:
                            text=True, check=True).stdout.split()  # fmt: skip
         print(f"| C step from C (examples/c_step.c, own process) | {int(r[1]) / 1e3:,.1f} /"
               f" {int(r[3]) / 1e3:,.1f} | - | {cpu} |")  # fmt: skip
-    print(f"\nC library: {lib.stat().st_size // 1024} KiB, export + build {build_s:.1f} s"
-          " (cached builds are copied)")
+    print(
+        f"\nC library: {lib.stat().st_size // 1024} KiB, export + build {build_s:.1f} s"
+        " (cached builds are copied)"
+    )
 
 
 def _first_answer(rt: CStepRuntime, s, k0: int, truth: float) -> tuple[float, float]:
@@ -254,14 +256,13 @@ def new_session(epochs: int) -> None:
     """Section 3: the README's --new-session drift + cable case, with the bias tracked."""
     from dataclasses import replace
 
+    from torchcontact.online.estimator import OnlineEstimator, track_log
+    from torchcontact.simulation import UnmodeledEffects, simulate
     from training.__main__ import CONDITIONS
     from training.data import ResidualDataset
     from training.evaluate import contact_metrics
     from training.fit import TrainConfig
     from training.pipeline import Config, DataConfig, make_dataset, predict, train
-
-    from torchcontact.online.estimator import OnlineEstimator, track_log
-    from torchcontact.simulation import UnmodeledEffects, simulate
 
     model, sensor = load_model("icub"), "l_arm_ft"
     fx = dict(CONDITIONS["drift+cable"])

@@ -244,7 +244,8 @@ def inertia_params_apply(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> 
         v: twist (or acceleration) at the frame's origin.
     """
     lin, w = v
-    return v_add(v_scale(mass, lin), v_cross(w, h)), v_add(m_vec(inertia_origin, w), v_cross(h, lin))
+    force = v_add(v_scale(mass, lin), v_cross(w, h))
+    return force, v_add(m_vec(inertia_origin, w), v_cross(h, lin))
 
 
 def body_wrench_params(mass: Scalar, h: V3, inertia_origin: M3, v: Motion, a: Motion) -> Force:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from online_scenes import KINDS, LINKS
 
 import torchcontact as tc

@@ -58,7 +58,7 @@ def test_stated_delay_is_the_measured_one():
         k = slice(100, None)
         basis = np.stack([np.cos(w * s[k]), np.sin(w * s[k])], -1)
 
-        def phase(x):  # x ~ a cos + b sin = r sin(w s + phase)
+        def phase(x, basis=basis):  # x ~ a cos + b sin = r sin(w s + phase)
             a, b = np.linalg.lstsq(basis, x, rcond=None)[0]
             return np.arctan2(a, b)
 

@@ -6,7 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from online_scenes import KINDS, LINKS, NOISE, bias_step_stream, payload_stream, recovery, run_stream
+from online_scenes import (
+    KINDS,
+    LINKS,
+    NOISE,
+    bias_step_stream,
+    payload_stream,
+    recovery,
+    run_stream,
+)
 
 import torchcontact as tc
 from torchcontact.online.cruntime import CStepRuntime

@@ -65,6 +65,7 @@ class ReadingCorrection(Protocol):
     ) -> tuple[list[list[Scalar]], dict[str, list[Scalar]]]:  # fmt: skip
         """Corrected readings (per sensor, 6 scalars) and the outputs, from the forward pass."""
 
+
 _NAN = float("nan")
 
 

@@ -1,4 +1,4 @@
-"""On the robot, online: the F/T bias tracked from the model, payloads, causal derivatives, a C step.
+"""On the robot, online: F/T bias tracked from the model, payloads, causal derivatives, a C step.
 
 - :mod:`torchcontact.online.bias`: each sensor's offset tracked against the model's predicted
   reading while no contact is active (:class:`~torchcontact.online.bias.BiasTracker`, a Kalman

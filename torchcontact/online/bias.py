@@ -153,7 +153,7 @@ class BiasState(NamedTuple):
         return self.scale[:, None, None] * self.R
 
     def as_dict(self, sensors: Sequence[str]) -> dict[str, dict[str, Any]]:
-        """JSON-ready per-sensor dict: ``offset`` (6), ``std`` (6), ``since_update``, ``updated``."""
+        """JSON-ready per sensor: ``offset`` (6), ``std`` (6), ``since_update``, ``updated``."""
         out = {}
         for i, s in enumerate(sensors):
             since = float(self.since_update[i])

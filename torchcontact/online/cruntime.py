@@ -121,7 +121,11 @@ class CStepRuntime:
         self.joint_names = tuple(meta["joint_names"])
         self.sensor_names = tuple(s["name"] for s in meta["sensors"])
         self.slot_links, self.slot_kinds = tuple(meta["slot_links"]), tuple(meta["slot_kinds"])
-        self.nv, self.S, self.K = len(self.joint_names), len(self.sensor_names), len(self.slot_links)
+        self.nv, self.S, self.K = (
+            len(self.joint_names),
+            len(self.sensor_names),
+            len(self.slot_links),
+        )
         self.dtype = np.dtype(meta["dtype"])
         self._check(robot, expect_joint_names, expect_sensors, expect_slots)
         # the packed vectors, their field views, and the call with fixed pointers
@@ -147,8 +151,10 @@ class CStepRuntime:
             SensorLayout(
                 o["sensor"],
                 tuple(o["body_index"]),
-                {k: (b, np.asarray(R).reshape(3, 3), np.asarray(t)) for k, (b, R, t) in
-                 o["frames"].items()},
+                {
+                    k: (b, np.asarray(R).reshape(3, 3), np.asarray(t))
+                    for k, (b, R, t) in o["frames"].items()
+                },
                 o["payload_link"],
                 self._in[f"theta.{o['sensor']}"].astype(np.float64).copy(),
             )  # fmt: skip
@@ -191,9 +197,9 @@ class CStepRuntime:
             self.slot_links,
             self.slot_kinds,
         ):
+            have = list(zip(self.slot_links, self.slot_kinds, strict=True))
             raise ModelMismatchError(
-                f"{path} has contact slots {list(zip(self.slot_links, self.slot_kinds))}, got"
-                f" {list(zip(*slots))}"
+                f"{path} has contact slots {have}, got {list(zip(*slots, strict=True))}"
             )
 
     def __repr__(self) -> str:
@@ -349,7 +355,7 @@ class CStepRuntime:
 
     # --------------------------------------------------------------------------- many frames
     def run(self, x: np.ndarray) -> np.ndarray:
-        """Estimate ``N`` packed frames (rows of ``x``, ``(N, in_size)``); returns ``(N, out_size)``.
+        """Estimate ``N`` packed frames, rows of ``x`` ``(N, in_size)``; returns ``(N, out_size)``.
 
         Fields are at ``metadata["inputs"]`` / ``["outputs"]`` offsets; no online state is used
         or updated (use :meth:`pack` to build ``x``).
@@ -362,8 +368,11 @@ class CStepRuntime:
         return out
 
     def pack(self, n: int, **fields: Any) -> np.ndarray:
-        """``(n, in_size)`` packed inputs: the defaults (with the current bias and theta), then
-        each given field ``(n, *shape)`` (names of ``metadata["inputs"]``)."""
+        """``(n, in_size)`` packed inputs for :meth:`run`.
+
+        The defaults (with the current bias and theta), then each given field ``(n, *shape)``
+        (names of ``metadata["inputs"]``).
+        """
         x = np.broadcast_to(self._x0, (n, self._x0.size)).copy()
         meta = self.metadata["inputs"]
         o = meta["bias"][0]
@@ -387,8 +396,10 @@ class CStepRuntime:
 
     # ------------------------------------------------------------------------------ commands
     def tare(self, frames: int = 1) -> BiasState:
-        """Re-zero the offsets now, at the current pose, from the model (see
-        :meth:`OnlineState.tare`); refused while a contact is active."""
+        """Re-zero the offsets now, at the current pose, from the model.
+
+        See :meth:`OnlineState.tare`; refused while a contact is active.
+        """
         return self.state.tare(frames)
 
     def set_payload(
@@ -422,8 +433,10 @@ class CStepRuntime:
         return self.state.payloads[i]
 
     def start_identification(self, sensor: str | None = None, **kwargs: Any) -> None:
-        """Identify the payload from the next contact-free frames (see
-        :meth:`OnlineState.start_identification`)."""
+        """Identify the payload from the next contact-free frames.
+
+        See :meth:`OnlineState.start_identification`.
+        """
         self.state.start_identification(sensor, **kwargs)
         i = self.state.index(sensor)
         self._in[f"theta.{self.sensor_names[i]}"][...] = self.state.theta(i)

@@ -128,10 +128,8 @@ def _param_wrench(Q: np.ndarray, th: Sequence[Scalar], v: sp.Motion, a: sp.Motio
     for r in range(3):
         row = []
         for c in range(3):
-            # (Q^T I Q)[r, c] = sum_kl Q[k, r] Q[l, c] I[k, l], I symmetric from 6 parameters
-            coeffs = [
-                Q[k, r] * Q[l, c] + (Q[l, r] * Q[k, c] if k != l else 0.0) for k, l in _SYM
-            ]
+            # (Q^T I Q)[r, c] = sum_ij Q[i, r] Q[j, c] I[i, j], I symmetric from 6 parameters
+            coeffs = [Q[i, r] * Q[j, c] + (Q[j, r] * Q[i, c] if i != j else 0.0) for i, j in _SYM]
             row.append(lincomb(coeffs, th[4:10]))
         rows.append(tuple(row))
     return sp.body_wrench_params(th[0], h, tuple(rows), v, a)
@@ -190,7 +188,9 @@ class InertialCorrection:
             delta = at_sensor(reg, F_d[reg.child])
             nominal = at_sensor(reg, F_nom[reg.child])
             bias = x[f"bias{i}"]
-            out.append([sub(sub(r, o), d) for r, o, d in zip(readings[i], bias, delta, strict=True)])
+            out.append(
+                [sub(sub(r, o), d) for r, o, d in zip(readings[i], bias, delta, strict=True)]
+            )
             ft_model += [add(n, d) for n, d in zip(nominal, delta, strict=True)]
             rb = self.regressor_bodies[i]
             if rb is None:

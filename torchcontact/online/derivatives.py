@@ -151,7 +151,8 @@ class CausalDerivatives:
 
     Example:
         >>> f = CausalDerivatives(1, window=5, order=2)
-        >>> [round(float(f.update(k * 1_000_000, [0.5 * (k * 1e-3) ** 2])[2][0]), 9) for k in range(4)]
+        >>> qdd = [f.update(k * 1_000_000, [0.5 * (k * 1e-3) ** 2])[2][0] for k in range(4)]
+        >>> [round(float(x), 9) for x in qdd]
         [nan, nan, 1.0, 1.0]
     """
 

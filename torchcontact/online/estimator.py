@@ -116,8 +116,7 @@ class OnlineEstimator:
     def model_terms(
         self, q: Tensor, qd: Tensor, qdd: Tensor, extra: Mapping[str, Any] | None = None
     ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-        """What the model explains, for ``N`` frames: ``ft_model``, the part the readings lose,
-        and the payload-body regressors.
+        """What the model explains for ``N`` frames.
 
         Args:
             q: ``(N, nv)`` in ``model.joint_names`` order; ``qd``, ``qdd`` likewise.

@@ -63,7 +63,7 @@ def _vec(x: Any, n: int, name: str) -> np.ndarray:
 
 
 def _inertia_about(mass: float, com: np.ndarray, inertia_com: np.ndarray) -> np.ndarray:
-    """Parallel axis theorem to the origin (:func:`torchcontact.spatial.inertia_about`, no torch)."""
+    """The parallel-axis theorem to the origin (``spatial.inertia_about`` without torch)."""
     return inertia_com + mass * (com @ com * np.eye(3) - np.outer(com, com))
 
 
@@ -275,7 +275,9 @@ class PayloadIdentifier:
         n = len(Y)
         if n == 0:
             return
-        phi = np.concatenate([Y, np.broadcast_to(np.eye(6), (n, 6, 6))], 2) if self.fit_offset else Y
+        phi = (
+            np.concatenate([Y, np.broadcast_to(np.eye(6), (n, 6, 6))], 2) if self.fit_offset else Y
+        )
         lam = self.forgetting
         w = lam ** np.arange(n - 1, -1, -1.0)  # older frames of the batch forgotten more
         Wphi = np.einsum("ij,njk->nik", self._W, phi)
@@ -373,4 +375,3 @@ class PayloadIdentifier:
             return Payload.from_params(est.theta, R_body_link, p_body_link, link)
         except InputError as e:
             raise NotIdentifiableError(f"the fitted payload is not physical: {e}") from None
-
