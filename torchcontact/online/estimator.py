@@ -59,11 +59,12 @@ class OnlineEstimator:
         >>> on = OnlineEstimator(m, None, ["hand_skin"], ["force"], track_bias=True,
         ...                      backend="eager")
         >>> q = torch.zeros(7, dtype=torch.float64)
-        >>> ft = m.inverse_dynamics(q[None], q[None], q[None]).new_zeros(6)
-        >>> ft = on.step(q, q, q, ft, active=[0.0])["ft_model"][0] + 2.0  # a 2 N offset
-        >>> out = on.step(q, q, q, ft, active=[0.0])
-        >>> [round(v, 6) for v in out["bias"].offset[0, :3].tolist()]
-        [2.0, 2.0, 2.0]
+        >>> out = on.step(q, q, q, torch.zeros(6), active=[1.0])  # in contact: no update
+        >>> ft = out["ft_model"][0] + 2.0  # the model's reading plus a 2 N offset
+        >>> for _ in range(3):  # contact-free frames
+        ...     out = on.step(q, q, q, ft, active=[0.0])
+        >>> [round(v, 3) for v in out["bias"].offset[0, :3].tolist()], out["bias"].updated
+        ([2.0, 2.0, 2.0], array([ True]))
     """
 
     def __init__(
