@@ -118,6 +118,8 @@ def _idyntree(model: tc.RobotModel, frame: dict) -> callable:
     u = idt.LinkUnknownWrenchContacts(m)
     T = idt.SIX_AXIS_FORCE_TORQUE
     j = sens.getSensorIndex(T, "l_arm_ft")
+    others = [k for k in range(sens.getNrOfSensors(T)) if k != j]
+    zero = idt.Wrench.FromPython(np.zeros(6))
     links = [m.getLinkIndex(k) for k in ("l_hand", "l_forearm")]
     kinds = [idt.PURE_FORCE, idt.PURE_FORCE]
     q = idt.JointPosDoubleArray.FromPython(frame["q"])
@@ -133,6 +135,8 @@ def _idyntree(model: tc.RobotModel, frame: dict) -> callable:
         for li, kd, p in zip(links, kinds, pos, strict=True):
             u.addNewContactForLink(li, idt.UnknownWrenchContact(kd, p))
         meas.setMeasurement(T, j, w)
+        for k in others:  # the other five sensors read zero (their submodels are contact-free)
+            meas.setMeasurement(T, k, zero)
         if not e.estimateExtWrenchesAndJointTorques(u, meas, cw, tau):
             raise RuntimeError("iDynTree's estimate failed")
 

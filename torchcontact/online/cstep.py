@@ -453,15 +453,16 @@ def export_c_step(
     }
     path = Path(path)
     text = json.dumps(meta, sort_keys=True)
-    src, header = _cabi.emit_library(
+    kernel, api, header = _cabi.emit_library(
         prog, "double" if npd == np.float64 else "float", prefix, in_off, out_off, in_size,
         out_size, fout["status"][0], text, defaults, {**_doc(fin, "IN"), **_doc(fout, "OUT")},
     )  # fmt: skip
+    src = f"{kernel}\n{api}"
     for p, content in ((path.with_suffix(".cpp"), src), (path.with_suffix(".h"), header),
                        (path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")):  # fmt: skip
         _write_atomic(p, content)
     if build:
-        meta["compiler"] = _cabi.build_library(path.with_suffix(".cpp"), path, march, compiler)
+        meta["compiler"] = _cabi.build_library(kernel, api, path, march, compiler)
     return meta
 
 
