@@ -6,10 +6,11 @@ state between frames (:class:`~torchcontact.online.state.OnlineState`: the track
 payload, a running payload identification). It becomes ``EstimatorRuntime(..., backend="c")``
 once the deployment wing (``torchcontact/onnx/``) lands.
 
-Example:
-    >>> rt = CStepRuntime("arm.so", robot="tcarm", track_bias=True)  # doctest: +SKIP
-    >>> out = rt.step(q, qd, qdd, ft, positions, active)  # doctest: +SKIP
-    >>> out["force"], out["bias"].offset  # (K, 3) N; (S, 6) tracked offsets  # doctest: +SKIP
+Use (``arm.so`` from ``torchcontact export estimator --format c``; tested in tests/online)::
+
+    rt = CStepRuntime("arm.so", robot="tcarm", track_bias=True)
+    out = rt.step(q, qd, qdd, ft, positions, active)
+    out["force"], out["bias"].offset  # (K, 3) N; (S, 6) tracked offsets
 """
 
 from __future__ import annotations
@@ -167,6 +168,10 @@ class CStepRuntime:
             tracker = BiasTracker(self.sensor_names, **opts)
         self.state = OnlineState(layouts, meta["slot_regions"], tracker, track=bool(track_bias))
         self._fresh: set[str] = set()
+        tj = list(meta["torque_joints"])
+        self._tau_idx = None if tj == list(self.joint_names) else [
+            self.joint_names.index(j) for j in tj
+        ]  # fmt: skip
 
     @staticmethod
     def _view(buf: np.ndarray, off: int, shape: Sequence[int]) -> np.ndarray:
@@ -292,8 +297,9 @@ class CStepRuntime:
             t: the frame's time, s (the tracker's clock; None: one nominal period on).
 
         Returns:
-            ``force``, ``moment`` ``(K, 3)``, ``joint_torques`` (the exported joints,
-            ``metadata["torque_joints"]``), ``rank``, ``unknowns`` ``(S,)`` int64,
+            ``force``, ``moment`` ``(K, 3)``, ``joint_torques (nv,)`` (NaN for the joints the
+            library was exported without, ``metadata["torque_joints"]``, as the ONNX graphs),
+            ``rank``, ``unknowns`` ``(S,)`` int64,
             ``residual (S,)``, ``status`` (int), ``covariance (K, 6, 6)`` when exported,
             ``ft_model (S, 6)`` and ``bias`` (:class:`BiasState` after the frame). The arrays
             are copies.
@@ -337,7 +343,7 @@ class CStepRuntime:
         res = {
             "force": o["force"].copy(),
             "moment": o["moment"].copy(),
-            "joint_torques": o["joint_torques"].copy(),
+            "joint_torques": self._torques(o["joint_torques"]),
             "rank": o["rank"].astype(np.int64),
             "unknowns": o["unknowns"].astype(np.int64),
             "residual": o["residual"].copy(),
@@ -348,6 +354,13 @@ class CStepRuntime:
         if "covariance" in o:
             res["covariance"] = o["covariance"].copy()
         return res
+
+    def _torques(self, tau: np.ndarray) -> np.ndarray:
+        if self._tau_idx is None:
+            return tau.astype(np.float64)
+        out = np.full(self.nv, np.nan)
+        out[self._tau_idx] = tau
+        return out
 
     def step_raw(self) -> int:
         """Call the library on the packed input as it stands (no Python work; benchmarks)."""
