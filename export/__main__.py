@@ -46,6 +46,8 @@ def _estimator(args: argparse.Namespace) -> int:
     from torchcontact.errors import TorchContactError
     from torchcontact.export import DEFAULT_OPSET, export_estimator, step_graph_path
 
+    if args.format == "c":
+        return _estimator_c(args)
     if (args.robot is None) == (args.urdf is None):
         raise InputError("give exactly one of --robot tcarm or --urdf PATH")
     path = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
@@ -54,7 +56,7 @@ def _estimator(args: argparse.Namespace) -> int:
 
     model = load_robot(path)
     links, kinds = _slots(args)
-    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]
     opset = args.opset or DEFAULT_OPSET
     joints = args.joints
     if joints and joints not in ("all", "sensed"):
@@ -91,6 +93,71 @@ def _estimator(args: argparse.Namespace) -> int:
         raise InputError(str(e)) from None
     step = str(step_graph_path(args.out))
     print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
+    return 0
+
+
+def _estimator_c(args: argparse.Namespace) -> int:
+    """``export estimator --format c``: the single-frame estimator as a C library."""
+    import torch
+
+    import torchcontact as tc
+    from torchcontact.logs.pipeline import load_robot
+    from torchcontact.online.cstep import export_c_step
+
+    if (args.robot is None) == (args.urdf is None):
+        raise InputError("give exactly one of --robot tcarm or --urdf PATH")
+    if args.constraints or args.cone_iterations is not None:
+        raise InputError("--format c: the friction-cone estimator is exported as ONNX only")
+    if not args.out.endswith(".so"):
+        raise InputError(f"--format c writes a shared library: --out NAME.so, got {args.out!r}")
+    path = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
+    stem = args.out.removesuffix(".so")
+    outs = [args.out] + [f"{stem}{x}" for x in (".h", ".cpp", ".json")]
+    check_outputs(outs, [path, args.contacts])
+    model = load_robot(path)
+    links, kinds = _slots(args)
+    joints = args.joints
+    if joints and joints not in ("all", "sensed"):
+        joints = joints.split(",")
+    payload_links = {}
+    for item in args.payload_link or []:
+        sensor, sep, link = item.partition("=")
+        if not sep:
+            raise InputError(f"--payload-link takes SENSOR=LINK, got {item!r}")
+        payload_links[sensor] = link
+    print(f"export: building the C step of {model.name} ({len(links)} slots) ...", file=sys.stderr)
+    with _stage(f"C step of {model.name}, {len(links)} slots"):
+        meta = export_c_step(
+            model,
+            args.sensor or None,
+            links,
+            kinds,
+            args.out,
+            dtype={"float32": torch.float32, "float64": torch.float64}[args.dtype or "float64"],
+            correction=args.residual or None,
+            payload_links=payload_links,
+            joints=None if joints in (None, "all") else joints,
+            moving_base=args.moving_base,
+            torque_rows=args.torque_rows,
+            covariance=args.covariance,
+            velocity_margin=args.velocity_margin,
+            rank_rtol=args.rank_rtol,
+            prefix=args.prefix,
+            march=args.march,
+            build=not args.no_build,
+        )
+    for sensor, c in meta["correction"].items():
+        left = [k for k in c["layers"] if k not in c["in_library"]]
+        if left:
+            print(
+                f"warning: the {'+'.join(left)} layer of {sensor}'s correction is not in the C"
+                " library: run its graph beside it (torchcontact export residual)",
+                file=sys.stderr,
+            )
+    files = {"path": args.out, "header": f"{stem}.h", "source": f"{stem}.cpp"}
+    print(json.dumps({**files, "metadata": f"{stem}.json", "in_size": meta["in_size"],
+                      "out_size": meta["out_size"], "inputs": meta["inputs"],
+                      "outputs": meta["outputs"]}, indent=1))  # fmt: skip
     return 0
 
 
@@ -139,7 +206,18 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--contacts", help="contact-spec file (TOML/JSON): one slot per contact, instead of --slot"
     )
-    e.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="graph dtype")
+    e.add_argument(
+        "--format",
+        choices=["onnx", "c"],
+        default="onnx",
+        help="onnx graphs, or c: a C-ABI shared library NAME.so with NAME.h (no torch/onnxruntime)",
+    )
+    e.add_argument(
+        "--dtype",
+        choices=["float32", "float64"],
+        default=None,
+        help="graph dtype (default float32; float64 for --format c)",
+    )
     e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")
     e.add_argument(
@@ -161,7 +239,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--residual",
         action="append",
-        help="correction graph to chain (torchcontact export residual; repeat)",
+        help="correction graph to chain (torchcontact export residual; repeat); --format c: a"
+        " correction checkpoint folder (its offset and inertial layers go into the library)",
     )
     e.add_argument(
         "--velocity-margin",
@@ -177,7 +256,21 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--cone-iterations", type=int, default=None, help="its iteration budget (default 25)"
     )
-    e.add_argument("--out", required=True, help="output .onnx path (and <stem>.step.onnx)")
+    e.add_argument("--march", default="native", help="--format c: the compiler's -march")
+    e.add_argument("--prefix", default="tc_estimator", help="--format c: C symbol prefix")
+    e.add_argument(
+        "--no-build", action="store_true", help="--format c: write the source and header only"
+    )
+    e.add_argument(
+        "--payload-link",
+        action="append",
+        help="--format c: SENSOR=LINK where payloads attach (default: the end of the subtree)",
+    )
+    e.add_argument(
+        "--out",
+        required=True,
+        help="output .onnx path (and <stem>.step.onnx); --format c: NAME.so (and .h, .cpp, .json)",
+    )
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")
     r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")

@@ -233,8 +233,9 @@ def inertia_apply(mass: float, com: V3, inertia_com: M3, v: Motion) -> Force:
 def inertia_apply_origin(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> Force:
     """Spatial inertia about the frame's origin times a twist: ``[m v - h x w; I_o w + h x v]``.
 
-    The form in which the inertia is linear in its ten parameters (a parameter *change*, whose
-    mass may be zero or negative, has no centre of mass).
+    The form in which the wrench is linear in the ten inertial parameters (Atkeson, An and
+    Hollerbach 1986), so the parameters may be traced inputs and need not be physical (a
+    parameter *change*, whose mass may be zero or negative, has no centre of mass).
 
     Args:
         mass: kg.
@@ -247,6 +248,13 @@ def inertia_apply_origin(mass: Scalar, h: V3, inertia_origin: M3, v: Motion) -> 
         v_sub(v_scale(mass, lin), v_cross(h, w)),
         v_add(m_vec(inertia_origin, w), v_cross(h, lin)),
     )
+
+
+def body_wrench_params(mass: Scalar, h: V3, inertia_origin: M3, v: Motion, a: Motion) -> Force:
+    """``I a + v x* I v`` (Featherstone eq. 5.9) with ``I`` in parameter form (see above)."""
+    Ia = inertia_apply_origin(mass, h, inertia_origin, a)
+    vxIv = motion_cross_force(v, inertia_apply_origin(mass, h, inertia_origin, v))
+    return v_add(Ia[0], vxIv[0]), v_add(Ia[1], vxIv[1])
 
 
 def add_forces(fs: Sequence[Force]) -> Force:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Protocol
 
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
@@ -43,7 +44,28 @@ from torchcontact.estimation.layout import EstimationModel
 from torchcontact.solve import solve_program
 from torchcontact.status import Status
 
-__all__ = ["estimate_program", "predict_program", "program"]
+__all__ = ["ReadingCorrection", "estimate_program", "predict_program", "program"]
+
+
+class ReadingCorrection(Protocol):
+    """A correction of the readings inside :func:`estimate_program` (e.g. offset + inertial).
+
+    Attributes:
+        inputs: its input arrays, name -> scalars per frame.
+        outputs: its output arrays, name -> scalars per frame (NaN in frames with a status).
+        key: identifies its constants (part of the program's key).
+    """
+
+    inputs: dict[str, int]
+    outputs: dict[str, int]
+    key: str
+
+    def apply(
+        self, em: EstimationModel, x: dict[str, list], X: list, v: list, a: list, f: list,
+        readings: list[list[Scalar]],
+    ) -> tuple[list[list[Scalar]], dict[str, list[Scalar]]]:  # fmt: skip
+        """Corrected readings (per sensor, 6 scalars) and the outputs, from the forward pass."""
+
 
 _NAN = float("nan")
 
@@ -78,6 +100,7 @@ def estimate_program(
     cones: tuple[int, float, float] | None = None,
     warm: bool = False,
     nullspace: bool = False,
+    correction: ReadingCorrection | None = None,
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
@@ -98,6 +121,9 @@ def estimate_program(
     pseudo-inverse solution, or from ``warm`` where it is finite); ``residual`` is then
     ``|A x - b|`` of that estimate and ``rank`` stays the rank of ``A``. Without ``cones``,
     ``warm`` and ``nullspace`` the program is exactly the unconstrained one (same kernel).
+
+    A ``correction`` (:class:`ReadingCorrection`) adds its inputs and outputs and replaces the
+    readings by its corrected ones after the forward pass (on whose values it may build).
     """
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
     kinds = em.kinds
@@ -128,6 +154,9 @@ def estimate_program(
     n_unknowns = [sum(KINDS[em.slots[k].kind] for k in reg.slots) for reg in em.regions]
     if nullspace:
         outputs["nullspace"] = sum(u * u for u in n_unknowns)
+    if correction is not None:
+        inputs.update(correction.inputs)
+        outputs.update(correction.outputs)
 
     def fn(x: dict[str, list]) -> dict[str, list]:
         readings = [x["ft"][6 * i : 6 * i + 6] for i in range(S)]
@@ -204,7 +233,10 @@ def estimate_program(
             tau_mask = [select(logical_and(ok, gt(m, 0.5)), 1.0, 0.0) for m in x["tau_mask"]]
 
         # ---- the stages
-        X, _, _, f = stages.forward(em, q, qd, qdd, base)
+        X, vel, acc, f = stages.forward(em, q, qd, qdd, base)
+        corrected: dict[str, list] = {}
+        if correction is not None:  # the readings less what the model and its layers explain
+            readings, corrected = correction.apply(em, x, X, vel, acc, f, readings)
         known: dict[int, list] = {}
         for k, slot in enumerate(em.slots):
             if slot.kind == "known":
@@ -269,11 +301,14 @@ def estimate_program(
             result["cone_active"] = extra["cone_active"]
         if nullspace:
             result["nullspace"] = [out(v) for v in extra["nullspace"]]
+        result.update({k: [out(v) for v in vs] for k, vs in corrected.items()})
         return result
 
     key = f"est|{em.key}|{moving_base}|{torque_rows}|{with_cov}"
     if cones is not None or nullspace:
         key += f"|cones={cones}|warm={warm}|null={nullspace}"
+    if correction is not None:
+        key += f"|corr={correction.key}"
     return kernels.Program("estimator", fn, inputs, outputs, key)
 
 

@@ -75,9 +75,7 @@ def correction_program(model, spec) -> kernels.Program:
         if delta:  # the parameter change as the bodies' inertias: Y delta
             fd = [zero] * len(f)
             for i, (m, h, Io) in delta.items():
-                Ia = sp.inertia_apply_origin(m, h, Io, a[i])
-                vxIv = sp.motion_cross_force(v[i], sp.inertia_apply_origin(m, h, Io, v[i]))
-                fd[i] = sp.add_forces([Ia, vxIv])
+                fd[i] = sp.body_wrench_params(m, h, Io, v[i], a[i])
             physics = [add(p, y) for p, y in zip(physics, in_sensor(X, fd), strict=True)]
         nominal = in_sensor(X, f) if spec.nominal else [0.0] * 6
         return {"physics": physics, "nominal": nominal}

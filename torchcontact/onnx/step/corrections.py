@@ -234,10 +234,8 @@ def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
             return [0.0] * 6
         m, h, Io = delta[i]
         v, a = split(va[0:6]), split(va[6:12])
-        Ia = sp.inertia_apply_origin(m, sp.const_vec(h), sp.const_mat(Io), a)
-        Iv = sp.inertia_apply_origin(m, sp.const_vec(h), sp.const_mat(Io), v)
-        vxIv = sp.motion_cross_force(v, Iv)
-        return [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+        f = sp.body_wrench_params(m, sp.const_vec(h), sp.const_mat(Io), v, a)
+        return [*f[0], *f[1]]
 
     fd = bilinear(ctx.gb, Operand(VAb, 13, one=12), None, ctx.nb, apply, 6, hint="fdelta")
     return bodies_to_root(ctx, TP, fd, "fdelta_root")
