@@ -232,20 +232,21 @@ def step_program(
 
 
 # ------------------------------------------------------------------------------------ layout
-#: program array -> (field name, unit) of the packed vectors (ft{i}, bias{i}, theta{i}, regressor
+#: program array -> (field name, unit) of the packed vectors (bias{i}, theta{i}, regressor
 #: are split per sensor below)
 _FIELDS = {
+    "ft": ("ft", "[N; N m], sensor frames, raw"),
     "q": ("q", "rad or m"),
     "qd": ("qd", "rad/s or m/s"),
     "qdd": ("qdd", "rad/s^2 or m/s^2"),
-    "pos": ("positions", "m, slot link frame"),
+    "positions": ("positions", "m, slot link frame"),
     "active": ("active", "1 in contact, 0 not"),
-    "dir": ("directions", "unit, slot link frame"),
-    "wrench": ("wrenches", "[N; N m], slot link frame, about the point"),
+    "directions": ("directions", "unit, slot link frame"),
+    "wrenches": ("wrenches", "[N; N m], slot link frame, about the point"),
     "omega": ("omega", "rad/s, root frame"),
     "domega": ("domega", "rad/s^2, root frame"),
     "proper_acc": ("proper_acc", "m/s^2, root frame"),
-    "tau_meas": ("tau_measured", "N m or N"),
+    "tau_measured": ("tau_measured", "N m or N"),
     "tau_mask": ("tau_mask", "1 measured, 0 not"),
     "ft_cov": ("ft_cov", "(N, N m)^2"),
     "force": ("force", "N, slot link frame"),
@@ -265,15 +266,11 @@ def _layout(arrays: Mapping[str, int], S: int, K: int, nv_t: int, sensors, reg_s
     fields: dict[str, tuple[int, tuple[int, ...], str]] = {}
     offsets: list[int] = []
     off = 0
-    shapes = {"pos": (K, 3), "dir": (K, 3), "wrench": (K, 6), "force": (K, 3), "moment": (K, 3),
-              "ft_cov": (S, 6, 6), "cov": (K, 6, 6), "ft_model": (S, 6)}  # fmt: skip
+    shapes = {"positions": (K, 3), "directions": (K, 3), "wrenches": (K, 6), "force": (K, 3), "moment": (K, 3),
+              "ft": (S, 6), "ft_cov": (S, 6, 6), "cov": (K, 6, 6), "ft_model": (S, 6)}  # fmt: skip
     for name, n in arrays.items():
         offsets.append(off)
-        if name.startswith("ft") and name[2:].isdigit():
-            i = int(name[2:])
-            if i == 0:
-                fields["ft"] = (off, (S, 6), "[N; N m], sensor frames, raw")
-        elif name.startswith("bias"):
+        if name.startswith("bias"):
             i = int(name[4:])
             if i == 0:
                 fields["bias"] = (off, (S, 6), "[N; N m], offset subtracted from ft")
@@ -359,7 +356,6 @@ def export_c_step(
         ('torchcontact.cstep/1', [0, [7]], [0, [1, 3]])
     """
     from torchcontact import __version__
-    from torchcontact._onnx_step import torque_joints
     from torchcontact.kernels import _cabi
 
     if dtype not in (torch.float32, torch.float64):
@@ -377,7 +373,7 @@ def export_c_step(
     )
     names = list(est.sensor_names)
     em = est.layout(tuple(links), tuple(kinds))
-    coords = torque_joints(em, joints if joints not in (None, "all") else None)
+    coords = em.torque_joints(joints if joints not in (None, "all") else None)
     stacks = _stacks(correction, model.to(dtype=torch.float64, device="cpu"), names)
     theta0 = {s: c.graph.delta.cpu().numpy() for s, c in stacks.items() if c.delta is not None}
     layouts = sensor_layouts(m, names, payload_links, theta0)
