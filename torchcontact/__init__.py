@@ -18,8 +18,11 @@ __version__ = "0.1.0"
 # public name -> module it lives in (one per line)
 _LAZY = {
     "KINDS": "torchcontact.contacts",
+    "LOCALIZE_STATUS": "torchcontact.status",
     "STATUS": "torchcontact.status",
     "InputError": "torchcontact.errors",
+    "Localization": "torchcontact.localize",
+    "Localizer": "torchcontact.localize",
     "TorchContactError": "torchcontact.errors",
     "BaseMotion": "torchcontact.dynamics",
     "ConeStatus": "torchcontact.estimation",
@@ -44,6 +47,7 @@ _LAZY = {
 
 __all__ = [
     "KINDS",
+    "LOCALIZE_STATUS",
     "STATUS",
     "BaseMotion",
     "ConeStatus",
@@ -55,6 +59,8 @@ __all__ = [
     "Frame",
     "FrictionCones",
     "InputError",
+    "Localization",
+    "Localizer",
     "PreviousFrame",
     "RobotModel",
     "TorchContactError",
@@ -90,7 +96,9 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
         Contacts,
         status_messages,
     )
+    from torchcontact.localize import Localization, Localizer
     from torchcontact.model import Frame, FTSensor, RobotModel, URDFError
+    from torchcontact.status import LOCALIZE_STATUS
 
 
 def __getattr__(name: str):

@@ -10,7 +10,7 @@ an unknown link is an error when the estimate is called.
 
 from __future__ import annotations
 
-__all__ = ["STATUS", "status_messages"]
+__all__ = ["LOCALIZE_STATUS", "STATUS", "localize_messages", "status_messages"]
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok).
 STATUS: dict[int, str] = {
@@ -35,3 +35,28 @@ def status_messages(code: int) -> str:
     if code == 0:
         return "ok"
     return "; ".join(msg for bit, msg in STATUS.items() if code & bit)
+
+
+#: Per-frame status bits of a contact localization (:class:`torchcontact.localize.Localization`,
+#: the ``localize_status_code.<sensor>`` log column); 0 means one contact was found. Frames with
+#: any bit but 16 set have no contact point.
+LOCALIZE_STATUS: dict[int, str] = {
+    1: "non-finite F/T reading, joint state or base motion",
+    2: "no contact: the force is below the threshold",
+    4: "no intersection: the force's line of action misses every candidate link",
+    8: "pulling: the line meets the candidate links only where the force would pull",
+    16: "ambiguous: the line enters the links at several distinct points (the first is reported)",
+    32: "not localized: the frame has skin contacts in the sensor's region",
+}
+
+
+def localize_messages(code: int) -> str:
+    """Human-readable reason for a localization status code (``"ok"`` for 0).
+
+    Example:
+        >>> localize_messages(16)
+        'ambiguous: the line enters the links at several distinct points (the first is reported)'
+    """
+    if code == 0:
+        return "ok"
+    return "; ".join(msg for bit, msg in LOCALIZE_STATUS.items() if code & bit)
