@@ -90,6 +90,7 @@ def panda_setup(tmp: Path):
         sensor="wrist_ft",
         links=links,
         meshes=load_meshes(model, path, "collision", links=links),
+        mimic=[("panda_finger_joint2", "panda_finger_joint1")],
     )
 
 
@@ -102,8 +103,8 @@ def random_joint_state(model, n, rng):
     qd = rng.normal(0, 0.5, (n, model.nv))
     qdd = rng.normal(0, 1.0, (n, model.nv))
     for j, name in enumerate(model.joint_names):
-        if "finger" in name:  # iDynTree treats the mimic finger as a coordinate: keep both still
-            q[:, j], qd[:, j], qdd[:, j] = 0.02, 0.0, 0.0
+        if "finger" in name:  # a gripper opening within its 4 cm, slowly
+            q[:, j], qd[:, j], qdd[:, j] = rng.uniform(0.0, 0.04, n), 0.0, 0.0
     return q, qd, qdd
 
 
@@ -144,10 +145,12 @@ def sample_contacts(setup, n, rng, magnitude, cone=0.5236):
 class IDynTreeFT:
     """iDynTree's expected F/T measurements for known contacts (the reference readings)."""
 
-    def __init__(self, path, model, sensor):
+    def __init__(self, path, model, sensor, mimic=()):
+        # mimic joints (torchcontact's non-coordinates) are iDynTree coordinates: (name, leader)
+        self.mimic = [(n, model.joint_names.index(lead)) for n, lead in mimic]
         self.est = idt.ExtWrenchesAndJointTorquesEstimator()
         assert self.est.loadModelAndSensorsFromFileWithSpecifiedDOFs(
-            str(path), list(model.joint_names)
+            str(path), [*model.joint_names, *(n for n, _ in mimic)]
         )
         self.m, self.sens = self.est.model(), self.est.sensors()
         T = idt.SIX_AXIS_FORCE_TORQUE
@@ -156,6 +159,7 @@ class IDynTreeFT:
         self.root = self.m.getFrameIndex(model.body_names[0])
 
     def reading(self, q, qd, qdd, link, point, force):
+        q, qd, qdd = (np.r_[x, [x[lead] for _, lead in self.mimic]] for x in (q, qd, qdd))
         assert self.est.updateKinematicsFromFixedBase(
             idt.JointPosDoubleArray.FromPython(q), idt.JointDOFsDoubleArray.FromPython(qd),
             idt.JointDOFsDoubleArray.FromPython(qdd), self.root,
@@ -168,7 +172,9 @@ class IDynTreeFT:
         c.unknownType = idt.NO_UNKNOWNS
         c.contactPoint = idt.Position.FromPython(point)
         c.knownWrench = idt.Wrench.FromPython(np.r_[force, 0.0, 0.0, 0.0])  # about the point
-        u.addNewContactForLink(self.m.getLinkIndex(link), c)
+        li = self.m.getLinkIndex(link)
+        assert li >= 0, f"iDynTree has no link {link}"
+        u.addNewContactForLink(li, c)
         meas = idt.SensorsMeasurements(self.sens)
         cw, tau = idt.LinkContactWrenches(self.m), idt.JointDOFsDoubleArray(self.m)
         assert self.est.computeExpectedFTSensorsMeasurements(u, meas, cw, tau)
@@ -180,7 +186,7 @@ class IDynTreeFT:
 # ----------------------------------------------------------------------------- validation
 def validate(setup, frames, rng):
     model, sensor, links = setup["model"], setup["sensor"], setup["links"]
-    ref = IDynTreeFT(setup["idt_path"], model, sensor)
+    ref = IDynTreeFT(setup["idt_path"], model, sensor, setup.get("mimic", ()))
     loc = Localizer(model, setup["meshes"], links=links, sensors=[sensor],
                     force_threshold=THRESHOLD)  # fmt: skip
     est = tc.ContactEstimator(model, [sensor])

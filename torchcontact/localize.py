@@ -306,6 +306,18 @@ def _moller_trumbore(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray: Tensor, t
     return Hits(ray[hit], tri[hit], t[hit], det[hit] > 0)
 
 
+def _on_edge(ts: TriangleSet, orig: Tensor, dirs: Tensor, hits: Hits, tol: float) -> Tensor:
+    """``(H,)`` bool: the hit point's smallest barycentric coordinate is below ``tol``."""
+    p = orig[hits.ray] + hits.t.unsqueeze(-1) * dirs[hits.ray] - ts.v0[hits.tri]
+    e1, e2 = ts.e1[hits.tri], ts.e2[hits.tri]
+    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    p1, p2 = (p * e1).sum(-1), (p * e2).sum(-1)
+    den = (d11 * d22 - d12 * d12).clamp_min(torch.finfo(p.dtype).tiny)
+    u = (d22 * p1 - d12 * p2) / den
+    v = (d11 * p2 - d12 * p1) / den
+    return torch.minimum(torch.minimum(u, v), 1 - u - v) < tol
+
+
 def cast_brute(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor, chunk: int = 1 << 22):
     """Every hit of the lines ``(R, 3)`` (each in its link's frame) with its link's triangles.
 
@@ -458,14 +470,28 @@ class Selected(NamedTuple):
     tri: Tensor  # (G,) int64 triangle of the reported hit
     t: Tensor  # (G,) line parameter of the reported hit
     candidates: Tensor  # (G,) int64 distinct valid entries
+    normal: Tensor | None  # (G, 3) unit outward normal there (mean over an edge or vertex)
 
 
-def select_entries(hits: Hits, group: Tensor, G: int, merge: float, dedup: float) -> Selected:
+def select_entries(
+    hits: Hits,
+    group: Tensor,
+    G: int,
+    merge: float,
+    dedup: float,
+    normals: Tensor | None = None,
+    dirs: Tensor | None = None,
+    cos_min: float | None = None,
+    edge: Tensor | None = None,
+) -> Selected:
     """The first valid entry of each group of rays (the rays of one frame share one line).
 
     A hit is a valid entry when the line enters a surface there while outside every mesh: the
     entries minus the exits before it along the line (duplicates within ``dedup`` of the same
-    kind merged: an edge or vertex shared by several triangles) are zero or fewer. Valid entries
+    kind merged: an edge or vertex shared by several triangles; the count clamped at zero, so
+    that an exit without its entry, through a hole of an open mesh, is forgiven) are zero, and,
+    with ``cos_min``, the line lies within ``acos(cos_min)`` of the inward normal there (the
+    friction cone; at an edge or vertex, of the mean of its faces' normals). Valid entries
     farther apart than ``merge`` along the line are distinct candidates.
 
     Args:
@@ -474,6 +500,13 @@ def select_entries(hits: Hits, group: Tensor, G: int, merge: float, dedup: float
         G: number of groups.
         merge: distance along the line below which two valid entries are one candidate, m.
         dedup: distance below which two hits of the same kind are one (shared edges), m.
+        normals: ``(H,)`` per hit, the unit outward normal of its triangle (ray's frame); gives
+            ``normal`` of the result.
+        dirs: ``(H, 3)`` per hit, its ray's unit direction (with ``cos_min``).
+        cos_min: the friction cone's cosine, or None (any entering direction).
+        edge: ``(H,)`` bool, the hit lies on a triangle's edge or vertex, where the normal is
+            a cone the sum of the hit triangles' normals may not represent: such entries pass
+            the friction-cone test.
     """
     dev = hits.t.device
     g = group[hits.ray]
@@ -488,13 +521,29 @@ def select_entries(hits: Hits, group: Tensor, G: int, merge: float, dedup: float
     if H > 1:
         same_prev[1:] = (g[1:] == g[:-1]) & (ent[1:] == ent[:-1]) & ((t[1:] - t[:-1]) < dedup)
     keep = ~same_prev
+    n_sum = on_edge = None
+    cluster = torch.cumsum(keep.to(torch.int64), 0) - 1
+    if normals is not None:  # per merged hit, the sum of its triangles' normals
+        n_sum = normals.new_zeros(int(keep.sum()), 3)
+        n_sum.index_add_(0, cluster, normals[order])
+    if edge is not None:
+        on_edge = torch.zeros(int(keep.sum()), dtype=torch.int64, device=dev)
+        on_edge.index_add_(0, cluster, edge[order].to(torch.int64))
     order, g, t, ent = order[keep], g[keep], t[keep], ent[keep]
-    # entries minus exits before each hit, within its group
+    # entries minus exits before each hit, within its group, never below zero (a mesh with a
+    # hole may lack an entry): the walk clamped at 0 is W - min(0, running min of W)
     sign = ent.to(torch.int64) * 2 - 1
     before = torch.cumsum(sign, 0) - sign
     first = torch.searchsorted(g, g)  # index of the group's first hit (g is sorted)
-    depth = before - before[first]
+    walk = before - before[first]  # starts at 0 in every group
+    big = 2 * walk.numel() + 2  # later groups lie lower: a global running min stays per group
+    low = torch.cummin(walk - g * big, 0).values + g * big
+    depth = walk - low.clamp_max(0)
     valid = ent & (depth <= 0)
+    if cos_min is not None and n_sum is not None and dirs is not None:
+        inward = -(dirs[order] * n_sum).sum(-1)
+        cone = inward >= cos_min * n_sum.norm(dim=-1)
+        valid &= cone if on_edge is None else cone | (on_edge > 0)
     any_hit = torch.zeros(G, dtype=torch.bool, device=dev)
     any_hit[g] = True
     vi = torch.nonzero(valid).reshape(-1)
@@ -514,7 +563,12 @@ def select_entries(hits: Hits, group: Tensor, G: int, merge: float, dedup: float
     ray[fg] = hits.ray[order[firsts]]
     tri[fg] = hits.tri[order[firsts]]
     tsel[fg] = t[firsts]
-    return Selected(found, any_hit, ray, tri, tsel, candidates)
+    normal = None
+    if n_sum is not None:
+        normal = n_sum.new_zeros(G, 3)
+        ns = n_sum[firsts]
+        normal[fg] = ns / ns.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(ns.dtype).tiny)
+    return Selected(found, any_hit, ray, tri, tsel, candidates, normal)
 
 
 # ------------------------------------------------------------------------------ the line program
@@ -584,6 +638,9 @@ class Localizer:
             (default all of the model's); each region holding candidates gets one contact.
         force_threshold: below this force (N) a frame has no contact (status bit 2).
         merge_distance: valid entries closer than this along the line are one candidate, m.
+        friction: friction coefficient ``mu``: a point is a candidate only where the force lies
+            inside its friction cone, within ``atan(mu)`` of the inward normal (default 1, 45
+            degrees); None accepts any inward force.
         ray: ray casting backend, one of :data:`RAY_BACKENDS`: ``"torch"`` (tree traversal in
             torch; ``"auto"``), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
             computed on the CPU).
@@ -623,6 +680,7 @@ class Localizer:
         *,
         force_threshold: float = 1.0,
         merge_distance: float = 1e-3,
+        friction: float | None = 1.0,
         ray: str = "auto",
         backend: str = "auto",
         leaf_size: int = 4,
@@ -635,6 +693,8 @@ class Localizer:
             raise InputError(f"force_threshold must be >= 0 N, got {force_threshold!r}")
         if not merge_distance >= 0:
             raise InputError(f"merge_distance must be >= 0 m, got {merge_distance!r}")
+        if friction is not None and not (0 < friction < math.inf):
+            raise InputError(f"friction must be a finite number > 0 or None, got {friction!r}")
         missing: dict[str, str] = {}
         if isinstance(meshes, RobotMeshes):
             if meshes.kind != "collision":
@@ -676,6 +736,7 @@ class Localizer:
         self.meshes = tuple(meshes[n] for n in links)
         self.force_threshold = float(force_threshold)
         self.merge_distance = float(merge_distance)
+        self.friction = None if friction is None else float(friction)
         self.ray = "torch" if ray == "auto" else ray
         if self.ray == "embree" and not embree_available():
             raise MissingExtraError("embreex", "meshes")
@@ -842,7 +903,10 @@ class Localizer:
         # ---- stage 4: the first valid entry along the force
         scale = 1.0 + float(a.abs().max()) if len(frames) else 1.0
         dedup = max(1e-9, 1e3 * eps) * scale
-        sel = select_entries(hits, group, len(frames), self.merge_distance, dedup)
+        cos_min = None if self.friction is None else 1.0 / math.sqrt(1.0 + self.friction**2)
+        edge = _on_edge(ts, orig, dirs, hits, max(1e-9, 1e3 * eps))
+        sel = select_entries(hits, group, len(frames), self.merge_distance, dedup,
+                             ts.normal[hits.tri], dirs[hits.ray], cos_min, edge)  # fmt: skip
         nan = float("nan")
         link = torch.full((n,), -1, dtype=torch.int64, device=dev)
         position = wrench.new_full((n, 3), nan)
@@ -864,7 +928,7 @@ class Localizer:
         link[fr_found] = li
         pt = orig[rays] + sel.t[sel.found].unsqueeze(-1) * dirs[rays]
         position[fr_found] = pt
-        normal[fr_found] = ts.normal[sel.tri[sel.found]]
+        normal[fr_found] = sel.normal[sel.found]
         # the pure-force estimate in the link frame
         local = rays % L
         R_hit = R_sensor_link[fr_found, local]  # (h, 3, 3)

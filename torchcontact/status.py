@@ -44,7 +44,8 @@ LOCALIZE_STATUS: dict[int, str] = {
     1: "non-finite F/T reading, joint state or base motion",
     2: "no contact: the force is below the threshold",
     4: "no intersection: the force's line of action misses every candidate link",
-    8: "pulling: the line meets the candidate links only where the force would pull",
+    8: "pulling: the line meets the candidate links only where the force would pull (or lies"
+    " outside the friction cone)",
     16: "ambiguous: the line enters the links at several distinct points (the first is reported)",
     32: "not localized: the frame has skin contacts in the sensor's region",
 }
