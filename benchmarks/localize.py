@@ -109,13 +109,16 @@ def random_joint_state(model, n, rng):
 
 
 def sample_contacts(setup, n, rng, magnitude, cone=0.5236):
-    """Points uniform over the candidate meshes' area, forces within ``cone`` of -normal."""
+    """Points uniform over the candidate meshes' area, forces within ``cone`` of -normal.
+
+    Returns ``(link, point, force, outward normal)``, link frames.
+    """
     meshes = [setup["meshes"].links[k] for k in setup["links"]]
     tris = [m.vertices[m.faces] for m in meshes]
     areas = np.array([0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]),
                                            axis=1).sum() for t in tris])  # fmt: skip
     link = rng.choice(len(meshes), n, p=areas / areas.sum())
-    pos, force = np.zeros((n, 3)), np.zeros((n, 3))
+    pos, force, normal = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
     for li, t in enumerate(tris):
         idx = np.flatnonzero(link == li)
         a = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
@@ -139,6 +142,58 @@ def sample_contacts(setup, n, rng, magnitude, cone=0.5236):
         d = -cos_t[:, None] * nrm + sin_t[:, None] * (np.cos(phi)[:, None] * x
                                                       + np.sin(phi)[:, None] * y)  # fmt: skip
         force[idx] = magnitude * d
+        normal[idx] = nrm
+    return link, pos, force, normal
+
+
+def winding(points, tri):
+    """Generalised winding numbers ``(P,)`` of triangles ``(F, 3, 3)`` (Van Oosterom-Strackee)."""
+    a, b, c = (tri[None, :, k] - points[:, None] for k in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+    det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc
+           + np.einsum("pfi,pfi->pf", b, c) * la + np.einsum("pfi,pfi->pf", c, a) * lb)  # fmt: skip
+    return (2 * np.arctan2(det, den)).sum(-1) / (4 * np.pi)
+
+
+def on_outer_surface(setup, poses, link, pos, normal):
+    """True where a point lies on the outside of the union of the candidate meshes.
+
+    Collision meshes are unions of overlapping parts (the panda finger is four boxes, the iCub's
+    forearm and hand overlap at the wrist): a point on a face inside another part cannot be
+    touched. Tested by the winding number of a point 0.1 mm outside, against every candidate
+    mesh posed in the sensor frame.
+    """
+    R, p0 = poses
+    n = len(link)
+    ar = np.arange(n)
+    out_s = np.einsum("nij,nj->ni", R[ar, link], pos + 1e-4 * normal) + p0[ar, link]
+    w = np.zeros(n)
+    for li, name in enumerate(setup["links"]):
+        m = setup["meshes"].links[name]
+        tri = m.vertices[m.faces]  # link frame
+        for i in range(n):  # frame by frame: the mesh moves with q
+            t_s = tri @ R[i, li].T + p0[i, li]
+            w[i] += winding(out_s[i : i + 1], t_s)[0]
+    return w < 0.5
+
+
+def sample_outer(setup, loc, q, qd, qdd, rng, magnitude):
+    """:func:`sample_contacts` redrawn until every point is on the outer surface."""
+    n = len(q)
+    zeros = {s: torch.zeros(n, 6, dtype=torch.float64) for s in loc.estimator_sensors}
+    poses = loc_poses(loc, *(torch.as_tensor(x) for x in (q, qd, qdd)), zeros)
+    link, pos, force, normal = sample_contacts(setup, n, rng, magnitude)
+    todo = ~on_outer_surface(setup, poses, link, pos, normal)
+    rounds = 0
+    while todo.any() and rounds < 20:
+        idx = np.flatnonzero(todo)
+        sub = sample_contacts(setup, len(idx), rng, magnitude)
+        for arr, new in zip((link, pos, force, normal), sub, strict=True):
+            arr[idx] = new
+        sp = (poses[0][idx], poses[1][idx])
+        todo[idx] = ~on_outer_surface(setup, sp, link[idx], pos[idx], normal[idx])
+        rounds += 1
     return link, pos, force
 
 
@@ -193,7 +248,7 @@ def validate(setup, frames, rng):
     rows, check = [], 0.0
     for mag in FORCES:
         q, qd, qdd = random_joint_state(model, frames, rng)
-        link, pos, force = sample_contacts(setup, frames, rng, mag)
+        link, pos, force = sample_outer(setup, loc, q, qd, qdd, rng, mag)
         ft = np.stack([ref.reading(q[i], qd[i], qdd[i], links[link[i]], pos[i], force[i])
                        for i in range(frames)])  # fmt: skip
         tq, tqd, tqdd = (torch.as_tensor(x) for x in (q, qd, qdd))
@@ -243,8 +298,9 @@ def loc_poses(loc, q, qd, qdd, ft):
     from torchcontact.localize import line_program
 
     prog = line_program(loc.em, list(range(len(loc.links))), False)
-    out = _run(prog, {"q": q, "qd": qd, "qdd": qdd, "ft0": ft[loc.estimator_sensors[0]]},
-               "eager", None)  # fmt: skip
+    tensors = {"q": q, "qd": qd, "qdd": qdd}
+    tensors.update({f"ft{i}": ft[s] for i, s in enumerate(loc.estimator_sensors)})
+    out = _run(prog, tensors, "auto", None)
     pose = out["pose"].reshape(q.shape[0], len(loc.links), 12).numpy()
     return pose[..., :9].reshape(q.shape[0], -1, 3, 3), pose[..., 9:]
 
@@ -304,7 +360,7 @@ def throughput(batch, threads, rng):
     meshes = setup["meshes"]
     ntri = sum(len(meshes.links[k].faces) for k in links)
     q, qd, qdd = random_joint_state(model, batch, rng)
-    link, pos, force = sample_contacts(setup, batch, rng, 5.0)
+    link, pos, force, _ = sample_contacts(setup, batch, rng, 5.0)
     est = tc.ContactEstimator(model, [sensor])
     tq, tqd, tqdd = (torch.as_tensor(x) for x in (q, qd, qdd))
     w = torch.zeros(batch, len(links), 6, dtype=torch.float64)

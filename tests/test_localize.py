@@ -398,3 +398,26 @@ def test_bad_input_is_named(arm, tmp_path):
         loc.localize(q, q, q, {"base_ft": torch.zeros(3, 6, dtype=torch.float64)})
     with pytest.raises(InputError, match="dtype"):
         loc.localize(q, q, q, {"base_ft": torch.zeros(2, 6)})
+
+
+def test_near_miss_snaps_to_the_nearest_edge_and_cone_fallback(arm):
+    c = np.array([0.3, 0.1, 0.5])
+    box = {"hand": _box(arm, "hand", c)}
+    fp = arm.forward_pass(*(torch.zeros(1, arm.nv, dtype=torch.float64),) * 3)
+    R = arm.frame_pose(fp, "hand")[0][0]
+    # a vertical push 1 mm beside the +x face (as noise near the silhouette makes it)
+    beside = _hand_point(arm, [c + [0.051, 0.01, 0.05]])
+    # a push 60 degrees from the top face's normal: outside a 45-degree friction cone
+    top = _hand_point(arm, [c + [0.0, 0.01, 0.05]])
+    f = torch.tensor([[0, 0, -5.0], [5 * np.sin(1.05), 0, -5 * np.cos(1.05)]]) @ R
+    q, ft = _readings(arm, "hand", torch.cat([beside, top]), f)
+    r = Localizer(arm, box, links=["hand"]).localize(q, q, q, ft)["base_ft"]
+    assert r.status.tolist() == [128, 64] and r.link.tolist() == [0, 0]
+    edge = _hand_point(arm, [c + [0.05, 0.01, 0.05]])  # the top face's +x edge
+    torch.testing.assert_close(r.position, torch.cat([edge, top]), atol=1e-9, rtol=0)
+    r = Localizer(arm, box, links=["hand"], snap_distance=0.0, friction=None).localize(q, q, q, ft)[
+        "base_ft"
+    ]
+    assert r.status.tolist() == [4, 0]
+    r = Localizer(arm, box, links=["hand"], snap_distance=5e-4).localize(q, q, q, ft)["base_ft"]
+    assert r.status.tolist() == [4, 64]

@@ -69,12 +69,16 @@ RAY_BACKENDS = ("auto", "torch", "brute", "embree")
 
 # status bits (see torchcontact.status.LOCALIZE_STATUS)
 _NONFINITE, _NO_CONTACT, _MISS, _PULLING, _AMBIGUOUS = 1, 2, 4, 8, 16
+_OUTSIDE_CONE, _SNAPPED = 64, 128
+#: bits that come with a contact point (a caveat, not a failure)
+SOFT_BITS = _AMBIGUOUS | _OUTSIDE_CONE | _SNAPPED
 
 
 class Localization(NamedTuple):
     """The contact localized for one sensor; ``*B`` is the input batch shape.
 
-    Frames whose status has any bit but 16 (ambiguous) set have ``link`` -1 and NaN outputs.
+    Frames whose status has a bit other than 16 (ambiguous), 64 (outside the friction cone) and
+    128 (snapped) set have ``link`` -1 and NaN outputs.
 
     Attributes:
         link: ``(*B,)`` int64 index into :attr:`Localizer.links` of the contact's link, -1 none.
@@ -318,6 +322,48 @@ def _on_edge(ts: TriangleSet, orig: Tensor, dirs: Tensor, hits: Hits, tol: float
     return torch.minimum(torch.minimum(u, v), 1 - u - v) < tol
 
 
+def _nearest_facing_edge(
+    ts: TriangleSet, orig: Tensor, dirs: Tensor, rays: Tensor, ray_link: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per ray, the nearest point to the line on the edges of triangles it would enter.
+
+    ``(distance (R,), point (R, 3), triangle (R,))``, only triangles with ``d . n < 0``; inf
+    where none faces the line. Brute force over the link's triangles (for the few lines that
+    meet no triangle).
+    """
+    R = len(rays)
+    dist = orig.new_full((R,), math.inf)
+    point = orig.new_zeros(R, 3)
+    tri_out = torch.zeros(R, dtype=torch.int64, device=orig.device)
+    for li in range(len(ts.links)):
+        sel = torch.nonzero(ray_link == li).reshape(-1)
+        tris = torch.nonzero(ts.link_of_tri == li).reshape(-1)
+        if not len(sel) or not len(tris):
+            continue
+        step = max(1, (1 << 21) // (3 * len(tris)))
+        for s0 in range(0, len(sel), step):
+            r = sel[s0 : s0 + step]
+            o, d = orig[rays[r]][:, None, None], dirs[rays[r]][:, None, None]  # (r, 1, 1, 3)
+            v0, e1, e2 = ts.v0[tris], ts.e1[tris], ts.e2[tris]
+            A = torch.stack([v0, v0 + e1, v0 + e2], 1)[None]  # (1, F, 3, 3): edge starts
+            E = torch.stack([e1, e2 - e1, -e2], 1)[None]  # edge vectors
+            w = A - o
+            w = w - (w * d).sum(-1, keepdim=True) * d  # parts across the line
+            ep = E - (E * d).sum(-1, keepdim=True) * d
+            den = (ep * ep).sum(-1).clamp_min(torch.finfo(o.dtype).tiny)
+            uu = (-(w * ep).sum(-1) / den).clamp(0, 1)
+            gap = (w + uu.unsqueeze(-1) * ep).norm(dim=-1)  # (r, F, 3)
+            facing = (d[:, :, 0] * ts.normal[tris][None]).sum(-1) < 0  # (r, F)
+            gap = torch.where(facing.unsqueeze(-1), gap, math.inf).reshape(len(r), -1)
+            best = gap.argmin(1)
+            fi, ei = best // 3, best % 3
+            ar = torch.arange(len(r), device=orig.device)
+            dist[r] = gap[ar, best]
+            point[r] = A[0, fi, ei] + uu[ar, fi, ei].unsqueeze(-1) * E[0, fi, ei]
+            tri_out[r] = tris[fi]
+    return dist, point, tri_out
+
+
 def cast_brute(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor, chunk: int = 1 << 22):
     """Every hit of the lines ``(R, 3)`` (each in its link's frame) with its link's triangles.
 
@@ -471,6 +517,7 @@ class Selected(NamedTuple):
     t: Tensor  # (G,) line parameter of the reported hit
     candidates: Tensor  # (G,) int64 distinct valid entries
     normal: Tensor | None  # (G, 3) unit outward normal there (mean over an edge or vertex)
+    outside_cone: Tensor  # (G,) bool: no valid entry lies in the friction cone (any is taken)
 
 
 def select_entries(
@@ -491,8 +538,9 @@ def select_entries(
     kind merged: an edge or vertex shared by several triangles; the count clamped at zero, so
     that an exit without its entry, through a hole of an open mesh, is forgiven) are zero, and,
     with ``cos_min``, the line lies within ``acos(cos_min)`` of the inward normal there (the
-    friction cone; at an edge or vertex, of the mean of its faces' normals). Valid entries
-    farther apart than ``merge`` along the line are distinct candidates.
+    friction cone; at an edge or vertex, of the mean of its faces' normals; a line with no such
+    entry keeps its other entries, flagged ``outside_cone``). Valid entries farther apart than
+    ``merge`` along the line are distinct candidates.
 
     Args:
         hits: every hit.
@@ -540,10 +588,18 @@ def select_entries(
     low = torch.cummin(walk - g * big, 0).values + g * big
     depth = walk - low.clamp_max(0)
     valid = ent & (depth <= 0)
+    outside_cone = torch.zeros(G, dtype=torch.bool, device=dev)
     if cos_min is not None and n_sum is not None and dirs is not None:
+        # entries inside the friction cone if the group has any, else every entry (flagged)
         inward = -(dirs[order] * n_sum).sum(-1)
         cone = inward >= cos_min * n_sum.norm(dim=-1)
-        valid &= cone if on_edge is None else cone | (on_edge > 0)
+        if on_edge is not None:
+            cone |= on_edge > 0
+        has_cone = torch.zeros(G, dtype=torch.bool, device=dev)
+        has_cone[g[valid & cone]] = True
+        outside_cone[g[valid]] = True
+        outside_cone &= ~has_cone
+        valid &= cone | ~has_cone[g]
     any_hit = torch.zeros(G, dtype=torch.bool, device=dev)
     any_hit[g] = True
     vi = torch.nonzero(valid).reshape(-1)
@@ -568,7 +624,7 @@ def select_entries(
         normal = n_sum.new_zeros(G, 3)
         ns = n_sum[firsts]
         normal[fg] = ns / ns.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(ns.dtype).tiny)
-    return Selected(found, any_hit, ray, tri, tsel, candidates, normal)
+    return Selected(found, any_hit, ray, tri, tsel, candidates, normal, outside_cone)
 
 
 # ------------------------------------------------------------------------------ the line program
@@ -640,7 +696,11 @@ class Localizer:
         merge_distance: valid entries closer than this along the line are one candidate, m.
         friction: friction coefficient ``mu``: a point is a candidate only where the force lies
             inside its friction cone, within ``atan(mu)`` of the inward normal (default 1, 45
-            degrees); None accepts any inward force.
+            degrees); None accepts any inward force. Lines whose entries all lie outside the
+            cone keep them (status bit 64).
+        snap_distance: a line that meets no candidate (noise near a silhouette) takes the
+            nearest edge point of a triangle facing the force if it passes within this
+            distance, m (status bit 128); 0 disables it.
         ray: ray casting backend, one of :data:`RAY_BACKENDS`: ``"torch"`` (tree traversal in
             torch; ``"auto"``), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
             computed on the CPU).
@@ -681,6 +741,7 @@ class Localizer:
         force_threshold: float = 1.0,
         merge_distance: float = 1e-3,
         friction: float | None = 1.0,
+        snap_distance: float = 2e-3,
         ray: str = "auto",
         backend: str = "auto",
         leaf_size: int = 4,
@@ -737,6 +798,9 @@ class Localizer:
         self.force_threshold = float(force_threshold)
         self.merge_distance = float(merge_distance)
         self.friction = None if friction is None else float(friction)
+        if not snap_distance >= 0:
+            raise InputError(f"snap_distance must be >= 0 m, got {snap_distance!r}")
+        self.snap_distance = float(snap_distance)
         self.ray = "torch" if ray == "auto" else ray
         if self.ray == "embree" and not embree_available():
             raise MissingExtraError("embreex", "meshes")
@@ -916,19 +980,39 @@ class Localizer:
         code = status.clone()
         code |= torch.where(bad_in, _NONFINITE, 0)
         code |= torch.where(weak, _NO_CONTACT, 0)
-        fr_found = frames[sel.found]
-        miss = frames[~sel.any_hit]
         pull = frames[sel.any_hit & ~sel.found]
-        code[miss] |= _MISS
         code[pull] |= _PULLING
         candidates[frames] = sel.candidates
         code[frames[sel.candidates > 1]] |= _AMBIGUOUS
-        rays = sel.ray[sel.found]
+        code[frames[sel.outside_cone]] |= _OUTSIDE_CONE
+        found, ray_sel = sel.found.clone(), sel.ray.clone()
+        pt_sel = orig[ray_sel] + sel.t.unsqueeze(-1) * dirs[ray_sel]
+        nrm_sel = sel.normal
+        # a line that meets nothing: the nearest edge point facing the force, if close enough
+        gone = torch.nonzero(~sel.any_hit).reshape(-1)
+        if len(gone) and self.snap_distance > 0:
+            rr = (gone.unsqueeze(1) * L + torch.arange(L, device=dev)).reshape(-1)
+            dist, pnt, tri = _nearest_facing_edge(ts, orig, dirs, rr, ray_link[rr])
+            dist, pnt, tri = dist.reshape(-1, L), pnt.reshape(-1, L, 3), tri.reshape(-1, L)
+            best = dist.argmin(1)
+            ar = torch.arange(len(gone), device=dev)
+            close = dist[ar, best] <= self.snap_distance
+            g2 = gone[close]
+            found[g2] = True
+            ray_sel[g2] = rr.reshape(-1, L)[ar, best][close]
+            pt_sel[g2] = pnt[ar, best][close]
+            nrm_sel[g2] = ts.normal[tri[ar, best][close]]
+            code[frames[g2]] |= _SNAPPED
+            code[frames[gone[~close]]] |= _MISS
+        else:
+            code[frames[gone]] |= _MISS
+        fr_found = frames[found]
+        rays = ray_sel[found]
         li = ray_link[rays]
         link[fr_found] = li
-        pt = orig[rays] + sel.t[sel.found].unsqueeze(-1) * dirs[rays]
+        pt = pt_sel[found]
         position[fr_found] = pt
-        normal[fr_found] = sel.normal[sel.found]
+        normal[fr_found] = nrm_sel[found]
         # the pure-force estimate in the link frame
         local = rays % L
         R_hit = R_sensor_link[fr_found, local]  # (h, 3, 3)
@@ -941,7 +1025,7 @@ class Localizer:
         if covariance is not None:
             cov = wrench.new_full((n, 3, 3), nan)
             if len(fr_found):
-                s_hit = sel.t[sel.found]
+                s_hit = ((pt - orig[rays]) * dirs[rays]).sum(-1)
                 n_s = torch.einsum("hij,hj->hi", R_hit, normal[fr_found])
                 C = _point_covariance(f[fr_found], m[fr_found], s_hit, n_s,
                                       covariance[fr_found])  # fmt: skip
@@ -1025,7 +1109,8 @@ def localize_chunk(
             (:class:`~torchcontact.contacts.ContactRecords`, frames ``0 .. N-1``).
         base: ``omega``, ``domega``, ``proper_acc`` -> ``(N, 3)`` IMU of a moving base, or None.
         ft_covariance: sensor -> ``(6, 6)`` reading noise covariance (fills the position std).
-        accept_ambiguous: also add the first candidate of ambiguous frames (status 16).
+        accept_ambiguous: also add the first candidate of ambiguous frames (status 16); frames
+            flagged outside the friction cone (64) or snapped (128) are always added.
 
     Returns:
         :class:`LocalizedChunk`.
@@ -1067,7 +1152,8 @@ def localize_chunk(
         link = r.link.cpu().numpy()
         pos = r.position.detach().cpu().double().numpy()
         nrm = r.normal.detach().cpu().double().numpy()
-        usable = (code & ~16) == 0 if accept_ambiguous else code == 0
+        soft = SOFT_BITS if accept_ambiguous else SOFT_BITS & ~_AMBIGUOUS
+        usable = (code & ~soft) == 0
         usable &= link >= 0
         idx = np.flatnonzero(usable)
         add_frame.append(idx)

@@ -39,7 +39,7 @@ def status_messages(code: int) -> str:
 
 #: Per-frame status bits of a contact localization (:class:`torchcontact.localize.Localization`,
 #: the ``localize_status_code.<sensor>`` log column); 0 means one contact was found. Frames with
-#: any bit but 16 set have no contact point.
+#: a bit other than 16, 64 and 128 set have no contact point.
 LOCALIZE_STATUS: dict[int, str] = {
     1: "non-finite F/T reading, joint state or base motion",
     2: "no contact: the force is below the threshold",
@@ -48,6 +48,9 @@ LOCALIZE_STATUS: dict[int, str] = {
     " outside the friction cone)",
     16: "ambiguous: the line enters the links at several distinct points (the first is reported)",
     32: "not localized: the frame has skin contacts in the sensor's region",
+    64: "outside the friction cone: no entry where the force lies in the cone (the first entry"
+    " is reported)",
+    128: "near miss: the line passes beside the links; the nearest edge point is reported",
 }
 
 
