@@ -403,28 +403,32 @@ def cast_bvh(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor) -> H
     dsafe = torch.where(
         dirs.abs() < tiny, torch.full_like(dirs, tiny) * torch.where(dirs < 0, -1.0, 1.0), dirs
     )
-    inv = 1.0 / dsafe
+    rd = torch.cat([orig, 1.0 / dsafe], -1)  # (R, 6): one gather per pair and level
+
+    def meets(r6: Tensor, box: Tensor) -> Tensor:  # slab test, r6 (P, 1, 6), box (P, k, 6)
+        t1 = (box[..., :3] - r6[..., :3]) * r6[..., 3:]
+        t2 = (box[..., 3:] - r6[..., :3]) * r6[..., 3:]
+        return torch.minimum(t1, t2).amax(-1) <= torch.maximum(t1, t2).amin(-1)
+
+    box = torch.cat([ts.lo, ts.hi], -1)  # (M, 6)
+    kids = torch.stack([ts.left, ts.right], -1)  # (M, 2)
+    kid_box = box[kids.clamp_min(0)]  # (M, 2, 6); leaves' rows unused
     ray = torch.arange(orig.shape[0], device=orig.device)
     node = ts.root[ray_link]
+    keep = meets(rd.unsqueeze(1), box[node].unsqueeze(1))[:, 0]
+    ray, node = ray[keep], node[keep]
     leaf_ray, leaf_node = [], []
     for _ in range(ts.depth):
         if ray.numel() == 0:
             break
-        o, iv = orig[ray], inv[ray]
-        t1 = (ts.lo[node] - o) * iv
-        t2 = (ts.hi[node] - o) * iv
-        tmin = torch.minimum(t1, t2).amax(-1)
-        tmax = torch.maximum(t1, t2).amin(-1)
-        keep = tmin <= tmax
-        ray, node = ray[keep], node[keep]
-        left = ts.left[node]
-        leaf = left < 0
+        leaf = ts.left[node] < 0
         leaf_ray.append(ray[leaf])
         leaf_node.append(node[leaf])
-        inner = ~leaf
-        r, nd = ray[inner], node[inner]
-        ray = torch.cat([r, r])
-        node = torch.cat([left[inner], ts.right[nd]])
+        ray, node = ray[~leaf], node[~leaf]
+        # both children of every inner pair at once
+        hit = meets(rd[ray].unsqueeze(1), kid_box[node])  # (P, 2)
+        p, c = torch.nonzero(hit, as_tuple=True)
+        ray, node = ray[p], kids[node[p], c]
     lr, ln = torch.cat(leaf_ray), torch.cat(leaf_node)
     tris = ts.leaf_tris[ln]  # (Q, T)
     valid = tris >= 0
@@ -702,8 +706,9 @@ class Localizer:
             nearest edge point of a triangle facing the force if it passes within this
             distance, m (status bit 128); 0 disables it.
         ray: ray casting backend, one of :data:`RAY_BACKENDS`: ``"torch"`` (tree traversal in
-            torch; ``"auto"``), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
-            computed on the CPU).
+            torch, any device), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
+            computed on the CPU); ``"auto"``: Embree for a CPU model when ``embreex`` is
+            installed (about 10x the torch traversal there), else torch.
         backend: backend of the line program (:mod:`torchcontact.kernels`).
         leaf_size: most triangles per tree leaf.
 
@@ -801,7 +806,9 @@ class Localizer:
         if not snap_distance >= 0:
             raise InputError(f"snap_distance must be >= 0 m, got {snap_distance!r}")
         self.snap_distance = float(snap_distance)
-        self.ray = "torch" if ray == "auto" else ray
+        if ray == "auto":  # Embree is the faster on CPU (benchmarks/localize.py)
+            ray = "embree" if model.device.type == "cpu" and embree_available() else "torch"
+        self.ray = ray
         if self.ray == "embree" and not embree_available():
             raise MissingExtraError("embreex", "meshes")
         self.backend = backend
