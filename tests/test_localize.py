@@ -422,3 +422,48 @@ def test_near_miss_snaps_to_the_nearest_edge_and_cone_fallback(arm):
     assert r.status.tolist() == [4, 0]
     r = Localizer(arm, box, links=["hand"], snap_distance=5e-4).localize(q, q, q, ft)["base_ft"]
     assert r.status.tolist() == [4, 64]
+
+
+def test_single_link_onnx_graph_matches_the_localizer(arm):
+    ort = pytest.importorskip("onnxruntime")
+    from torchcontact.localize import onnx_single_link
+
+    v, f = _l_prism()
+    c = np.array([0.3, 0.1, 0.5])
+    mesh = _world_mesh(arm, "hand", v + c, f)
+    loc = Localizer(arm, {"hand": mesh}, links=["hand"], ray="torch", friction=None)
+    rng = np.random.default_rng(0)
+    n = 30
+    Rr = torch.as_tensor(np.linalg.qr(rng.normal(size=(3, 3)))[0])
+    Rr = Rr * torch.det(Rr)
+    pr = torch.tensor([0.2, -0.1, 0.6], dtype=torch.float64)
+    # pushes at points of the mesh (link frame), some pulling, as wrenches in the sensor frame
+    tri = mesh.vertices[mesh.faces]
+    k = rng.integers(len(tri), size=n)
+    pts = np.einsum("nk,nki->ni", rng.dirichlet([1, 1, 1], size=n), tri[k])
+    nrm = np.cross(tri[k, 1] - tri[k, 0], tri[k, 2] - tri[k, 0])
+    fl = -(nrm / np.linalg.norm(nrm, axis=1, keepdims=True) + 0.4 * rng.normal(size=(n, 3))) * 5
+    fl[::4] = rng.normal(size=fl[::4].shape) * 5  # and some random lines
+    ps = torch.as_tensor(pts) @ Rr.T + pr
+    fs = torch.as_tensor(fl) @ Rr.T
+    W = torch.cat([fs, torch.linalg.cross(ps, fs)], -1)
+    W[0] = 0.1  # below the threshold
+    far = torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64) @ Rr.T + pr  # misses the prism
+    W[1] = torch.cat([fs[1], torch.linalg.cross(far, fs[1])])
+    ref = loc.localize_wrench(W, Rr.expand(n, 1, 3, 3), pr.expand(n, 1, 3), "base_ft")
+    sess = ort.InferenceSession(onnx_single_link(mesh).SerializeToString(),
+                                providers=["CPUExecutionProvider"])  # fmt: skip
+    status = []
+    for i in range(n):
+        feeds = {"wrench": W[i].float().numpy(), "R_sensor_link": Rr.float().numpy(),
+                 "p_sensor_link": pr.float().numpy()}  # fmt: skip
+        pos, nrm, force, mres, st = sess.run(None, feeds)
+        status.append(int(st[0]))
+        if ref.link[i] >= 0:  # the first entry, as the localizer reports it
+            np.testing.assert_allclose(pos, ref.position[i].numpy(), atol=1e-5)
+            np.testing.assert_allclose(force, ref.force[i].numpy(), atol=1e-4)
+        else:
+            assert np.isnan(pos).all()
+        assert abs(mres[0] - ref.moment_residual[i].item()) < 1e-4
+    assert status == [s & ~16 for s in ref.status.tolist()]  # the graph does not count entries
+    assert status[0] == 2 and 0 in status and 4 in status

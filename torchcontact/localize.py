@@ -417,7 +417,7 @@ def cast_bvh(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor) -> H
     node = ts.root[ray_link]
     keep = meets(rd.unsqueeze(1), box[node].unsqueeze(1))[:, 0]
     ray, node = ray[keep], node[keep]
-    leaf_ray, leaf_node = [], []
+    leaf_ray, leaf_node = [ray[:0]], [node[:0]]
     for _ in range(ts.depth):
         if ray.numel() == 0:
             break
@@ -1242,7 +1242,7 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int = 
         "V0": v0, "E1": e1, "E2": e2, "NRM": nrm,
         "i120": np.array([1, 2, 0]), "i201": np.array([2, 0, 1]),
         "s03": np.array([0]), "s36": np.array([3]), "e03": np.array([3]), "e36": np.array([6]),
-        "ax0": np.array([0]), "ax1": np.array([1]), "minus1": np.array([-1]),
+        "minus1": np.array([-1]),
         "zero": np.array(0.0), "one": np.array(1.0), "eps": np.array(1e-12),
         "thr2": np.array(force_threshold**2), "inf": np.array(np.inf), "nan": np.array(np.nan),
         "bit2": np.array([2]), "bit4": np.array([4]), "nobit": np.array([0]),
@@ -1305,8 +1305,9 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int = 
     nodes.append(helper.make_node("Where", [found, normal, "nan"], ["normal"]))
     fl = op("Reshape", op("MatMul", op("Reshape", f, "shape13"), "R_sensor_link"), "shape3")
     nodes.append(helper.make_node("Identity", [fl], ["force"]))
-    nodes.append(helper.make_node("Abs", [op("ReduceSum", op("Mul", u, m), keepdims=1)],
-                                  ["moment_residual"]))  # fmt: skip
+    m_along = op("Abs", op("ReduceSum", op("Mul", u, m), keepdims=1))
+    m_norm = op("Sqrt", op("ReduceSum", op("Mul", m, m), keepdims=1))  # no force: all of m
+    nodes.append(helper.make_node("Where", [live, m_along, m_norm], ["moment_residual"]))
     weak = op("Where", live, "nobit", "bit2")
     miss = op("Where", op("Or", found, op("Not", live)), "nobit", "bit4")
     nodes.append(helper.make_node("Add", [weak, miss], ["status"]))  # disjoint bits
