@@ -18,9 +18,12 @@ __version__ = "0.1.0"
 # public name -> module it lives in (one per line)
 _LAZY = {
     "KINDS": "torchcontact.contacts",
+    "LOCALIZE_STATUS": "torchcontact.status",
     "STATUS": "torchcontact.status",
     "Status": "torchcontact.status",
     "InputError": "torchcontact.errors",
+    "Localization": "torchcontact.localize",
+    "Localizer": "torchcontact.localize",
     "TorchContactError": "torchcontact.errors",
     "BaseMotion": "torchcontact.dynamics",
     "ConeStatus": "torchcontact.estimation",
@@ -45,6 +48,7 @@ _LAZY = {
 
 __all__ = [
     "KINDS",
+    "LOCALIZE_STATUS",
     "STATUS",
     "BaseMotion",
     "ConeStatus",
@@ -56,6 +60,8 @@ __all__ = [
     "Frame",
     "FrictionCones",
     "InputError",
+    "Localization",
+    "Localizer",
     "PreviousFrame",
     "RobotModel",
     "Status",
@@ -92,8 +98,9 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
         Contacts,
         status_messages,
     )
+    from torchcontact.localize import Localization, Localizer
     from torchcontact.model import Frame, FTSensor, RobotModel
-    from torchcontact.status import Status
+    from torchcontact.status import LOCALIZE_STATUS, Status
 
 
 def __getattr__(name: str):

@@ -11,7 +11,7 @@ does not know (offset, drift, cable, noise). See :class:`UnmodeledEffects`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +20,7 @@ import torch
 from torchcontact.contacts import Contacts
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
+from torchcontact.meshes import LinkMesh
 from torchcontact.model import RobotModel
 from torchcontact.spatial import cross
 
@@ -129,6 +130,8 @@ class SimulatedLog:
         extra: more columns by name.
         ft_effects: ``(N, 6)`` the part of ``ft`` the nominal model does not explain apart from the
             noise (offset, drift, cable, payload): what an oracle correction subtracts.
+        contact_normal: ``(N, K, 3)`` outward surface normals at the contacts, link frame, or
+            None (the skin patches' +z).
     """
 
     t_ns: np.ndarray
@@ -146,6 +149,7 @@ class SimulatedLog:
     joint_names: tuple[str, ...]
     extra: dict = field(default_factory=dict)
     ft_effects: np.ndarray | None = None
+    contact_normal: np.ndarray | None = None
 
 
 def _trajectory(rng, n, nv, dt, speed):
@@ -272,6 +276,7 @@ def simulate(
     speed: float = 1.0,
     effects: UnmodeledEffects | None = None,
     chunk: int = 65536,
+    surface: Mapping[str, LinkMesh] | None = None,
 ) -> SimulatedLog:
     """Simulate a log of ``frames`` frames with known pure-force contacts.
 
@@ -289,6 +294,10 @@ def simulate(
         speed: scales joint amplitudes and frequencies.
         effects: unmodeled effects in the readings (None: ideal sensor and model).
         chunk: frames per batched call of the forward model.
+        surface: link -> its collision mesh (:func:`torchcontact.meshes.load_meshes`): contacts
+            lie on the mesh's surface (uniform over its area) and push within 0.62 rad of the
+            inward normal, instead of lying on the skin patches' xy planes; every contact link
+            needs a mesh. For logs meant for contact localization.
 
     Returns:
         :class:`SimulatedLog`.
@@ -306,9 +315,17 @@ def simulate(
     t, q, qd, qdd, center = _trajectory(rng, frames, nv, dt, speed)
     _within_limits(model, q, qd, qdd, center)
 
+    sampler = None
+    if surface is not None:
+        bare = [n for n in links if n not in surface]
+        if bare:
+            raise InputError(f"contact links {bare} have no collision mesh to put contacts on")
+        sampler = _SurfaceSampler([surface[n] for n in links])
     # contact segments: alternate free and contact stretches of 0.3-3 s
     contact_link = -np.ones((frames, K), dtype=np.int64)
     position = np.zeros((frames, K, 3))
+    normal = np.zeros((frames, K, 3))
+    normal[..., 2] = 1.0
     force = np.zeros((frames, K, 3))
     i = 0
     in_contact = rng.random() < contact_fraction
@@ -321,10 +338,14 @@ def simulate(
         e = min(frames, i + length)
         if in_contact:
             for k in range(rng.integers(1, K + 1)):
-                contact_link[i:e, k] = rng.integers(len(links))
+                li = rng.integers(len(links))
+                contact_link[i:e, k] = li
                 position[i:e, k] = rng.uniform(-0.03, 0.03, 3) * np.array([1, 1, 0])
                 d = np.array([*rng.uniform(-0.5, 0.5, 2), -1.0])
                 d /= np.linalg.norm(d)
+                if sampler is not None:  # on the mesh, d turned from the patch's -z to -n
+                    position[i:e, k], normal[i:e, k], R = sampler.sample(rng, int(li))
+                    d = R @ d
                 peak = rng.uniform(0, force_max)
                 shape = np.sin(np.pi * (np.arange(e - i) + 0.5) / (e - i))
                 force[i:e, k] = peak * shape[:, None] * d
@@ -396,4 +417,30 @@ def simulate(
         sensor=sensor,
         joint_names=model.joint_names,
         ft_effects=ft_clean - ft_ideal,
+        contact_normal=None if sampler is None else normal,
     )
+
+
+class _SurfaceSampler:
+    """Points uniform over the area of link meshes, with their outward normals."""
+
+    def __init__(self, meshes: Sequence[LinkMesh]) -> None:
+        self.tri = [np.asarray(m.vertices)[np.asarray(m.faces)] for m in meshes]
+        self.area = []
+        for t in self.tri:
+            a = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+            self.area.append(a / a.sum())
+
+    def sample(self, rng: np.random.Generator, link: int) -> tuple[np.ndarray, ...]:
+        """``(point, outward normal, R)`` with ``R`` turning +z onto the normal (link frame)."""
+        t = self.tri[link][rng.choice(len(self.area[link]), p=self.area[link])]
+        a, b = rng.random(2)
+        if a + b > 1:
+            a, b = 1 - a, 1 - b
+        p = t[0] + a * (t[1] - t[0]) + b * (t[2] - t[0])
+        n = np.cross(t[1] - t[0], t[2] - t[0])
+        n /= np.linalg.norm(n)
+        x = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(n, x), n], axis=1)
+        return p, n, R

@@ -15,7 +15,14 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["STATUS", "Status", "status_messages"]
+__all__ = [
+    "LOCALIZE_STATUS",
+    "STATUS",
+    "LocalizeStatus",
+    "Status",
+    "localize_messages",
+    "status_messages",
+]
 
 
 class Status(enum.IntFlag):
@@ -72,3 +79,62 @@ def status_messages(code: int) -> str:
     if code == 0:
         return "ok"
     return "; ".join(msg for bit, msg in STATUS.items() if code & bit)
+
+
+class LocalizeStatus(enum.IntFlag):
+    """The status bits of a contact localization; 0 means one contact was found.
+
+    Set in :class:`torchcontact.localize.Localization` and the ``localize_status_code.<sensor>``
+    log column. Frames with a bit other than ``AMBIGUOUS``, ``OUTSIDE_CONE`` and ``NEAR_MISS``
+    set have no contact point.
+    """
+
+    #: a non-finite F/T reading, joint state or base motion
+    NONFINITE = 1
+    #: the force is below the threshold
+    NO_CONTACT = 2
+    #: the force's line of action misses every candidate link
+    NO_INTERSECTION = 4
+    #: the line meets the links only where the force would pull
+    PULLING = 8
+    #: the line enters the links at several distinct points
+    AMBIGUOUS = 16
+    #: the frame has skin contacts in the sensor's region
+    SKIN_CONTACT = 32
+    #: no entry where the force lies in the friction cone
+    OUTSIDE_CONE = 64
+    #: the line passes beside the links
+    NEAR_MISS = 128
+
+
+_LOCALIZE_TEXT = {
+    LocalizeStatus.NONFINITE: "non-finite F/T reading, joint state or base motion",
+    LocalizeStatus.NO_CONTACT: "no contact: the force is below the threshold",
+    LocalizeStatus.NO_INTERSECTION: "no intersection: the force's line of action misses every"
+    " candidate link",
+    LocalizeStatus.PULLING: "pulling: the line meets the candidate links only where the force"
+    " would pull (or lies outside the friction cone)",
+    LocalizeStatus.AMBIGUOUS: "ambiguous: the line enters the links at several distinct points"
+    " (the first is reported)",
+    LocalizeStatus.SKIN_CONTACT: "not localized: the frame has skin contacts in the sensor's"
+    " region",
+    LocalizeStatus.OUTSIDE_CONE: "outside the friction cone: no entry where the force lies in the"
+    " cone (the first entry is reported)",
+    LocalizeStatus.NEAR_MISS: "near miss: the line passes beside the links; the nearest edge"
+    " point is reported",
+}
+
+#: Per-frame status bits of a contact localization: bit -> text (see :class:`LocalizeStatus`).
+LOCALIZE_STATUS: dict[int, str] = {int(bit): text for bit, text in _LOCALIZE_TEXT.items()}
+
+
+def localize_messages(code: int) -> str:
+    """Human-readable reason for a localization status code (``"ok"`` for 0).
+
+    Example:
+        >>> localize_messages(16)
+        'ambiguous: the line enters the links at several distinct points (the first is reported)'
+    """
+    if code == 0:
+        return "ok"
+    return "; ".join(msg for bit, msg in LOCALIZE_STATUS.items() if code & bit)

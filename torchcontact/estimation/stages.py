@@ -8,7 +8,7 @@ chains them into one program per layout, run eagerly or compiled into a kernel.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 from torchcontact import dynamics as _dyn
@@ -20,6 +20,7 @@ from torchcontact.solve import Factorization, factorize, solve_factored
 __all__ = [
     "SlotMap",
     "backward",
+    "body_in_sensor",
     "contact_point",
     "contact_maps",
     "contact_matrix",
@@ -195,15 +196,7 @@ def contact_maps(
     maps: list[SlotMap | None] = [None] * len(em.slots)
     grams = []
     for r, reg in enumerate(em.regions):
-        # poses of the region's bodies in the sensor frame, along the paths to the slots
-        T_s_child = sp.pose_inverse(reg.T_child_sensor)
-        T: dict[int, sp.Pose] = {reg.child: T_s_child}
-
-        def pose(body: int, T: dict[int, sp.Pose] = T) -> sp.Pose:
-            if body not in T:
-                T[body] = sp.pose_compose(pose(tree.bodies[body].parent, T), X[body])
-            return T[body]
-
+        pose = body_in_sensor(em, X, r)
         rows = list(reg.torque_coords) if tau_mask is not None else []
         R = 6 + len(rows)
         G: list[list[Scalar]] = [[0.0] * R for _ in range(R)]
@@ -257,6 +250,28 @@ def contact_maps(
                 G[j][i] = G[i][j]
         grams.append(G)
     return maps, grams
+
+
+def body_in_sensor(em: EstimationModel, X: list, r: int) -> Callable[[int], sp.Pose]:
+    """Poses of region ``r``'s bodies in its sensor frame, computed along the paths to them.
+
+    Args:
+        em: the estimation model.
+        X: joint placements (stage 1).
+        r: the region.
+
+    Returns:
+        ``pose(body)`` -> ``T_sensor_body`` (the body's internal frame), memoised.
+    """
+    tree = em.tree
+    T: dict[int, sp.Pose] = {em.regions[r].child: sp.pose_inverse(em.regions[r].T_child_sensor)}
+
+    def pose(body: int) -> sp.Pose:
+        if body not in T:
+            T[body] = sp.pose_compose(pose(tree.bodies[body].parent), X[body])
+        return T[body]
+
+    return pose
 
 
 def _unit(x: Sequence[Scalar]) -> sp.V3:

@@ -184,6 +184,7 @@ def _simulate(args: argparse.Namespace, out: Path) -> Path:
     robot = _robot(args.robot)
     check_outputs([out, out.with_name(out.name + ".tmp")], [robot])
     model = load_robot(robot)
+    surface = _contact_surface(args, model, robot)
     return write_simulated_log(
         model,
         args.frames,
@@ -196,7 +197,27 @@ def _simulate(args: argparse.Namespace, out: Path) -> Path:
         sensor=args.sensor,
         links=_names(args.contact_links),
         progress=_progress(args),
+        skin=not getattr(args, "no_skin", False),
+        surface=surface,
     )
+
+
+def _contact_surface(args: argparse.Namespace, model: Any, robot: Any) -> Any:
+    """The collision meshes of the contact links (``simulate --on-collision-mesh``), or None."""
+    if not getattr(args, "on_collision_mesh", False):
+        return None
+    from torchcontact.meshes import load_meshes
+    from torchcontact.simulation import contact_setup
+
+    _, links = contact_setup(model, args.sensor, _names(args.contact_links))
+    meshes = load_meshes(model, robot, "collision", links=links)
+    bare = [n for n in links if n not in meshes.links]
+    if bare:
+        raise InputError(
+            f"--on-collision-mesh: contact links {bare} have no collision mesh"
+            " (name others with --contact-links)"
+        )
+    return meshes.links
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -372,6 +393,17 @@ def add_parser(subparsers: Any) -> None:
     sim = subparsers.add_parser("simulate", help="write a simulated log with known contacts")
     _add_sim_args(sim)
     sim.add_argument("--out", required=True, help="output Parquet file")
+    sim.add_argument(
+        "--no-skin",
+        action="store_true",
+        help="a log without skin: empty contacts (the truth in true_contacts), for estimate"
+        " --localize",
+    )
+    sim.add_argument(
+        "--on-collision-mesh",
+        action="store_true",
+        help="put the contacts on the contact links' collision meshes (needs the meshes extra)",
+    )
     sim.set_defaults(func=cmd_simulate)
 
     demo = subparsers.add_parser("demo", help="simulate -> estimate -> plot into a folder")

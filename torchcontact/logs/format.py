@@ -31,7 +31,8 @@ cannot see), ``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcon
 ``status`` (its text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log
 pipeline found, or null). A friction-cone constrained estimate also has ``converged.<sensor>``
 (bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and ``cone_active``
-(bool) on every contact.
+(bool) on every contact. A localizing estimate (``--localize``) adds the columns of
+:func:`localization_fields` per localizing sensor (:data:`LOCALIZATION_COLUMNS`).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from torchcontact.errors import InputError, LogError
 __all__ = [
     "BASE_COLUMNS",
     "CONE_FIELDS",
+    "LOCALIZATION_COLUMNS",
     "META_DERIVED",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
@@ -68,6 +70,7 @@ __all__ = [
     "iter_chunks",
     "joint_names_of",
     "joint_permutation",
+    "localization_fields",
     "open_log",
     "output_schema",
     "read_contacts",
@@ -212,6 +215,7 @@ def output_schema(
     contact_fields: Sequence[tuple[str, Any]],
     metadata: Mapping[bytes, bytes | str],
     constraints: bool = False,
+    localize: Sequence[str] = (),
 ) -> Any:
     """Schema of an estimated log.
 
@@ -223,10 +227,13 @@ def output_schema(
         metadata: schema metadata (joint names are added).
         constraints: a friction-cone constrained estimate: contacts get ``cone_active``, each
             sensor ``converged.<s>`` and ``iterations.<s>``.
+        localize: the sensors whose contact is localized (``estimate --localize``): their
+            :func:`localization_fields` come after ``status_detail``.
 
     Returns:
         ``t_ns, contacts, joint_torques, rank.<s>, unknowns.<s>, nullity.<s>, residual.<s>
-        [, converged.<s>, iterations.<s>], status_code, status, status_detail``.
+        [, converged.<s>, iterations.<s>], status_code, status, status_detail
+        [, localize_*.<s>]``.
     """
     import pyarrow as pa
 
@@ -248,8 +255,45 @@ def output_schema(
             fields += [(f"converged.{s}", pa.bool_()), (f"iterations.{s}", pa.int64())]
     fields += [("status_code", pa.int64()), ("status", pa.string())]
     fields.append(("status_detail", pa.string()))
+    fields += localization_fields(localize)
     meta = {**metadata, META_JOINT_NAMES: json.dumps(list(joint_names))}
     return pa.schema(fields, metadata=meta)
+
+
+#: Per-frame localization columns of ``estimate --localize`` (one set per localizing sensor
+#: ``<s>``): field -> (pyarrow type name, meaning). See :mod:`torchcontact.localize`.
+LOCALIZATION_COLUMNS = {
+    "localize_link": ("string", "link of the localized contact (null: none)"),
+    "localize_position": ("3 float64", "contact point, link frame, m"),
+    "localize_normal": ("3 float64", "outward surface normal at the point, link frame"),
+    "localize_force": ("3 float64", "pure-force estimate b[:3], link frame, N"),
+    "localize_moment_residual": ("float64", "|f . m| / |f|, N m"),
+    "localize_position_std": ("float64", "sqrt(trace(cov)) of the point from the F/T noise, m"),
+    "localize_candidates": ("int64", "distinct points where the line enters the links"),
+    "localize_status_code": ("int64", "bits of torchcontact.LOCALIZE_STATUS (0: localized)"),
+    "localize_status": ("string", "the code's text"),
+}
+
+
+def localization_fields(sensors: Sequence[str]) -> list[tuple[str, Any]]:
+    """The ``(name, type)`` columns of a localization (``estimate --localize``), per sensor.
+
+    Args:
+        sensors: the sensors that localize a contact.
+
+    Returns:
+        For each sensor ``s``, the :data:`LOCALIZATION_COLUMNS` as ``<field>.<s>``.
+
+    Example:
+        >>> [n for n, _ in localization_fields(["wrist"])][:2]
+        ['localize_link.wrist', 'localize_position.wrist']
+    """
+    import pyarrow as pa
+
+    types = {"string": pa.string(), "3 float64": pa.list_(pa.float64(), 3),
+             "float64": pa.float64(), "int64": pa.int64()}  # fmt: skip
+    return [(f"{name}.{s}", types[typ]) for s in sensors
+            for name, (typ, _) in LOCALIZATION_COLUMNS.items()]  # fmt: skip
 
 
 def joint_permutation(

@@ -4,7 +4,12 @@ The true contact forces are kept in the contact struct field ``true_force`` (3 f
 N) and carried unchanged into the estimator's output, where :mod:`torchcontact.logs.plot` draws
 them next to the estimates. Contacts are pure forces (kind ``force``) on skin frames; their
 ``normal`` is the frame's +z (the simulated patches lie in its xy plane and the forces push
-within 0.62 rad of -z), for ``estimate --constraints``.
+within 0.62 rad of -z), for ``estimate --constraints``. Contacts sampled on collision meshes
+(``surface=``) carry the mesh's outward normal.
+
+A log *without skin* (``skin=False``, ``simulate --no-skin``) has the same F/T readings but an
+empty ``contacts`` list in every frame, as a robot without tactile skin records; the truth moves
+to the ``true_contacts`` column (same struct), for ``estimate --localize``.
 """
 
 from __future__ import annotations
@@ -35,16 +40,21 @@ def _contact_extra() -> list[tuple[str, Any]]:
     return [("true_force", pa.list_(pa.float64(), 3))]
 
 
-def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int = 0) -> Any:
+def simulated_table(
+    log: SimulatedLog, *, derivatives: bool = True, t0_ns: int = 0, skin: bool = True
+) -> Any:
     """A pyarrow table in the log format from a :class:`SimulatedLog`.
 
     Args:
         log: simulated columns.
         derivatives: write ``qd`` and ``qdd`` (False: only ``q``, the pipeline derives them).
         t0_ns: added to ``t_ns``.
+        skin: the contacts go to ``contacts`` (True) or, as for a robot without skin, to
+            ``true_contacts`` with ``contacts`` empty (False).
 
     Returns:
-        Table with ``t_ns, q[, qd, qdd], ft.<sensor>, contacts, temperature``.
+        Table with ``t_ns, q[, qd, qdd], ft.<sensor>, contacts, temperature`` (and
+        ``true_contacts`` without skin).
     """
     import pyarrow as pa
 
@@ -57,22 +67,33 @@ def simulated_table(log: SimulatedLog, *, derivatives: bool = True, t0_ns: int =
         extra=[("temperature", pa.float64())],
         cone=True,
     )
+    ctype = schema.field("contacts").type.value_type
+    if not skin:
+        schema = schema.append(pa.field("true_contacts", pa.list_(ctype)))
     f, k = np.nonzero(log.contact_link >= 0)  # records in (frame, slot) order
+    normals = (np.tile([0.0, 0.0, 1.0], (len(f), 1)) if log.contact_normal is None
+               else log.contact_normal[f, k])  # fmt: skip
     records = ContactRecords(
         f,
         np.asarray(log.links, dtype=object)[log.contact_link[f, k]],
         ["force"] * len(f),
         log.contact_position[f, k],
-        normals=np.tile([0.0, 0.0, 1.0], (len(f), 1)),
+        normals=normals,
     )
-    ctype = schema.field("contacts").type.value_type
-    contacts = contacts_column(records, N, {"true_force": log.contact_force[f, k]}, ctype)
+    truth = contacts_column(records, N, {"true_force": log.contact_force[f, k]}, ctype)
+    contacts = truth
+    if not skin:
+        contacts = contacts_column(
+            records.select(np.zeros(len(f), bool)), N, {"true_force": np.zeros((0, 3))}, ctype
+        )
     cols: dict[str, Any] = {"t_ns": pa.array(log.t_ns + t0_ns, pa.int64()), "q": fixed_list(log.q)}
     if derivatives:
         cols["qd"], cols["qdd"] = fixed_list(log.qd), fixed_list(log.qdd)
     cols[ft_column(log.sensor)] = fixed_list(log.ft)
     cols["contacts"] = contacts
     cols["temperature"] = pa.array(log.temperature, pa.float64())
+    if not skin:
+        cols["true_contacts"] = truth
     return pa.table(cols, schema=schema)
 
 
@@ -87,6 +108,7 @@ def write_simulated_log(
     chunk: int = 200_000,
     temperature: bool = True,
     progress: bool = False,
+    skin: bool = True,
     **kwargs: Any,
 ) -> Path:
     """Simulate ``frames`` frames and write them as a Parquet log, streamed in chunks.
@@ -105,8 +127,9 @@ def write_simulated_log(
         chunk: frames simulated per segment (memory is flat in ``frames``).
         temperature: keep the ``temperature`` column.
         progress: show a progress bar (per segment).
+        skin: False writes a log without skin contacts (the truth in ``true_contacts``).
         **kwargs: passed to :func:`torchcontact.simulation.simulate` (``sensor``, ``links``,
-            ``max_contacts``, ...).
+            ``max_contacts``, ``surface``, ...).
 
     Returns:
         The output path.
@@ -128,7 +151,7 @@ def write_simulated_log(
         for i, start in enumerate(range(0, frames, chunk)):
             n = min(chunk, frames - start)
             log = simulate(model, n, seed=seed + i, effects=effects, **kwargs)
-            tab = simulated_table(log, derivatives=derivatives, t0_ns=t0)
+            tab = simulated_table(log, derivatives=derivatives, t0_ns=t0, skin=skin)
             if not temperature:
                 tab = tab.drop_columns(["temperature"])
             step = int(log.t_ns[1] - log.t_ns[0]) if n > 1 else 0

@@ -1,0 +1,126 @@
+"""Localization in logs: simulated logs without skin, the per-chunk function, the output schema.
+
+The chunk function (:func:`torchcontact.localize.localize_chunk`) gets what the log pipeline
+decodes from a chunk (joint arrays, readings, skin records) and returns the records with the
+localized ``force`` contacts added and the localization columns. Truth: a log simulated with
+contacts on the panda's collision meshes (hand and fingers, wrist F/T sensor), without skin
+(``simulate --no-skin``); noise-free, so the unambiguous frames give the true point and, once the
+estimator has run on the filled-in records, the true force.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from robots import ROBOTS
+
+import torchcontact as tc
+from torchcontact.cli import main
+from torchcontact.contacts import ContactRecords, Contacts
+from torchcontact.localize import Localizer, localize_chunk
+from torchcontact.logs.format import (
+    localization_fields,
+    output_schema,
+    read_contacts,
+    read_log_columns,
+    vectors,
+)
+from torchcontact.logs.simlog import simulated_table
+from torchcontact.meshes import load_meshes
+from torchcontact.simulation import simulate
+
+pytest.importorskip("trimesh")
+LINKS = ["panda_hand", "panda_leftfinger", "panda_rightfinger"]
+
+
+@pytest.fixture(scope="module")
+def panda():
+    path = ROBOTS["panda"]()
+    model = tc.RobotModel.from_urdf(path, keep_fixed=["panda_hand_joint"])
+    model = model.with_ft_sensor("wrist_ft", "panda_hand_joint")
+    return model, load_meshes(model, path, "collision", links=LINKS)
+
+
+def test_simulated_log_without_skin_localized_chunk_and_estimate(panda):
+    model, meshes = panda
+    log = simulate(model, 300, sensor="wrist_ft", links=LINKS, max_contacts=1, seed=2,
+                   surface=meshes.links, contact_fraction=0.7)  # fmt: skip
+    table = simulated_table(log, skin=False)
+    assert "true_contacts" in table.column_names
+    skin, _, _ = read_contacts(table.column("contacts"))
+    truth, fields, _ = read_contacts(table.column("true_contacts"))
+    assert len(skin) == 0 and len(truth) > 100
+    # the simulated normals are the meshes' outward normals, the forces push within the cone
+    f_true = vectors(fields["true_force"], 3)[0]
+    cos = -(f_true * truth.normals).sum(1) / np.linalg.norm(f_true, axis=1)
+    assert (cos > np.cos(0.62) - 1e-9).all()
+
+    # ---- the chunk as the pipeline decodes it; one frame has a skin contact on the hand
+    N = table.num_rows
+    q, qd, qdd = (vectors(table.column(c), model.nv)[0] for c in ("q", "qd", "qdd"))
+    ft = {"wrist_ft": vectors(table.column("ft.wrist_ft"), 6)[0]}
+    touched = np.flatnonzero(np.bincount(truth.frame, minlength=N) > 0)
+    skin_frame = int(touched[0])
+    skin = ContactRecords([skin_frame], ["panda_hand"], ["force"], np.zeros((1, 3)))
+    loc = Localizer(model, meshes, links=LINKS, sensors=["wrist_ft"], force_threshold=0.5)
+    out = localize_chunk(loc, q, qd, qdd, ft, skin, ft_covariance={"wrist_ft": np.eye(6) * 1e-4})
+    code = out.columns["localize_status_code.wrist_ft"].to_numpy()
+    assert code[skin_frame] & 32
+    assert list(out.columns) == [n for n, _ in localization_fields(["wrist_ft"])]
+    # the columns fit the output schema
+    schema = output_schema(model.joint_names, ["wrist_ft"], [], {}, localize=["wrist_ft"])
+    for name, col in out.columns.items():
+        assert col.type == schema.field(name).type and len(col) == N
+    # records: the skin one kept (source 0), one force record per localized frame, by frame
+    rec = out.records
+    assert np.all(np.diff(rec.frame) >= 0)
+    assert (out.source == 0).sum() == 1 and rec.frame[out.source == 0][0] == skin_frame
+    added = out.source < 0
+    ok = (code == 0) | (code == 128) | (code == 64)
+    assert sorted(rec.frame[added]) == sorted(np.flatnonzero(ok))
+    no_contact = np.setdiff1d(np.arange(N), truth.frame)
+    assert (code[no_contact] & 2).all()  # the free frames: force below the threshold
+    # exact readings: where the line enters once, the point is the truth
+    exact = np.flatnonzero(code == 0)
+    assert len(exact) > 20  # (a few contact segments, each of many frames)
+    tf = dict(zip(truth.frame.tolist(), range(len(truth)), strict=True))
+    pos = {f: p for f, p in zip(rec.frame[added], rec.positions[added], strict=True)}
+    links = {f: k for f, k in zip(rec.frame[added], rec.links[added], strict=True)}
+    for f in exact:
+        assert links[f] == truth.links[tf[f]]
+        np.testing.assert_allclose(pos[f], truth.positions[tf[f]], atol=1e-7)
+
+    # ---- the estimator on the filled-in records: the true force where localized exactly
+    contacts, _ = Contacts.from_records(rec, N)
+    est = tc.ContactEstimator(model, ["wrist_ft"])
+    t = torch.tensor
+    r = est.estimate(t(q), t(qd), t(qdd), {"wrist_ft": t(ft["wrist_ft"])}, contacts)
+    got = np.zeros((N, 3))
+    act = contacts.active.numpy()
+    force = r.force.numpy()
+    for f in exact:
+        k = [i for i in range(contacts.K) if act[f, i] and contacts.links[i] == links[f]][0]
+        got[f] = force[f, k]
+    np.testing.assert_allclose(got[exact], f_true[[tf[f] for f in exact]], atol=1e-6)
+    assert r.status.numpy()[exact].max() == 0
+
+
+def test_simulate_cli_no_skin_on_collision_mesh(tmp_path):
+    out = tmp_path / "noskin.parquet"
+    icub = str(ROBOTS["icub"]())
+    args = ["simulate", "--robot", icub, "--sensor", "l_arm_ft", "--contact-links",
+            "l_forearm,l_hand", "--frames", "400", "--max-contacts", "1", "--no-skin",
+            "--on-collision-mesh", "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    skin = read_log_columns(out, ["contacts"])["contacts"]
+    truth = read_contacts(pq.read_table(out, columns=["true_contacts"]).column(0))[0]
+    assert len(skin) == 0 and len(truth) > 0
+    assert set(truth.links) <= {"l_forearm", "l_hand"}
+    # a contact link without a collision mesh is refused with one message
+    bad = ["simulate", "--robot", icub, "--sensor", "l_arm_ft", "--contact-links",
+           "l_forearm,l_forearm_dh_frame", "--frames", "5", "--on-collision-mesh", "--out",
+           str(tmp_path / "x.parquet")]  # fmt: skip
+    assert main(bad) == 2
+    assert not (tmp_path / "x.parquet").exists()
