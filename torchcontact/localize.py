@@ -46,10 +46,11 @@ from torchcontact import kernels
 from torchcontact import spatial as sp
 from torchcontact._internal import check_input, flatten_batch
 from torchcontact._scalar import isfinite, logical_and, logical_not, select
-from torchcontact.dynamics import BaseMotion, _run
+from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError, MissingExtraError
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
+from torchcontact.kernels.runner import run_program
 from torchcontact.meshes import LinkMesh, RobotMeshes
 from torchcontact.model import RobotModel
 from torchcontact.status import LOCALIZE_STATUS, LocalizeStatus
@@ -894,7 +895,7 @@ class Localizer:
         if prog is None:
             prog = line_program(self.em, cands, base is not None)
             self.em._programs[("localize", base is not None)] = prog
-        out = _run(prog, tensors, self.backend, chunk_size)
+        out = run_program(prog, tensors, self.backend, chunk_size)
         status0 = out["status"][:, 0].round().to(torch.int64)
         pose = out["pose"].reshape(n, len(cands), 12)
         R_all = pose[..., :9].reshape(n, len(cands), 3, 3)
@@ -1157,7 +1158,7 @@ def localize_chunk(
         code = r.status.cpu().numpy().astype(np.int64)
         skin = np.zeros(N, bool)
         skin[recs.frame[rec_region == names.index(s)]] = True
-        code = np.where(skin, code | 32, code)
+        code = np.where(skin, code | int(LocalizeStatus.SKIN_CONTACT), code)
         link = r.link.cpu().numpy()
         pos = r.position.detach().cpu().double().numpy()
         nrm = r.normal.detach().cpu().double().numpy()
