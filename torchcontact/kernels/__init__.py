@@ -34,7 +34,6 @@ import contextlib
 import ctypes
 import functools
 import hashlib
-import os
 import platform
 import subprocess
 import threading
@@ -50,7 +49,7 @@ from torch import Tensor
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
 from torchcontact.kernels import _store
-from torchcontact.kernels._store import build_dir_lock
+from torchcontact.kernels._store import build_dir_lock, cache_dir
 
 __all__ = [
     "BACKENDS",
@@ -109,15 +108,6 @@ class Program:
         got = {k: len(v) for k, v in out.items()}
         if got != self.outputs:
             raise ValueError(f"program {self.name}: outputs {got}, declared {self.outputs}")
-
-
-def cache_dir() -> Path:
-    """Root of the on-disk kernel cache."""
-    env = os.environ.get("TORCHCONTACT_CACHE")
-    if env:
-        return Path(env)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchcontact"
 
 
 @functools.cache

@@ -65,6 +65,18 @@ JOBS_ENV = "TORCHCONTACT_BUILD_JOBS"
 SLOT_POLL_S = 0.2
 
 
+def cache_dir() -> Path:
+    """Root of the on-disk kernel cache (the kernels live in its ``kernels/`` folder).
+
+    ``$TORCHCONTACT_CACHE``, else ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``.
+    """
+    env = os.environ.get("TORCHCONTACT_CACHE")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchcontact"
+
+
 def cores() -> int:
     """CPU cores this process may run on."""
     try:
@@ -407,6 +419,8 @@ def entries(root: Path) -> list[dict]:
             state = "building"
         elif state == "damaged":
             state = f"damaged: {why}"
+        elif state == "absent" and e.library.exists():
+            state = "unrecorded (an older or unfinished build)"
         elif state == "absent":
             state = "failed" if e.log.exists() else "source only"
         rec = e.record() or {}
