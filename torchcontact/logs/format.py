@@ -375,21 +375,26 @@ def check_number_type(typ: Any, name: str, source: object = "") -> None:
         raise LogError(f"{where}column {name!r} is {typ}; expected {NUMBERS}")
 
 
-def _float64(values: Any, name: str, source: object) -> Any:
-    """A numeric pyarrow array cast to float64; a value that would lose precision is an error."""
+#: Integers beyond this magnitude have no exact float64.
+_EXACT_INT = 2**53
+
+
+def _float64(values: Any) -> Any:
+    """A numeric pyarrow array as float64, null where a value has no exact float64.
+
+    Integers beyond 2**53 in magnitude would be rounded: they become null (NaN), a per-value
+    problem like a NaN reading, never a silently different number.
+    """
     import pyarrow as pa
     import pyarrow.compute as pc
 
     if pa.types.is_float64(values.type):
         return values
-    try:
-        return pc.cast(values, pa.float64())  # safe: refuses integers beyond 2**53
-    except pa.ArrowInvalid as exc:
-        where = f"{source}: " if str(source) else ""
-        raise LogError(
-            f"{where}column {name or '?'!r} ({values.type}) does not convert to float64"
-            f" without loss: {exc}"
-        ) from None
+    if pa.types.is_integer(values.type):
+        lossy = pc.or_(pc.greater(values, _EXACT_INT), pc.less(values, -_EXACT_INT))
+        if pc.any(lossy).as_py():
+            values = pc.if_else(lossy, pa.scalar(None, values.type), values)
+    return pc.cast(values, pa.float64(), safe=False)
 
 
 def vectors(
@@ -398,7 +403,7 @@ def vectors(
     """Rows of a list column as an ``(N, n)`` float64 array.
 
     Values of any type of :data:`NUMBERS` are converted (int counts, float32, decimals); nulls
-    inside a row make it NaN there.
+    inside a row, and integers beyond 2**53 in magnitude (no exact float64), make it NaN there.
 
     Args:
         column: a pyarrow (chunked) array of fixed-size or plain lists of numbers, or an
@@ -412,16 +417,16 @@ def vectors(
         or does not have ``n`` entries.
 
     Raises:
-        LogError: a column that is not a list of numbers, or integers beyond float64's exact
-            range (naming the column, its type and the expected type).
+        LogError: a column that is not a list of numbers (naming the column, its type and the
+            expected type).
 
     Example:
         >>> import pyarrow as pa
         >>> v, bad = vectors(pa.array([[1.0, 2.0], [3.0], None]), 2)
         >>> v[0].tolist(), bad.tolist()
         ([1.0, 2.0], [False, True, True])
-        >>> vectors(pa.array([[1, None]]), 2)[0].tolist()  # int counts, a null entry
-        [[1.0, nan]]
+        >>> vectors(pa.array([[1, None], [2**53 + 1, 0]]), 2)[0].tolist()  # int counts
+        [[1.0, nan], [nan, 0.0]]
     """
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -434,7 +439,7 @@ def vectors(
     if N == 0 or pa.types.is_null(column.type):
         return out, np.ones(N, bool)
     null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
-    flat = _float64(column.flatten(), name, source)  # flatten honours the array's offset
+    flat = _float64(column.flatten())  # flatten honours the array's offset
     if pa.types.is_fixed_size_list(column.type) and column.type.list_size == n and not null.any():
         return np.asarray(flat.fill_null(np.nan).to_numpy(zero_copy_only=False)).reshape(N, n), null
     lengths = pc.list_value_length(column).fill_null(-1).to_numpy(zero_copy_only=False)
@@ -873,7 +878,7 @@ def read_log_columns(
             out[c] = vectors(col, int(lengths[0].as_py()) if len(lengths) else 0, c, path)[0]
         else:
             check_number_type(typ, c, path)
-            arr = _float64(col.combine_chunks(), c, path).fill_null(np.nan)
+            arr = _float64(col.combine_chunks()).fill_null(np.nan)
             out[c] = np.asarray(arr.to_numpy(zero_copy_only=False), np.float64)
     return out
 
