@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -268,3 +269,52 @@ def test_a_cache_hit_does_not_trace_the_program(cache):
     entry.source.write_text("// altered")
     assert kernels._cpu_entry(fresh, torch.float64)[0] == entry and calls == [1]
     assert entry.source.read_text().startswith("\n#include <cmath>")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (nvcc)")
+def test_cuda_entry_is_checked_published_and_healed(cache):
+    """CUDA entries: recorded after an nvcc build in a private folder; a truncated and an
+    unloadable library each warn and are rebuilt, in fresh processes; ``auto`` runs eagerly
+    while a CUDA kernel builds in a thread, then uses it."""
+    body = (
+        "m = models[0].to('cuda')\n"
+        "x = q.cuda()\n"
+        "ref = m.inverse_dynamics(x, x, x, backend='eager')\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    tau = m.inverse_dynamics(x, x, x, backend=sys.argv[1])\n"
+        "    kernels.wait_for_builds(timeout=300)\n"
+        "    tau2 = m.inverse_dynamics(x, x, x)\n"
+        "p = dynamics.program(m, 'id', False, False)\n"
+        "print(json.dumps({'warnings': [str(x.message) for x in w], 'ready': kernels._ready(p, x),"
+        " 'err': float(max((tau - ref).abs().max(), (tau2 - ref).abs().max()))}))\n"
+    )
+    code = _snippet([0.71], body)
+
+    def run(backend: str) -> dict:
+        res = subprocess.run([sys.executable, "-c", code, backend], cwd=ROOT,
+                             capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert res.returncode == 0, res.stderr[-3000:]
+        return json.loads(res.stdout)
+
+    def entry() -> _store.Entry:
+        (d,) = (cache / "cache" / "kernels").glob("tckc_*")
+        return _store.Entry(d.parent, d.name, ".cu")
+
+    out = run("cuda")
+    e = entry()
+    assert out["warnings"] == [] and out["ready"] and out["err"] < 1e-9
+    assert e.check() == ("ok", "") and not list(e.dir.glob("build-*"))
+    data = e.library.read_bytes()
+    e.library.write_bytes(data[:4000])
+    out = run("cuda")
+    assert len(out["warnings"]) == 1 and "has 4000 bytes" in out["warnings"][0]
+    assert out["ready"] and out["err"] < 1e-9 and entry().check() == ("ok", "")
+    e.library.write_bytes(os.urandom(len(data)))  # garbage, its record made to match it
+    size, digest = _store.file_digest(e.library)
+    e.record_path.write_text(json.dumps({**e.record(), "size": size, "sha256": digest}))
+    out = run("cuda")
+    assert len(out["warnings"]) == 1 and "does not load" in out["warnings"][0]
+    assert out["ready"] and out["err"] < 1e-9 and entry().check() == ("ok", "")
+    shutil.rmtree(e.dir)
+    out = run("auto")  # eager now, a thread builds; then the kernel
+    assert out["warnings"] == [] and out["ready"] and out["err"] < 1e-9
