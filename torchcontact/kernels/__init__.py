@@ -295,7 +295,11 @@ def _load_built(entry: _store.Entry, program: Program, dtype: torch.dtype) -> Ca
 
 
 def _build_now(entry: _store.Entry, program: Program, dtype: torch.dtype) -> Callable:
-    _store.build(entry)
+    try:
+        _store.build(entry)
+    except OSError as e:  # the cache cannot be written (full disk, read-only)
+        where = f"{e.filename}: " if e.filename else ""
+        raise KernelBuildError(f"building kernel {entry.name} failed: {where}{e}") from None
     return _load_built(entry, program, dtype)
 
 
@@ -438,6 +442,16 @@ def compiled(
         return compiled(program, dtype, device, wait)
     if device.type == "cuda":
         return _compiled_cuda(program, dtype, ckey, wait)
+    try:
+        return _compiled_cpu(program, dtype, ckey, wait)
+    except OSError as e:  # an unwritable or full cache: eager, never a crash
+        where = f"{e.filename}: " if e.filename else ""
+        msg = f"kernel cache {cache_dir() / 'kernels'}: {where}{e.strerror or e}"
+        return _finish(ckey, _failing(msg), raise_=wait)
+
+
+def _compiled_cpu(program: Program, dtype: torch.dtype, ckey: str, wait: bool) -> Callable | None:
+    """The CPU kernel from the cache: checked, healed, built now or by a detached process."""
     entry, (state, why) = _cpu_entry(program, dtype)
     if state == "ok":
         try:
@@ -449,9 +463,10 @@ def compiled(
         return _finish(ckey, _failing(why), raise_=wait)
     if wait:
         return _finish(ckey, lambda: _build_now(entry, program, dtype), raise_=True)
-    proc = _store.spawn_build(entry)
-    with _lock:
-        _building[ckey] = _Build(proc, entry, lambda: _load_built(entry, program, dtype))
+    with _lock:  # one builder per kernel, also when several threads ask at once
+        if ckey not in _building and ckey not in _loaded:
+            proc = _store.spawn_build(entry)
+            _building[ckey] = _Build(proc, entry, lambda: _load_built(entry, program, dtype))
     return None
 
 
