@@ -74,6 +74,15 @@ def cache(tmp_path, monkeypatch):
     return tmp_path
 
 
+def _damage(library: Path, data: bytes) -> None:
+    """Replace a library's content with ``data`` through a new file (a rename): a library this
+    process has loaded keeps its pages (truncating the mapped file itself would make this
+    process die of SIGBUS, as any program whose library is cut under it)."""
+    tmp = library.with_name(library.name + ".damaged")
+    tmp.write_bytes(data)
+    os.replace(tmp, library)
+
+
 def _entry(model: tc.RobotModel) -> _store.Entry:
     prog = dynamics.program(model, "id", False, False)
     return kernels._cpu_entry(prog, torch.float64)[0]
@@ -107,11 +116,11 @@ def test_a_damaged_library_warns_runs_eagerly_and_is_rebuilt(cache):
         assert e.check() == ("ok", "")
         data = e.library.read_bytes()
         if how == "truncated":
-            e.library.write_bytes(data[:4000])
+            _damage(e.library, data[:4000])
         elif how == "empty":
-            e.library.write_bytes(b"")
+            _damage(e.library, b"")
         else:  # random bytes of the same size; "unloadable": its record made to match them
-            e.library.write_bytes(os.urandom(len(data)))
+            _damage(e.library, os.urandom(len(data)))
             if how == "unloadable":
                 size, digest = _store.file_digest(e.library)
                 rec = {**e.record(), "size": size, "sha256": digest}
@@ -230,7 +239,7 @@ def test_cache_info_and_clear(cache, capsys):
     out = capsys.readouterr().out
     assert str(cache / "cache" / "kernels") in out and "compilers at once: 1" in out
     assert f"{e.name}  ok  library" in out
-    e.library.write_bytes(b"")
+    _damage(e.library, b"")
     assert main(["cache", "info", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert [x["state"] for x in info["entries"]] == [f"damaged: {e.library.name} has 0 bytes,"
@@ -305,11 +314,11 @@ def test_cuda_entry_is_checked_published_and_healed(cache):
     assert out["warnings"] == [] and out["ready"] and out["err"] < 1e-9
     assert e.check() == ("ok", "") and not list(e.dir.glob("build-*"))
     data = e.library.read_bytes()
-    e.library.write_bytes(data[:4000])
+    _damage(e.library, data[:4000])
     out = run("cuda")
     assert len(out["warnings"]) == 1 and "has 4000 bytes" in out["warnings"][0]
     assert out["ready"] and out["err"] < 1e-9 and entry().check() == ("ok", "")
-    e.library.write_bytes(os.urandom(len(data)))  # garbage, its record made to match it
+    _damage(e.library, os.urandom(len(data)))  # garbage, its record made to match it
     size, digest = _store.file_digest(e.library)
     e.record_path.write_text(json.dumps({**e.record(), "size": size, "sha256": digest}))
     out = run("cuda")
