@@ -278,6 +278,13 @@ def test_a_cache_hit_does_not_trace_the_program(cache):
     entry.source.write_text("// altered")
     assert kernels._cpu_entry(fresh, torch.float64)[0] == entry and calls == [1]
     assert entry.source.read_text().startswith("\n#include <cmath>")
+    # an index record that names another source than the library was built from: traced again
+    _store.build(entry)
+    assert kernels._cpu_entry(fresh, torch.float64) == (entry, ("ok", "")) and calls == [1]
+    rec = json.loads(index[0].read_text())
+    index[0].write_text(json.dumps({**rec, "source_sha256": "0" * 64}))
+    assert kernels._cpu_entry(fresh, torch.float64) == (entry, ("ok", "")) and calls == [1, 1]
+    assert json.loads(index[0].read_text()) == rec  # rewritten
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (nvcc)")

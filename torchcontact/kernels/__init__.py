@@ -235,9 +235,10 @@ def _cpu_entry(program: Program, dtype: torch.dtype) -> tuple[_store.Entry, tupl
     """The cache entry of a CPU kernel and its state (:meth:`_store.Entry.check`).
 
     The index maps the program's key hash (:func:`_key_hash`) to the entry: a kernel in the
-    cache is found without tracing the program, and one not yet built is built from the source
-    the entry keeps (when its sha256 matches the index's). Otherwise the program is traced,
-    its source written to the entry and the index updated.
+    cache is found without tracing the program (when the source it was built from has the
+    sha256 the index records), and one not yet built is built from the source the entry keeps
+    (when that source has it). Otherwise the program is traced, its source written to the entry
+    and the index updated.
     """
     root = cache_dir() / "kernels"
     kh = _key_hash(program, dtype)
@@ -245,7 +246,8 @@ def _cpu_entry(program: Program, dtype: torch.dtype) -> tuple[_store.Entry, tupl
     if rec is not None:
         entry = _store.Entry(root, rec["entry"])
         state = entry.check()
-        if state[0] == "ok":
+        built_from = (entry.record() or {}).get("source_sha256")
+        if state[0] == "ok" and built_from == rec.get("source_sha256"):
             return entry, state
         with contextlib.suppress(OSError):
             if _store.file_digest(entry.source)[1] == rec.get("source_sha256"):

@@ -248,7 +248,8 @@ def _compile(entry: _store.Entry, src: str) -> None:
                 verbose=False,
             )
             seconds = time.perf_counter() - t0
-        entry.publish(stage / f"{entry.name}.so", compiler="nvcc", seconds=round(seconds, 2))
+        entry.publish(stage / f"{entry.name}.so", compiler="nvcc", seconds=round(seconds, 2),
+                      source_sha256=_store.file_digest(entry.source)[1])  # fmt: skip
     except Exception as e:
         raise KernelBuildError(f"building CUDA kernel {entry.name} failed: {e}") from e
     finally:

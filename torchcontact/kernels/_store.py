@@ -5,9 +5,9 @@ Layout under ``<cache>/kernels/`` (``<cache>`` is :func:`torchcontact.kernels.ca
 * ``<name>/``: one **entry** per generated source, ``<name> = tck[c]_<program>_<source hash>``:
   the source (``<name>.cpp`` or ``.cu``), the library ``<name>.so``, the compiler's output
   ``<name>.log`` and the entry's **record** ``entry.json`` (the library's size and sha256, the
-  compiler, the build time). Libraries and records are written under a temporary name, flushed
-  and renamed (``os.replace``): another process sees a whole library or none, and the record,
-  renamed last, is the entry's commit point.
+  source's sha256, the compiler, the build time). Libraries and records are written under a
+  temporary name, flushed and renamed (``os.replace``): another process sees a whole library or
+  none, and the record, renamed last, is the entry's commit point.
 * ``index/<key hash>.json``: program key -> entry name (and the source's sha256), so a process
   finds a cached kernel from the program's key without tracing the program again.
 * ``.slots/slot-<i>``: the compile slots (:func:`build_slot`).
@@ -326,6 +326,7 @@ def build(entry: Entry, jobs: int | None = None, flags: tuple[str, ...] = CFLAGS
         if not entry.source.is_file():
             raise KernelBuildError(f"building kernel {entry.name} failed: no source {entry.source}")
         entry.remove_library()
+        source_sha256 = file_digest(entry.source)[1]
         tmp = entry.dir / f"{entry.name}.so.{os.getpid()}.tmp"
         cmd = [*compiler(), *flags, *LINK_FLAGS, "-o", str(tmp), str(entry.source)]
         with build_slot(entry.root, jobs) as slot:
@@ -348,8 +349,8 @@ def build(entry: Entry, jobs: int | None = None, flags: tuple[str, ...] = CFLAGS
                 f"building kernel {entry.name} failed: {cmd[0]} exited with {res.returncode}:"
                 f" {tail}"
             )
-        entry.publish(tmp, compiler=shlex.join(cmd[: len(compiler())]),
-                      seconds=round(seconds, 2))  # fmt: skip
+        entry.publish(tmp, compiler=shlex.join(cmd[: len(compiler())]), seconds=round(seconds, 2),
+                      source_sha256=source_sha256)  # fmt: skip
     return entry.library
 
 
