@@ -16,7 +16,7 @@ import torch
 from robots import load_model, random_state
 
 import torchcontact as tc
-from torchcontact.constrained import FrictionCones, cone_constrained_lstsq
+from torchcontact.constrained import FrictionCones, PreviousFrame, cone_constrained_lstsq
 from torchcontact.errors import InputError
 
 REF_RTOL = 1e-6  # constrained solution vs clarabel, relative to max(1, |x|)
@@ -323,3 +323,59 @@ def test_bad_input_is_rejected_with_a_clear_error():
     r = est.estimate(q, q, q, ft, tc.Contacts(["hand_skin"], ["force"], pos, normals=bad,
                                               friction=0.5), constraints=cons, backend="eager")  # fmt: skip
     assert r.status.tolist() == [0, 4] and torch.isnan(r.force[1]).all()
+
+
+@pytest.mark.parametrize(
+    "case", ["empty", "all inactive", "all not pushing", "all known", "all NaN normals",
+             "one valid"]
+)  # fmt: skip
+def test_slot_list_edge_cases_take_the_unconstrained_path(case):
+    """Slots without a cone to keep run like the pseudo-inverse (issue 19, item 5).
+
+    An empty slot list once built ``torch.tensor([])`` as float, then ``bool & float`` failed.
+    Frames whose slots have no valid pushing contact take the unconstrained path: the same
+    forces, torques and status as without ``constraints``, converged with 0 iterations.
+    """
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    est = tc.ContactEstimator(model, backend="eager")
+    n, f64 = 5, torch.float64
+    g = torch.Generator().manual_seed(5)
+    q, qd, qdd = random_state(model, n, seed=5)
+    ft = {"base_ft": 5 * torch.randn(n, 6, generator=g, dtype=f64)}
+    links, kinds = ("forearm_skin", "hand_skin"), ("force", "force")
+    pos = 0.05 * torch.randn(n, 2, 3, generator=g, dtype=f64)
+    normals = torch.randn(n, 2, 3, generator=g, dtype=f64)
+    kw: dict = {"normals": normals, "friction": 0.5}
+    if case == "empty":
+        links, kinds, pos, kw = (), (), pos[:, :0], {}
+    elif case == "all inactive":
+        kw["active"] = torch.zeros(n, 2, dtype=torch.bool)
+    elif case == "all not pushing":
+        kw["pushing"] = torch.tensor([False, False])
+    elif case == "all known":
+        kinds = ("known", "known")
+        kw["wrenches"] = torch.randn(n, 2, 6, generator=g, dtype=f64)
+    elif case == "all NaN normals":
+        kw["normals"] = torch.full_like(normals, float("nan"))
+    else:  # one valid pushing slot beside an inactive one
+        kw["active"] = torch.tensor([[True, False]]).expand(n, 2)
+    c = tc.Contacts(links, kinds, pos, **kw)
+    free = est.estimate(q, qd, qdd, ft, c)
+    for warm in (None, PreviousFrame(None, 2)):
+        cone = est.estimate(q, qd, qdd, ft, c, constraints=FrictionCones(), warm_start=warm)
+        assert cone.force.shape == (n, len(links), 3)
+        if case == "all NaN normals":  # a data error of every frame: status 4, NaN outputs
+            assert (cone.status == 4).all() and torch.isnan(cone.force).all()
+            continue
+        assert torch.equal(cone.status, free.status)
+        assert (cone.status == 0).all() and cone.cones.converged["base_ft"].all()
+        if case == "one valid":  # the active slot's force is in its cone, the other one is 0
+            f, nrm = cone.force[:, 0], normals[:, 0] / normals[:, 0].norm(dim=-1, keepdim=True)
+            push = -(f * nrm).sum(-1)
+            tangent = (f + push[:, None] * nrm).norm(dim=-1)
+            assert (push >= -1e-9).all() and (tangent <= 0.5 * push + 1e-6).all()
+            assert (cone.force[:, 1] == 0).all() and not cone.cones.active[:, 1].any()
+            continue
+        assert (cone.cones.iterations["base_ft"] == 0).all() and not cone.cones.active.any()
+        torch.testing.assert_close(cone.force, free.force, atol=1e-9, rtol=0)
+        torch.testing.assert_close(cone.joint_torques, free.joint_torques, atol=1e-9, rtol=0)

@@ -130,9 +130,74 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     logs_cli.add_parser(sub)
     drivers_cli.add_parser(sub)
+    add_cache_parser(sub)
     for name, (_, _, help_text) in APPS.items():
         sub.add_parser(name, help=help_text, add_help=False)  # parsed by the application
     return parser
+
+
+def add_cache_parser(sub: Any) -> None:
+    """``torchcontact cache info|clear``: the kernel cache (:mod:`torchcontact.kernels._store`).
+
+    Registered here without importing the kernels (they import torch); the command imports them
+    when it runs.
+    """
+    p = sub.add_parser(
+        "cache",
+        help="show (info) or empty (clear) the kernel cache",
+        description="The generated-kernel cache: its location, entries (state, sizes) and compile"
+        " bound (info), or remove its entries (clear; entries being built are kept).",
+    )
+    p.add_argument("action", choices=("info", "clear"), help="info: show it; clear: empty it")
+    p.add_argument("--json", action="store_true", help="print info or the summary as JSON")
+    p.set_defaults(func=_cache_command)
+
+
+def _kernel_store() -> Any:
+    """:mod:`torchcontact.kernels._store`, loaded by path without the kernels package.
+
+    The store imports the standard library only (it also runs by path as the detached kernel
+    builder); the package imports torch, which ``cache info`` does not need.
+    """
+    import importlib.util
+    from pathlib import Path
+
+    name = "torchcontact.kernels._store"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(
+        "_torchcontact_kernel_store", Path(__file__).parent / "kernels" / "_store.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _cache_command(args: argparse.Namespace) -> int:
+    import json
+
+    _store = _kernel_store()
+    root = _store.cache_dir() / "kernels"
+    if args.action == "info":
+        data = _store.info(root)
+        print(json.dumps(data, indent=1) if args.json else _store.format_info(data))
+        return 0
+    res = _store.clear(root)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        busy = f"; kept {len(res['busy'])} being built" if res["busy"] else ""
+        print(f"removed {res['removed']} kernels ({res['bytes'] / 1e6:.1f} MB) from {root}{busy}")
+    return 0
+
+
+def _background_note() -> None:
+    """One ``note:`` line when kernel builds this command started go on after it."""
+    kernels = sys.modules.get("torchcontact.kernels")  # never imported here for this
+    note = kernels.background_note() if kernels is not None else None
+    if note:
+        print(note, file=sys.stderr)
 
 
 def app_module(name: str) -> Any:
@@ -158,7 +223,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if first in APPS:
         rest = list(argv)
         rest.remove(first)
-        return guarded(lambda: app_module(first).main(rest, prog=f"torchcontact {first}"), debug)
+        rc = guarded(lambda: app_module(first).main(rest, prog=f"torchcontact {first}"), debug)
+        _background_note()
+        return rc
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.version:
@@ -169,7 +236,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    return guarded(lambda: args.func(args), debug)
+    rc = guarded(lambda: args.func(args), debug)
+    _background_note()
+    return rc
 
 
 if __name__ == "__main__":

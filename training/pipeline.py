@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 import torchcontact as tc
+from torchcontact.errors import LogError
 from torchcontact.residual import FeatureSpec, ResidualCorrection, sensor_joints
 from torchcontact.simulation import UnmodeledEffects, simulate
 
@@ -276,12 +277,72 @@ def block_frames(ds: ResidualDataset, seconds: float) -> int:
     return max(1, int(round(seconds * rate)))
 
 
+#: Fewest usable contact-free frames a fit accepts: a floor, not a sufficiency. Below it no
+#: layer is determined well enough for the report to mean anything (each fold fits on about
+#: half of them; the learned layer has thousands of parameters, the offset alone 6).
+MIN_FIT_FRAMES = 100
+
+
+def _data_of(ds: ResidualDataset) -> str:
+    """The data's logs, for messages (``the data`` when simulated)."""
+    names = [Path(s["path"]).name for s in ds.sources or () if s.get("path")]
+    if not names:
+        return "the data"
+    return ", ".join(names) if len(names) <= 3 else f"{len(names)} logs"
+
+
+def check_data(ds: ResidualDataset, cfg: Config) -> None:
+    """Enough data for a fit (and its cross-validated report), before any work is done.
+
+    A fit needs :data:`MIN_FIT_FRAMES` usable contact-free frames (finite joint state, reading
+    and extra columns, no contact: the only fitting targets), and whole time blocks of
+    ``block_seconds``: 3 for the final fit (training, validation and the rule that deals one
+    block to each split), ``folds + 2`` for a ``folds``-fold report.
+
+    Raises:
+        LogError: naming the minimum and what the data has.
+    """
+    n, targets = len(ds), int(ds.targets.sum())
+    free, usable = int(ds.contact_free.sum()), int(ds.usable.sum())
+    data = _data_of(ds)
+    if targets < MIN_FIT_FRAMES:
+        raise LogError(
+            f"train fit needs at least {MIN_FIT_FRAMES} usable contact-free frames (finite joint"
+            f" state, reading and extra columns, and no contact): {data} has {targets} of {n}"
+            f" frames ({free} contact-free, {usable} usable)"
+        )
+    folds = cfg.data.folds
+    bf = block_frames(ds, cfg.data.block_seconds)
+    blocks = len(time_blocks(ds.file_id, bf))
+    need = folds + 2 if folds >= 2 else 3
+    if blocks < need:
+        why = (f"{folds}-fold cross-validation needs folds + 2" if folds >= 2
+               else "a fit needs training and validation blocks")  # fmt: skip
+        hint = "fewer --folds (0: no report), " if folds >= 2 else ""
+        raise LogError(
+            f"train fit needs at least {need} blocks of {cfg.data.block_seconds:g} s ({bf} frames"
+            f" each, so at least {(need - 1) * bf + 1} frames; {why}): {data} has {n} frames"
+            f" ({blocks} block{'s' if blocks != 1 else ''}), {targets} of them usable and"
+            f" contact-free; give more data, {hint}or shorter blocks (data.block_seconds in the"
+            " config)"
+        )
+
+
 def prepare(model: tc.RobotModel, ds: ResidualDataset, cfg: Config) -> Prepared:
-    """Residual of the nominal model, learned-layer features and the regressor's block factors."""
+    """Residual of the nominal model, learned-layer features and the regressor's block factors.
+
+    Raises:
+        ValueError: the dataset's joints are not the model's.
+        LogError: fewer than :data:`MIN_FIT_FRAMES` usable contact-free frames.
+    """
     if tuple(ds.joint_names) != tuple(model.joint_names):
         raise ValueError(f"dataset joints {ds.joint_names} != model joints {model.joint_names}")
-    if not ds.targets.any():
-        raise ValueError("no usable contact-free frame to fit a correction on")
+    targets = int(ds.targets.sum())
+    if targets < MIN_FIT_FRAMES:
+        raise LogError(
+            f"a fit needs at least {MIN_FIT_FRAMES} usable contact-free frames; {_data_of(ds)}"
+            f" has {targets} of {len(ds)}"
+        )
     blocks = time_blocks(ds.file_id, block_frames(ds, cfg.data.block_seconds))
     nominal = predict_free(model, ds.sensor, ds.q, ds.qd, ds.qdd, ds.usable)
     residual = ds.ft - nominal
@@ -392,7 +453,11 @@ def fit_split(
     names = cfg.stack.candidates(cfg.train.kind)
     tr, va = _frames(prep, split.blocks["train"]), _frames(prep, split.blocks["val"])
     if not len(tr):
-        raise ValueError("no usable contact-free frame in the training blocks")
+        raise LogError(
+            f"{label.strip() or 'the fit'}: its training blocks hold no usable contact-free frame"
+            f" ({int(prep.ds.targets.sum())} in the whole data, all in other blocks): give more"
+            " data, fewer folds or shorter blocks"
+        )
     everywhere = _merge(prep.blocks)
     held = split.blocks["val"] + split.blocks["test"]
     corr: dict[str, ResidualCorrection] = {}
@@ -593,8 +658,12 @@ def train(
 
     Returns:
         :class:`Trained`.
+
+    Raises:
+        LogError: too little usable data (:func:`check_data`).
     """
     t0 = time.perf_counter()
+    check_data(ds, cfg)
     prep = prepare(model, ds, cfg)
     report = (
         cross_validate(prep, cfg, device, label, contacts=contacts) if cfg.data.folds >= 2 else None

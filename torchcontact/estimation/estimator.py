@@ -510,8 +510,9 @@ def _cone_inputs(
 
     pushing = per_slot("pushing", contacts.pushing, 1.0)
     pushing = pushing * torch.tensor([k != "known" for k in kinds], dtype=dtype, device=device)
-    need = (pushing > 0.5) & torch.tensor([k in ("force", "wrench") for k in kinds],
-                                          device=device)  # fmt: skip
+    # dtype given: with no slot (K = 0) ``torch.tensor([])`` would be float, and bool & float fails
+    coned = torch.tensor([k in ("force", "wrench") for k in kinds], dtype=torch.bool, device=device)
+    need = (pushing > 0.5) & coned
     live = need & (active > 0.5)
     if contacts.normals is None:
         if bool(need.any()):

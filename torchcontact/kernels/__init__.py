@@ -7,28 +7,35 @@ three backends:
 * ``"eager"``: the function runs on torch tensors, one ``(N,)`` tensor per scalar. Always
   available, differentiable, any device and dtype; the reference the others are tested against.
 * ``"cpu"``: the function runs once on symbols (:class:`torchcontact._scalar.Trace`); the SSA
-  graph becomes straight-line C++ on vectors of frames (:mod:`torchcontact.kernels._cpp`), built
-  with torch's extension builder (``torch.utils.cpp_extension.load``) and called through ctypes,
-  the frames split over ``torch.get_num_threads()`` threads.
+  graph becomes straight-line C++ on vectors of frames (:mod:`torchcontact.kernels._cpp`),
+  compiled into a shared library (``$CXX`` or ``c++``) and called through ctypes, the frames
+  split over ``torch.get_num_threads()`` threads.
 * ``"cuda"``: the same graph as a CUDA kernel, one thread per frame
   (:mod:`torchcontact.kernels._cuda`).
 
-Builds are cached on disk by the hash of the generated source, the compiler and the CPU, under
-``$TORCHCONTACT_CACHE`` (default ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``), so
-a later process loads a kernel in milliseconds. ``backend="auto"`` uses a compiled kernel when one
-is loaded or cached, and otherwise runs eagerly while the kernel builds in a background thread
-(large batches only); a build failure or a missing compiler warns once and stays eager.
+Builds are cached on disk (:mod:`torchcontact.kernels._store`) under ``$TORCHCONTACT_CACHE``
+(default ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``), one entry per generated
+source (named by the hash of the source, the torch version and the CPU), so a later process loads
+a kernel in milliseconds. An index maps each program's key (with a digest of torchcontact's code)
+to its entry, so a cached kernel is found without tracing the program again. Each entry records
+its library's size and sha256; a library is checked before it is loaded, and a damaged one warns,
+is removed and rebuilt (never a crash). Libraries are published atomically, one builder per entry
+(a build lock) and at most ``$TORCHCONTACT_BUILD_JOBS`` compilers at once across processes.
+
+``backend="auto"`` uses a compiled kernel when one is loaded or cached, and otherwise runs eagerly
+while the kernel builds in a detached process (large batches only), which goes on after the
+caller exits (:func:`background_note` says so); a build failure or a missing compiler warns once
+and stays eager.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import hashlib
-import os
 import platform
 import subprocess
-import sys
 import threading
 import warnings
 from collections.abc import Callable, Mapping
@@ -41,11 +48,15 @@ from torch import Tensor
 
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
+from torchcontact.kernels import _store
+from torchcontact.kernels._store import build_dir_lock, cache_dir
 
 __all__ = [
     "BACKENDS",
     "CFLAGS",
     "Program",
+    "background_builds",
+    "background_note",
     "build_dir_lock",
     "build_source",
     "cache_dir",
@@ -60,7 +71,7 @@ BACKENDS = ("auto", "eager", "cpu", "cuda")
 #: Batches at least this large start a background build under ``backend="auto"``.
 AUTO_BUILD_MIN_FRAMES = 2048
 
-_VERSION = "1"  # bump when the generated code's calling convention changes
+_VERSION = "2"  # bump when the generated code's calling convention or the cache changes
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,15 +110,7 @@ class Program:
             raise ValueError(f"program {self.name}: outputs {got}, declared {self.outputs}")
 
 
-def cache_dir() -> Path:
-    """Root of the on-disk kernel cache."""
-    env = os.environ.get("TORCHCONTACT_CACHE")
-    if env:
-        return Path(env)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchcontact"
-
-
+@functools.cache
 def _machine_tag() -> str:
     """CPU model and flags: a ``-march=native`` build only runs where it was built."""
     flags = ""
@@ -123,6 +126,7 @@ def _machine_tag() -> str:
     return hashlib.sha256(f"{platform.machine()}|{flags}".encode()).hexdigest()[:12]
 
 
+@functools.cache
 def _vector_bytes() -> int:
     """Bytes of one SIMD register: 64 with AVX-512, else 32 (AVX2; other ISAs split it)."""
     try:
@@ -163,12 +167,22 @@ _DTYPES = {torch.float64: "double", torch.float32: "float"}
 _lock = threading.Lock()
 _loaded: dict[str, Callable] = {}
 _failed: dict[str, str] = {}
-_building: dict[str, threading.Thread] = {}
+_building: dict[str, threading.Thread | _Build] = {}
 _warned: set[str] = set()
+_healed: set[str] = set()
 _pool: ThreadPoolExecutor | None = None
+_code: list[str] = []
+
+#: Compiler flags of the CPU kernels (IEEE semantics kept: no -ffast-math).
+CFLAGS = _store.CFLAGS
+
+
+class _Unloadable(Exception):
+    """A checked library that does not load (a damaged entry)."""
 
 
 def _source(program: Program, dtype: torch.dtype) -> tuple[str, str]:
+    """The C++ source of ``program`` and its hash (traces the program)."""
     from torchcontact.kernels import _cpp
 
     tr, out = program.trace()
@@ -179,86 +193,132 @@ def _source(program: Program, dtype: torch.dtype) -> tuple[str, str]:
     return src, h
 
 
-#: Compiler flags of the CPU kernels (IEEE semantics kept: no -ffast-math).
-CFLAGS = (
-    "-O2",
-    "-march=native",
-    "-fno-math-errno",
-    "-fno-trapping-math",
-    "-ffp-contract=fast",
-    "-fno-semantic-interposition",
-)
-
-
 def _paths(program: Program, h: str) -> tuple[str, Path, Path]:
     """Name, source file and shared library of a CPU kernel in the cache."""
     name = f"tck_{program.name}_{h}"
-    d = cache_dir() / "kernels" / name
-    return name, d / f"{name}.cpp", d / f"{name}.so"
+    e = _store.Entry(cache_dir() / "kernels", name)
+    return name, e.source, e.library
 
 
 def _write_source(cpp: Path, src: str) -> None:
     cpp.parent.mkdir(parents=True, exist_ok=True)
-    if not cpp.exists() or cpp.read_text() != src:
-        tmp = cpp.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(src)
-        tmp.replace(cpp)
+    with contextlib.suppress(OSError):
+        if cpp.read_text() == src:
+            return
+    _store.write_atomic(cpp, src)
+
+
+def _code_digest() -> str:
+    """sha256 of torchcontact's Python sources (once per process, ~20 ms).
+
+    A program's key names its constants (model, layout, flags); the code that turns them into
+    a program is named by this digest, so an index record never outlives the code it was made
+    with.
+    """
+    if not _code:
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+        _code.append(h.hexdigest())
+    return _code[0]
+
+
+def _key_hash(program: Program, dtype: torch.dtype) -> str:
+    """Hash of what determines a CPU kernel's source without tracing: code, key, machine."""
+    ident = (f"{_VERSION}|{_code_digest()}|{torch.__version__}|{_machine_tag()}|"
+             f"{_vector_bytes()}|{program.name}|{program.key}|{dtype}")  # fmt: skip
+    return hashlib.sha256(ident.encode()).hexdigest()[:32]
+
+
+def _cpu_entry(program: Program, dtype: torch.dtype) -> tuple[_store.Entry, tuple[str, str]]:
+    """The cache entry of a CPU kernel and its state (:meth:`_store.Entry.check`).
+
+    The index maps the program's key hash (:func:`_key_hash`) to the entry: a kernel in the
+    cache is found without tracing the program (when the source it was built from has the
+    sha256 the index records), and one not yet built is built from the source the entry keeps
+    (when that source has it). Otherwise the program is traced, its source written to the entry
+    and the index updated.
+    """
+    root = cache_dir() / "kernels"
+    kh = _key_hash(program, dtype)
+    rec = _store.read_index(root, kh)
+    if rec is not None:
+        entry = _store.Entry(root, rec["entry"])
+        state = entry.check()
+        built_from = (entry.record() or {}).get("source_sha256")
+        if state[0] == "ok" and built_from == rec.get("source_sha256"):
+            return entry, state
+        with contextlib.suppress(OSError):
+            if _store.file_digest(entry.source)[1] == rec.get("source_sha256"):
+                return entry, state
+    src, h = _source(program, dtype)
+    program._traced.clear()  # the source is all the cache needs: free the trace's memory
+    name, cpp, _ = _paths(program, h)
+    _write_source(cpp, src)
+    record = {"entry": name, "source_sha256": hashlib.sha256(src.encode()).hexdigest(),
+              "program": program.name, "dtype": str(dtype), "key": program.key}  # fmt: skip
+    _store.write_index(root, kh, record)
+    entry = _store.Entry(root, name)
+    return entry, entry.check()
+
+
+def _load(entry: _store.Entry, program: Program, dtype: torch.dtype) -> Callable:
+    """Load a checked entry's library and wrap its kernel.
+
+    Raises:
+        _Unloadable: the dynamic loader refuses it, or it lacks the kernel's symbol.
+    """
+    try:
+        fn = ctypes.CDLL(str(entry.library)).tc_kernel
+    except (OSError, AttributeError) as e:
+        raise _Unloadable(f"{entry.library.name} does not load ({e})") from None
+    return _wrap(fn, program, dtype)
+
+
+def _load_built(entry: _store.Entry, program: Program, dtype: torch.dtype) -> Callable:
+    """Load an entry just built (here or by a detached builder).
+
+    Raises:
+        KernelBuildError: the build failed (the message ends with its log), or its library does
+            not check or load.
+    """
+    state, why = entry.check()
+    if state != "ok":
+        try:
+            log = entry.log.read_text().strip()[-2000:]
+        except OSError:
+            log = "no log"
+        raise KernelBuildError(f"building kernel {entry.name} failed ({why}): {log}")
+    try:
+        return _load(entry, program, dtype)
+    except _Unloadable as e:
+        raise KernelBuildError(f"kernel {entry.name} failed to load after its build: {e}") from None
+
+
+def _build_now(entry: _store.Entry, program: Program, dtype: torch.dtype) -> Callable:
+    try:
+        _store.build(entry)
+    except OSError as e:  # the cache cannot be written (full disk, read-only)
+        where = f"{e.filename}: " if e.filename else ""
+        raise KernelBuildError(f"building kernel {entry.name} failed: {where}{e}") from None
+    return _load_built(entry, program, dtype)
 
 
 def build_source(name: str, cpp: Path) -> Path:
-    """Compile one kernel source with torch's extension builder; returns the library's path.
+    """Compile one kernel source of the cache (or find it built); returns the library's path.
 
-    Also the entry point of the detached build process (``python -m torchcontact.kernels``).
+    The library is published atomically with its record (:func:`_store.build`): the build
+    lock of the entry, a compile slot, a temporary name, a rename.
+
+    Args:
+        name: the entry's name (``tck_<program>_<hash>``).
+        cpp: its source, ``<cache>/kernels/<name>/<name>.cpp``.
 
     Raises:
         KernelBuildError: the compiler is missing or fails.
     """
-    from torch.utils import cpp_extension
-
-    so = cpp.with_suffix(".so")
-    with build_dir_lock(cpp.parent):
-        if so.exists():  # another process built it while this one waited
-            return so
-        try:
-            cpp_extension.load(
-                name, [str(cpp)], extra_cflags=list(CFLAGS), build_directory=str(cpp.parent),
-                is_python_module=False, verbose=False,
-            )  # fmt: skip
-        except Exception as e:  # compiler missing, internal compiler error, ...
-            raise KernelBuildError(f"building kernel {name} failed: {e}") from e
-    return so
-
-
-@contextlib.contextmanager
-def build_dir_lock(directory: Path):
-    """Hold the build directory of one kernel for this process, clearing a dead build's baton.
-
-    torch's extension builder guards a build directory with a ``lock`` file that it deletes when
-    the build ends; a build killed part-way (a test run or CLI interrupted) leaves it behind and
-    every later build of that kernel waits on it forever. Builders here first take an OS file
-    lock (``fcntl.flock``, released by the kernel when its process dies) on ``build.flock``, so
-    once it is held any ``lock`` file left in the directory belongs to a dead build and is removed.
-    """
-    import fcntl
-
-    directory.mkdir(parents=True, exist_ok=True)
-    with open(directory / "build.flock", "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            (directory / "lock").unlink(missing_ok=True)
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
-
-
-def _build(program: Program, dtype: torch.dtype, src: str, h: str) -> Callable:
-    """Compile (or load from the cache) and wrap the kernel of ``program``."""
-    name, cpp, so = _paths(program, h)
-    if not so.exists():
-        _write_source(cpp, src)
-        build_source(name, cpp)
-    lib = ctypes.CDLL(str(so))
-    return _wrap(lib.tc_kernel, program, dtype)
+    return _store.build(_store.Entry(Path(cpp).parent.parent, name, Path(cpp).suffix))
 
 
 def _wrap(fn, program: Program, dtype: torch.dtype) -> Callable:
@@ -314,10 +374,35 @@ def _invoke(fn, s: int, e: int, ins: list[Tensor], outs: list[Tensor]) -> None:
     fn(e - s, in_p, in_s, out_p, out_s)
 
 
+def _heal(ckey: str, entry: _store.Entry, why: str, wait: bool) -> bool:
+    """A damaged entry: warn, remove its library (unless a build holds it); once per kernel.
+
+    Returns:
+        False when this kernel was healed before in this process (its rebuild is damaged too).
+    """
+    if ckey in _healed:
+        return False
+    _healed.add(ckey)
+    warnings.warn(
+        f"kernel cache entry {entry.dir} is damaged ({why}): removed and rebuilt"
+        + ("" if wait else "; running eagerly meanwhile"),
+        RuntimeWarning,
+        stacklevel=4,
+    )
+    with _store.build_dir_lock(entry.dir, blocking=False) as held:
+        if held is not None:  # else a builder holds it: it replaces the library
+            entry.remove_library()
+    return True
+
+
 def compiled(
     program: Program, dtype: torch.dtype, device: torch.device | str = "cpu", wait: bool = True
 ) -> Callable | None:
     """The compiled kernel of ``program`` for ``dtype`` on ``device``.
+
+    A kernel in the disk cache is checked (size and sha256 against its entry's record) before
+    it is loaded; a damaged entry (missing, short, altered or unloadable library) warns once,
+    is removed and rebuilt, and the caller runs eagerly meanwhile (``wait=False``).
 
     Args:
         program: the program.
@@ -325,7 +410,8 @@ def compiled(
         device: ``cpu`` (generated C++) or ``cuda`` (generated CUDA).
         wait: build now and return the kernel (raises :class:`KernelBuildError` on failure); with
             False, return the kernel if it is loaded or in the disk cache, else start a background
-            build and return None.
+            build (a detached process for CPU kernels, bounded by the cache's compile slots) and
+            return None.
 
     Returns:
         ``call(tensors: dict[str, (N, k) Tensor]) -> dict[str, (N, k) Tensor]`` or None.
@@ -343,51 +429,59 @@ def compiled(
             if wait:
                 raise KernelBuildError(_failed[ckey])
             return None
-        thread = _building.get(ckey)
-    if thread is not None:
-        if isinstance(thread, _Build) and (wait or thread.done()):
-            thread.join()
+        pending = _building.get(ckey)
+    if pending is not None:
+        if isinstance(pending, _Build):
+            if not (wait or pending.done()):
+                return None
+            pending.join()
             with _lock:
                 _building.pop(ckey, None)
-            if not thread.so.exists():
-                log = thread.so.with_suffix(".log")
-                why = log.read_text()[-2000:] if log.exists() else "no log"
-                return _finish(ckey, _failing(f"building kernel {thread.so.stem} failed: {why}"),
-                               raise_=wait)  # fmt: skip
-            return _finish(ckey, thread.load, raise_=wait)
+            return _finish(ckey, pending.result, raise_=wait)
         if not wait:
             return None
-        thread.join()
+        pending.join()
         return compiled(program, dtype, device, wait)
     if device.type == "cuda":
-        from torchcontact.kernels import _cuda
+        return _compiled_cuda(program, dtype, ckey, wait)
+    try:
+        return _compiled_cpu(program, dtype, ckey, wait)
+    except OSError as e:  # an unwritable or full cache: eager, never a crash
+        where = f"{e.filename}: " if e.filename else ""
+        msg = f"kernel cache {cache_dir() / 'kernels'}: {where}{e.strerror or e}"
+        return _finish(ckey, _failing(msg), raise_=wait)
 
-        if not torch.cuda.is_available():
-            return _finish(ckey, _no_cuda, raise_=wait)
 
-        def build() -> Callable:
-            return _cuda.build(program, dtype, cache_dir())
+def _compiled_cpu(program: Program, dtype: torch.dtype, ckey: str, wait: bool) -> Callable | None:
+    """The CPU kernel from the cache: checked, healed, built now or by a detached process."""
+    entry, (state, why) = _cpu_entry(program, dtype)
+    if state == "ok":
+        try:
+            return _finish(ckey, lambda: _load(entry, program, dtype), raise_=wait)
+        except _Unloadable as e:
+            state, why = "damaged", str(e)
+    if state == "damaged" and not _heal(ckey, entry, why, wait):
+        why = f"kernel cache entry {entry.dir} is damaged again after its rebuild ({why})"
+        return _finish(ckey, _failing(why), raise_=wait)
+    if wait:
+        return _finish(ckey, lambda: _build_now(entry, program, dtype), raise_=True)
+    with _lock:  # one builder per kernel, also when several threads ask at once
+        if ckey not in _building and ckey not in _loaded:
+            proc = _store.spawn_build(entry)
+            _building[ckey] = _Build(proc, entry, lambda: _load_built(entry, program, dtype))
+    return None
 
-    else:
-        src, h = _source(program, dtype)
-        name, cpp, so = _paths(program, h)
 
-        def build() -> Callable:
-            return _build(program, dtype, src, h)
+def _compiled_cuda(program: Program, dtype: torch.dtype, ckey: str, wait: bool) -> Callable | None:
+    """The CUDA kernel: built in a thread of this process (nvcc needs the CUDA toolkit here)."""
+    from torchcontact.kernels import _cuda
 
-        if not (wait or so.exists()):
-            # a detached process: the build goes on (and fills the cache) if this one exits
-            _write_source(cpp, src)
-            log = open(cpp.with_suffix(".log"), "w")  # noqa: SIM115 - the child writes it
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "torchcontact.kernels", name, str(cpp)],
-                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-            )  # fmt: skip
-            log.close()
-            with _lock:
-                _building[ckey] = _Build(proc, so, build)
-            return None
-        return _finish(ckey, build, raise_=wait)
+    if not torch.cuda.is_available():
+        return _finish(ckey, _no_cuda, raise_=wait)
+
+    def build() -> Callable:
+        return _cuda.build(program, dtype, cache_dir())
+
     if wait:
         return _finish(ckey, build, raise_=True)
     t = threading.Thread(
@@ -402,11 +496,11 @@ def compiled(
 
 @dataclass
 class _Build:
-    """A kernel being compiled by a detached process."""
+    """A kernel being compiled by a detached process (:func:`_store.spawn_build`)."""
 
     proc: subprocess.Popen
-    so: Path
-    load: Callable[[], Callable]
+    entry: _store.Entry
+    result: Callable[[], Callable]  # loads the kernel once the process has ended
 
     def join(self, timeout: float | None = None) -> None:
         """Wait for the process."""
@@ -418,11 +512,38 @@ class _Build:
 
 
 def wait_for_builds(timeout: float | None = None) -> None:
-    """Wait until the kernels building in the background are built (or failed)."""
+    """Wait until the kernels building in the background are built (or failed).
+
+    Args:
+        timeout: seconds to wait for each build (None: until it ends).
+    """
     with _lock:
         pending = list(_building.values())
     for b in pending:
         b.join(timeout)
+
+
+def background_builds() -> list[str]:
+    """Names of the kernels this process started building that are still being built.
+
+    Their builds are detached processes: they go on, and fill the cache, after this process
+    exits.
+    """
+    with _lock:
+        return [b.entry.name for b in _building.values() if isinstance(b, _Build) and not b.done()]
+
+
+def background_note() -> str | None:
+    """One line saying which kernel builds go on after this process (for a CLI's stderr)."""
+    names = background_builds()
+    if not names:
+        return None
+    n = len(names)
+    return (
+        f"note: {n} kernel build{'s go' if n > 1 else ' goes'} on in the background"
+        f" ({', '.join(names)}) and fill{'' if n > 1 else 's'} the cache"
+        f" {cache_dir() / 'kernels'} for later runs"
+    )
 
 
 def _failing(msg: str) -> Callable[[], Callable]:

@@ -1,8 +1,8 @@
-"""The detached kernel build: ``python -m torchcontact.kernels NAME SOURCE.cpp``.
+"""Build one kernel source of the cache: ``python -m torchcontact.kernels NAME SOURCE.cpp``.
 
-Started by :func:`torchcontact.kernels.compiled` for a background build, in its own process
-session, so the build finishes and fills the disk cache even when the process that asked for it
-exits first (a short CLI run), and the compiler never holds the caller's GIL.
+:func:`torchcontact.kernels.build_source` from the command line (locked, bounded, published
+atomically). Background builds run ``torchcontact/kernels/_store.py`` by path instead, which
+imports no torch.
 """
 
 import sys

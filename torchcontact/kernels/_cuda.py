@@ -4,17 +4,21 @@ The SSA graph of :class:`torchcontact._scalar.Trace` becomes straight-line scala
 ``__global__`` kernel; a thread reads its frame's rows of the ``(N, k)`` inputs, computes every
 output and writes its rows (the same calling convention as :mod:`torchcontact.kernels._cpp`).
 ``sin``/``cos`` use CUDA's ``sincos`` (1 ulp in double), masks are ``bool`` and selects ternaries;
-no fast-math flags. The host entry ``tc_launch`` takes device pointers and a stream, so the
-kernel runs on torch's current stream. It is built with ``torch.utils.cpp_extension.load`` (nvcc)
-and cached on disk like the CPU kernels. A :func:`torchcontact._scalar.loop` is a ``for`` loop
-around the code of one iteration (loop invariants computed before it) that a thread leaves once
-its frame's ``stop`` mask holds.
+no fast-math flags. The host entry ``tc_launch`` takes device pointers and a stream, so the kernel
+runs on torch's current stream. It is built with ``torch.utils.cpp_extension.load`` (nvcc) and
+cached on disk like the CPU kernels (checked before loading, published atomically). A
+:func:`torchcontact._scalar.loop` is a ``for`` loop around the code of one iteration (loop
+invariants computed before it) that a thread leaves once its frame's ``stop`` mask holds.
 """
 
 from __future__ import annotations
 
 import ctypes
 import hashlib
+import os
+import shutil
+import time
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -23,7 +27,8 @@ from torch import Tensor
 
 from torchcontact._scalar import Sym, Trace
 from torchcontact.errors import KernelBuildError
-from torchcontact.kernels import build_dir_lock
+from torchcontact.kernels import _store
+from torchcontact.kernels._store import build_dir_lock
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
@@ -150,23 +155,41 @@ def source(program, dtype: torch.dtype) -> str:
 def build(program, dtype: torch.dtype, cache: Path) -> Callable:
     """Build (or load from ``cache``) the CUDA kernel of ``program``; returns its caller.
 
+    The entry is checked and published like a CPU kernel's (:mod:`torchcontact.kernels._store`):
+    under its build lock, a library whose size or sha256 differs from its record, or that does
+    not load, warns and is rebuilt; nvcc builds in a private folder under a compile slot, and
+    the library is renamed into place before its record is written.
+
     Raises:
-        KernelBuildError: nvcc is missing or fails.
+        KernelBuildError: nvcc is missing or fails, or the rebuilt library does not load.
     """
     src = source(program, dtype)
     cap = torch.cuda.get_device_capability()
     h = hashlib.sha256(f"{torch.__version__}|{cap}|{src}".encode()).hexdigest()[:20]
-    name = f"tckc_{program.name}_{h}"
-    d = cache / "kernels" / name
-    so = d / f"{name}.so"
-    with build_dir_lock(d):
-        if not so.exists():
-            _compile(name, d, src)
-    fn = ctypes.CDLL(str(so)).tc_launch
-    fn.restype = ctypes.c_int
-    fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                   ctypes.c_void_p, ctypes.c_void_p]  # fmt: skip
+    entry = _store.Entry(cache / "kernels", f"tckc_{program.name}_{h}", ".cu")
+    with build_dir_lock(entry.dir):
+        state, why = entry.check()
+        fn = None
+        if state == "ok":
+            try:
+                fn = _open(entry)
+            except (OSError, AttributeError) as e:
+                state, why = "damaged", f"{entry.library.name} does not load ({e})"
+        if fn is None:
+            if state == "damaged":
+                warnings.warn(
+                    f"kernel cache entry {entry.dir} is damaged ({why}): removed and rebuilt",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            entry.remove_library()
+            _compile(entry, src)
+            try:
+                fn = _open(entry)
+            except (OSError, AttributeError) as e:
+                raise KernelBuildError(f"CUDA kernel {entry.name} does not load: {e}") from None
     names_in, names_out = list(program.inputs), list(program.outputs)
+    name = entry.name
 
     def call(tensors: Mapping[str, Tensor]) -> dict[str, Tensor]:
         first = tensors[names_in[0]]
@@ -190,21 +213,44 @@ def build(program, dtype: torch.dtype, cache: Path) -> Callable:
     return call
 
 
-def _compile(name: str, d: Path, src: str) -> None:
-    """nvcc-compile the source of one CUDA kernel into ``d`` (its build directory, held)."""
+def _open(entry: _store.Entry):
+    """The ``tc_launch`` function of a checked entry's library (OSError, AttributeError)."""
+    fn = ctypes.CDLL(str(entry.library)).tc_launch
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                   ctypes.c_void_p, ctypes.c_void_p]  # fmt: skip
+    return fn
+
+
+def _compile(entry: _store.Entry, src: str) -> None:
+    """nvcc-compile an entry's source (its build lock held) and publish the library.
+
+    torch's extension builder writes into a private folder ``build-<pid>`` under a compile
+    slot; the library is then renamed into the entry with its record.
+    """
     from torch.utils import cpp_extension
 
-    cu = d / f"{name}.cu"
-    cu.write_text(src)
+    for stale in entry.dir.glob("build-*"):  # builds killed part-way (the lock is held)
+        shutil.rmtree(stale, ignore_errors=True)
+    _store.write_atomic(entry.source, src)
+    stage = entry.dir / f"build-{os.getpid()}"
+    stage.mkdir()
     try:
-        cpp_extension.load(
-            name,
-            [str(cu)],
-            extra_cuda_cflags=["-O3", "--fmad=true"],
-            build_directory=str(d),
-            is_python_module=False,
-            with_cuda=True,
-            verbose=False,
-        )
+        with _store.build_slot(entry.root):
+            t0 = time.perf_counter()
+            cpp_extension.load(
+                entry.name,
+                [str(entry.source)],
+                extra_cuda_cflags=["-O3", "--fmad=true"],
+                build_directory=str(stage),
+                is_python_module=False,
+                with_cuda=True,
+                verbose=False,
+            )
+            seconds = time.perf_counter() - t0
+        entry.publish(stage / f"{entry.name}.so", compiler="nvcc", seconds=round(seconds, 2),
+                      source_sha256=_store.file_digest(entry.source)[1])  # fmt: skip
     except Exception as e:
-        raise KernelBuildError(f"building CUDA kernel {name} failed: {e}") from e
+        raise KernelBuildError(f"building CUDA kernel {entry.name} failed: {e}") from e
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

@@ -52,6 +52,7 @@ __all__ = [
     "BASE_COLUMNS",
     "CONE_FIELDS",
     "LOCALIZATION_COLUMNS",
+    "NUMBERS",
     "META_DERIVED",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
@@ -60,7 +61,10 @@ __all__ = [
     "META_URDF_SHA256",
     "META_VERSION",
     "LogWriter",
+    "check_number_type",
     "check_outputs",
+    "check_schema",
+    "check_vector_type",
     "contact_struct_type",
     "contacts_column",
     "fixed_list",
@@ -78,6 +82,7 @@ __all__ = [
     "read_log_columns",
     "read_rows",
     "struct_list",
+    "timestamps",
     "vectors",
     "write_journal",
     "write_table",
@@ -356,45 +361,192 @@ def joint_names_of(schema: Any, path: object = "") -> list[str]:
     return names
 
 
-def vectors(column: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of a list column as an ``(N, n)`` float64 array.
+#: What a numeric log column may hold: numbers that convert to float64 without loss.
+NUMBERS = "float64 (integers, float16/32 and decimals are converted)"
+
+
+def _is_number(typ: Any) -> bool:
+    """A type whose values convert to float64: integers, floats, decimals (or all-null)."""
+    import pyarrow as pa
+
+    t = pa.types
+    return t.is_integer(typ) or t.is_floating(typ) or t.is_decimal(typ) or t.is_null(typ)
+
+
+def _is_list(typ: Any) -> bool:
+    import pyarrow as pa
+
+    t = pa.types
+    return t.is_list(typ) or t.is_large_list(typ) or t.is_fixed_size_list(typ)
+
+
+def check_vector_type(typ: Any, name: str, source: object = "") -> None:
+    """Refuse a column type that is not a list of numbers (or all-null).
 
     Args:
-        column: a pyarrow (chunked) array of fixed-size or plain lists of numbers.
+        typ: the pyarrow type of the column.
+        name: the column, for the message (``q``, ``ft.<sensor>``, ``contacts.position``).
+        source: the file, for the message.
+
+    Raises:
+        LogError: naming the column, its type and the expected type.
+
+    Example:
+        >>> import pyarrow as pa
+        >>> check_vector_type(pa.list_(pa.int64()), "ft.s")  # int counts convert: accepted
+        >>> check_vector_type(pa.list_(pa.string()), "q")
+        Traceback (most recent call last):
+        ...
+        torchcontact.errors.LogError: column 'q' is list<item: string>; expected a list of \
+float64 (integers, float16/32 and decimals are converted)
+    """
+    import pyarrow as pa
+
+    if pa.types.is_null(typ) or (_is_list(typ) and _is_number(typ.value_type)):
+        return
+    where = f"{source}: " if str(source) else ""
+    raise LogError(f"{where}column {name!r} is {typ}; expected a list of {NUMBERS}")
+
+
+def check_number_type(typ: Any, name: str, source: object = "") -> None:
+    """Refuse a scalar column type that does not convert to float64 (see :data:`NUMBERS`).
+
+    Raises:
+        LogError: naming the column, its type and the expected type.
+    """
+    if not _is_number(typ):
+        where = f"{source}: " if str(source) else ""
+        raise LogError(f"{where}column {name!r} is {typ}; expected {NUMBERS}")
+
+
+#: Integers beyond this magnitude have no exact float64.
+_EXACT_INT = 2**53
+
+
+def _float64(values: Any) -> Any:
+    """A numeric pyarrow array as float64, null where a value has no exact float64.
+
+    Integers beyond 2**53 in magnitude would be rounded: they become null (NaN), a per-value
+    problem like a NaN reading, never a silently different number.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if pa.types.is_float64(values.type):
+        return values
+    if pa.types.is_integer(values.type):
+        lossy = pc.or_(pc.greater(values, _EXACT_INT), pc.less(values, -_EXACT_INT))
+        if pc.any(lossy).as_py():
+            values = pc.if_else(lossy, pa.scalar(None, values.type), values)
+    return pc.cast(values, pa.float64(), safe=False)
+
+
+def vectors(
+    column: Any, n: int, name: str = "", source: object = ""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of a list column as an ``(N, n)`` float64 array.
+
+    Values of any type of :data:`NUMBERS` are converted (int counts, float32, decimals); nulls
+    inside a row, and integers beyond 2**53 in magnitude (no exact float64), make it NaN there.
+
+    Args:
+        column: a pyarrow (chunked) array of fixed-size or plain lists of numbers, or an
+            all-null column.
         n: expected length of every row.
+        name: the column, for messages.
+        source: the file, for messages.
 
     Returns:
         ``values`` ``(N, n)`` (NaN where a row is bad) and ``bad`` ``(N,)`` bool: the row is null
         or does not have ``n`` entries.
+
+    Raises:
+        LogError: a column that is not a list of numbers (naming the column, its type and the
+            expected type).
 
     Example:
         >>> import pyarrow as pa
         >>> v, bad = vectors(pa.array([[1.0, 2.0], [3.0], None]), 2)
         >>> v[0].tolist(), bad.tolist()
         ([1.0, 2.0], [False, True, True])
+        >>> vectors(pa.array([[1, None], [2**53 + 1, 0]]), 2)[0].tolist()  # int counts
+        [[1.0, nan], [nan, 0.0]]
     """
     import pyarrow as pa
     import pyarrow.compute as pc
 
     if isinstance(column, pa.ChunkedArray):
         column = column.combine_chunks()
+    check_vector_type(column.type, name or "a vector column", source)
     N = len(column)
     out = np.full((N, n), np.nan)
-    if N == 0:
-        return out, np.zeros(0, bool)
+    if N == 0 or pa.types.is_null(column.type):
+        return out, np.ones(N, bool)
     null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
+    flat = _float64(column.flatten())  # flatten honours the array's offset
     if pa.types.is_fixed_size_list(column.type) and column.type.list_size == n and not null.any():
-        flat = column.flatten()  # honours the array's offset
-        return np.asarray(flat.to_numpy(zero_copy_only=False), np.float64).reshape(N, n), null
+        return np.asarray(flat.fill_null(np.nan).to_numpy(zero_copy_only=False)).reshape(N, n), null
     lengths = pc.list_value_length(column).fill_null(-1).to_numpy(zero_copy_only=False)
     bad = null | (lengths != n)
-    flat = np.asarray(column.flatten().fill_null(np.nan).to_numpy(zero_copy_only=False), float)
+    flat = np.asarray(flat.fill_null(np.nan).to_numpy(zero_copy_only=False), float)
     parent = pc.list_parent_indices(column).to_numpy(zero_copy_only=False)
     good_rows = ~bad
     keep = good_rows[parent]
     if keep.any():
         out[good_rows] = flat[keep].reshape(-1, n)
     return out, bad
+
+
+def _is_text(typ: Any) -> bool:
+    import pyarrow as pa
+
+    t = pa.types
+    if t.is_dictionary(typ):
+        typ = typ.value_type
+    return t.is_string(typ) or t.is_large_string(typ) or t.is_null(typ)
+
+
+def check_schema(schema: Any, source: object = "") -> None:
+    """Refuse a log whose columns of the log format have types no reader can use.
+
+    The columns of the format that are present are checked: ``t_ns`` integers or time stamps;
+    ``q``, ``qd``, ``qdd``, ``tau_measured``, ``ft.<sensor>`` and ``base.*`` lists of numbers
+    (:data:`NUMBERS`); ``contacts`` a list of structs whose ``link`` and ``kind`` are strings,
+    ``position``, ``direction``, ``wrench`` and ``normal`` lists of numbers, ``friction`` and
+    ``cone_angle`` numbers and ``pushing`` a bool. Other columns are not checked. Values (nulls,
+    NaN, wrong lengths) are per-frame matters, not checked here.
+
+    Raises:
+        LogError: the first offending column: its name, its type and the expected type.
+    """
+    import pyarrow as pa
+
+    where = f"{source}: " if str(source) else ""
+    for field in schema:
+        name, typ = field.name, field.type
+        if name == "t_ns":
+            if not (pa.types.is_integer(typ) or pa.types.is_timestamp(typ)):
+                raise LogError(f"{where}column 't_ns' is {typ}; expected int64 time stamps (ns)")
+        elif name in JOINT_COLUMNS or name.startswith("ft.") or name in BASE_COLUMNS:
+            check_vector_type(typ, name, source)
+        elif name == "contacts":
+            ok = (pa.types.is_list(typ) or pa.types.is_large_list(typ)) and pa.types.is_struct(
+                typ.value_type
+            )
+            if not ok:
+                raise LogError(f"{where}column 'contacts' is {typ}; expected a list of structs")
+            for sub in typ.value_type:
+                label = f"contacts.{sub.name}"
+                if sub.name in ("link", "kind") and not _is_text(sub.type):
+                    raise LogError(f"{where}column {label!r} is {sub.type}; expected a string")
+                if sub.name in ("position", "direction", "wrench", "normal"):
+                    check_vector_type(sub.type, label, source)
+                elif sub.name in ("friction", "cone_angle"):
+                    check_number_type(sub.type, label, source)
+                elif sub.name == "pushing" and not (
+                    pa.types.is_boolean(sub.type) or _is_number(sub.type)
+                ):
+                    raise LogError(f"{where}column {label!r} is {sub.type}; expected a bool")
 
 
 # ---------------------------------------------------------------------- contacts <-> Arrow
@@ -414,7 +566,9 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
         ``friction``, ``cone_angle`` and ``pushing`` when the struct has them (null: NaN).
 
     Raises:
-        LogError: a friction-cone field of a type that is not a number (``pushing``: bool).
+        LogError: a field of the wrong type (naming it, its type and the expected one): ``link``
+            and ``kind`` strings, vectors lists of numbers, the friction-cone fields numbers
+            (``pushing``: bool).
     """
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -427,23 +581,26 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
     M = len(frame)
     vec: dict[str, np.ndarray] = {}
     malformed: dict[str, np.ndarray] = {}
+    for key in ("link", "kind"):
+        if key in fields and not _is_text(fields[key].type):
+            raise LogError(f"column 'contacts.{key}' is {fields[key].type}; expected a string")
     for name, width in (("position", 3), ("direction", 3), ("wrench", 6)):
         if name in fields:
-            vec[name], malformed[name] = vectors(fields[name], width)
+            vec[name], malformed[name] = vectors(fields[name], width, f"contacts.{name}")
         else:
             vec[name], malformed[name] = np.full((M, width), np.nan), np.ones(M, bool)
     cone: dict[str, np.ndarray] = {}
     if "normal" in fields:
-        cone["normals"], malformed["normal"] = vectors(fields["normal"], 3)
+        cone["normals"], malformed["normal"] = vectors(fields["normal"], 3, "contacts.normal")
     for name in ("friction", "cone_angle", "pushing"):
         if name in fields:
             col = fields[name]
             try:
                 col = pc.cast(col, pa.float64())
             except (pa.ArrowException, NotImplementedError):
+                expected = "a bool" if name == "pushing" else NUMBERS
                 raise LogError(
-                    f"contacts.{name} must be {'a bool' if name == 'pushing' else 'a number'},"
-                    f" found {fields[name].type}"
+                    f"column 'contacts.{name}' is {fields[name].type}; expected {expected}"
                 ) from None
             cone[name] = np.asarray(col.fill_null(np.nan).to_numpy(zero_copy_only=False), float)
 
@@ -566,16 +723,42 @@ def open_log(path: str | Path) -> Any:
         column chunk read so far, so memory would grow with the log.
 
     Raises:
-        LogError: no such file, or not a readable Parquet file (the message names it).
+        LogError: no such file, not a readable Parquet file, or a column of the log format with
+            a type no reader can use (:func:`check_schema`) or null time stamps (where the
+            file's statistics count them); the message names the file.
     """
     import pyarrow.parquet as pq
 
     if not Path(path).is_file():
         raise LogError(f"{path}: no such file")
     try:
-        return pq.ParquetFile(path, pre_buffer=False, page_checksum_verification=True)
+        pf = pq.ParquetFile(path, pre_buffer=False, page_checksum_verification=True)
     except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
         raise LogError(f"{path}: not a readable Parquet file ({exc})") from None
+    check_schema(pf.schema_arrow, path)
+    nulls = _null_stamps(pf)
+    if nulls:
+        raise LogError(
+            f"{path}: {nulls} frames have no time stamp (null t_ns); every frame needs one"
+        )
+    return pf
+
+
+def _null_stamps(pf: Any) -> int:
+    """Null ``t_ns`` values the row groups' statistics count (0 without statistics)."""
+    names = pf.schema_arrow.names
+    if "t_ns" not in names:
+        return 0
+    meta = pf.metadata
+    j = next((i for i in range(meta.num_columns) if meta.schema.column(i).path == "t_ns"), None)
+    if j is None:
+        return 0
+    total = 0
+    for g in range(meta.num_row_groups):
+        st = meta.row_group(g).column(j).statistics
+        if st is not None and st.has_null_count:
+            total += st.null_count
+    return total
 
 
 def _unreadable(pf: Any, source: object, row: int, exc: Exception) -> LogError:
@@ -698,6 +881,7 @@ def read_log_columns(
         [[2.0, 1.0]]
     """
     import pyarrow as pa
+    import pyarrow.compute as pc
 
     pf = open_log(path)
     schema = pf.schema_arrow
@@ -722,23 +906,58 @@ def read_log_columns(
         col = table.column(c)
         typ = schema.field(c).type
         if c == "t_ns":
-            out[c] = np.asarray(col.to_numpy(), np.int64)
+            out[c] = timestamps(col, path)
         elif c == "contacts":
             out[c] = read_contacts(col)[0]
         elif c in JOINT_COLUMNS:
-            out[c] = vectors(col, nv)[0][:, perm]
+            out[c] = vectors(col, nv, c, path)[0][:, perm]
         elif c.startswith("ft."):
-            out[c] = vectors(col, 6)[0]
+            out[c] = vectors(col, 6, c, path)[0]
         elif c in BASE_COLUMNS:
-            out[c] = vectors(col, 3)[0]
+            out[c] = vectors(col, 3, c, path)[0]
         elif pa.types.is_fixed_size_list(typ):
-            out[c] = vectors(col, typ.list_size)[0]
+            out[c] = vectors(col, typ.list_size, c, path)[0]
         elif pa.types.is_list(typ) or pa.types.is_large_list(typ):
-            first = next((len(v) for v in col.to_pylist() if v is not None), 0)
-            out[c] = vectors(col, first)[0]
+            lengths = pc.list_value_length(col).drop_null()
+            out[c] = vectors(col, int(lengths[0].as_py()) if len(lengths) else 0, c, path)[0]
         else:
-            out[c] = np.asarray(col.to_numpy(zero_copy_only=False), np.float64)
+            check_number_type(typ, c, path)
+            arr = _float64(col.combine_chunks()).fill_null(np.nan)
+            out[c] = np.asarray(arr.to_numpy(zero_copy_only=False), np.float64)
     return out
+
+
+def timestamps(column: Any, source: object = "") -> np.ndarray:
+    """A ``t_ns`` column as ``(N,)`` int64 ns (integers of any width, or time stamps).
+
+    Raises:
+        LogError: a type other than integers or time stamps, or null time stamps (naming the
+            first row).
+
+    Example:
+        >>> import pyarrow as pa
+        >>> timestamps(pa.array([0, 10], pa.int32())).tolist()
+        [0, 10]
+    """
+    import pyarrow as pa
+
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks()
+    where = f"{source}: " if str(source) else ""
+    typ = column.type
+    if not (pa.types.is_integer(typ) or pa.types.is_timestamp(typ)):
+        raise LogError(f"{where}column 't_ns' is {typ}; expected int64 time stamps (ns)")
+    if column.null_count:
+        first = int(np.flatnonzero(column.is_null().to_numpy(zero_copy_only=False))[0])
+        raise LogError(
+            f"{where}{column.null_count} frames have no time stamp (null t_ns), the first in row"
+            f" {first}; every frame needs one"
+        )
+    try:
+        ints = column.cast(pa.int64())
+    except pa.ArrowInvalid as exc:  # uint64 beyond int64
+        raise LogError(f"{where}column 't_ns' ({typ}) does not fit int64 ns: {exc}") from None
+    return np.asarray(ints.to_numpy(zero_copy_only=False), np.int64)
 
 
 # ---------------------------------------------------------------------- writing
