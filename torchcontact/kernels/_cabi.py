@@ -210,7 +210,7 @@ def build_library(
     import hashlib
     import tempfile
 
-    from torchcontact.kernels import _machine_tag, build_dir_lock, cache_dir
+    from torchcontact.kernels import _machine_tag, _store
 
     cxx = _compiler(compiler)
     flags = [f for f in CFLAGS if not f.startswith("-march")] + [f"-march={march}"]
@@ -221,33 +221,36 @@ def build_library(
         raise KernelBuildError(f"running {cxx} failed: {e}") from None
     tag = _machine_tag() if march == "native" else march
     key = hashlib.sha256(f"{kernel}|{flags}|{version}|{tag}".encode()).hexdigest()[:24]
-    entry = cache_dir() / "clib" / key
+    root = _store.cache_dir() / "clib"
+    entry = root / key
     obj, digest = entry / "kernel.o", entry / "kernel.sha256"
     command = " ".join([cxx, *flags, "-c", str(entry / "kernel.cpp"), "-o", str(obj)])
 
     def run(cmd: list[str], what: str) -> None:
         try:
-            r = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            with _store.build_slot(root):  # the kernels' bound on compilers at once
+                r = subprocess.run(cmd, capture_output=True, text=True, check=False)
         except OSError as e:
             raise KernelBuildError(f"running {cxx} failed: {e}") from None
         if r.returncode != 0:
             raise KernelBuildError(f"building {what} failed:\n{r.stderr[-3000:]}")
 
-    with build_dir_lock(entry):
+    # the object file is an entry like the kernels': published atomically with its digest, a
+    # damaged one is a miss, one builder per entry
+    with _store.build_dir_lock(entry):
         if obj.is_file() and (
-            not digest.is_file()
-            or hashlib.sha256(obj.read_bytes()).hexdigest() != digest.read_text().strip()
+            not digest.is_file() or _store.file_digest(obj)[1] != digest.read_text().strip()
         ):
-            obj.unlink()  # a damaged entry is a miss
+            obj.unlink()
         if not obj.is_file():
-            (entry / "kernel.cpp").write_text(kernel)
+            _store.write_atomic(entry / "kernel.cpp", kernel)
             tmp = entry / f".kernel.{os.getpid()}.o"
             try:
                 run([cxx, *flags, "-c", str(entry / "kernel.cpp"), "-o", str(tmp)], out.name)
             except KernelBuildError:
                 tmp.unlink(missing_ok=True)
                 raise
-            digest.write_text(hashlib.sha256(tmp.read_bytes()).hexdigest() + "\n")
+            _store.write_atomic(digest, _store.file_digest(tmp)[1] + "\n")
             os.replace(tmp, obj)
         with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as d:
             src = Path(d) / "api.cpp"
