@@ -108,6 +108,7 @@ from torchcontact._scalar import (
     sum_,
 )
 from torchcontact.errors import InputError
+from torchcontact.solve import cho_solve, cholesky
 
 __all__ = [
     "DEFAULT_EPS",
@@ -265,33 +266,6 @@ def _max(a: Scalar, b: Scalar) -> Scalar:
     return select(gt(a, b), a, b)
 
 
-def _cholesky(H: list[list[Scalar]], floor: float) -> list[list[Scalar]]:
-    """Lower Cholesky factor of a symmetric positive definite ``H`` (pivots floored)."""
-    n = len(H)
-    L: list[list[Scalar]] = [[0.0] * n for _ in range(n)]
-    for j in range(n):
-        d = sub(H[j][j], sum_([mul(L[j][k], L[j][k]) for k in range(j)]))
-        d = select(gt(d, floor), d, floor)
-        L[j][j] = sqrt(d)
-        inv = div(1.0, L[j][j])
-        for i in range(j + 1, n):
-            L[i][j] = mul(sub(H[i][j], sum_([mul(L[i][k], L[j][k]) for k in range(j)])), inv)
-    return L
-
-
-def _cho_solve(L: list[list[Scalar]], r: Sequence[Scalar]) -> list[Scalar]:
-    """``(L L^T)^{-1} r`` (the reciprocals of the diagonal are those of :func:`_cholesky`)."""
-    n = len(r)
-    inv = [div(1.0, L[i][i]) for i in range(n)]
-    y: list[Scalar] = [0.0] * n
-    for i in range(n):
-        y[i] = mul(sub(r[i], sum_([mul(L[i][k], y[k]) for k in range(i)])), inv[i])
-    x: list[Scalar] = [0.0] * n
-    for i in range(n - 1, -1, -1):
-        x[i] = mul(sub(y[i], sum_([mul(L[k][i], x[k]) for k in range(i + 1, n)])), inv[i])
-    return x
-
-
 # ------------------------------------------------------------------ second-order cone algebra
 # A cone vector is (v0, v1, v2): v0 the axis, (v1, v2) the disc. J = diag(1, -1, -1).
 
@@ -418,7 +392,7 @@ def _newton(cones, on, L, rd, rp, scs, v) -> tuple[list, list, list]:
         ct = _ct(c, t)
         for j, i in enumerate(c.cols):
             rhs[i] = add(rhs[i], select(on[k], ct[j], 0.0))
-    dx = _cho_solve(L, rhs)
+    dx = cho_solve(L, rhs)
     dzs, dss = [], []
     for k, c in enumerate(cones):
         ds = [add(r, d) for r, d in zip(rp[k], _cx(c, dx), strict=True)]
@@ -501,7 +475,7 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
                     continue
                 blk = mul(inv_eta2, sub(mul(2.0, mul(g[a], g[bb])), pb.CJC[k][a][bb]))
                 H[i][j] = add(H[i][j], select(on[k], blk, 0.0))
-    L = _cholesky([[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)], pb.floor)
+    L = cholesky([[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)], pb.floor)
     # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
     dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, [[neg(v) for v in lk] for lk in lam])
     T_a = _inv_step(on, s, z, ds_a, dz_a)
