@@ -93,6 +93,7 @@ from torch import Tensor
 from torchcontact._scalar import (
     Scalar,
     add,
+    is_const,
     div,
     gt,
     isfinite,
@@ -118,6 +119,8 @@ __all__ = [
     "WARM_MARGIN",
     "Cone",
     "ConeSolution",
+    "OBJECTIVES",
+    "ForcePrior",
     "FrictionCones",
     "PreviousFrame",
     "cone_constrained_lstsq",
@@ -125,6 +128,8 @@ __all__ = [
     "solve_cones",
 ]
 
+#: Objectives of :class:`FrictionCones`.
+OBJECTIVES = ("map", "min_norm")
 #: Default regularisation ``eps`` per dtype (``A`` has entries of order 1 and metres).
 DEFAULT_EPS: dict[torch.dtype, float] = {torch.float64: 1e-9, torch.float32: 1e-5}
 #: A frame stops moving once its duality gap is below this, relative to ``1 + |A^T b|^2``.
@@ -144,6 +149,57 @@ STALL_GAP: dict[torch.dtype, float] = {torch.float64: 1e-14, torch.float32: 1e-8
 WARM_MARGIN = (1e-3, 1e-2)
 #: Default convergence tolerance per dtype (relative KKT residuals of a stopped frame).
 DEFAULT_TOL: dict[torch.dtype, float] = {torch.float64: 1e-6, torch.float32: 1e-3}
+
+
+@dataclass(frozen=True)
+class ForcePrior:
+    """The prior of the maximum a posteriori estimate inside the cones (``FrictionCones.prior``).
+
+    Per pushing slot, a density on its force ``f`` (cone coordinates ``(t, y) = C f``, ``t = mu
+    (-n . f)`` along the inward normal, ``y`` the tangential part):
+
+    .. code-block:: text
+
+        p(f)  ~  (t^2 - |y|^2)^(nu / 2)  exp(-|f|^2 / (2 s^2))     inside the cone, 0 outside
+
+    The first factor vanishes on the cone's boundary and at its apex: it favours forces that
+    push well inside the cone and are not vanishingly small (along the cone's axis the
+    magnitude's density is ``~ |f|^nu exp(-|f|^2 / 2 s^2)``, largest at ``|f| = sqrt(nu) s``);
+    the second bounds the magnitudes softly. With the Gaussian likelihood of the (weighted)
+    readings the estimate minimises ``1/2 |A x - b|^2_Sigma^-1 + |x|^2 / (2 s^2) - nu/2 sum_k
+    log(t_k^2 - |y_k|^2)``: a convex problem, the point of the interior-point method's central
+    path at ``nu``, solved by the same iterations.
+
+    Attributes:
+        nu: exponent of the cone factor (> 0).
+        scale: ``s`` in N; None (the default) sets it per frame and region from the data:
+            ``s = relative |x_pinv| / sqrt(m)``, ``x_pinv`` the pseudo-inverse estimate and
+            ``m`` the number of pushing slots (an empirical-Bayes choice that makes the estimate
+            scale-equivariant: forces ten times larger give an estimate ten times larger).
+        relative: the factor of the data-driven scale.
+
+    Example:
+        >>> ForcePrior().nu
+        1.0
+    """
+
+    nu: float = 1.0
+    scale: float | None = None
+    relative: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("nu", "relative"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < float(v) < float("inf")):
+                raise InputError(f"ForcePrior.{name} must be a finite number > 0, got {v!r}")
+        if self.scale is not None and not (0 < float(self.scale) < float("inf")):
+            raise InputError(f"ForcePrior.scale must be None or a finite number > 0 (N), got"
+                             f" {self.scale!r}")  # fmt: skip
+
+    def flags(self) -> tuple[float, float | None, float]:
+        """``(nu, scale, relative)`` as plain floats (part of a program's key)."""
+        return (float(self.nu), None if self.scale is None else float(self.scale),
+                float(self.relative))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -171,8 +227,16 @@ class FrictionCones:
     iterations: int = 25
     eps: float | None = None
     tol: float | None = None
+    objective: str = "map"
+    prior: ForcePrior = ForcePrior()
 
     def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise InputError(f"FrictionCones.objective must be one of {OBJECTIVES}, got"
+                             f" {self.objective!r}")  # fmt: skip
+        if not isinstance(self.prior, ForcePrior):
+            raise InputError(f"FrictionCones.prior must be a ForcePrior, got"
+                             f" {type(self.prior).__name__}")  # fmt: skip
         if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 200):
             raise InputError(f"FrictionCones.iterations must be an int in [1, 200], got "
                              f"{self.iterations!r}")  # fmt: skip
@@ -190,6 +254,14 @@ class FrictionCones:
         tol = DEFAULT_TOL.get(dtype, 1e-6) if self.tol is None else float(self.tol)
         stop = (STOP_GAP.get(dtype, 1e-16), STALL_GAP.get(dtype, 1e-14))
         return self.iterations, eps, tol, stop
+
+    def program_flags(self, dtype: torch.dtype) -> tuple:
+        """:meth:`resolved`, then the prior's :meth:`ForcePrior.flags` (None for min-norm).
+
+        The ``cones`` flags of :func:`torchcontact.estimation.programs.estimate_program`.
+        """
+        prior = self.prior.flags() if self.objective == "map" else None
+        return (*self.resolved(dtype), prior)
 
 
 @dataclass(frozen=True)
@@ -447,10 +519,16 @@ class _Problem(NamedTuple):
     CJC: list  # per cone, C^T J C (lower triangle)
     inv_m: Scalar  # 1 / (number of cones that apply)
     floor: float  # smallest pivot of the Newton matrix's Cholesky factor
+    nu: Scalar  # the barrier weight: the iterates go to the point of the central path s o z = nu e
 
 
 def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Scalar]]):
-    """One Mehrotra predictor-corrector step from ``(x, s, z)``: the next iterate."""
+    """One Mehrotra predictor-corrector step from ``(x, s, z)``: the next iterate and its length.
+
+    With ``nu > 0`` the complementarity target is ``s o z = nu e`` instead of 0: the predictor
+    aims at it and the centring term goes from ``mu`` to ``nu``, so that the point of the central
+    path at ``nu`` is a fixed point of the step (both corrections vanish there).
+    """
     cones, on, u = pb.cones, pb.on, len(x)
     # ---- residuals of the KKT conditions P x + q - C^T z = 0, C x - s = 0
     rd = [add(sum_([mul(pb.P[max(i, j)][min(i, j)], x[j]) for j in range(u)]), pb.q[i])
@@ -477,7 +555,15 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
                 H[i][j] = add(H[i][j], select(on[k], blk, 0.0))
     L = cholesky([[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)], pb.floor)
     # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
-    dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, [[neg(v) for v in lk] for lk in lam])
+    nu = pb.nu
+    if is_const(nu) and nu == 0:
+        v_a = [[neg(v) for v in lk] for lk in lam]
+    else:  # lam o (W dz + W^-1 ds) = nu e - lam o lam
+        v_a = []
+        for lk in lam:
+            ll = _jordan(lk, lk)
+            v_a.append(_jordan_solve(lk, [sub(nu, ll[0]), neg(ll[1]), neg(ll[2])]))
+    dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, v_a)
     T_a = _inv_step(on, s, z, ds_a, dz_a)
     alpha_a = select(gt(T_a, 1.0), div(1.0, _max(T_a, 1.0)), 1.0)
     mu = mul(sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(len(cones))]), pb.inv_m)
@@ -490,7 +576,15 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
         ll = _jordan(lam[k], lam[k])
         corr = _jordan(_w_apply(scs[k], ds_a[k], inverse=True),
                        _w_apply(scs[k], dz_a[k], inverse=False))  # fmt: skip
-        rhs = [add(sub(ll[0], mul(sigma, mu)), corr[0]), add(ll[1], corr[1]), add(ll[2], corr[2])]
+        if is_const(nu) and nu == 0:
+            target = mul(sigma, mu)
+        else:
+            # towards the central path at nu: no second-order term, which stalls the step near
+            # the cones' boundaries (measured: 3 % of the iCub's multi-contact frames stuck at
+            # alpha ~ 0 with it, none without)
+            target = add(nu, mul(sigma, sub(mu, nu)))
+            corr = [0.0, 0.0, 0.0]
+        rhs = [add(sub(ll[0], target), corr[0]), add(ll[1], corr[1]), add(ll[2], corr[2])]
         vs.append(_jordan_solve(lam[k], [neg(v) for v in rhs]))
     dx, ds, dz = _newton(cones, on, L, rd, rp, scs, vs)
     # ---- step: 0.99 of the way to the nearest cone boundary, at most a full step
@@ -501,7 +595,7 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
              for k in range(len(cones))]  # fmt: skip
     z_new = [[add(a, mul(alpha, d)) for a, d in zip(z[k], dz[k], strict=True)]
              for k in range(len(cones))]  # fmt: skip
-    return x_new, s_new, z_new
+    return x_new, s_new, z_new, alpha
 
 
 _EYE3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
@@ -560,8 +654,16 @@ def solve_cones(
     stop: tuple[float, float] = (STOP_GAP[torch.float64], STALL_GAP[torch.float64]),
     x_start: Sequence[Scalar] | None = None,
     start_on: Scalar = True,
+    nu: Scalar = 0.0,
+    ridge: Scalar = 0.0,
+    pinv_answer: Scalar = True,
 ) -> ConeSolution:
     """Minimise ``1/2 |A x - b|^2 + eps/2 |x|^2`` with every cone ``C_k x[cols_k] in Q^3``.
+
+    With ``nu > 0`` (:class:`ForcePrior`) the objective is the negative log-posterior
+    ``1/2 |A x - b|^2 + (eps + ridge)/2 |x|^2 - nu/2 sum_k log((C_k x)^T J (C_k x))``: the
+    point of the interior-point method's central path at ``nu``, an interior point of every
+    cone.
 
     Primal-dual interior-point method with Mehrotra's predictor-corrector and Nesterov-Todd
     scaling, at most ``iterations`` steps (see the module docstring). Cones whose ``on`` mask is
@@ -585,7 +687,14 @@ def solve_cones(
         x_start: ``u`` scalars, another starting point (e.g. the previous frame's estimate);
             None: ``x_pinv``.
         start_on: mask: the frame starts from ``x_start`` (else from ``x_pinv``), with the
-            tighter start of a warm start (:data:`WARM_MARGIN`).
+            tighter start of a warm start (:data:`WARM_MARGIN`). A frame started there that
+            does not converge within the budget restarts from ``x_pinv`` with a budget of its
+            own: a warm start changes the iterations, never the answer.
+        nu: barrier weight (>= 0; a constant or per-frame scalar).
+        ridge: added to ``eps`` (per-frame scalar, >= 0): the Gaussian part of the prior.
+        pinv_answer: mask: ``x_pinv`` inside every cone is the answer (the frame is not
+            iterated). Always the case with ``nu = 0``; with a prior the caller passes "every
+            unknown is observable", where the prior's pull is below the noise.
 
     Returns:
         :class:`ConeSolution`.
@@ -603,12 +712,14 @@ def solve_cones(
     # cone coordinates)
     P = [[sum_([mul(A[r][i], A[r][j]) for r in range(R)]) for j in range(i + 1)]
          for i in range(u)]  # fmt: skip
-    reg: list[list[Scalar]] = [[eps if i == j else 0.0 for j in range(i + 1)] for i in range(u)]
+    eps_all = add(eps, ridge)
+    reg: list[list[Scalar]] = [[eps_all if i == j else 0.0 for j in range(i + 1)]
+                               for i in range(u)]  # fmt: skip
     for c, ci in zip(cones, Cinv, strict=True):
         if ci is not None:  # eps |T^-1 y|^2 on the cone's columns: eps Cinv^T Cinv
             for a, i in enumerate(c.cols):
                 for bb, j in enumerate(c.cols[: a + 1]):
-                    reg[i][j] = mul(eps, sum_([mul(ci[r][a], ci[r][bb]) for r in range(3)]))
+                    reg[i][j] = mul(eps_all, sum_([mul(ci[r][a], ci[r][bb]) for r in range(3)]))
     P = [[add(P[i][j], reg[i][j]) for j in range(i + 1)] for i in range(u)]
     q = [neg(sum_([mul(A[r][i], b[r]) for r in range(R)])) for i in range(u)]
     qq = _dot(q, q)
@@ -617,30 +728,36 @@ def solve_cones(
     # C_k^T J C_k: constant part of each cone's block of the Newton matrix
     CJC = [[[_jdot([row[i] for row in c.C], [row[j] for row in c.C]) for j in range(len(c.cols))]
             for i in range(len(c.cols))] for c in cones]  # fmt: skip
-    pb = _Problem(P, q, cones, on, CJC, div(1.0, _max(m_on, 1.0)), eps * 1e-6)
+    centred = not (is_const(nu) and nu == 0)
+    pb = _Problem(P, q, cones, on, CJC, div(1.0, _max(m_on, 1.0)), eps * 1e-6, nu)
     # ---- the pseudo-inverse solution inside every cone (the eps -> 0 limit of the
     # unconstrained problem) is the answer: returned exactly, since along null(A) the iterates
     # are pinned only by eps, i.e. to rounding / eps
-    inside0: Scalar = True
+    inside0: Scalar = True if not centred else pinv_answer
     for o, c in zip(on, cones, strict=True):
         ok0 = logical_or(logical_not(o), logical_not(gt(0.0, _eig_min(_cx(c, x_pinv)))))
         inside0 = logical_and(inside0, ok0)
     # ---- starting point: x0; slacks C x0 moved inside the cones; duals at the cones' centres
     e = [1.0, 0.0, 0.0]
-    if x_start is None:
-        start_on = False
-    x0 = [select(start_on, a, b_) for a, b_ in zip(x_start or x_pinv, x_pinv, strict=True)]
-    st = [_cx(c, x0) for c in cones]
-    scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
-    margin = mul(select(start_on, WARM_MARGIN[0], 0.1), scale)
-    dual0 = mul(select(start_on, WARM_MARGIN[1], 1.0), scale)
-    s0, z0 = [], []
-    for o, v in zip(on, st, strict=True):
-        shift = _max(sub(margin, _eig_min(v)), 0.0)
-        s0.append(_on3(o, [add(v[0], shift), v[1], v[2]], e))
-        z0.append(_on3(o, [dual0, 0.0, 0.0], e))
+
+    def start(x0: list[Scalar], warm: Scalar) -> list[Scalar]:
+        st = [_cx(c, x0) for c in cones]
+        scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
+        margin = mul(select(warm, WARM_MARGIN[0], 0.1), scale)
+        dual0 = mul(select(warm, WARM_MARGIN[1], 1.0), scale)
+        s0, z0 = [], []
+        for o, v in zip(on, st, strict=True):
+            shift = _max(sub(margin, _eig_min(v)), 0.0)
+            s0.append(_on3(o, [add(v[0], shift), v[1], v[2]], e))
+            z0.append(_on3(o, [dual0, 0.0, 0.0], e))
+        return [*x0, *(v for sk in s0 for v in sk), *(v for zk in z0 for v in zk)]
+
     gap_stop = mul(stop[0], add(1.0, qq))
     gap_stall = mul(stop[1], add(1.0, qq))
+    if centred:  # |s o z - nu e|^2 summed over the cones, relative to nu^2 per cone
+        nu2m = mul(mul(nu, nu), m_on)
+        gap_stop = mul(100.0 * stop[0], nu2m)
+        gap_stall = mul(100.0 * stop[1], nu2m)
 
     def unpack(state: Sequence[Scalar]) -> tuple[list, list, list, Scalar, Scalar, Scalar]:
         x = list(state[:u])
@@ -651,7 +768,7 @@ def solve_cones(
     def body(state: list[Scalar]) -> tuple[list[Scalar], Scalar]:
         x, s, z, count, stopped, gap_prev = unpack(state)
         frozen = gt(stopped, 0.5)
-        x_new, s_new, z_new = _step(pb, x, s, z)
+        x_new, s_new, z_new, alpha = _step(pb, x, s, z)
         # ---- take the step unless it went non-finite or the frame has stopped
         ok = isfinite(sum_([*x_new, *(v for sk in s_new for v in sk),
                             *(v for zk in z_new for v in zk)]))  # fmt: skip
@@ -660,25 +777,53 @@ def solve_cones(
         s = [[select(keep, a, b_) for a, b_ in zip(s[k], s_new[k], strict=True)] for k in range(m)]
         z = [[select(keep, a, b_) for a, b_ in zip(z[k], z_new[k], strict=True)] for k in range(m)]
         count = select(frozen, count, add(count, 1.0))
-        # ---- stop once the gap is far below eps |x|^2: later steps would only stir rounding
-        # noise (W grows like 1 / sqrt(gap)) and could spoil the residuals
-        gap = sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(m)])
-        stall = logical_and(logical_not(gt(gap, gap_stall)), gt(gap, mul(0.5, gap_prev)))
-        halt = logical_or(frozen, logical_or(logical_not(gt(gap, gap_stop)), stall))
+        if not centred:
+            # ---- stop once the gap is far below eps |x|^2: later steps would only stir
+            # rounding noise (W grows like 1 / sqrt(gap)) and could spoil the residuals
+            gap = sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(m)])
+            stall = logical_and(logical_not(gt(gap, gap_stall)), gt(gap, mul(0.5, gap_prev)))
+            halt = logical_or(frozen, logical_or(logical_not(gt(gap, gap_stop)), stall))
+        else:
+            # ---- stop on the central path: a full step (the residuals of the linear
+            # conditions vanish) that leaves s o z at nu e to rounding
+            gap = _centrality(on, s, z, nu)
+            full = logical_not(gt(1.0, alpha))
+            stall = logical_and(logical_not(gt(gap, gap_stall)), gt(gap, mul(0.5, gap_prev)))
+            near = logical_or(logical_not(gt(gap, gap_stop)), stall)
+            halt = logical_or(frozen, logical_and(full, near))
         new = [*x, *(v for sk in s for v in sk), *(v for zk in z for v in zk), count,
                select(halt, 1.0, 0.0), select(frozen, gap_prev, gap)]  # fmt: skip
         return new, halt
 
-    init = [*x0, *(v for sk in s0 for v in sk), *(v for zk in z0 for v in zk), 0.0,
-            select(inside0, 1.0, 0.0), float("inf")]  # fmt: skip
-    x, s, z, count, stopped, _ = unpack(loop(iterations, body, init))
+    def converged(state: Sequence[Scalar]) -> Scalar:
+        x, s, z, _, stopped, _ = unpack(state)
+        kkt = _converged(P, q, qq, cones, on, x, s, z, tol, nu if centred else 0.0, m_on)
+        return logical_and(gt(stopped, 0.5), kkt)
+
+    if x_start is None:
+        start_on = False
+    x0 = [select(start_on, a, b_) for a, b_ in zip(x_start or x_pinv, x_pinv, strict=True)]
+    cold = [*start(list(x_pinv), False), 0.0, select(inside0, 1.0, 0.0), float("inf")]
+    init = cold if x_start is None else [*start(x0, start_on), *cold[-3:]]
+    state = loop(iterations, body, init)
+    if x_start is not None:
+        # ---- a warm-started frame that did not converge starts again from x_pinv, cold, with
+        # a budget of its own (its iterations add up)
+        redo = logical_and(start_on, logical_not(converged(state)))
+        redo = logical_and(redo, logical_not(inside0))
+        count1 = state[u + 6 * m]
+        init2 = [select(redo, a, b_) for a, b_ in zip(cold[: u + 6 * m], state[: u + 6 * m],
+                                                     strict=True)]  # fmt: skip
+        init2 += [count1, select(redo, 0.0, 1.0), select(redo, float("inf"), state[-1])]
+        state = loop(iterations, body, init2)
+    x, s, z, count, stopped, _ = unpack(state)
     # active: the slack is on the cone's boundary (or apex) to within ACTIVE_RTOL of its size
     # plus one unit (N), so a slack at the apex (size ~0) counts; the dual alone cannot tell, as
     # it is only eps-sized when the cone merely picks a point of the least-squares set
     rtol = 10.0 * tol
     active = [logical_and(o, logical_not(gt(_eig_min(sk), mul(rtol, add(sk[0], 1.0)))))
               for o, sk in zip(on, s, strict=True)]  # fmt: skip
-    conv = logical_and(gt(stopped, 0.5), _converged(P, q, qq, cones, on, x, s, z, tol))
+    conv = converged(state)
     x = _apply_blocks(cones, None, Cinv, x, forward=False)
     x_pinv = _apply_blocks(cones, None, Cinv, x_pinv, forward=False)
     return ConeSolution(
@@ -689,8 +834,21 @@ def solve_cones(
     )
 
 
-def _converged(P, q, qq, cones, on, x, s, z, tol: float) -> Scalar:
-    """Relative KKT residuals and duality gap below ``tol`` (squared norms, no square roots)."""
+def _centrality(on, s, z, nu: Scalar) -> Scalar:
+    """``sum_k |s_k o z_k - nu e|^2`` over the cones that apply."""
+    out: Scalar = 0.0
+    for k in range(len(on)):
+        sz = _jordan(s[k], z[k])
+        d = [sub(sz[0], nu), sz[1], sz[2]]
+        out = add(out, select(on[k], _dot(d, d), 0.0))
+    return out
+
+
+def _converged(P, q, qq, cones, on, x, s, z, tol: float, nu: Scalar = 0.0, m_on=1.0) -> Scalar:
+    """Relative KKT residuals and duality gap below ``tol`` (squared norms, no square roots).
+
+    With ``nu > 0``: ``|s o z - nu e|`` below ``tol nu`` per cone instead of the gap.
+    """
     u = len(x)
     rd = [add(sum_([mul(P[max(i, j)][min(i, j)], x[j]) for j in range(u)]), q[i])
           for i in range(u)]  # fmt: skip
@@ -709,7 +867,10 @@ def _converged(P, q, qq, cones, on, x, s, z, tol: float) -> Scalar:
     t2 = tol * tol
     ok_d = logical_not(gt(_dot(rd, rd), mul(t2, add(1.0, qq))))
     ok_p = logical_not(gt(rp2, mul(t2, add(1.0, ss))))
-    ok_g = logical_not(gt(gap, mul(tol, add(1.0, qq))))
+    if is_const(nu) and nu == 0:
+        ok_g = logical_not(gt(gap, mul(tol, add(1.0, qq))))
+    else:
+        ok_g = logical_not(gt(_centrality(on, s, z, nu), mul(t2, mul(mul(nu, nu), m_on))))
     return logical_and(logical_and(ok_d, ok_p), ok_g)
 
 

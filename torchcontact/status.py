@@ -4,8 +4,11 @@ A frame's status is an int64 bit field; 0 means the frame was estimated and ever
 finite. Each set bit names one reason. The estimator sets the bits, the log pipeline stores the
 code (``status_code`` column) and its text (``status`` column, :func:`status_messages`), and
 exported graphs return the same integer. Frames with a non-zero status have NaN outputs, the rest
-of a batch is unaffected. Bit 128 is set by the log pipeline only: in Python and ONNX a contact on
-an unknown link is an error when the estimate is called.
+of a batch is unaffected, except for bit 256, a warning: the friction-cone constrained solve did
+not converge within its iteration budget (after restarting from the pseudo-inverse when it was
+warm-started), and the outputs are its last iterate, inside the cones but not at the optimum; such
+a frame is not ok. Bit 128 is set by the log pipeline only: in Python and ONNX a contact on an
+unknown link is an error when the estimate is called.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ STATUS: dict[int, str] = {
     32: "non-finite output (the inputs were finite but the computation overflowed)",
     64: "implausible input (joint velocity beyond the URDF limit, or reading beyond sensor range)",
     128: "invalid contact (unknown link or kind, or a link outside every F/T sensor's subtree)",
+    256: "constrained solve not converged within its iteration budget (outputs: last iterate)",
 }
 
 

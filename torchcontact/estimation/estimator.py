@@ -322,7 +322,7 @@ class ContactEstimator:
                     f"constraints must be a torchcontact.constrained.FrictionCones, got"
                     f" {type(constraints).__name__}"
                 )
-            cone_flags = constraints.resolved(dtype)
+            cone_flags = constraints.program_flags(dtype)
             tensors.update(_cone_inputs(contacts, em.kinds, batch, tensors["active"], model))
             if isinstance(warm_start, PreviousFrame):
                 if warm_start.before is not None:

@@ -258,8 +258,9 @@ def estimate_program(
         extra: dict[str, list] = {}
         if cones is not None or nullspace:
             resid, w, extra = _constrained_and_nullspace(
-                em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm, nullspace, chol
-            )
+                em, x, clean, maps, b, ys, factors, ranks, resid, wr, act, cones, warm,
+                nullspace, chol,
+            )  # fmt: skip
         else:
             w = stages.contact_wrenches(em, maps, ys, wr, act)
         tau = stages.backward(em, X, tau_b, pos, w)
@@ -287,6 +288,9 @@ def estimate_program(
             "residual": [out(v) for v in resid],
             "status": [add(status, _bit(b32, 32.0))],
         }
+        if cones is not None:  # bit 256: a region's constrained solve did not converge
+            unconv = _any([logical_not(gt(v, 0.5)) for v in extra["converged"]])
+            result["status"] = [add(result["status"][0], _bit(logical_and(ok, unconv), 256.0))]
         if with_cov:
             result["cov"] = [out(v) for v in cov]
         if cones is not None:
@@ -305,8 +309,8 @@ def estimate_program(
     return kernels.Program("estimator", fn, inputs, outputs, key)
 
 
-def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm,
-                               nullspace, chol):  # fmt: skip
+def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, ranks, resid, wr, act, cones,
+                               warm, nullspace, chol):  # fmt: skip
     """The constrained estimate and/or the null-space bases of every region (program part).
 
     ``chol``: per region the Cholesky factor of its rows' noise covariance, or None (unweighted):
@@ -327,6 +331,8 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             continue
         A, labels = stages.contact_matrix(em, maps, r)
         R, u = len(A), len(labels)
+        n_unk_r = sum_([select(gt(act[k], 0.5), float(KINDS[em.slots[k].kind]), 0.0)
+                        for k in reg.slots])  # fmt: skip
         Aw, bw = A, b[r]  # the rows the solve weighs (whitened when weighted)
         if chol[r] is not None:
             cols = [tril_solve(chol[r], [A[i][j] for i in range(R)]) for j in range(u)]
@@ -339,7 +345,8 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             extra["nullspace"] += [basis[c][i] for i in range(n_unk) for c in range(n_unk)]
         if cones is None:
             continue
-        iterations, eps, tol, stop = cones
+        iterations, eps, tol, stop, *rest = cones
+        prior = rest[0] if rest else None
         x0 = [sum_([mul(A[i][j], ys[r][i]) for i in range(R)]) for j in range(u)]  # pinv(A) b
         x_start, start_on = None, False
         if warm:
@@ -385,7 +392,26 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             c = sqrt(div(select(gt(big_w, 0.0), big, 1.0), select(gt(big_w, 0.0), big_w, 1.0)))
             As = [[mul(c, v) for v in row] for row in Aw]
             bs = [mul(c, v) for v in bw]
-        sol = solve_cones(As, bs, cone_list, x0, eps, iterations, tol, stop, x_start, start_on)
+        else:
+            c = 1.0
+        nu: Scalar = 0.0
+        ridge: Scalar = 0.0
+        exact: Scalar = True
+        if prior is not None:
+            # the MAP estimate (ForcePrior): the data term of the scaled rows is c^2 times the
+            # negative log-likelihood, so the prior's terms are scaled alike
+            c2 = mul(c, c)
+            p_nu, p_scale, p_rel = prior
+            nu = mul(c2, p_nu)
+            if p_scale is not None:
+                ridge = mul(c2, 1.0 / (p_scale * p_scale))
+            else:
+                m_push = sum_([select(cn.on, 1.0, 0.0) for cn in cone_list])
+                s2 = mul(p_rel * p_rel, div(_dot(x0, x0), _maxs(m_push, 1.0)))
+                ridge = div(c2, add(s2, _TINY_SCALE2))
+            exact = logical_not(gt(sub(n_unk_r, ranks[r]), 0.5))
+        sol = solve_cones(As, bs, cone_list, x0, eps, iterations, tol, stop, x_start, start_on,
+                          nu, ridge, exact)  # fmt: skip
         extra["converged"].append(select(sol.converged, 1.0, 0.0))
         extra["iterations"].append(sol.iterations)
         for k, a in zip(cone_slot, sol.active, strict=True):
@@ -408,6 +434,18 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
         res = [sub(sum_([mul(A[i][j], sol.x[j]) for j in range(u)]), b[r][i]) for i in range(R)]
         resid[r] = sqrt(sum_([mul(v, v) for v in res]))
     return resid, w, extra
+
+
+#: Floor of the data-driven prior scale ``s^2`` (N^2): a frame without load gets forces ~1 mN.
+_TINY_SCALE2 = 1e-6
+
+
+def _dot(a: Sequence[Scalar], b: Sequence[Scalar]) -> Scalar:
+    return sum_([mul(u, v) for u, v in zip(a, b, strict=True)])
+
+
+def _maxs(a: Scalar, b: Scalar) -> Scalar:
+    return select(gt(a, b), a, b)
 
 
 def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:
