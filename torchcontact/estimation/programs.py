@@ -393,7 +393,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, ranks, resid,
             As = [[mul(c, v) for v in row] for row in Aw]
             bs = [mul(c, v) for v in bw]
         else:
-            c = 1.0
+            c = 1.0 if prior is None else prior[3]  # unweighted: A = sigma (A / sigma)
         nu: Scalar = 0.0
         ridge: Scalar = 0.0
         exact: Scalar = True
@@ -401,14 +401,16 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, ranks, resid,
             # the MAP estimate (ForcePrior): the data term of the scaled rows is c^2 times the
             # negative log-likelihood, so the prior's terms are scaled alike
             c2 = mul(c, c)
-            p_nu, p_scale, p_rel = prior
+            p_nu, p_scale, p_rel, _ = prior
             nu = mul(c2, p_nu)
             if p_scale is not None:
-                ridge = mul(c2, 1.0 / (p_scale * p_scale))
+                lam: Scalar = 1.0 / (p_scale * p_scale)
             else:
                 m_push = sum_([select(cn.on, 1.0, 0.0) for cn in cone_list])
                 s2 = mul(p_rel * p_rel, div(_dot(x0, x0), _maxs(m_push, 1.0)))
-                ridge = div(c2, add(s2, _TINY_SCALE2))
+                lam = div(1.0, add(s2, _TINY_SCALE2))
+            # eps + ridge = c^2 (1 / s^2 + eps): eps joins the Gaussian, unscaled by c
+            ridge = sub(mul(c2, add(lam, eps)), eps)
             exact = logical_not(gt(sub(n_unk_r, ranks[r]), 0.5))
         sol = solve_cones(As, bs, cone_list, x0, eps, iterations, tol, stop, x_start, start_on,
                           nu, ridge, exact)  # fmt: skip
