@@ -41,9 +41,11 @@ class ContactEstimate(NamedTuple):
         identifiable: sensor -> ``(*B,)`` bool, ``rank == unknowns`` (every unknown determined).
         joint_torques: ``(*B, nv)`` joint torques in ``model.joint_names`` order, N m or N.
         status: ``(*B,)`` int64, 0 if ok, else bits of :data:`torchcontact.STATUS`; outputs of
-            such frames are NaN.
-        covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` from the F/T
-            noise covariance, or None when not asked for.
+            such frames are NaN, but for bit 256 (the constrained solve did not converge: its
+            last iterate is kept).
+        covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` estimate
+            (weighted or not) from the noise covariance, or None when not asked for or with
+            ``constraints`` (the constrained estimate is not linear in the readings).
         cones: status of the friction-cone constrained estimate (``constraints=``), or None.
         nullspace: sensor -> ``(*B, u, u)`` orthonormal basis of the null space of ``A`` among
             the region's unknowns (``nullspace=True``), or None: the first ``nullity[sensor]``
@@ -220,12 +222,16 @@ class ContactEstimator:
             backend: overrides the estimator's backend for this call.
             constraints: :class:`~torchcontact.constrained.FrictionCones`: estimate with every
                 pushing slot's force inside its friction cone (``contacts.normals``,
-                ``friction`` or ``cone_angle``, ``pushing``): ``min |A x - b|^2 + eps |x|^2``
-                by a fixed-budget interior-point method (:mod:`torchcontact.constrained`); the
-                result's ``cones`` holds its status. None: the paper's pseudo-inverse.
+                ``friction`` or ``cone_angle``, ``pushing``): by default the maximum a
+                posteriori estimate under a stated prior (``FrictionCones.objective``; the
+                readings weighted by ``ft_covariance`` when given), or ``min |A x - b|^2 + eps
+                |x|^2``, by a fixed-budget interior-point method (:mod:`torchcontact.constrained`);
+                the result's ``cones`` holds its status, and a frame that does not converge
+                gets status bit 256. None: the paper's pseudo-inverse.
             warm_start: ``(force, moment)``, each ``(*B, K, 3)`` (link frame, e.g. a previous
                 frame's estimate): the constrained solver's starting point (frames with
-                non-finite values start from the pseudo-inverse solution); or
+                non-finite values start from the pseudo-inverse solution; a frame that does not
+                converge from it restarts from there, so the start never changes the answer); or
                 :class:`~torchcontact.constrained.PreviousFrame`: the batch is a time series and
                 each frame starts from its predecessor's estimate (computed in waves).
             nullspace: also return each region's null-space basis (``nullspace`` of the result).
