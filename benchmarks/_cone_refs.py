@@ -1,4 +1,4 @@
-"""Reference estimates for the cone benchmark, in numpy: posterior mean and centre of the feasible set.
+"""Reference estimates of the cone benchmark in numpy: posterior mean, centre of the feasible set.
 
 Both work on a frame's whitened contact matrix ``A~ = L^-1 A`` (6 rows, ``3 K`` columns of the
 active pure forces, link frames) and reading ``b~ = L^-1 (reading - reading without contacts)``,
@@ -138,7 +138,8 @@ def feasible_centre(A, b, active, C, F: float, chi2: float, x0, iters=60):
 
     Args:
         A: ``(n, R, 3 K)``; b: ``(n, R)``; active: ``(n, K)``.
-        C: ``(n, K, 3, 3)`` cone coordinates (``C f in Q^3``: :func:`torchcontact.constrained.cone_rows`).
+        C: ``(n, K, 3, 3)`` cone coordinates (``C f in Q^3``, as
+            :func:`torchcontact.constrained.cone_rows`).
         F: magnitude bound, N.
         chi2: bound on the whitened residual's square.
         x0: ``(n, 3 K)`` strictly feasible starting points.
@@ -174,8 +175,10 @@ def feasible_centre(A, b, active, C, F: float, chi2: float, x0, iters=60):
             gk = -2 * np.einsum("nji,nj->ni", Ck, Jy) / cone[:, k, None]
             gk += 2 * f[:, k] / mag[:, k, None]
             CJC = np.einsum("nai,ab,nbj->nij", Ck, J, Ck)
-            Hk = -2 * CJC / cone[:, k, None, None] + np.einsum("ni,nj->nij", gk - 2 * f[:, k] / mag[:, k, None], gk - 2 * f[:, k] / mag[:, k, None])
-            Hk += 2 * np.eye(3) / mag[:, k, None, None] + 4 * np.einsum("ni,nj->nij", f[:, k], f[:, k]) / mag[:, k, None, None] ** 2
+            gc = gk - 2 * f[:, k] / mag[:, k, None]  # the cone barrier's gradient
+            Hk = -2 * CJC / cone[:, k, None, None] + np.einsum("ni,nj->nij", gc, gc)
+            ff = np.einsum("ni,nj->nij", f[:, k], f[:, k])
+            Hk += 2 * np.eye(3) / mag[:, k, None, None] + 4 * ff / mag[:, k, None, None] ** 2
             on = active[:, k, None, None]
             H[:, 3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = np.where(on, Hk, np.eye(3))
             g[:, k] = np.where(active[:, k, None], gk, 0.0)

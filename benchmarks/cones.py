@@ -78,8 +78,10 @@ def main() -> None:
         "pinv": {},
         "wls": {"ft_covariance": cov},
         "cone min-norm": {"constraints": tc.FrictionCones(objective="min_norm")},
-        "cone min-norm w": {"constraints": tc.FrictionCones(objective="min_norm"),
-                            "ft_covariance": cov},  # fmt: skip
+        "cone min-norm w": {
+            "constraints": tc.FrictionCones(objective="min_norm"),
+            "ft_covariance": cov,
+        },  # fmt: skip
         "cone MAP": {"constraints": tc.FrictionCones()},
         "cone MAP w": {"constraints": tc.FrictionCones(), "ft_covariance": cov},
     }
@@ -126,7 +128,8 @@ def _table(errs, refs, count, ref_idx, fr) -> None:
     print("|---|---:|" + "---:|" * len(names))
     for K in (1, 2, 3, 4):
         m = count == K
-        print(f"| {K} | {m.sum()} | " + " | ".join(f"{_med(errs[k][m]):.3f}" for k in names) + " |")
+        row = " | ".join(f"{_med(errs[k][m]):.3f}" for k in names)
+        print(f"| {K} | {m.sum()} | {row} |")
     m = count >= 3
     base = _med(errs["pinv"][m])
     print(f"| >= 3 | {m.sum()} | " + " | ".join(f"{_med(errs[k][m]):.3f}" for k in names) + " |")
@@ -135,7 +138,7 @@ def _table(errs, refs, count, ref_idx, fr) -> None:
     cols = ["pinv", "wls", "cone min-norm w", "cone MAP w", *refs]
     sub = {k: errs[k][ref_idx] for k in cols[:4]} | refs
     cnt = count[ref_idx]
-    print(f"\nreference subset ({len(ref_idx)} frames, weighted estimates; gain = pinv / estimator)")
+    print(f"\nreference subset ({len(ref_idx)} frames, weighted; gain = pinv / estimator)")
     print("| K | " + " | ".join(cols) + " |")
     print("|---|" + "---:|" * len(cols))
     for K in (2, 3, 4):
@@ -149,7 +152,7 @@ def _table(errs, refs, count, ref_idx, fr) -> None:
 
 def _references(est, sub: dict, map_res, idx, mag: str, dirn: str, steps: int) -> dict:
     """Centre, combination and posterior means on the subset (per-slot errors ``(n, K)``)."""
-    from _cone_data import HALF_ANGLE, SIGMA_F, SIGMA_M, SENSOR
+    from _cone_data import HALF_ANGLE, SENSOR, SIGMA_F, SIGMA_M
     from _cone_refs import ConePrior, contact_matrix, feasible_centre, posterior_mean
 
     from torchcontact.constrained import cone_rows
@@ -214,15 +217,17 @@ def _convergence(res, count) -> None:
         conv = r.cones.converged[SENSOR].numpy()
         it = r.cones.iterations[SENSOR].numpy()
         ok = r.status.numpy() == 0
-        print(f"{name}: converged {conv.mean():.4%}, unconverged marked ok {int((~conv & ok).sum())},"
+        bad = int((~conv & ok).sum())
+        print(f"{name}: converged {conv.mean():.4%}, unconverged marked ok {bad},"
               f" iterations mean {it.mean():.1f} (frames solved {it[it > 0].mean():.1f}), max"
               f" {it.max()}")  # fmt: skip
 
 
 def _warm_start(est, inputs, fr, cov) -> None:
     """Each frame warm-started from its (unrelated) predecessor: the answers must not change."""
-    import torchcontact as tc
     from _cone_data import SENSOR
+
+    import torchcontact as tc
 
     for name, kw in (("MAP w", {"ft_covariance": cov}), ("min-norm", {})):
         obj = "map" if name.startswith("MAP") else "min_norm"
@@ -241,10 +246,14 @@ def _throughput(est, inputs, cov, rounds: int, rate) -> None:
     import torchcontact as tc
 
     n = inputs[0].shape[0]
-    kinds = {"unconstrained (wls)": {"ft_covariance": cov},
-             "constrained (MAP w)": {"ft_covariance": cov, "constraints": tc.FrictionCones()},
-             "constrained (min-norm w)": {"ft_covariance": cov,
-                                          "constraints": tc.FrictionCones(objective="min_norm")}}
+    kinds = {
+        "unconstrained (wls)": {"ft_covariance": cov},
+        "constrained (MAP w)": {"ft_covariance": cov, "constraints": tc.FrictionCones()},
+        "constrained (min-norm w)": {
+            "ft_covariance": cov,
+            "constraints": tc.FrictionCones(objective="min_norm"),
+        },
+    }
     for kw in kinds.values():
         est.estimate(*inputs, **kw)  # build or load the kernels
     rates: dict[str, list[float]] = {k: [] for k in kinds}

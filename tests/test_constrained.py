@@ -25,6 +25,7 @@ MU = math.tan(0.5)
 
 MIN_NORM = FrictionCones(objective="min_norm")
 
+
 def _cone_C(n, mu):
     n = n / np.linalg.norm(n)
     t1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
@@ -359,7 +360,14 @@ def _tcarm_pushes(n, seed, weighted):
         A[:, :, j] = est.predict_ft(q, qd, qdd, tc.Contacts(links, ("known",) * 2, pos,
                                                             wrenches=w))["base_ft"] - r0  # fmt: skip
     W = 1 / sig if weighted else torch.full((6,), 1 / 0.01, dtype=f64)  # unweighted_sigma
-    return est, (q, qd, qdd, ft), c, kw, (A * W[:, None]).numpy(), ((ft["base_ft"] - r0) * W).numpy()
+    return (
+        est,
+        (q, qd, qdd, ft),
+        c,
+        kw,
+        (A * W[:, None]).numpy(),
+        ((ft["base_ft"] - r0) * W).numpy(),
+    )
 
 
 @pytest.mark.parametrize("weighted", [True, False])

@@ -731,7 +731,9 @@ def test_weighted_is_numpy_weighted_least_squares(arms, backend):
     b = stack_ft(est, ft) - r0
     w_est = torch.cat((out.force, out.moment), -1).numpy()
     for i in range(n):
-        x, cov_x = _weighted_reference(A[i], b[i], blocks, {s: v[i].numpy() for s, v in sig.items()})
+        x, cov_x = _weighted_reference(
+            A[i], b[i], blocks, {s: v[i].numpy() for s, v in sig.items()}
+        )
         np.testing.assert_allclose(w_est[i], np.einsum("kju,u->kj", B[i], x), atol=ATOL, rtol=0)
         cov_w = np.einsum("kau,uv,kbv->kab", B[i], cov_x, B[i])
         scale = np.abs(cov_w).max()
@@ -781,7 +783,9 @@ def test_weighted_torque_rows_get_their_own_noise(arms):
             T[:, j] = (with_f - zero)[0, coords].numpy()
         tau0 = model.inverse_dynamics(q[i : i + 1], qd[i : i + 1], qdd[i : i + 1])[0, coords]
         Af = np.vstack([A[i][rows6], -T])
-        bf = np.concatenate([(stack_ft(est, ft)[i] - r0[i])[rows6], (tau[i, coords] - tau0).numpy() * -1])
+        bf = np.concatenate(
+            [(stack_ft(est, ft)[i] - r0[i])[rows6], (tau[i, coords] - tau0).numpy() * -1]
+        )
         S = np.zeros((6 + len(coords),) * 2)
         S[:6, :6] = sig["l_arm_ft"].numpy()
         S[6:, 6:] = np.diag(var.numpy()[coords])

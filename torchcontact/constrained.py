@@ -105,9 +105,9 @@ from torch import Tensor
 from torchcontact._scalar import (
     Scalar,
     add,
-    is_const,
     div,
     gt,
+    is_const,
     isfinite,
     logical_and,
     logical_not,
@@ -300,9 +300,11 @@ class FrictionCones:
         return (*self.resolved(dtype), prior)
 
     def objective_of(self, dtype: torch.dtype) -> str:
-        """The objective used in ``dtype``: ``objective``, or by default ``"map"`` in float64 and
-        ``"min_norm"`` in float32 (the posterior's curvature along ``null(A)`` is ~1e-6 of the
-        readings' on the iCub, below what float32 iterations resolve).
+        """The objective used in ``dtype``.
+
+        ``objective``, or by default ``"map"`` in float64 and ``"min_norm"`` in float32 (the
+        posterior's curvature along ``null(A)`` is ~1e-6 of the readings' on the iCub, below
+        what float32 iterations resolve).
         """
         if self.objective is not None:
             return self.objective
@@ -787,7 +789,8 @@ def solve_cones(
 
     def start(x0: list[Scalar], warm: Scalar) -> list[Scalar]:
         st = [_cx(c, x0) for c in cones]
-        scale = add(1.0, sqrt(sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])))
+        size2 = sum_([select(o, _dot(v, v), 0.0) for o, v in zip(on, st, strict=True)])
+        scale = add(1.0, sqrt(size2))
         margin = mul(select(warm, WARM_MARGIN[0], 0.1), scale)
         dual0 = mul(select(warm, WARM_MARGIN[1], 1.0), scale)
         s0, z0 = [], []

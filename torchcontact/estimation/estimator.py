@@ -249,7 +249,7 @@ class ContactEstimator:
                 positive definite, a missing sensor covariance or ``tau_variance`` of a weighted
                 solve, a variance that is not > 0.
         """
-        model, S, K, nv = self.model, len(self.sensor_names), contacts.K, self.model.nv
+        model, K, nv = self.model, contacts.K, self.model.nv
         dtype, device = model.dtype, model.device
         em = self.layout(contacts.links, contacts.kinds)
         for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):

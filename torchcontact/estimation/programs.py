@@ -381,6 +381,7 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, ranks, resid,
             start += KINDS[slot.kind]
         As, bs = A, b[r]
         if chol[r] is not None:  # the whitened rows, scaled back to the size of A's
+
             def rowmax(M):
                 out: Scalar = 0.0
                 for row in M:

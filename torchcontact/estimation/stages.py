@@ -376,7 +376,10 @@ def covariance(
         cols = []
         for j in rows:  # d w_k / d b_j, the solve being linear in b
             e = [1.0 if i == j else 0.0 for i in range(Rr)]
-            y = solve_factored(f, e) if L is None else triu_t_solve(L, solve_factored(f, tril_solve(L, e)))
+            if L is None:
+                y = solve_factored(f, e)
+            else:  # y = L^-T pinv(G~) L^-1 e
+                y = triu_t_solve(L, solve_factored(f, tril_solve(L, e)))
             wk = _slot_wrench(slot.kind, maps[k], y)
             cols.append([*wk[0], *wk[1]])
         M = [[cols[a][i] for a in range(len(rows))] for i in range(6)]
