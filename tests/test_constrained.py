@@ -379,7 +379,7 @@ def test_map_is_the_minimiser_of_the_stated_posterior(weighted):
     assert r.cones.converged["base_ft"].all() and (r.status == 0).all()
     x = r.force.reshape(-1, 6).numpy()
     n_hat = c.normals.numpy()
-    eps = 1e-9
+    eps, nu = 1e-9, tc.ForcePrior().nu
     for i in range(len(x)):
         x_pinv = np.linalg.pinv(A[i], rcond=1e-7) @ b[i]
         lam = 1.0 / (x_pinv @ x_pinv / 2 + 1e-6) + eps  # ForcePrior(): relative 1, 2 slots
@@ -389,7 +389,7 @@ def test_map_is_the_minimiser_of_the_stated_posterior(weighted):
             y = C @ x[i, 3 * k : 3 * k + 3]
             assert y[0] > np.hypot(y[1], y[2])  # strictly inside its cone
             jy = y * np.array([1.0, -1.0, -1.0])
-            grad[3 * k : 3 * k + 3] -= C.T @ jy / (y @ jy)  # nu / 2 * d log(y^T J y), nu = 1
+            grad[3 * k : 3 * k + 3] -= nu * C.T @ jy / (y @ jy)  # d (nu / 2 log(y^T J y))
         scale = np.abs(A[i].T @ b[i]).max() + 1.0
         assert np.abs(grad).max() < 1e-7 * scale, (i, grad)
     # the prior moves the estimate away from the minimum-norm one, towards the truth's depth

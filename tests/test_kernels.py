@@ -134,6 +134,7 @@ def test_estimator_kernel_equals_eager_on_every_output(flags):
                 [j.startswith(("l_elbow", "l_wrist")) for j in model.joint_names]
             ),  # fmt: skip
             "ft_covariance": {s: torch.eye(6, dtype=torch.float64) * 0.1 for s in est.sensor_names},
+            "tau_variance": torch.full((model.nv,), 0.01, dtype=torch.float64),
         }
     c = tc.Contacts(ESTIMATE_LINKS, ESTIMATE_KINDS, pos, dirs, wr, active)
     a = est.estimate(q, qd, qdd, ft, c, backend="cpu", **kw)
