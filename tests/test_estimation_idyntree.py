@@ -666,7 +666,9 @@ def test_covariance_is_pinv_sigma_pinv_t(icub):
     for s in est.sensor_names:
         L = torch.randn(6, 6, generator=g, dtype=DT)
         sig[s] = L @ L.T + 0.1 * torch.eye(6, dtype=DT)
-    out = est.estimate(q, qd, qdd, ft, tc.Contacts(links, kinds, pos), ft_covariance=sig)
+    out = est.estimate(
+        q, qd, qdd, ft, tc.Contacts(links, kinds, pos), ft_covariance=sig, weighted=False
+    )  # the noise propagated through the paper's pinv
     A, _, B, col_slot = build_A(est, q, qd, qdd, links, kinds, pos, dirs)
     blocks = region_blocks(est, links, col_slot)
     for i in range(n):
