@@ -246,8 +246,9 @@ class FrictionCones:
               one). Assumes forces that push well inside their cones with magnitudes of the
               order the data suggest; it is interior to every cone (a force exactly on a cone's
               boundary or at its apex is approached, not reached). Measured on held-out iCub
-              frames (``benchmarks/cones.py``): with three or four contacts, 2.3x lower median
-              error than the pseudo-inverse, against 1.75x for ``"min_norm"``.
+              frames (``benchmarks/cones.py``, ``docs/accuracy.md``): with three or four
+              contacts, 2.2x lower median error than the pseudo-inverse, against 1.75x for
+              ``"min_norm"``, and ahead of it on each of four force distributions.
             * ``"min_norm"``: ``min |A x - b|^2 + eps |x|^2``, the smallest force inside the
               cones among the best fits. Assumes nothing about the forces beyond the cones: it
               is exact where they pin the forces (forces on the cones' boundaries), and biased
