@@ -70,7 +70,7 @@ def main() -> None:
           f" budget {cons.iterations} iterations")  # fmt: skip
     em = est.layout(c.links, c.kinds)
     for name, kw in kinds.items():
-        flags = None if not kw else kw["constraints"].resolved(torch.float64)
+        flags = None if not kw else kw["constraints"].program_flags(torch.float64)
         tr, out = program(em, "estimate", False, False, False, flags, False, False).trace()
         nodes = live_nodes(tr, [x for xs in out.values() for x in xs])
         body = sum(len(b) for b in loop_bodies(nodes).values())

@@ -4,7 +4,8 @@ iCub (icub-models) left forearm and hand, behind the left arm F/T sensor: K = 2,
 forces, each pushing inside a cone of half-angle 0.5 rad around the inward surface normal (angle
 uniform in [0, 0.5] rad, norm uniform in [0, F] N), random joint states, exact readings. Per force
 the error norm of the pseudo-inverse (the paper's estimate) and of the friction-cone constrained
-estimate (``estimate(..., constraints=FrictionCones())``, same normals, same 0.5 rad cones); like
+estimates (``estimate(..., constraints=FrictionCones())``, the maximum a posteriori default, and
+``FrictionCones(objective="min_norm")``; same normals, same 0.5 rad cones); like
 the paper's sigma ~ K/4 analysis, errors are summarised by their RMS (sigma of a half-Gaussian) in
 units of the maximum force F, the median, and the shares below F/4 and F/2.
 
@@ -85,20 +86,25 @@ def run(model: tc.RobotModel, K: int, frames: int, F: float = 10.0, seed: int = 
         backend: kernel backend of the estimator.
 
     Returns:
-        ``pinv`` and ``cone`` error norms ``(frames, K)`` N, ``converged`` ``(frames,)``,
-        ``iterations`` ``(frames,)``, ``active`` ``(frames, K)``, ``rank`` and ``unknowns``.
+        ``pinv``, ``cone`` (the default, MAP) and ``cone_min_norm`` error norms ``(frames, K)``
+        N, ``converged`` ``(frames,)`` (both constrained estimates), ``iterations``
+        ``(frames,)`` (MAP), ``active`` ``(frames, K)`` (the min-norm estimate's binding
+        cones: the MAP estimate is interior), ``rank`` and ``unknowns``.
     """
     est = tc.ContactEstimator(model)
     sensor = est.sensor_names[est.region[model.frame(LINKS[0]).body]]
     (q, qd, qdd, ft), c, truth = simulate(model, est, K, frames, F, seed)
     free = est.estimate(q, qd, qdd, ft, c, backend=backend)
     cone = est.estimate(q, qd, qdd, ft, c, constraints=tc.FrictionCones(), backend=backend)
+    mn = est.estimate(q, qd, qdd, ft, c, constraints=tc.FrictionCones(objective="min_norm"),
+                      backend=backend)  # fmt: skip
     return {
         "pinv": (free.force - truth).norm(dim=-1).numpy(),
         "cone": (cone.force - truth).norm(dim=-1).numpy(),
-        "converged": cone.cones.converged[sensor].numpy(),
+        "cone_min_norm": (mn.force - truth).norm(dim=-1).numpy(),
+        "converged": cone.cones.converged[sensor].numpy() & mn.cones.converged[sensor].numpy(),
         "iterations": cone.cones.iterations[sensor].numpy(),
-        "active": cone.cones.active.numpy(),
+        "active": mn.cones.active.numpy(),
         "rank": free.rank[sensor].numpy(),
         "unknowns": free.unknowns[sensor].numpy(),
     }
@@ -127,21 +133,25 @@ def main() -> None:
         r = run(model, K, args.frames, args.F)
         results[K] = r
         sp, sc = summary(r["pinv"], args.F), summary(r["cone"], args.F)
+        sm = summary(r["cone_min_norm"], args.F)
         rows.append(
             f"| {K} | {int(np.median(r['unknowns']))} / {int(np.median(r['rank']))} |"
-            f" {sp['sigma_over_F']:.3f} | {sc['sigma_over_F']:.3f} |"
-            f" {sp['median_over_F']:.3f} | {sc['median_over_F']:.3f} |"
+            f" {sp['sigma_over_F']:.3f} | {sm['sigma_over_F']:.3f} | {sc['sigma_over_F']:.3f} |"
+            f" {sp['median_over_F']:.3f} | {sm['median_over_F']:.3f} |"
+            f" {sc['median_over_F']:.3f} |"
+            f" {sp['median_over_F'] / max(sm['median_over_F'], 1e-12):.1f}x /"
             f" {sp['median_over_F'] / max(sc['median_over_F'], 1e-12):.1f}x |"
-            f" {100 * sp['below_F_4']:.0f}% / {100 * sc['below_F_4']:.0f}% |"
+            f" {100 * sp['below_F_4']:.0f}% / {100 * sm['below_F_4']:.0f}% /"
+            f" {100 * sc['below_F_4']:.0f}% |"
             f" {100 * r['converged'].mean():.1f}% | {np.median(r['iterations']):.0f}"
             f" ({r['iterations'].max()}) | {100 * r['active'].mean():.0f}% |"
         )
     print(f"iCub left arm, {args.frames} frames per K, |f| ~ U[0, {args.F:g}] N, pushing within "
           f"{HALF_ANGLE} rad of the normal, exact readings")  # fmt: skip
-    print("| K | unknowns / rank | sigma/F pinv | sigma/F cone | median/F pinv | median/F cone |"
-          " median ratio | < F/4 pinv / cone | converged | iterations median (max) |"
-          " cones active |")  # fmt: skip
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| K | unknowns / rank | sigma/F pinv | min-norm | MAP | median/F pinv | min-norm |"
+          " MAP | median ratio min-norm / MAP | < F/4 pinv / min-norm / MAP | converged |"
+          " MAP iterations median (max) | min-norm cones active |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     print("\n".join(rows))
     import matplotlib
 
@@ -153,8 +163,10 @@ def main() -> None:
     for ax, K in zip(axes, (2, 3, 4, 6), strict=True):
         r = results[K]
         ax.hist(r["pinv"].ravel(), bins=bins, density=True, alpha=0.55, label="pinv (paper)")
-        ax.hist(r["cone"].ravel(), bins=bins, density=True, alpha=0.55, label="friction cones")
-        for key, color in (("pinv", "C0"), ("cone", "C1")):
+        ax.hist(r["cone_min_norm"].ravel(), bins=bins, density=True, alpha=0.45,
+                label="cones, min-norm")  # fmt: skip
+        ax.hist(r["cone"].ravel(), bins=bins, density=True, alpha=0.45, label="cones, MAP")
+        for key, color in (("pinv", "C0"), ("cone_min_norm", "C1"), ("cone", "C2")):
             sigma = math.sqrt(float(np.mean(r[key] ** 2)))
             x = np.linspace(0, args.F, 200)
             ax.plot(x, np.sqrt(2 / np.pi) / sigma * np.exp(-(x**2) / (2 * sigma**2)), color=color,

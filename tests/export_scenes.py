@@ -192,8 +192,9 @@ def reference(
         kw["base"] = tc.BaseMotion(t["omega"], t["domega"], t["proper_acc"])
     if "tau_measured" in t:
         kw.update(tau_measured=t["tau_measured"], tau_mask=t["tau_mask"] > 0.5)
-    if "ft_cov" in t:
+    if "ft_cov" in t:  # the exported graphs propagate the noise, unweighted (the paper's pinv)
         kw["ft_covariance"] = {s: t["ft_cov"][:, i] for i, s in enumerate(est.sensor_names)}
+        kw["weighted"] = False
     out = est.estimate(t["q"], t["qd"], t["qdd"], ft, c, backend="eager", **kw)
     return type(out)(
         *[

@@ -30,8 +30,13 @@ def test_cones_beat_the_pseudo_inverse_on_pushing_contacts(K, unknowns):
     sp, sc = ex.summary(r["pinv"], F), ex.summary(r["cone"], F)
     if K == 2:  # the paper's case: the pseudo-inverse error is sqrt(2)/6 F (sigma ~ F/4)
         assert abs(sp["sigma_over_F"] - np.sqrt(2) / 6) < 0.03
-    # measured with 3000 frames (README): median ratio 2.0 (K=2), 1.8, 1.7, 1.5 (K=6)
-    assert sp["median_over_F"] / sc["median_over_F"] > 1.3
+    # measured with 3000 frames (docs/accuracy.md): median ratio of the default (MAP) 2.4 to
+    # 2.7x, of the minimum-norm objective 2.0 (K=2), 1.8, 1.7, 1.5 (K=6)
+    sm = ex.summary(r["cone_min_norm"], F)
+    assert sp["median_over_F"] / sm["median_over_F"] > 1.3
+    assert (
+        sp["median_over_F"] / sc["median_over_F"] > 1.1 * sp["median_over_F"] / sm["median_over_F"]
+    )
     assert sc["sigma_over_F"] < 0.8 * sp["sigma_over_F"]
     assert sc["below_F_4"] > sp["below_F_4"] + 0.1
     assert 0.1 < r["active"].mean() < 0.9

@@ -23,6 +23,9 @@ REF_RTOL = 1e-6  # constrained solution vs clarabel, relative to max(1, |x|)
 MU = math.tan(0.5)
 
 
+MIN_NORM = FrictionCones(objective="min_norm")
+
+
 def _cone_C(n, mu):
     n = n / np.linalg.norm(n)
     t1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
@@ -161,9 +164,10 @@ def _icub_two_pushes(n, seed, boundary=False):
 
 
 def test_recovers_the_truth_where_the_cones_make_it_identifiable():
+    """The minimum-norm objective: forces on the cones' boundaries are reached exactly."""
     est, state, contacts, truth = _icub_two_pushes(40, seed=1, boundary=True)
     free = est.estimate(*state, contacts, backend="eager")
-    cone = est.estimate(*state, contacts, constraints=FrictionCones(), backend="eager")
+    cone = est.estimate(*state, contacts, constraints=MIN_NORM, backend="eager")
     assert (free.rank["l_arm_ft"] == 5).all() and (free.nullity["l_arm_ft"] == 1).all()
     assert (free.force - truth).abs().max() > 0.05  # the pseudo-inverse cannot tell
     # the truth sits where two cone boundaries pinch the unobservable line: the multipliers are
@@ -179,12 +183,12 @@ def test_equals_pinv_when_the_unconstrained_solution_is_inside_the_cones():
     # normals opposite to the pseudo-inverse forces: every unconstrained solution is inside
     inside = tc.Contacts(contacts.links, contacts.kinds, contacts.positions,
                          normals=-free.force, cone_angle=0.5)  # fmt: skip
-    cone = est.estimate(*state, inside, constraints=FrictionCones(), backend="eager")
+    cone = est.estimate(*state, inside, constraints=MIN_NORM, backend="eager")
     torch.testing.assert_close(cone.force, free.force, atol=1e-6 * truth.abs().max(), rtol=0)
     torch.testing.assert_close(cone.joint_torques, free.joint_torques, atol=1e-5, rtol=0)
     assert not cone.cones.active.any()
     # with arbitrary normals the cones bind in some frames and the error to the truth drops
-    tight = est.estimate(*state, contacts, constraints=FrictionCones(), backend="eager")
+    tight = est.estimate(*state, contacts, constraints=MIN_NORM, backend="eager")
     assert tight.cones.active.any()
     err_free = (free.force - truth).norm(dim=-1).median()
     err_cone = (tight.force - truth).norm(dim=-1).median()
@@ -272,7 +276,9 @@ def test_batch_shapes_and_float32(shape):
                            constraints=FrictionCones(), backend="eager")  # fmt: skip
         torch.testing.assert_close(one.force[0], flat[0], atol=1e-9, rtol=0)
         assert not torch.allclose(flat[0], flat[-1])
-    # float32: same cones, same answer to float32 accuracy
+    # float32: same cones, same answer to float32 accuracy (the default objective in float32 is
+    # the minimum-norm one: FrictionCones.objective_of)
+    r = est.estimate(q, qd, qdd, ft, c, constraints=MIN_NORM, backend="eager")
     m32 = model.to(dtype=torch.float32)
     est32 = tc.ContactEstimator(m32)
     c32 = tc.Contacts(links, c.kinds, pos.float(), normals=normals.float(),
@@ -379,3 +385,95 @@ def test_slot_list_edge_cases_take_the_unconstrained_path(case):
         assert (cone.cones.iterations["base_ft"] == 0).all() and not cone.cones.active.any()
         torch.testing.assert_close(cone.force, free.force, atol=1e-9, rtol=0)
         torch.testing.assert_close(cone.joint_torques, free.joint_torques, atol=1e-9, rtol=0)
+
+
+# ------------------------------------------------------------------ the MAP objective (ForcePrior)
+def _tcarm_pushes(n, seed, weighted):
+    """Two pushing forces on the bundled arm (rank 5 of 6 unknowns), noisy readings."""
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    est = tc.ContactEstimator(model)
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    q, qd, qdd = random_state(model, n, seed=seed)
+    pos = 0.05 * torch.randn(n, 2, 3, generator=g, dtype=f64)
+    normals = torch.randn(n, 2, 3, generator=g, dtype=f64)
+    normals = normals / normals.norm(dim=-1, keepdim=True)
+    force = -5 * normals + torch.randn(n, 2, 3, generator=g, dtype=f64)
+    links = ("forearm_skin", "hand_skin")
+    wr = torch.cat([force, 0 * force], -1)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ("known",) * 2, pos, wrenches=wr))
+    sig = torch.tensor([0.1, 0.2, 0.1, 0.005, 0.004, 0.006], dtype=f64)
+    ft["base_ft"] = ft["base_ft"] + sig * torch.randn(n, 6, generator=g, dtype=f64)
+    c = tc.Contacts(links, ("force",) * 2, pos, normals=normals, cone_angle=0.5)
+    kw = {"ft_covariance": {"base_ft": torch.diag(sig**2)}} if weighted else {}
+    # A (n, 6, 6) column by column (linear in the forces) and the contact-free reading
+    zero = tc.Contacts(links, ("known",) * 2, pos, wrenches=0 * wr)
+    r0 = est.predict_ft(q, qd, qdd, zero)["base_ft"]
+    A = torch.zeros(n, 6, 6, dtype=f64)
+    for j in range(6):
+        w = torch.zeros(n, 2, 6, dtype=f64)
+        w[:, j // 3, j % 3] = 1.0
+        A[:, :, j] = est.predict_ft(q, qd, qdd, tc.Contacts(links, ("known",) * 2, pos,
+                                                            wrenches=w))["base_ft"] - r0  # fmt: skip
+    W = 1 / sig if weighted else torch.full((6,), 1 / 0.01, dtype=f64)  # unweighted_sigma
+    return (
+        est,
+        (q, qd, qdd, ft),
+        c,
+        kw,
+        (A * W[:, None]).numpy(),
+        ((ft["base_ft"] - r0) * W).numpy(),
+    )
+
+
+@pytest.mark.parametrize("weighted", [True, False])
+def test_map_is_the_minimiser_of_the_stated_posterior(weighted):
+    """The default objective: the gradient of the documented negative log-posterior vanishes at
+    the estimate (a strictly convex function: it is its unique minimiser), computed in numpy."""
+    est, state, c, kw, A, b = _tcarm_pushes(24, seed=11, weighted=weighted)
+    r = est.estimate(*state, c, constraints=FrictionCones(), backend="eager", **kw)
+    assert r.cones.converged["base_ft"].all() and (r.status == 0).all()
+    x = r.force.reshape(-1, 6).numpy()
+    n_hat = c.normals.numpy()
+    eps, nu = 1e-9, tc.ForcePrior().nu
+    for i in range(len(x)):
+        x_pinv = np.linalg.pinv(A[i], rcond=1e-7) @ b[i]
+        lam = 1.0 / (x_pinv @ x_pinv / 2 + 1e-6) + eps  # ForcePrior(): relative 1, 2 slots
+        grad = A[i].T @ (A[i] @ x[i] - b[i]) + lam * x[i]
+        for k in range(2):
+            C = _cone_C(n_hat[i, k], MU)
+            y = C @ x[i, 3 * k : 3 * k + 3]
+            assert y[0] > np.hypot(y[1], y[2])  # strictly inside its cone
+            jy = y * np.array([1.0, -1.0, -1.0])
+            grad[3 * k : 3 * k + 3] -= nu * C.T @ jy / (y @ jy)  # d (nu / 2 log(y^T J y))
+        scale = np.abs(A[i].T @ b[i]).max() + 1.0
+        assert np.abs(grad).max() < 1e-7 * scale, (i, grad)
+    # the prior moves the estimate away from the minimum-norm one, towards the truth's depth
+    mn = est.estimate(*state, c, constraints=MIN_NORM, backend="eager", **kw)
+    assert (mn.force - r.force).abs().max() > 0.1
+
+
+def test_unconverged_frames_get_status_256_and_a_warm_start_restarts():
+    est, state, c, kw, _, _ = _tcarm_pushes(24, seed=12, weighted=True)
+    cold = est.estimate(*state, c, constraints=FrictionCones(), backend="eager", **kw)
+    assert cold.cones.converged["base_ft"].all() and (cold.status == 0).all()
+    # a budget too small: not converged, status 256 (a warning: outputs finite), never ok
+    short = est.estimate(*state, c, constraints=FrictionCones(iterations=2), backend="eager",
+                         **kw)  # fmt: skip
+    unconv = ~short.cones.converged["base_ft"]
+    assert unconv.sum() > 5
+    assert torch.equal(short.status != 0, unconv) and (short.status[unconv] == 256).all()
+    assert short.force.isfinite().all()
+    assert tc.status_messages(256).startswith("constrained solve not converged")
+    # a hopeless warm start (forces of 1e6 N) runs out of budget, restarts from the
+    # pseudo-inverse and ends where the cold start does
+    far = (1e6 * torch.ones_like(cold.force), torch.zeros_like(cold.moment))
+    warm = est.estimate(*state, c, constraints=FrictionCones(), warm_start=far, backend="eager",
+                        **kw)  # fmt: skip
+    assert warm.cones.converged["base_ft"].all() and (warm.status == 0).all()
+    assert (warm.cones.iterations["base_ft"] > 25).any()  # the restart ran
+    scale = float(cold.force.abs().max())
+    torch.testing.assert_close(warm.force, cold.force, atol=1e-6 * scale, rtol=0)
+    kern = est.estimate(*state, c, constraints=FrictionCones(), warm_start=far, backend="cpu",
+                        **kw)  # fmt: skip
+    torch.testing.assert_close(kern.force, cold.force, atol=1e-6 * scale, rtol=0)

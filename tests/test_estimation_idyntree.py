@@ -666,7 +666,9 @@ def test_covariance_is_pinv_sigma_pinv_t(icub):
     for s in est.sensor_names:
         L = torch.randn(6, 6, generator=g, dtype=DT)
         sig[s] = L @ L.T + 0.1 * torch.eye(6, dtype=DT)
-    out = est.estimate(q, qd, qdd, ft, tc.Contacts(links, kinds, pos), ft_covariance=sig)
+    out = est.estimate(
+        q, qd, qdd, ft, tc.Contacts(links, kinds, pos), ft_covariance=sig, weighted=False
+    )  # the noise propagated through the paper's pinv
     A, _, B, col_slot = build_A(est, q, qd, qdd, links, kinds, pos, dirs)
     blocks = region_blocks(est, links, col_slot)
     for i in range(n):
@@ -681,3 +683,147 @@ def test_covariance_is_pinv_sigma_pinv_t(icub):
         np.testing.assert_allclose(out.covariance[i].numpy(), cov_w, atol=1e-9 * scale, rtol=0)
     assert out.covariance.shape == (n, len(links), 6, 6)
     assert (out.covariance[:, 0].diagonal(dim1=-2, dim2=-1) > 0).all()
+
+
+# ---------------------------------------------------------------------------------- i. weighted
+def _weighted_reference(A, b, blocks, sigmas, rcond=1e-7):
+    """numpy weighted least squares of minimum norm, region by region: ``x = pinv(L^-1 A) L^-1
+    b`` with ``Sigma = L L^T``, and the estimate's covariance ``pinv(L^-1 A) pinv(L^-1 A)^T``."""
+    x = np.zeros(A.shape[1])
+    cov = np.zeros((A.shape[1], A.shape[1]))
+    for s, (rows, cols) in blocks.items():
+        if len(cols) == 0:
+            continue
+        L = np.linalg.cholesky(sigmas[s])
+        Aw = np.linalg.solve(L, A[np.ix_(rows, cols)])
+        x[cols] = np.linalg.lstsq(Aw, np.linalg.solve(L, b[rows]), rcond=rcond)[0]
+        P = np.linalg.pinv(Aw, rcond=rcond)
+        cov[np.ix_(cols, cols)] = P @ P.T
+    return x, cov
+
+
+@pytest.fixture(scope="module")
+def arms(icub):
+    """The two arm sensors only: a smaller kernel than the whole robot's six regions."""
+    model = icub[0]
+    return model, tc.ContactEstimator(model, ["l_arm_ft", "r_arm_ft"])
+
+
+@pytest.mark.parametrize("backend", ["eager", "cpu"])
+def test_weighted_is_numpy_weighted_least_squares(arms, backend):
+    """``ft_covariance`` weighs the solve: weighted least squares, minimum norm among its
+    solutions (l_arm rank 6 of 9 unknowns, r_arm rank 5 of 6), per-frame covariances."""
+    model, est = arms
+    n = 3
+    q, qd, qdd = random_state(model, n, seed=110)
+    pos, dirs, wr = random_contacts(C_LINKS, C_KINDS, n, seed=111)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(C_LINKS, ["known"] * 4, pos, wrenches=wr))
+    g = torch.Generator().manual_seed(112)
+    sig = {}
+    floor = torch.diag(torch.tensor([0.01] * 3 + [2.5e-5] * 3, dtype=DT))  # FT 300-like
+    for s in est.sensor_names:
+        M = torch.randn(n, 6, 6, generator=g, dtype=DT) * 0.05
+        sig[s] = M @ M.transpose(-1, -2) + floor  # a different correlated noise per frame
+        ft[s] = ft[s] + torch.randn(n, 6, generator=g, dtype=DT) * 0.1
+    c = tc.Contacts(C_LINKS, C_KINDS, pos)
+    out = est.estimate(q, qd, qdd, ft, c, ft_covariance=sig, backend=backend)
+    plain = est.estimate(q, qd, qdd, ft, c, ft_covariance=sig, weighted=False, backend=backend)
+    A, r0, B, col_slot = build_A(est, q, qd, qdd, C_LINKS, C_KINDS, pos, dirs)
+    blocks = region_blocks(est, C_LINKS, col_slot)
+    b = stack_ft(est, ft) - r0
+    w_est = torch.cat((out.force, out.moment), -1).numpy()
+    for i in range(n):
+        x, cov_x = _weighted_reference(
+            A[i], b[i], blocks, {s: v[i].numpy() for s, v in sig.items()}
+        )
+        np.testing.assert_allclose(w_est[i], np.einsum("kju,u->kj", B[i], x), atol=ATOL, rtol=0)
+        cov_w = np.einsum("kau,uv,kbv->kab", B[i], cov_x, B[i])
+        scale = np.abs(cov_w).max()
+        np.testing.assert_allclose(out.covariance[i].numpy(), cov_w, atol=1e-9 * scale, rtol=0)
+        for s, (rows, cols) in blocks.items():  # the residual stays |A x - b|, unweighted
+            res = np.linalg.norm(A[i][np.ix_(rows, cols)] @ x[cols] - b[i][rows])
+            np.testing.assert_allclose(float(out.residual[s][i]), res, atol=ATOL, rtol=0)
+    assert out.rank["r_arm_ft"].tolist() == [5] * n and out.rank["l_arm_ft"].tolist() == [6] * n
+    # weighting changes the estimate where the readings conflict (r_arm: rank 5 of 6 rows)
+    assert (out.force[:, 2:] - plain.force[:, 2:]).abs().max() > 1e-3
+    # weighted=False is the paper's pinv, the noise only propagated
+    ref = est.estimate(q, qd, qdd, ft, c, backend=backend)
+    torch.testing.assert_close(plain.force, ref.force, atol=ATOL, rtol=0)
+
+
+def test_weighted_torque_rows_get_their_own_noise(arms):
+    """Measured joint torques weigh by ``tau_variance`` against the F/T rows."""
+    model, est = arms
+    n = 3
+    links, kinds = ["l_forearm", "l_hand"], ["force", "force"]
+    q, qd, qdd = random_state(model, n, seed=120)
+    pos, dirs, wr = random_contacts(links, kinds, n, seed=121)
+    ft = est.predict_ft(q, qd, qdd, tc.Contacts(links, ["known"] * 2, pos, wrenches=wr))
+    g = torch.Generator().manual_seed(122)
+    f_ext = torch.stack([fext_of(model, links, pos[i], wr[i]) for i in range(n)])
+    tau = model.inverse_dynamics(q, qd, qdd, f_ext=f_ext)
+    tau = tau + 0.05 * torch.randn(tau.shape, generator=g, dtype=DT)
+    mask = torch.tensor([j.startswith(("l_elbow", "l_wrist")) for j in model.joint_names])
+    var = torch.linspace(1e-3, 1e-2, model.nv, dtype=DT)
+    sig = {s: torch.diag(torch.tensor([0.01] * 3 + [2.5e-5] * 3, dtype=DT)) for s in ft}
+    for s in ft:
+        ft[s] = ft[s] + torch.randn(n, 6, generator=g, dtype=DT) * 0.1
+    c = tc.Contacts(links, kinds, pos)
+    out = est.estimate(q, qd, qdd, ft, c, tau_measured=tau, tau_mask=mask, ft_covariance=sig,
+                       tau_variance=var, backend="eager")  # fmt: skip
+    # reference: A's torque rows from the torques the unit forces cause (linear in the forces)
+    A, r0, B, col_slot = build_A(est, q, qd, qdd, links, kinds, pos, dirs)
+    coords = np.flatnonzero(mask.numpy())
+    rows6 = np.arange(6)  # l_arm_ft's rows
+    for i in range(n):
+        T = np.zeros((len(coords), A.shape[2]))
+        for j in range(A.shape[2]):
+            w = torch.as_tensor(B[i, :, :, j])
+            fe = fext_of(model, links, pos[i], w).unsqueeze(0)
+            zero = model.inverse_dynamics(q[i : i + 1], qd[i : i + 1], qdd[i : i + 1])
+            with_f = model.inverse_dynamics(q[i : i + 1], qd[i : i + 1], qdd[i : i + 1], f_ext=fe)
+            T[:, j] = (with_f - zero)[0, coords].numpy()
+        tau0 = model.inverse_dynamics(q[i : i + 1], qd[i : i + 1], qdd[i : i + 1])[0, coords]
+        Af = np.vstack([A[i][rows6], -T])
+        bf = np.concatenate(
+            [(stack_ft(est, ft)[i] - r0[i])[rows6], (tau[i, coords] - tau0).numpy() * -1]
+        )
+        S = np.zeros((6 + len(coords),) * 2)
+        S[:6, :6] = sig["l_arm_ft"].numpy()
+        S[6:, 6:] = np.diag(var.numpy()[coords])
+        L = np.linalg.cholesky(S)
+        x = np.linalg.lstsq(np.linalg.solve(L, Af), np.linalg.solve(L, bf), rcond=1e-7)[0]
+        np.testing.assert_allclose(torch.cat((out.force, out.moment), -1)[i].numpy(),
+                                   np.einsum("kju,u->kj", B[i], x), atol=ATOL, rtol=0)  # fmt: skip
+    assert out.rank["l_arm_ft"].tolist() == [6] * n
+
+
+def test_bad_noise_is_one_clear_error(arms):
+    model, est = arms
+    q, qd, qdd = random_state(model, 2, seed=130)
+    ft = {s: torch.zeros(2, 6, dtype=DT) for s in est.sensor_names}
+    c = tc.Contacts(["l_hand"], ["force"], torch.zeros(2, 1, 3, dtype=DT))
+    good = torch.eye(6, dtype=DT) * 0.01
+    cases = [
+        ({"l_arm_ft": good}, "missing sensors \\['r_arm_ft'\\]"),
+        ({"l_arm_ft": good, "r_arm_ft": good + torch.triu(torch.ones(6, 6, dtype=DT), 1)},
+         "ft_covariance\\['r_arm_ft'\\] is not symmetric"),
+        ({"l_arm_ft": good, "r_arm_ft": torch.diag(torch.tensor([1.0, 1, 1, 1, 1, -1e-3],
+                                                                dtype=DT))},
+         "ft_covariance\\['r_arm_ft'\\] is not positive definite: smallest eigenvalue -0.001"),
+        ({"l_arm_ft": good, "r_arm_ft": good, "l_foot_ft": good}, "unknown or unused sensors"),
+        ({"l_arm_ft": good, "r_arm_ft": good[:5, :5]}, "must have shape \\(6, 6\\)"),
+    ]  # fmt: skip
+    for cov, msg in cases:
+        with pytest.raises(tc.errors.InputError, match=msg):
+            est.estimate(q, qd, qdd, ft, c, ft_covariance=cov)
+    cov = {"l_arm_ft": good, "r_arm_ft": good}
+    tau = torch.zeros(2, model.nv, dtype=DT)
+    with pytest.raises(tc.errors.InputError, match="tau_variance is needed"):
+        est.estimate(q, qd, qdd, ft, c, ft_covariance=cov, tau_measured=tau)
+    with pytest.raises(tc.errors.InputError, match="tau_variance must be > 0"):
+        est.estimate(q, qd, qdd, ft, c, ft_covariance=cov, tau_measured=tau,
+                     tau_variance=torch.zeros(model.nv, dtype=DT))  # fmt: skip
+    # a partial covariance is fine when only propagated
+    r = est.estimate(q, qd, qdd, ft, c, ft_covariance={"l_arm_ft": good}, weighted=False)
+    assert r.covariance.shape == (2, 1, 6, 6)

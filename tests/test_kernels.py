@@ -134,6 +134,10 @@ def test_estimator_kernel_equals_eager_on_every_output(flags):
                 [j.startswith(("l_elbow", "l_wrist")) for j in model.joint_names]
             ),  # fmt: skip
             "ft_covariance": {s: torch.eye(6, dtype=torch.float64) * 0.1 for s in est.sensor_names},
+            # unweighted: the whole-robot weighted kernel with torque rows took 7 min to build on
+            # a shared 2-core machine; the weighted kernel is tested on the two arm regions
+            # (test_estimation_idyntree.py) and on the bundled arm (test_constrained.py)
+            "weighted": False,
         }
     c = tc.Contacts(ESTIMATE_LINKS, ESTIMATE_KINDS, pos, dirs, wr, active)
     a = est.estimate(q, qd, qdd, ft, c, backend="cpu", **kw)
@@ -287,6 +291,52 @@ def test_cuda_source_compiles_with_nvcc(tmp_path):
     r = subprocess.run([nvcc, "-c", "-arch=sm_80", str(cu), "-o", str(tmp_path / "k.o")],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+@pytest.mark.skipif(
+    not torch.cuda.is_available() and not os.path.exists("/usr/local/cuda/bin/nvcc"),
+    reason="needs nvcc",
+)
+def test_weighted_cuda_source_compiles_with_nvcc(tmp_path):
+    """The noise-weighted solve (whitening, its Cholesky factors) in the generated CUDA.
+
+    The constrained, covariance and torque-row programs add code the CPU kernels run from the
+    same trace; compiling one here took 4 to 6 min (nvcc on a shared 2-core machine), so only the
+    weighted solve is checked.
+    """
+    from torchcontact.kernels import _cuda
+
+    est = tc.ContactEstimator(tc.RobotModel.from_urdf(tc.robots.tcarm_path()))
+    em = est.layout(["forearm_skin", "hand_skin"], ["force", "force"])
+    prog = programs.program(em, "estimate", False, False, False, None, False, False, True)
+    src = _cuda.source(prog, torch.float64)
+    cu = tmp_path / "k.cu"
+    cu.write_text(src)
+    nvcc = "nvcc" if torch.cuda.is_available() else "/usr/local/cuda/bin/nvcc"
+    r = subprocess.run([nvcc, "-c", "-arch=sm_80", str(cu), "-o", str(tmp_path / "k.o")],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_weighted_cuda_kernel_matches_eager():
+    model = load_model("icub")
+    est = tc.ContactEstimator(model.to("cuda"), ["l_arm_ft"])
+    n = 500
+    q, qd, qdd = (x.cuda() for x in random_state(model, n, seed=12))
+    g = torch.Generator().manual_seed(13)
+    pos = (torch.randn(n, 2, 3, generator=g, dtype=torch.float64) * 0.05).cuda()
+    nrm = torch.randn(n, 2, 3, generator=g, dtype=torch.float64).cuda()
+    c = tc.Contacts(["l_forearm", "l_hand"], ["force", "force"], pos, normals=nrm, cone_angle=0.5)
+    ft = {"l_arm_ft": (torch.randn(n, 6, generator=g, dtype=torch.float64) * 5).cuda()}
+    cov = {"l_arm_ft": torch.diag(torch.tensor([0.01] * 3 + [2.5e-5] * 3, dtype=torch.float64))}
+    for kw in ({}, {"constraints": tc.FrictionCones()}):
+        a = est.estimate(q, qd, qdd, ft, c, ft_covariance={k: v.cuda() for k, v in cov.items()},
+                         backend="cuda", **kw)  # fmt: skip
+        b = est.estimate(q, qd, qdd, ft, c, ft_covariance={k: v.cuda() for k, v in cov.items()},
+                         backend="eager", **kw)  # fmt: skip
+        torch.testing.assert_close(a.force, b.force, atol=1e-7, rtol=1e-7)
+        assert torch.equal(a.status, b.status)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -128,3 +128,34 @@ def test_exports_to_onnx_and_runs_in_float64(tmp_path):
     ref = min_norm_solve(G, b)
     np.testing.assert_allclose(y, ref.y.numpy(), atol=1e-12, rtol=0)
     np.testing.assert_array_equal(rank, ref.rank.numpy())
+
+
+@pytest.mark.parametrize("rank", [4, 6])
+def test_weighted_solve_is_whitened_numpy_lstsq(rank):
+    """``weighted_solve_program``: ``A^T y = pinv(L^-1 A) L^-1 b`` (weighted least squares,
+    minimum norm among its solutions), the residual unweighted ``|A x - b|``."""
+    from torchcontact.solve import cholesky, weighted_solve_program
+
+    rng = np.random.default_rng(rank)
+    n, rows, cols = 32, 8, 9
+    A = np.stack([_random_A(rng, rows, cols, rank) for _ in range(n)])
+    b = rng.normal(size=(n, rows)) * 10
+    M = rng.normal(size=(n, rows, rows)) * 0.3
+    S = M @ M.transpose(0, 2, 1) + np.diag(rng.uniform(0.01, 1.0, rows))
+    t = torch.tensor
+    G = [[t(A @ A.transpose(0, 2, 1))[:, i, j] for j in range(rows)] for i in range(rows)]
+    L = cholesky([[t(S)[:, i, j] for j in range(rows)] for i in range(rows)])
+    y, rk, res, _ = weighted_solve_program(G, [t(b)[:, i] for i in range(rows)], L, 1e-10)
+    x = np.einsum("nij,ni->nj", A, torch.stack(y, -1).numpy())
+    for i in range(n):
+        Lc = np.linalg.cholesky(S[i])
+        Aw, bw = np.linalg.solve(Lc, A[i]), np.linalg.solve(Lc, b[i])
+        x_ref = np.linalg.lstsq(Aw, bw, rcond=1e-10)[0]
+        np.testing.assert_allclose(x[i], x_ref, atol=1e-9 * np.abs(x_ref).max(), rtol=0)
+        r_ref = np.linalg.norm(A[i] @ x_ref - b[i])
+        np.testing.assert_allclose(float(res[i]), r_ref, atol=1e-9 * np.abs(b).max(), rtol=0)
+        # the weighted solution beats the unweighted one in the Mahalanobis norm
+        x_pinv = np.linalg.pinv(A[i], rcond=1e-10) @ b[i]
+        d = np.linalg.solve(Lc, A[i] @ x_pinv - b[i])
+        assert np.linalg.norm(np.linalg.solve(Lc, A[i] @ x_ref - b[i])) <= np.linalg.norm(d) + 1e-9
+    assert (rk.round().numpy() == rank).all()

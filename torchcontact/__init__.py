@@ -31,6 +31,7 @@ _LAZY = {
     "ContactEstimator": "torchcontact.estimation",
     "Contacts": "torchcontact.contacts",
     "FTSensor": "torchcontact.model",
+    "ForcePrior": "torchcontact.constrained",
     "ForwardPass": "torchcontact.dynamics",
     "Frame": "torchcontact.model",
     "FrictionCones": "torchcontact.constrained",
@@ -56,6 +57,7 @@ __all__ = [
     "ContactEstimator",
     "Contacts",
     "FTSensor",
+    "ForcePrior",
     "ForwardPass",
     "Frame",
     "FrictionCones",
@@ -79,7 +81,7 @@ __all__ = [
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact import robots, spatial
-    from torchcontact.constrained import FrictionCones, PreviousFrame
+    from torchcontact.constrained import ForcePrior, FrictionCones, PreviousFrame
     from torchcontact.dynamics import (
         BaseMotion,
         ForwardPass,

@@ -22,6 +22,17 @@ the largest eigenvalue sat at rounding noise). Since ``G = A A^T`` squares the s
 this resolves ratios ``sigma_min / sigma_max`` of ``A`` down to about ``sqrt(rtol)``: 1e-5 in
 float64, 3e-3 in float32. Directions weaker than that are treated as unobservable.
 
+**Noise weighting.** With a noise covariance ``Sigma = L L^T`` of the rows (``L`` lower
+triangular: per F/T sensor its ``6 x 6`` reading covariance, per measured joint torque its
+variance), the same solve runs on the whitened rows ``L^-1 A x = L^-1 b``
+(:func:`weighted_solve_program`): ``G~ = L^-1 G L^-T``, ``b~ = L^-1 b``, ``y = L^-T y~``, so that
+``x* = A^T y = pinv(L^-1 A) L^-1 b``. That is the weighted least-squares solution, minimising the
+Mahalanobis norm ``(A x - b)^T Sigma^-1 (A x - b)`` (maximum likelihood under Gaussian reading
+noise), and among the minimisers, which differ by ``null(A)``, the one of minimum Euclidean norm
+``|x|`` (the unknowns' own units, N and N m): weighting changes how the residual is measured,
+never which directions are unobservable. The rank rule applies to ``G~``. ``Sigma = I`` is the
+paper's ``pinv(A) b``.
+
 Everything is written on scalars (:mod:`torchcontact._scalar`); :func:`min_norm_solve` takes
 batched tensors, :func:`solve_program` is the scalar form the estimator's kernel inlines, and
 :func:`min_norm_solve_eigh` is the LAPACK reference the tests compare with.
@@ -54,11 +65,17 @@ __all__ = [
     "RANK_RTOL",
     "Factorization",
     "MinNormSolution",
+    "cho_solve",
+    "cholesky",
     "factorize",
     "min_norm_solve",
     "min_norm_solve_eigh",
     "solve_factored",
     "solve_program",
+    "tril_solve",
+    "triu_t_solve",
+    "weighted_solve_program",
+    "whiten",
 ]
 
 #: Default rank tolerance per dtype, relative to the largest diagonal entry of ``G``.
@@ -200,6 +217,103 @@ def solve_program(
     res = [sub(b[i], sum_([mul(G[max(i, j)][min(i, j)], y[j]) for j in range(R)]))
            for i in range(R)]  # fmt: skip
     return y, f.rank, sqrt(_dot(res, res)), f
+
+
+def cholesky(H: Sequence[Sequence[Scalar]], floor: float = 0.0) -> list[list[Scalar]]:
+    """Lower Cholesky factor ``L`` (``H = L L^T``) of a symmetric positive definite ``H``.
+
+    Only the lower triangle of ``H`` is read; constant zeros of ``H`` (a block-diagonal noise
+    covariance) fold away. Pivots are floored at ``floor`` (branch-free: a non-positive pivot
+    becomes ``floor``; with 0 it gives a zero or non-finite factor).
+
+    Args:
+        H: ``n`` rows of ``n`` scalars.
+        floor: smallest pivot.
+
+    Returns:
+        ``n`` rows of ``n`` scalars, zero above the diagonal.
+    """
+    n = len(H)
+    L: list[list[Scalar]] = [[0.0] * n for _ in range(n)]
+    for j in range(n):
+        d = sub(H[j][j], sum_([mul(L[j][k], L[j][k]) for k in range(j)]))
+        if floor > 0:
+            d = select(gt(d, floor), d, floor)
+        L[j][j] = sqrt(d)
+        inv = div(1.0, L[j][j])
+        for i in range(j + 1, n):
+            L[i][j] = mul(sub(H[i][j], sum_([mul(L[i][k], L[j][k]) for k in range(j)])), inv)
+    return L
+
+
+def tril_solve(L: Sequence[Sequence[Scalar]], b: Sequence[Scalar]) -> list[Scalar]:
+    """``L^-1 b`` for a lower-triangular ``L`` (forward substitution)."""
+    n = len(b)
+    y: list[Scalar] = [0.0] * n
+    for i in range(n):
+        y[i] = mul(sub(b[i], sum_([mul(L[i][k], y[k]) for k in range(i)])), div(1.0, L[i][i]))
+    return y
+
+
+def triu_t_solve(L: Sequence[Sequence[Scalar]], b: Sequence[Scalar]) -> list[Scalar]:
+    """``L^-T b`` for a lower-triangular ``L`` (back substitution on ``L^T``)."""
+    n = len(b)
+    x: list[Scalar] = [0.0] * n
+    for i in range(n - 1, -1, -1):
+        inv = div(1.0, L[i][i])
+        x[i] = mul(sub(b[i], sum_([mul(L[k][i], x[k]) for k in range(i + 1, n)])), inv)
+    return x
+
+
+def cho_solve(L: Sequence[Sequence[Scalar]], r: Sequence[Scalar]) -> list[Scalar]:
+    """``(L L^T)^-1 r`` from a :func:`cholesky` factor."""
+    return triu_t_solve(L, tril_solve(L, r))
+
+
+def whiten(
+    G: Sequence[Sequence[Scalar]], b: Sequence[Scalar], L: Sequence[Sequence[Scalar]]
+) -> tuple[list[list[Scalar]], list[Scalar]]:
+    """The whitened system ``G~ = L^-1 G L^-T`` (symmetric, full) and ``b~ = L^-1 b``.
+
+    Args:
+        G: ``R x R`` scalars, symmetric (the lower triangle is read).
+        b: ``R`` scalars.
+        L: lower Cholesky factor of the rows' noise covariance.
+    """
+    R = len(b)
+    Gs = [[G[max(i, j)][min(i, j)] for j in range(R)] for i in range(R)]
+    N = [tril_solve(L, [Gs[i][j] for i in range(R)]) for j in range(R)]  # N[j] = column j
+    # G~ = N L^-T: its column i is L^-1 (row i of N)
+    cols = [tril_solve(L, [N[j][i] for j in range(R)]) for i in range(R)]
+    Gt = [[cols[max(i, j)][min(i, j)] for j in range(R)] for i in range(R)]
+    return Gt, tril_solve(L, b)
+
+
+def weighted_solve_program(
+    G: Sequence[Sequence[Scalar]],
+    b: Sequence[Scalar],
+    L: Sequence[Sequence[Scalar]],
+    rtol: float,
+) -> tuple[list[Scalar], Scalar, Scalar, Factorization]:
+    """The noise-weighted solve on scalars (see the module docstring).
+
+    Args:
+        G: ``R x R`` Gram matrix ``A A^T``.
+        b: ``R`` right side.
+        L: ``R x R`` lower Cholesky factor of the rows' noise covariance.
+        rtol: rank tolerance, relative to ``max(diag(G~))``.
+
+    Returns:
+        ``(y, rank, residual, factorization of G~)``: ``A^T y`` is the weighted estimate,
+        ``residual = |A x* - b|`` (unweighted, the rows' own units).
+    """
+    Gt, bt = whiten(G, b, L)
+    f = factorize(Gt, rtol)
+    yt = solve_factored(f, bt)
+    R = len(b)
+    rt = [sub(bt[i], sum_([mul(Gt[i][j], yt[j]) for j in range(R)])) for i in range(R)]
+    res = [sum_([mul(L[i][k], rt[k]) for k in range(i + 1)]) for i in range(R)]  # b - G y
+    return triu_t_solve(L, yt), f.rank, sqrt(_dot(res, res)), f
 
 
 class MinNormSolution(NamedTuple):

@@ -4,9 +4,12 @@ A frame's status is an int64 bit field; 0 means the frame was estimated and ever
 finite. Each set bit names one reason (:class:`Status`). The estimator sets the bits, the log
 pipeline stores the code (``status_code`` column) and its text (``status`` column,
 :func:`status_messages`), and exported graphs return the same integer. Frames with a non-zero
-status have NaN outputs, the rest of a batch is unaffected. :attr:`Status.INVALID_CONTACT` is set
-by the log pipeline only: in Python and ONNX a contact on an unknown link is an error when the
-estimate is called.
+status have NaN outputs, the rest of a batch is unaffected, except for
+:attr:`Status.NOT_CONVERGED`, a warning: the friction-cone constrained solve did not converge
+within its iteration budget (after restarting from the pseudo-inverse when it was warm-started),
+and the outputs are its last iterate, inside the cones but not at the optimum; such a frame is not
+ok. :attr:`Status.INVALID_CONTACT` is set by the log pipeline only: in Python and ONNX a contact
+on an unknown link is an error when the estimate is called.
 
 This module imports nothing heavy (the torch-free runtime reads it).
 """
@@ -49,6 +52,8 @@ class Status(enum.IntFlag):
     IMPLAUSIBLE = 64
     #: a contact on an unknown link or kind, or outside every F/T sensor's subtree (logs only)
     INVALID_CONTACT = 128
+    #: the friction-cone constrained solve did not converge (outputs: its last iterate)
+    NOT_CONVERGED = 256
 
 
 _TEXT = {
@@ -63,6 +68,8 @@ _TEXT = {
     " beyond sensor range)",
     Status.INVALID_CONTACT: "invalid contact (unknown link or kind, or a link outside every F/T"
     " sensor's subtree)",
+    Status.NOT_CONVERGED: "constrained solve not converged within its iteration budget (outputs:"
+    " last iterate)",
 }
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok): bit -> text.

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
-from torchcontact._internal import check_input, flatten_batch
+from torchcontact._internal import check_input, flatten_batch, in_tracing
 from torchcontact.constrained import FrictionCones, PreviousFrame
 from torchcontact.contacts import KINDS, Contacts
 from torchcontact.dynamics import BaseMotion
@@ -42,9 +42,11 @@ class ContactEstimate(NamedTuple):
         identifiable: sensor -> ``(*B,)`` bool, ``rank == unknowns`` (every unknown determined).
         joint_torques: ``(*B, nv)`` joint torques in ``model.joint_names`` order, N m or N.
         status: ``(*B,)`` int64, 0 if ok, else bits of :data:`torchcontact.STATUS`; outputs of
-            such frames are NaN.
-        covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` from the F/T
-            noise covariance, or None when not asked for.
+            such frames are NaN, but for bit 256 (the constrained solve did not converge: its
+            last iterate is kept).
+        covariance: ``(*B, K, 6, 6)`` covariance of each slot's ``[force; moment]`` estimate
+            (weighted or not) from the noise covariance, or None when not asked for or with
+            ``constraints`` (the constrained estimate is not linear in the readings).
         cones: status of the friction-cone constrained estimate (``constraints=``), or None.
         nullspace: sensor -> ``(*B, u, u)`` orthonormal basis of the null space of ``A`` among
             the region's unknowns (``nullspace=True``), or None: the first ``nullity[sensor]``
@@ -179,6 +181,8 @@ class ContactEstimator:
         tau_measured: Tensor | None = None,
         tau_mask: Tensor | None = None,
         ft_covariance: Mapping[str, Tensor] | None = None,
+        tau_variance: Tensor | None = None,
+        weighted: bool = True,
         chunk_size: int | None = 8192,
         backend: str | None = None,
         constraints: FrictionCones | None = None,
@@ -201,20 +205,34 @@ class ContactEstimator:
             tau_mask: ``(nv,)`` or ``(*B, nv)`` bool, which joints have a torque measurement
                 (default: all finite entries of ``tau_measured``).
             ft_covariance: sensor name -> ``(6, 6)`` or ``(*B, 6, 6)`` covariance of its reading
-                noise; when given, ``covariance`` of the result is filled with the first-order
-                propagation of each region's own sensor noise (noise of nested sensors and of
-                measured joint torques is not included).
+                noise (sensor frame, N^2, N^2 m, N^2 m^2), symmetric positive definite. With
+                ``weighted`` (the default) it weighs the solve: each region's rows are whitened by
+                their noise, ``x* = pinv(L^-1 A) L^-1 b`` with ``Sigma = L L^T``, the weighted
+                least-squares estimate of minimum norm ``|x|`` (:mod:`torchcontact.solve`), and
+                every used sensor needs one. Without constraints ``covariance`` of the result is
+                the first-order covariance of the estimate from each region's own rows (nested
+                sensors' noise is not included).
+            tau_variance: ``(nv,)`` or ``(*B, nv)`` noise variance of each measured joint torque
+                (N^2 m^2 or N^2), > 0: the weight and noise of the torque rows. Needed with
+                ``tau_measured`` and a weighted ``ft_covariance``; without it an unweighted
+                propagation leaves the torque rows' noise out.
+            weighted: with ``ft_covariance``, weigh the solve by it (True) or keep the paper's
+                unit-weight ``pinv(A) b`` and only propagate the noise (False).
             chunk_size: frames per eager call (bounds memory); None for one go. Kernels stream
                 any batch in one call.
             backend: overrides the estimator's backend for this call.
             constraints: :class:`~torchcontact.constrained.FrictionCones`: estimate with every
                 pushing slot's force inside its friction cone (``contacts.normals``,
-                ``friction`` or ``cone_angle``, ``pushing``): ``min |A x - b|^2 + eps |x|^2``
-                by a fixed-budget interior-point method (:mod:`torchcontact.constrained`); the
-                result's ``cones`` holds its status. None: the paper's pseudo-inverse.
+                ``friction`` or ``cone_angle``, ``pushing``): by default the maximum a
+                posteriori estimate under a stated prior (``FrictionCones.objective``; the
+                readings weighted by ``ft_covariance`` when given), or ``min |A x - b|^2 + eps
+                |x|^2``, by a fixed-budget interior-point method (:mod:`torchcontact.constrained`);
+                the result's ``cones`` holds its status, and a frame that does not converge
+                gets status bit 256. None: the paper's pseudo-inverse.
             warm_start: ``(force, moment)``, each ``(*B, K, 3)`` (link frame, e.g. a previous
                 frame's estimate): the constrained solver's starting point (frames with
-                non-finite values start from the pseudo-inverse solution); or
+                non-finite values start from the pseudo-inverse solution; a frame that does not
+                converge from it restarts from there, so the start never changes the answer); or
                 :class:`~torchcontact.constrained.PreviousFrame`: the batch is a time series and
                 each frame starts from its predecessor's estimate (computed in waves).
             nullspace: also return each region's null-space basis (``nullspace`` of the result).
@@ -226,12 +244,13 @@ class ContactEstimator:
             InputError: wrong shapes/dtype/device, a missing sensor reading, a contact on an
                 unknown link or outside every sensor's subtree; with ``constraints``: missing
                 normals or friction, a zero normal or a friction coefficient that is not a
-                positive finite number on an active pushing slot, ``ft_covariance`` (not
-                propagated through the constrained solve). Non-finite values, zero-length
+                positive finite number on an active pushing slot. Non-finite values, zero-length
                 directions and implausible inputs do not raise: the frame gets a ``status`` and
-                NaN outputs, the other frames are unaffected.
+                NaN outputs, the other frames are unaffected; a covariance that is not symmetric
+                positive definite, a missing sensor covariance or ``tau_variance`` of a weighted
+                solve, a variance that is not > 0.
         """
-        model, S, K, nv = self.model, len(self.sensor_names), contacts.K, self.model.nv
+        model, K, nv = self.model, contacts.K, self.model.nv
         dtype, device = model.dtype, model.device
         em = self.layout(contacts.links, contacts.kinds)
         for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
@@ -289,14 +308,20 @@ class ContactEstimator:
             else:
                 mask = tau_mask.to(device=device, dtype=torch.bool).expand(*batch, nv)
             tensors["tau_mask"] = mask.reshape(n, nv).to(dtype)
+        weighted = bool(weighted) and ft_covariance is not None
+        tau_noise = False
         if ft_covariance is not None:
-            cov = torch.zeros(n, S, 6, 6, dtype=dtype, device=device)
-            for i, s in enumerate(self.sensor_names):
-                if s in ft_covariance:
-                    c = ft_covariance[s]
-                    check_input(f"ft_covariance[{s!r}]", c, (6, 6), model, "(6, 6) or (*B, 6, 6)")
-                    cov[:, i] = c.expand(*batch, 6, 6).reshape(n, 6, 6)
-            tensors["ft_cov"] = cov.reshape(n, 36 * S)
+            tensors["ft_cov"] = _noise_inputs(self, ft_covariance, batch, weighted)
+            if tau_variance is not None and tau_measured is not None:
+                tensors["tau_var"] = _tau_variance(tau_variance, batch, nv, model)
+                tau_noise = True
+            elif weighted and tau_measured is not None:
+                raise InputError(
+                    "tau_variance is needed to weigh the measured joint torques (tau_measured)"
+                    " against the F/T readings; or pass weighted=False"
+                )
+        elif tau_variance is not None:
+            raise InputError("tau_variance needs ft_covariance (the noise of the F/T readings)")
         cone_flags = None
         if constraints is not None:
             if not isinstance(constraints, FrictionCones):
@@ -304,9 +329,7 @@ class ContactEstimator:
                     f"constraints must be a torchcontact.constrained.FrictionCones, got"
                     f" {type(constraints).__name__}"
                 )
-            if ft_covariance is not None:
-                raise InputError("ft_covariance is not propagated through the constrained solve")
-            cone_flags = constraints.resolved(dtype)
+            cone_flags = constraints.program_flags(dtype)
             tensors.update(_cone_inputs(contacts, em.kinds, batch, tensors["active"], model))
             if isinstance(warm_start, PreviousFrame):
                 if warm_start.before is not None:
@@ -327,9 +350,13 @@ class ContactEstimator:
         elif warm_start is not None:
             raise InputError("warm_start needs constraints (it starts the constrained solver)")
         waves = warm_start if isinstance(warm_start, PreviousFrame) else None
-        prog = program(em, "estimate", base is not None, tau_measured is not None,
-                       ft_covariance is not None, cone_flags,
-                       "warm" in tensors or waves is not None, bool(nullspace))  # fmt: skip
+        with_cov = ft_covariance is not None and cone_flags is None
+        if not with_cov and not weighted:
+            tensors.pop("ft_cov", None)
+            tensors.pop("tau_var", None)
+        prog = program(em, "estimate", base is not None, tau_measured is not None, with_cov,
+                       cone_flags, "warm" in tensors or waves is not None, bool(nullspace),
+                       weighted, tau_noise)  # fmt: skip
         backend = self.backend if backend is None else backend
         if waves is None:
             out = run_program(prog, tensors, backend, chunk_size)
@@ -348,7 +375,7 @@ class ContactEstimator:
             identifiable={s: ident[:, i].reshape(batch) for i, s in enumerate(names)},
             joint_torques=out["tau"].reshape(*batch, nv),
             status=out["status"][:, 0].round().to(torch.long).reshape(batch),
-            covariance=None if ft_covariance is None else out["cov"].reshape(*batch, K, 6, 6),
+            covariance=out["cov"].reshape(*batch, K, 6, 6) if with_cov else None,
             cones=None if cone_flags is None else ConeStatus(
                 {s: out["converged"][:, i].reshape(batch) > 0.5 for i, s in enumerate(names)},
                 {s: out["iterations"][:, i].round().to(torch.long).reshape(batch)
@@ -474,6 +501,86 @@ def _run_waves(
         prev = torch.cat([o["force"].reshape(m, K, 3), o["moment"].reshape(m, K, 3)], -1)
         prev = prev.reshape(m, 6 * K)
     return out
+
+
+#: Relative asymmetry ``max |C - C^T| / max |C|`` a covariance may have, per dtype.
+_SYM_RTOL = {torch.float64: 1e-9, torch.float32: 1e-5}
+
+
+def _noise_inputs(
+    est: ContactEstimator, ft_covariance: Mapping[str, Tensor], batch: torch.Size, weighted: bool
+) -> Tensor:
+    """``ft_cov (N, 36 S)`` of the program, each covariance checked symmetric positive definite.
+
+    Raises:
+        InputError: an unknown sensor, a bad shape, NaN, a matrix that is not symmetric positive
+            definite, or (``weighted``) a used sensor without a covariance.
+    """
+    model, names = est.model, est.sensor_names
+    n, S = math.prod(batch), len(names)
+    if not isinstance(ft_covariance, Mapping):
+        raise InputError("ft_covariance must be a mapping: sensor name -> (6, 6) covariance")
+    extra = [s for s in ft_covariance if s not in names]
+    if extra:
+        raise InputError(f"ft_covariance names unknown or unused sensors {extra} (sensors:"
+                         f" {list(names)})")  # fmt: skip
+    missing = [s for s in names if s not in ft_covariance]
+    if weighted and missing:
+        raise InputError(
+            f"ft_covariance is missing sensors {missing}: a weighted solve needs the noise of"
+            " every sensor used (or pass weighted=False to only propagate the noise given)"
+        )
+    cov = torch.zeros(n, S, 6, 6, dtype=model.dtype, device=model.device)
+    for i, s in enumerate(names):
+        if s not in ft_covariance:
+            continue
+        c = ft_covariance[s]
+        name = f"ft_covariance[{s!r}]"
+        check_input(name, c, (6, 6), model, "(6, 6) or (*B, 6, 6)")
+        if c.dim() > 2 and tuple(c.shape[:-2]) != tuple(batch):
+            raise InputError(f"{name} must be (6, 6) or (*B, 6, 6) with B={tuple(batch)}, got"
+                             f" {tuple(c.shape)}")  # fmt: skip
+        if not in_tracing():
+            _check_spd(name, c)
+        cov[:, i] = c.expand(*batch, 6, 6).reshape(n, 6, 6)
+    return cov.reshape(n, 36 * S)
+
+
+def _check_spd(name: str, c: Tensor) -> None:
+    """Raise :class:`InputError` unless every matrix of ``c (*, 6, 6)`` is symmetric and PD."""
+    flat = c.reshape(-1, 6, 6)
+    scale = flat.abs().amax((-2, -1))
+    asym = (flat - flat.transpose(-1, -2)).abs().amax((-2, -1))
+    bad = asym > _SYM_RTOL.get(c.dtype, 1e-9) * scale
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        where = f" (matrix {i})" if flat.shape[0] > 1 else ""
+        raise InputError(
+            f"{name} is not symmetric{where}: max |C - C^T| = {float(asym[i]):.3g} for entries"
+            f" up to {float(scale[i]):.3g}; a covariance must be symmetric positive definite"
+        )
+    _, info = torch.linalg.cholesky_ex(flat)
+    if bool((info != 0).any()):
+        i = int((info != 0).nonzero()[0, 0])
+        where = f" (matrix {i})" if flat.shape[0] > 1 else ""
+        lam = float(torch.linalg.eigvalsh(flat[i]).min())
+        raise InputError(
+            f"{name} is not positive definite{where}: smallest eigenvalue {lam:.3g}; a"
+            " covariance must be symmetric positive definite (every reading axis has noise)"
+        )
+
+
+def _tau_variance(v: Tensor, batch: torch.Size, nv: int, model: RobotModel) -> Tensor:
+    """``tau_var (N, nv)``: measured-torque noise variances, checked finite and > 0."""
+    check_input("tau_variance", v, (nv,), model, f"({nv},) or (*B, {nv})")
+    if v.dim() > 1 and tuple(v.shape[:-1]) != tuple(batch):
+        raise InputError(f"tau_variance must be ({nv},) or (*B, {nv}) with B={tuple(batch)}, got"
+                         f" {tuple(v.shape)}")  # fmt: skip
+    if not in_tracing() and bool((v <= 0).any()):
+        j = int((v <= 0).nonzero()[0, -1])
+        raise InputError(f"tau_variance must be > 0; joint {model.joint_names[j]!r} has"
+                         f" {float(v.reshape(-1, nv)[0, j])!r}")  # fmt: skip
+    return v.expand(*batch, nv).reshape(math.prod(batch), nv)
 
 
 def _split_nullspace(em: EstimationModel, flat: Tensor, batch: torch.Size) -> dict[str, Tensor]:

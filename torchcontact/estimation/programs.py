@@ -41,7 +41,7 @@ from torchcontact.constrained import Cone, cone_rows, solve_cones
 from torchcontact.contacts import KINDS
 from torchcontact.estimation import stages
 from torchcontact.estimation.layout import EstimationModel
-from torchcontact.solve import solve_program
+from torchcontact.solve import cholesky, solve_program, tril_solve, weighted_solve_program
 from torchcontact.status import Status
 
 __all__ = ["ReadingCorrection", "estimate_program", "predict_program", "program"]
@@ -101,6 +101,8 @@ def estimate_program(
     warm: bool = False,
     nullspace: bool = False,
     correction: ReadingCorrection | None = None,
+    weighted: bool = False,
+    tau_noise: bool = False,
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
@@ -108,7 +110,8 @@ def estimate_program(
     ``q, qd, qdd`` (nv), ``ft`` (6 S, sensor after sensor), ``positions`` (3K), ``active``
     (K, 0/1), ``directions`` (3K, with ``force_dir`` slots), ``wrenches`` (6K, with ``known``
     slots), ``omega, domega, proper_acc`` (3 each, moving base), ``tau_measured, tau_mask``
-    (nv each, torque rows), ``ft_cov`` (36 S, covariance), ``normals`` (3K), ``friction`` and
+    (nv each, torque rows), ``ft_cov`` (36 S, with covariance or weights), ``tau_var`` (nv,
+    ``tau_noise``: each measured torque's noise variance), ``normals`` (3K), ``friction`` and
     ``pushing``
     (K each, with ``cones``), ``warm`` (6K, force and moment per slot, with ``warm``). Outputs:
     ``force, moment`` (3K), ``tau`` (nv), ``rank, unknowns, residual`` (S), ``status`` (1),
@@ -124,6 +127,12 @@ def estimate_program(
 
     A ``correction`` (:class:`ReadingCorrection`) adds its inputs and outputs and replaces the
     readings by its corrected ones after the forward pass (on whose values it may build).
+
+    With ``weighted`` every region's rows are whitened by their noise covariance (``ft_cov``
+    of its sensor, ``tau_var`` of its torque rows, unit variances without ``tau_noise``):
+    :func:`torchcontact.solve.weighted_solve_program`, the constrained solve on the whitened
+    rows; ``cov`` is then the covariance of the weighted estimate. Without it ``ft_cov`` (and
+    ``tau_var``) are only propagated to ``cov``.
     """
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
     kinds = em.kinds
@@ -139,8 +148,10 @@ def estimate_program(
         inputs.update(omega=3, domega=3, proper_acc=3)
     if torque_rows:
         inputs.update(tau_measured=nv, tau_mask=nv)
-    if with_cov:
+    if with_cov or weighted:
         inputs["ft_cov"] = 36 * S
+    if tau_noise and torque_rows:
+        inputs["tau_var"] = nv
     if cones is not None:
         inputs.update(normals=3 * K, friction=K, pushing=K)
         if warm:
@@ -191,8 +202,8 @@ def estimate_program(
         b4, b8 = _any(bad_field), _any(zero_dir)
         b16: Scalar = False
         if torque_rows:
-            b16 = _any([logical_and(gt(m, 0.5), logical_not(isfinite(t)))
-                        for t, m in zip(x["tau_measured"], x["tau_mask"], strict=True)])  # fmt: skip
+            pairs = zip(x["tau_measured"], x["tau_mask"], strict=True)
+            b16 = _any([logical_and(gt(m, 0.5), logical_not(isfinite(t))) for t, m in pairs])
         implausible = []
         if em.velocity_limit is not None:
             for v, lim in zip(x["qd"], em.velocity_limit, strict=True):
@@ -247,6 +258,29 @@ def estimate_program(
                 )
         _, tau_b, b = stages.region_rhs(em, X, f, readings, known, tau_meas, tau_mask)
         maps, grams = stages.contact_maps(em, X, pos, dirs, act, tau_mask)
+        # ---- the rows' noise: per region its covariance (sensor block, torque variances) and,
+        # to whiten by, its Cholesky factor; a bad frame gets unit noise (its outputs are NaN)
+        sigmas: list = [None] * S
+        chol: list = [None] * S
+        if with_cov or weighted:
+            eye = [1.0 if i == j else 0.0 for i in range(6) for j in range(6)]
+            for r, reg in enumerate(em.regions):
+                ft_cov = x["ft_cov"][36 * r : 36 * r + 36]
+                sig6 = [select(ok, v, e) for v, e in zip(ft_cov, eye, strict=True)]
+                rows = list(reg.torque_coords) if torque_rows else []
+                Rr = 6 + len(rows)
+                sig = [[sig6[6 * i + j] if i < 6 and j < 6 else 0.0 for j in range(Rr)]
+                       for i in range(Rr)]  # fmt: skip
+                for t, c in enumerate(rows):
+                    if tau_noise:
+                        v = x["tau_var"][c]
+                        good = logical_and(ok, logical_and(isfinite(v), gt(v, 0.0)))
+                        sig[6 + t][6 + t] = select(good, v, 1.0)
+                    else:  # unknown: unit weight, nothing to propagate
+                        sig[6 + t][6 + t] = 1.0 if weighted else 0.0
+                sigmas[r] = sig
+                if weighted:
+                    chol[r] = cholesky(sig)
         ys, ranks, resid, factors = [], [], [], []
         for r, reg in enumerate(em.regions):
             if all(em.slots[k].kind == "known" for k in reg.slots):  # nothing to solve
@@ -255,7 +289,10 @@ def estimate_program(
                 resid.append(sqrt(sum_([mul(v, v) for v in b[r]])))
                 factors.append(None)
                 continue
-            y, rank, res, fac = solve_program(grams[r], b[r], em.rank_rtol)
+            if weighted:
+                y, rank, res, fac = weighted_solve_program(grams[r], b[r], chol[r], em.rank_rtol)
+            else:
+                y, rank, res, fac = solve_program(grams[r], b[r], em.rank_rtol)
             ys += [y]
             ranks += [rank]
             resid += [res]
@@ -263,8 +300,9 @@ def estimate_program(
         extra: dict[str, list] = {}
         if cones is not None or nullspace:
             resid, w, extra = _constrained_and_nullspace(
-                em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm, nullspace
-            )
+                em, x, clean, maps, b, ys, factors, ranks, resid, wr, act, cones, warm,
+                nullspace, chol,
+            )  # fmt: skip
         else:
             w = stages.contact_wrenches(em, maps, ys, wr, act)
         tau = stages.backward(em, X, tau_b, pos, w)
@@ -272,8 +310,7 @@ def estimate_program(
         moment = [v for wk in w for v in wk[1]]
         cov = None
         if with_cov:
-            sig = [[clean(v) for v in x["ft_cov"][36 * i : 36 * i + 36]] for i in range(S)]
-            cov = [v for c in stages.covariance(em, maps, factors, sig) for v in c]
+            cov = [v for c in stages.covariance(em, maps, factors, sigmas, chol) for v in c]
 
         # ---- outputs: non-finite from valid inputs is bit 32; bad frames give NaN
         b32 = logical_and(ok, logical_not(_finite([*force, *moment, *tau, *resid])))
@@ -293,6 +330,10 @@ def estimate_program(
             "residual": [out(v) for v in resid],
             "status": [add(status, _bit(b32, Status.OUTPUT_NONFINITE))],
         }
+        if cones is not None:  # a region's constrained solve did not converge
+            unconv = _any([logical_not(gt(v, 0.5)) for v in extra["converged"]])
+            unconv = _bit(logical_and(ok, unconv), Status.NOT_CONVERGED)
+            result["status"] = [add(result["status"][0], unconv)]
         if with_cov:
             result["cov"] = [out(v) for v in cov]
         if cones is not None:
@@ -309,12 +350,20 @@ def estimate_program(
         key += f"|cones={cones}|warm={warm}|null={nullspace}"
     if correction is not None:
         key += f"|corr={correction.key}"
+    if weighted or tau_noise:
+        key += f"|weighted={weighted}|tau_noise={tau_noise and torque_rows}"
     return kernels.Program("estimator", fn, inputs, outputs, key)
 
 
-def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, act, cones, warm,
-                               nullspace):  # fmt: skip
-    """The constrained estimate and/or the null-space bases of every region (program part)."""
+def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, ranks, resid, wr, act, cones,
+                               warm, nullspace, chol):  # fmt: skip
+    """The constrained estimate and/or the null-space bases of every region (program part).
+
+    ``chol``: per region the Cholesky factor of its rows' noise covariance, or None (unweighted):
+    the cone solver then sees the whitened rows ``c L^-1 A``, ``c L^-1 b``, with ``c`` the scale
+    that keeps the largest row norm of ``A`` (the solver's ``eps`` and stopping rule are relative
+    to the problem's scale; ``c`` leaves the weighted least-squares problem unchanged).
+    """
     K = len(em.slots)
     w = stages.contact_wrenches(em, maps, ys, wr, act)  # pinv (and known) wrenches
     extra: dict[str, list] = {"converged": [], "iterations": [], "cone_active": [False] * K,
@@ -328,14 +377,22 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
             continue
         A, labels = stages.contact_matrix(em, maps, r)
         R, u = len(A), len(labels)
+        n_unk_r = sum_([select(gt(act[k], 0.5), float(KINDS[em.slots[k].kind]), 0.0)
+                        for k in reg.slots])  # fmt: skip
+        Aw, bw = A, b[r]  # the rows the solve weighs (whitened when weighted)
+        if chol[r] is not None:
+            cols = [tril_solve(chol[r], [A[i][j] for i in range(R)]) for j in range(u)]
+            Aw = [[cols[j][i] for j in range(u)] for i in range(R)]
+            bw = tril_solve(chol[r], b[r])
         if nullspace:
             present = [act[k] for k, _ in labels]
             rtol = 10.0 * math.sqrt(em.rank_rtol)
-            basis = stages.nullspace_basis(A, factors[r], present, rtol)
+            basis = stages.nullspace_basis(Aw, factors[r], present, rtol)
             extra["nullspace"] += [basis[c][i] for i in range(n_unk) for c in range(n_unk)]
         if cones is None:
             continue
-        iterations, eps, tol, stop = cones
+        iterations, eps, tol, stop, *rest = cones
+        prior = rest[0] if rest else None
         x0 = [sum_([mul(A[i][j], ys[r][i]) for i in range(R)]) for j in range(u)]  # pinv(A) b
         x_start, start_on = None, False
         if warm:
@@ -368,7 +425,42 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
                 cone_list.append(Cone(tuple(range(start, start + 3)), cone_rows(nk, mu), on))
             cone_slot.append(k)
             start += KINDS[slot.kind]
-        sol = solve_cones(A, b[r], cone_list, x0, eps, iterations, tol, stop, x_start, start_on)
+        As, bs = A, b[r]
+        if chol[r] is not None:  # the whitened rows, scaled back to the size of A's
+
+            def rowmax(M):
+                out: Scalar = 0.0
+                for row in M:
+                    n2 = sum_([mul(v, v) for v in row])
+                    out = select(gt(n2, out), n2, out)
+                return out
+
+            big, big_w = rowmax(A), rowmax(Aw)
+            c = sqrt(div(select(gt(big_w, 0.0), big, 1.0), select(gt(big_w, 0.0), big_w, 1.0)))
+            As = [[mul(c, v) for v in row] for row in Aw]
+            bs = [mul(c, v) for v in bw]
+        else:
+            c = 1.0 if prior is None else prior[3]  # unweighted: A = sigma (A / sigma)
+        nu: Scalar = 0.0
+        ridge: Scalar = 0.0
+        exact: Scalar = True
+        if prior is not None:
+            # the MAP estimate (ForcePrior): the data term of the scaled rows is c^2 times the
+            # negative log-likelihood, so the prior's terms are scaled alike
+            c2 = mul(c, c)
+            p_nu, p_scale, p_rel, _ = prior
+            nu = mul(c2, p_nu)
+            if p_scale is not None:
+                lam: Scalar = 1.0 / (p_scale * p_scale)
+            else:
+                m_push = sum_([select(cn.on, 1.0, 0.0) for cn in cone_list])
+                s2 = mul(p_rel * p_rel, div(_dot(x0, x0), _maxs(m_push, 1.0)))
+                lam = div(1.0, add(s2, _TINY_SCALE2))
+            # eps + ridge = c^2 (1 / s^2 + eps): eps joins the Gaussian, unscaled by c
+            ridge = sub(mul(c2, add(lam, eps)), eps)
+            exact = logical_not(gt(sub(n_unk_r, ranks[r]), 0.5))
+        sol = solve_cones(As, bs, cone_list, x0, eps, iterations, tol, stop, x_start, start_on,
+                          nu, ridge, exact)  # fmt: skip
         extra["converged"].append(select(sol.converged, 1.0, 0.0))
         extra["iterations"].append(sol.iterations)
         for k, a in zip(cone_slot, sol.active, strict=True):
@@ -391,6 +483,18 @@ def _constrained_and_nullspace(em, x, clean, maps, b, ys, factors, resid, wr, ac
         res = [sub(sum_([mul(A[i][j], sol.x[j]) for j in range(u)]), b[r][i]) for i in range(R)]
         resid[r] = sqrt(sum_([mul(v, v) for v in res]))
     return resid, w, extra
+
+
+#: Floor of the data-driven prior scale ``s^2`` (N^2): a frame without load gets forces ~1 mN.
+_TINY_SCALE2 = 1e-6
+
+
+def _dot(a: Sequence[Scalar], b: Sequence[Scalar]) -> Scalar:
+    return sum_([mul(u, v) for u, v in zip(a, b, strict=True)])
+
+
+def _maxs(a: Scalar, b: Scalar) -> Scalar:
+    return select(gt(a, b), a, b)
 
 
 def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:

@@ -13,9 +13,15 @@ from typing import NamedTuple
 
 from torchcontact import dynamics as _dyn
 from torchcontact import spatial as sp
-from torchcontact._scalar import Scalar, add, div, gt, mul, neg, select, sqrt, sub, sum_
+from torchcontact._scalar import Scalar, add, div, gt, is_const, mul, neg, select, sqrt, sub, sum_
 from torchcontact.estimation.layout import EstimationModel, Region, Slot
-from torchcontact.solve import Factorization, factorize, solve_factored
+from torchcontact.solve import (
+    Factorization,
+    factorize,
+    solve_factored,
+    tril_solve,
+    triu_t_solve,
+)
 
 __all__ = [
     "SlotMap",
@@ -359,13 +365,17 @@ def covariance(
     em: EstimationModel,
     maps: list[SlotMap | None],
     factors: list[Factorization],
-    sigma: Sequence[Sequence[Scalar]],
+    sigma: Sequence[Sequence[Sequence[Scalar]]],
+    chol: Sequence[Sequence[Sequence[Scalar]] | None] | None = None,
 ) -> list[list[Scalar]]:
-    """Stage 7: ``cov(w_k) = M_k Sigma M_k^T`` with ``M_k = P_k Y_k^T pinv(G)[:, :6]``.
+    """Stage 7: ``cov(w_k) = M_k Sigma M_k^T``, ``M_k`` the solve's map from ``b`` to ``w_k``.
 
-    First-order propagation of the region's own sensor noise ``Sigma`` (36 scalars, row-major,
-    sensor frame) through the solve; the noise of nested sensors and of measured torques is not
-    included. Per slot, 36 scalars (row-major ``[force; moment]``).
+    First-order propagation of each region's row noise ``Sigma`` (``R x R``: its sensor's reading
+    covariance, sensor frame, then the variances of its torque rows; nested sensors' noise is not
+    included) through the solve: ``M_k = P_k Y_k^T pinv(G)`` unweighted, ``P_k Y_k^T L^-T
+    pinv(G~) L^-1`` weighted (``chol``: the factor ``L`` of ``Sigma``), where ``cov(w_k)`` is
+    ``P_k Y_k^T pinv(A~^T A~) Y_k P_k``, the weighted estimate's covariance. Per slot, 36 scalars
+    (row-major ``[force; moment]``).
     """
     out = []
     for k, slot in enumerate(em.slots):
@@ -374,17 +384,23 @@ def covariance(
             continue
         r = slot.region
         f = factors[r]
+        L = None if chol is None else chol[r]
+        S = sigma[r]
         Rr = len(f.ok)
+        rows = [j for j in range(Rr) if any(not (is_const(v) and v == 0) for v in S[j])]
         cols = []
-        for j in range(6):  # d w_k / d b_j, the solve being linear in b
-            y = solve_factored(f, [1.0 if i == j else 0.0 for i in range(Rr)])
+        for j in rows:  # d w_k / d b_j, the solve being linear in b
+            e = [1.0 if i == j else 0.0 for i in range(Rr)]
+            if L is None:
+                y = solve_factored(f, e)
+            else:  # y = L^-T pinv(G~) L^-1 e
+                y = triu_t_solve(L, solve_factored(f, tril_solve(L, e)))
             wk = _slot_wrench(slot.kind, maps[k], y)
             cols.append([*wk[0], *wk[1]])
-        M = [[cols[j][i] for j in range(6)] for i in range(6)]
-        S = sigma[r]
-        MS = [[sum_([mul(M[i][a], S[6 * a + b]) for a in range(6)]) for b in range(6)]
+        M = [[cols[a][i] for a in range(len(rows))] for i in range(6)]
+        MS = [[sum_([mul(M[i][a], S[ra][rb]) for a, ra in enumerate(rows)]) for rb in rows]
               for i in range(6)]  # fmt: skip
-        out.append([sum_([mul(MS[i][b], M[j][b]) for b in range(6)])
+        out.append([sum_([mul(MS[i][bb], M[j][bb]) for bb in range(len(rows))])
                     for i in range(6) for j in range(6)])  # fmt: skip
     return out
 
