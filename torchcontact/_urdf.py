@@ -284,4 +284,3 @@ def geometry(text: str, source: str, kind: str) -> list[dict]:
                     item["rgba"] = colours.get(me.get("name", ""))
             out.append(item)
     return out
-

@@ -279,7 +279,7 @@ class ContactEstimator:
 
         tensors = {k: flatten_batch(x, batch, 1) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
         readings = [per_frame(f"ft[{s!r}]", ft[s], (6,)) for s in self.sensor_names]
-        tensors["ft"] = readings[0] if S == 1 else torch.cat(readings, -1)
+        tensors["ft"] = readings[0] if len(readings) == 1 else torch.cat(readings, -1)
         tensors["positions"] = per_frame("contacts.positions", contacts.positions, (K, 3))
         if "force_dir" in em.kinds:
             if contacts.directions is None:

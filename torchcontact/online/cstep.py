@@ -266,8 +266,9 @@ def _layout(arrays: Mapping[str, int], S: int, K: int, nv_t: int, sensors, reg_s
     fields: dict[str, tuple[int, tuple[int, ...], str]] = {}
     offsets: list[int] = []
     off = 0
-    shapes = {"positions": (K, 3), "directions": (K, 3), "wrenches": (K, 6), "force": (K, 3), "moment": (K, 3),
-              "ft": (S, 6), "ft_cov": (S, 6, 6), "cov": (K, 6, 6), "ft_model": (S, 6)}  # fmt: skip
+    shapes = {"positions": (K, 3), "directions": (K, 3), "wrenches": (K, 6), "force": (K, 3),
+              "moment": (K, 3), "ft": (S, 6), "ft_cov": (S, 6, 6), "cov": (K, 6, 6),
+              "ft_model": (S, 6)}  # fmt: skip
     for name, n in arrays.items():
         offsets.append(off)
         if name.startswith("bias"):
