@@ -745,7 +745,8 @@ def solve_cones(
         ridge: added to ``eps`` (per-frame scalar, >= 0): the Gaussian part of the prior.
         pinv_answer: mask: ``x_pinv`` inside every cone is the answer (the frame is not
             iterated). Always the case with ``nu = 0``; with a prior the caller passes "every
-            unknown is observable", where the prior's pull is below the noise.
+            unknown is observable", where the prior's pull is below the noise, and a frame
+            without an active cone returns ``x_pinv`` too (the prior is one on pushing forces).
 
     Returns:
         :class:`ConeSolution`.
@@ -784,7 +785,8 @@ def solve_cones(
     # ---- the pseudo-inverse solution inside every cone (the eps -> 0 limit of the
     # unconstrained problem) is the answer: returned exactly, since along null(A) the iterates
     # are pinned only by eps, i.e. to rounding / eps
-    inside0: Scalar = True if not centred else pinv_answer
+    # (with a prior: also a frame without any active cone, whose forces the prior does not cover)
+    inside0: Scalar = True if not centred else logical_or(pinv_answer, logical_not(gt(m_on, 0.5)))
     for o, c in zip(on, cones, strict=True):
         ok0 = logical_or(logical_not(o), logical_not(gt(0.0, _eig_min(_cx(c, x_pinv)))))
         inside0 = logical_and(inside0, ok0)

@@ -100,9 +100,10 @@ def estimate_program(
     cones: tuple[int, float, float] | None = None,
     warm: bool = False,
     nullspace: bool = False,
-    correction: ReadingCorrection | None = None,
     weighted: bool = False,
     tau_noise: bool = False,
+    *,
+    correction: ReadingCorrection | None = None,
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
