@@ -231,7 +231,7 @@ def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype):
 
     Args:
         em: the layout.
-        cones: ``(iterations, eps, tol, stop)`` (:meth:`FrictionCones.resolved`).
+        cones: ``(iterations, eps, tol, stop, prior)`` (:meth:`FrictionCones.program_flags`).
         dtype: float32 or float64.
 
     Returns:

@@ -217,7 +217,7 @@ def export_estimator(
                 "constraints: the constrained graph takes the fixed-base F/T inputs only (no"
                 " moving_base, torque_rows, covariance, residual or joints)"
             )
-        cones = constraints.resolved(m.dtype)
+        cones = constraints.program_flags(m.dtype)  # the objective's prior included
         gb, shapes = constrained_graph(em, cones, npd)
         outputs = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
     else:
@@ -273,10 +273,13 @@ def export_estimator(
     }
     graphs = [(gb.model(), path, "batched")]
     if constraints is not None:
-        iterations, eps, tol, _ = cones
-        meta[Key.CONSTRAINTS] = {"iterations": iterations, "eps": eps, "tol": tol}
+        iterations, eps, tol, _, prior = cones
+        objective = constraints.objective_of(m.dtype)
+        meta[Key.CONSTRAINTS] = {"iterations": iterations, "eps": eps, "tol": tol,
+                                 "objective": objective, "prior": prior}  # fmt: skip
         meta[Key.SOLVER] = (
-            "friction-cone constrained least squares (torchcontact.constrained), one ONNX Loop"
+            f"friction-cone constrained estimate ({objective}, torchcontact.constrained),"
+            " one ONNX Loop"
         )
     elif step_graph:
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
