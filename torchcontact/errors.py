@@ -20,6 +20,7 @@ __all__ = [
     "KernelBuildError",
     "LogError",
     "ModelMismatchError",
+    "OutputBusyError",
     "ProfileError",
     "TorchContactError",
     "URDFError",
@@ -77,3 +78,7 @@ class FTConnectionError(FTError):
 
 class KernelBuildError(TorchContactError, RuntimeError):
     """A generated kernel could not be compiled or loaded (callers fall back to eager torch)."""
+
+
+class OutputBusyError(TorchContactError, RuntimeError):
+    """Another live process holds the output's lock (``OUT.lock``): the message names it."""

@@ -4,8 +4,8 @@ A frame's status is an int64 bit field; 0 means the frame was estimated and ever
 finite. Each set bit names one reason. The estimator sets the bits, the log pipeline stores the
 code (``status_code`` column) and its text (``status`` column, :func:`status_messages`), and
 exported graphs return the same integer. Frames with a non-zero status have NaN outputs, the rest
-of a batch is unaffected. Bit 128 is set by the log pipeline only: in Python and ONNX a contact on
-an unknown link is an error when the estimate is called.
+of a batch is unaffected. Bits 128 and 256 are set by the log pipeline only: in Python and ONNX a
+contact on an unknown link is an error when the estimate is called, and derivatives are inputs.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ STATUS: dict[int, str] = {
     32: "non-finite output (the inputs were finite but the computation overflowed)",
     64: "implausible input (joint velocity beyond the URDF limit, or reading beyond sensor range)",
     128: "invalid contact (unknown link or kind, or a link outside every F/T sensor's subtree)",
+    256: "too few frames to differentiate q (qd/qdd derived from a t_ns segment of < 3 frames)",
 }
 
 
