@@ -187,7 +187,7 @@ class LogScan:
         pairs: ``{(link, kind): most records of that pair in one frame}`` over the whole log.
         step_ns: median step of ``t_ns`` (positive steps, to the microsecond), ns; 0 if none.
         segments: time segments (:func:`~torchcontact.logs.derive.time_segments`).
-        repeats: segment starts at a repeated or backward stamp.
+        repeats: frames whose stamp repeats or runs backward (each a segment of its own).
         gaps: segment starts at a gap over ``GAP_FACTOR`` median steps.
         short_frames: frames in segments of fewer than ``MIN_SEGMENT_FRAMES`` frames (they
             cannot be differentiated when ``qd``/``qdd`` are derived).
@@ -220,7 +220,7 @@ class LogScan:
         """One sentence on the log's time segments (for the warning of a derived log)."""
         causes = []
         if self.repeats:
-            causes.append(f"{self.repeats} repeated or backward t_ns")
+            causes.append(f"{self.repeats} frames with a repeated or backward t_ns")
         if self.gaps:
             causes.append(
                 f"{self.gaps} gaps over {GAP_FACTOR:g} x the median step {self.step_ns / 1e6:g} ms"
@@ -333,29 +333,30 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
         done += tab.num_rows
     step = median_step(hist)
     # second pass over t_ns alone: segments need the median step of the whole log
-    segments = repeats = gaps = short = 0
+    segments = untrusted = gaps = short = 0
     seg_start = 0  # first row of the open segment
-    last = None
+    ctx = np.zeros(0, np.int64)  # the last two stamps before the block
     done = 0
     for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src):
         t = _stamps(tab.column("t_ns"), src, done)
         if not len(t):
             continue
-        if last is None:
-            starts, prev = time_segments(t, step), np.r_[t[0], t[:-1]]
+        starts = time_segments(np.r_[ctx, t], step)[len(ctx) :]
+        step_in = t - np.r_[ctx[-1:] if len(ctx) else t[:1], t[:-1]]  # 0 for the log's first
+        back = step_in <= 0
+        back[0] &= bool(done)
+        untrusted += int(back.sum())
+        if step > 0:
+            gaps += int(np.sum(step_in > GAP_FACTOR * step))
+        if not done:
             starts[0] = False  # the log's first frame opens the first segment
-        else:
-            starts, prev = time_segments(np.r_[last, t], step)[1:], np.r_[last, t[:-1]]
-        back = starts & (t <= prev)
-        repeats += int(back.sum())
-        gaps += int((starts & ~back).sum())
         at = np.flatnonzero(starts) + done
         if len(at):  # segments closed in this block
             closed = np.diff(np.r_[seg_start, at])
             segments += len(closed)
             short += int(closed[closed < MIN_SEGMENT_FRAMES].sum())
             seg_start = int(at[-1])
-        last = int(t[-1])
+        ctx = np.r_[ctx, t][-2:]
         done += len(t)
     if rows:
         final = rows - seg_start
@@ -365,7 +366,7 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
     inv = {v: k for k, v in names.items()}
     for (li, ki), m in counts.items():
         pairs[(inv[li], inv[ki])] = m
-    return LogScan(rows, pairs, step, max(segments, 1), repeats, gaps, short)
+    return LogScan(rows, pairs, step, max(segments, 1), untrusted, gaps, short)
 
 
 # ---------------------------------------------------------------------- per-frame issues
@@ -550,14 +551,16 @@ class ChunkDecoder:
         issues = FrameIssues(N)
         t_col = table.column("t_ns")
         t = _stamps(t_col, self.source, first_row)
-        q = self._vectors(table, "q", nv, 2, issues)[:, perm]
-        qd = None if "qd" in self.derived else self._vectors(table, "qd", nv, 2, issues)[:, perm]
-        qdd = (None if "qdd" in self.derived
-               else self._vectors(table, "qdd", nv, 2, issues)[:, perm])  # fmt: skip
+        q = _joints(self._vectors(table, "q", nv, 2, issues), perm)
+        qd = qdd = None
+        if "qd" not in self.derived:
+            qd = _joints(self._vectors(table, "qd", nv, 2, issues), perm)
+        if "qdd" not in self.derived:
+            qdd = _joints(self._vectors(table, "qdd", nv, 2, issues), perm)
         ft = {s: self._vectors(table, ft_column(s), 6, 1, issues) for s in self.sensors}
         tau = None
         if "tau_measured" in table.column_names:
-            tau = self._vectors(table, "tau_measured", nv, 16, issues)[:, perm]
+            tau = _joints(self._vectors(table, "tau_measured", nv, 16, issues), perm)
         base = {}
         for col, key in BASE_COLUMNS.items():
             if col in table.column_names:
@@ -699,9 +702,16 @@ class ChunkDecoder:
             bit[bad] = b
 
 
+def _joints(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """``(N, nv)`` log-order joint values -> model order, C-contiguous (what kernels read)."""
+    if np.array_equal(perm, np.arange(len(perm))):
+        return values
+    return values.take(perm, axis=1)  # numpy's a[:, perm] would be Fortran-ordered
+
+
 def stamps_and_positions(
     table: Any, perm: np.ndarray, source: str = "", first_row: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a table (context)."""
     q, _ = vectors(table.column("q"), len(perm))
-    return _stamps(table.column("t_ns"), source, first_row), q[:, perm]
+    return _stamps(table.column("t_ns"), source, first_row), _joints(q, perm)

@@ -42,32 +42,36 @@ GAP_FACTOR = 5.0
 MIN_SEGMENT_FRAMES = 3
 
 
-def time_segments(t_ns: np.ndarray, step_ns: float, first: bool = True) -> np.ndarray:
-    """Where new time segments start: repeated or backward stamps, and gaps.
+def time_segments(t_ns: np.ndarray, step_ns: float) -> np.ndarray:
+    """Where new time segments start: at untrusted stamps and at gaps.
+
+    A frame whose stamp does not increase over its predecessor's (repeated or backward
+    ``t_ns``) cannot be placed in time: it becomes a segment of its own (a segment starts at it
+    and at the frame after it). A step longer than :data:`GAP_FACTOR` median steps starts a
+    segment too.
 
     Args:
-        t_ns: ``(L,)`` int64 time stamps, ns.
+        t_ns: ``(L,)`` int64 time stamps, ns. To continue an earlier array, prepend its last two
+            stamps and drop the first two results.
         step_ns: the log's median step, ns (:func:`median_step`; 0: no gap rule).
-        first: whether frame 0 starts a segment (False when ``t_ns`` continues an earlier
-            array: pass that array's last stamp as ``t_ns[0]`` and drop the first result).
 
     Returns:
-        ``(L,)`` bool, True where a frame starts a segment: ``t_ns[i] <= t_ns[i - 1]``, or
-        ``t_ns[i] - t_ns[i - 1] > GAP_FACTOR * step_ns``.
+        ``(L,)`` bool, True where a frame starts a segment (frame 0 does).
 
     Example:
-        >>> time_segments(np.array([0, 10, 10, 20, 15, 25, 100]), 10.0).tolist()
-        [True, False, True, False, True, False, True]
+        >>> time_segments(np.array([0, 10, 20, 20, 30, 40, 100, 110]), 10.0).tolist()
+        [True, False, False, True, True, False, True, False]
     """
     t = np.asarray(t_ns, np.int64)
     out = np.zeros(len(t), bool)
     if len(t):
-        out[0] = first
+        out[0] = True
         step = np.diff(t)
-        cut = step <= 0
+        back = step <= 0  # frame i + 1 does not advance over frame i
+        out[1:] = back
         if step_ns > 0:
-            cut |= step > GAP_FACTOR * step_ns
-        out[1:] = cut
+            out[1:] |= step > GAP_FACTOR * step_ns
+        out[2:] |= back[:-1]  # the frame after an untrusted one starts afresh
     return out
 
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import time
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -436,8 +437,12 @@ class LogEstimator:
         """Run the estimator on a chunk; its outputs as numpy arrays (:func:`_arrays`)."""
         model, est, cons = self.model, self.estimator, self.constraints
 
+        share = model.dtype == torch.float64 and model.device.type == "cpu"
+
         def t(x: np.ndarray) -> torch.Tensor:
-            return torch.tensor(x, dtype=model.dtype, device=model.device)  # copy: arrow is r/o
+            if share and x.dtype == np.float64 and x.flags.writeable and x.flags.c_contiguous:
+                return torch.from_numpy(x)  # the chunk's own array: no copy
+            return torch.tensor(x, dtype=model.dtype, device=model.device)  # Arrow memory is r/o
 
         args = {
             "q": t(d.q), "qd": t(d.qd), "qdd": t(d.qdd),  # type: ignore[arg-type]
@@ -649,7 +654,8 @@ def decoded_chunks(
     dec = le.decoder
     c = 2 * half_window
     stream = DerivativeStream(half_window, le.step_ns, before) if le.derived else None
-    last_t = None if before is None or not len(before[0]) else int(before[0][-1])
+    # the last two stamps before a chunk (time segments of a log without derived qd/qdd)
+    last_t = np.zeros(0, np.int64) if before is None else np.asarray(before[0][-2:], np.int64)
     ahead: deque[Decoded] = deque()
     row = first_row
     for tab in tables:
@@ -657,12 +663,10 @@ def decoded_chunks(
         row += tab.num_rows
         while len(ahead) > 1 and sum(x.n for x in list(ahead)[1:]) >= c:
             yield _finish_chunk(le, ahead, stream, after, c, last_t)
-            last_t = int(ahead[0].t[-1]) if ahead[0].n else last_t
-            ahead.popleft()
+            last_t = np.r_[last_t, ahead.popleft().t][-2:]
     while ahead:
         yield _finish_chunk(le, ahead, stream, after, c, last_t)
-        last_t = int(ahead[0].t[-1]) if ahead[0].n else last_t
-        ahead.popleft()
+        last_t = np.r_[last_t, ahead.popleft().t][-2:]
 
 
 def _finish_chunk(
@@ -671,7 +675,7 @@ def _finish_chunk(
     stream: DerivativeStream | None,
     after: tuple[np.ndarray, np.ndarray] | None,
     c: int,
-    last_t: int | None,
+    last_t: np.ndarray,
 ) -> Decoded:
     """Derivatives (with the frames ahead as context), segment starts and slots of ``ahead[0]``."""
     d = ahead[0]
@@ -684,9 +688,7 @@ def _finish_chunk(
         qd, qdd, starts, length = stream.derive(d.t, d.q, t_n[:c], q_n[:c])
         le.decoder.derive(d, qd, qdd, starts, length)
     else:
-        t = d.t if last_t is None else np.r_[np.int64(last_t), d.t]
-        starts = time_segments(t, le.step_ns)
-        d.starts = starts if last_t is None else starts[1:]
+        d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
     le.decoder.slots(d, le.model.dtype, le.model.device)
     return d
 
@@ -929,6 +931,7 @@ def estimate_file(
     """
     import sys
 
+    t0 = time.perf_counter()
     _check_positive(batch_size=batch_size, half_window=half_window)
     out = Path(out)
     robot_file = None if isinstance(robot, RobotModel) else robot
@@ -978,8 +981,8 @@ def estimate_file(
             from torchcontact.logs.decode import stamps_and_positions
 
             before = stamps_and_positions(next(ctx), le.perm, str(path))
-        elif first:
-            before = (np.array([_stamp_at(pf, first - 1, str(path))]), np.zeros((1, model.nv)))
+        elif first:  # the stamps before the first chunk: time segments
+            before = (_stamps_at(pf, first - 2, first, str(path)), np.zeros((2, model.nv)))
         previous = read_journal(run.part(done - 1)) if done and constraints else None
         backend = kernel_backend(total - first, str(model.device))
 
@@ -995,17 +998,19 @@ def estimate_file(
             le.output_schema(),
             progress=show,
             cone_sensors=list(le.sensors) if constraints is not None else [],
+            t0=t0,
             **log_summary(le, scan),
             engine="local",
         )
 
 
-def _stamp_at(pf: Any, row: int, source: str) -> int:
-    """``t_ns`` of one row (the stamp before a resumed run's first chunk)."""
+def _stamps_at(pf: Any, lo: int, hi: int, source: str) -> np.ndarray:
+    """``t_ns`` of rows ``[max(lo, 0), hi)`` (the stamps before a resumed run's first chunk)."""
     from torchcontact.logs.decode import _stamps
 
-    tab = next(read_chunks(pf, ["t_ns"], 1, source, row))
-    return int(_stamps(tab.column("t_ns"), source, row)[0])
+    lo = max(lo, 0)
+    tab = next(read_chunks(pf, ["t_ns"], hi - lo, source, lo))
+    return _stamps(tab.column("t_ns"), source, lo)
 
 
 def _path_or_none(x: Any) -> str | Path | None:

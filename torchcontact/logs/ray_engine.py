@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import sys
+import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -117,8 +118,8 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
     for u in batch["unit"]:
         start, stop = job["units"][int(u)]
         # context across the unit's edges, as the local engine has: 2 h frames each side for
-        # derived qd/qdd, else the stamp before (a time segment may start at the unit)
-        c = 2 * h if derive else 1
+        # derived qd/qdd, else the two stamps before (a time segment may start at the unit)
+        c = 2 * h if derive else 2
         lo, hi = max(0, start - c), min(n, stop + 2 * h) if derive else stop
         tab = _read_unit(pf, job["columns"], lo, hi, path)
         unit = tab.slice(start - lo, stop - start)
@@ -133,7 +134,10 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
         tables = estimate_stream(le, decoded, None, job["backend"])
         write_journal(tables, Path(job["partial"]) / f"part-{int(u):08d}.arrow")
         rows.append(stop - start)
-    return {"unit": batch["unit"], "rows": np.array(rows)}
+    import ray
+
+    node = ray.get_runtime_context().get_node_id()
+    return {"unit": batch["unit"], "rows": np.array(rows), "node": np.array([node] * len(rows))}
 
 
 def _ensure_ray(num_cpus: int | None) -> Any:
@@ -288,13 +292,15 @@ def estimate_file_ray(
             solver's tolerance).
 
     Returns:
-        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units).
+        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
+        ``nodes``: the Ray nodes that ran the units estimated now.
 
     Raises:
         InputError: as :func:`estimate_file`, or ``workers`` < 1.
         OutputBusyError: another live process is writing ``out``.
         LogError: as :func:`estimate_file`, or a recurrent (GRU) residual.
     """
+    t0 = time.perf_counter()
     task_rows = 8 * batch_size if task_rows is None else task_rows
     _check_positive(
         batch_size=batch_size, half_window=half_window, workers=workers, task_rows=task_rows
@@ -336,6 +342,7 @@ def estimate_file_ray(
                         batch_size=1, batch_format="numpy", prefetch_batches=0
                     )
                     for b in batches:
+                        nodes.update(str(x) for x in b["node"])
                         for u, n in zip(b["unit"], b["rows"], strict=True):
                             yield Done(int(u), int(n))
                 except Exception as exc:
@@ -344,14 +351,18 @@ def estimate_file_ray(
                         raise err from None
                     raise
 
-        return run.execute(
+        nodes: set[str] = set()
+        summary = run.execute(
             produce(),
             le.output_schema(),
             progress=show,
             cone_sensors=list(le.sensors) if constraints is not None else [],
+            t0=t0,
             **log_summary(le, scan),
             engine="ray",
         )
+    summary["nodes"] = len(nodes)  # Ray nodes that ran units now
+    return summary
 
 
 def estimate_files_ray(

@@ -369,12 +369,15 @@ class Run:
                 raise LogError(
                     f"{self.out}: parts of {self.partial} do not fit the run; delete it and rerun"
                 )
-        else:
-            # nothing journalled: leftovers of a run killed before its first unit go
-            shutil.rmtree(self.partial, ignore_errors=True)
-            self.out.parent.mkdir(parents=True, exist_ok=True)
-            _io(self.partial, self.partial.mkdir)
-        self.record()
+        try:
+            if not self.done:
+                # nothing journalled: leftovers of a run killed before its first unit go
+                shutil.rmtree(self.partial, ignore_errors=True)
+                self.out.parent.mkdir(parents=True, exist_ok=True)
+                _io(self.partial, self.partial.mkdir)
+            self.record()
+        except LogError as exc:
+            raise LogError(f"{exc}; {self.kept()}") from None
 
     def record(self) -> None:
         """Write the sidecar (atomically)."""
@@ -406,6 +409,7 @@ class Run:
         *,
         progress: bool = False,
         cone_sensors: list[str] | None = None,
+        t0: float | None = None,
         **summary: Any,
     ) -> dict:
         """Write the engine's units into the output, in order, and return the summary.
@@ -416,6 +420,8 @@ class Run:
             schema: the output schema.
             progress: show a progress bar.
             cone_sensors: sensors with friction-cone columns (their solves are tallied).
+            t0: ``time.perf_counter()`` when the job started (the summary's ``seconds`` count
+                from there; default: now).
             **summary: more keys of the summary (input, sensors, derived, engine, ...).
 
         Returns:
@@ -429,7 +435,7 @@ class Run:
         """
         from tqdm import tqdm
 
-        t0 = time.perf_counter()
+        t0 = time.perf_counter() if t0 is None else t0
         total = sum(hi - lo for lo, hi in self.units)
         resumed = len(self.done)
         bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
