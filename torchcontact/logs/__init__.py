@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING
 
 # public name -> module it lives in (one per line)
 _LAZY = {
-    "LogConstraints": "torchcontact.logs.pipeline",
+    "LogConstraints": "torchcontact.logs.chunks",
     "LogError": "torchcontact.errors",
-    "LogEstimator": "torchcontact.logs.pipeline",
+    "LogEstimator": "torchcontact.logs.chunks",
     "estimate_file": "torchcontact.logs.pipeline",
     "estimate_files": "torchcontact.logs.pipeline",
     "expand_inputs": "torchcontact.logs.pipeline",
@@ -41,15 +41,10 @@ __all__ = [
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact.errors import LogError
+    from torchcontact.logs.chunks import LogConstraints, LogEstimator
     from torchcontact.logs.derive import savgol_derivatives
     from torchcontact.logs.format import input_schema, joint_names_of
-    from torchcontact.logs.pipeline import (
-        LogConstraints,
-        LogEstimator,
-        estimate_file,
-        estimate_files,
-        expand_inputs,
-    )
+    from torchcontact.logs.pipeline import estimate_file, estimate_files, expand_inputs
     from torchcontact.logs.simlog import simulated_table, write_simulated_log
 
 

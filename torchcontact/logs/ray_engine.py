@@ -35,15 +35,17 @@ import numpy as np
 import torch
 
 from torchcontact.errors import LogError, TorchContactError
+from torchcontact.logs.chunks import (
+    DEFAULT_VELOCITY_MARGIN,
+    LogEstimator,
+    decoded_chunks,
+    estimate_stream,
+)
 from torchcontact.logs.decode import stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
 from torchcontact.logs.format import check_outputs, open_log, write_journal
 from torchcontact.logs.pipeline import (
-    DEFAULT_VELOCITY_MARGIN,
-    LogEstimator,
     _check_positive,
-    decoded_chunks,
-    estimate_stream,
     expand_inputs,
     kernel_backend,
     load_residual,
