@@ -49,6 +49,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+if os.environ.get("TC_BENCH_CODE"):  # --compare-with: that checkout's torchcontact
+    sys.path.insert(0, os.environ["TC_BENCH_CODE"])
 from _meta import metadata  # noqa: E402
 
 BATCH = 8192
@@ -119,6 +121,12 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def _cpu() -> float:
+    """CPU seconds of this process, every thread (user + system)."""
+    t = os.times()
+    return t.user + t.system
+
+
 def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     """One timed run; prints a JSON line."""
     import torch
@@ -133,7 +141,7 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
 
         est = pq.read_table(extra)  # the estimate table, in memory (not timed)
         cols = json.loads(Path(extra + ".columns").read_text())
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu()
         pf = open_log(log)
         n = sum(b.num_rows for b in pf.iter_batches(batch_size=BATCH, columns=cols))
         t1 = time.perf_counter()
@@ -142,17 +150,19 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
             w.write_table(pa.Table.from_batches([b]))
         w.close()
         t2 = time.perf_counter()
-        res = {"seconds": t2 - t0, "read": t1 - t0, "write": t2 - t1, "frames": n}
+        res = {"seconds": t2 - t0, "cpu": _cpu() - c0, "read": t1 - t0, "write": t2 - t1,
+               "frames": n}  # fmt: skip
     elif kind == "e2e":
         import torchcontact as tc
         from torchcontact.logs import estimate_file
 
         urdf, _, _ = robot_setup(robot)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu()
         model = tc.RobotModel.from_urdf(urdf)
         device = extra or "cpu"
         s = estimate_file(log, model, out, batch_size=BATCH, progress=False, device=device)
-        res = {"seconds": time.perf_counter() - t0, "frames": s["frames"], "slots": s["slots"]}
+        res = {"seconds": time.perf_counter() - t0, "cpu": _cpu() - c0, "frames": s["frames"],
+               "slots": s.get("slots")}  # fmt: skip
     elif kind == "inmem":
         import torchcontact as tc
         from torchcontact.contacts import Contacts
@@ -176,12 +186,12 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
             _rows(contacts, slice(0, BATCH)),
             backend="cpu",
         )  # build or load, untimed
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu()
         for s0 in range(0, n, BATCH):
             sl = slice(s0, s0 + BATCH)
             est.estimate(q[sl], qd[sl], qdd[sl], {sensor: ft[sl]}, _rows(contacts, sl),
                          backend="cpu")  # fmt: skip
-        res = {"seconds": time.perf_counter() - t0, "frames": n}
+        res = {"seconds": time.perf_counter() - t0, "cpu": _cpu() - c0, "frames": n}
     res["maxrss_mb"] = _rss_mb()
     print(json.dumps(res))
 
@@ -191,8 +201,10 @@ def _rows(contacts, sl):
 
     import torch
 
-    return replace(contacts, **{f.name: getattr(contacts, f.name)[sl] for f in fields(contacts)
-                                if isinstance(getattr(contacts, f.name), torch.Tensor)})  # fmt: skip
+    tensors = [
+        f.name for f in fields(contacts) if isinstance(getattr(contacts, f.name), torch.Tensor)
+    ]
+    return replace(contacts, **{n: getattr(contacts, n)[sl] for n in tensors})
 
 
 def run_child(kind, robot, log, out, extra="", env=None, watch_cache=None) -> dict:
@@ -313,6 +325,11 @@ def mode_table(args, tmp: Path) -> None:
     cold["compilers"] = max(x["compilers"] for x in colds)
     cold["all"] = [round(x["seconds"], 3) for x in colds]
     inmem = median_run(args, "inmem", log, out, "", warm_env)
+    base = None
+    if args.compare_with:  # another checkout (e.g. the commit before), same log, same cache
+        code = str(Path(args.compare_with).resolve())
+        base = median_run(args, "e2e", log, out, args.device,
+                          {**warm_env, "PYTHONPATH": code, "TC_BENCH_CODE": code})  # fmt: skip
     second = second_run_during_build(args, log, tmp) if not args.no_race_build else "not run"
     helps, bare = help_seconds()
     n = floor["frames"]
@@ -325,26 +342,33 @@ def mode_table(args, tmp: Path) -> None:
           f" {warm['slots']} slots; repeats {args.repeat}; load average at start"
           f" {os.getloadavg()[0]:.1f}")  # fmt: skip
     print()
-    print("| run | seconds (median) | frames/s | runs |")
-    print("|---|---:|---:|---|")
-    for label, r in (
+    print("| run | seconds (median) | frames/s | CPU seconds | runs |")
+    print("|---|---:|---:|---:|---|")
+    rows = [
         ("pyarrow floor (read + write)", floor),
         ("end to end, warm", warm),
         ("end to end, cold (empty cache)", cold),
         ("in-memory kernel", inmem),
-    ):
-        print(f"| {label} | {r['seconds']:.2f} | {fps(r):,.0f} | {r['all']} |")
+    ]
+    if base is not None:
+        rows.insert(2, (f"end to end, warm, {args.compare_with}", base))
+    for label, r in rows:
+        cpu = f"{r['cpu']:.2f}" if "cpu" in r else ""
+        print(f"| {label} | {r['seconds']:.2f} | {fps(r):,.0f} | {cpu} | {r['all']} |")
     print(f"\n(floor: read {floor['read']:.2f} s + write {floor['write']:.2f} s)")
     print()
+    ratio = floor["seconds"] / warm["seconds"]
+    cpu_ratio = floor["cpu"] / warm["cpu"]
     print("| goal | measured |")
     print("|---|---|")
-    print(
-        f"| end to end (warm) / pyarrow floor >= 0.8 | {floor['seconds'] / warm['seconds']:.2f} |"
-    )
-    print(
-        f"| first run (empty cache) / second run <= 1.5x | {cold['seconds'] / warm['seconds']:.2f}x |"
-    )  # noqa: E501
+    print(f"| end to end (warm) / pyarrow floor >= 0.8 | {ratio:.2f} (CPU: {cpu_ratio:.2f}) |")
+    first = cold["seconds"] / warm["seconds"]
+    print(f"| first run (empty cache) / second run <= 1.5x | {first:.2f}x |")
     print(f"| end to end (warm) / in-memory kernel | {inmem['seconds'] / warm['seconds']:.2f} |")
+    if base is not None:
+        print(f"| end to end (warm), this checkout vs {args.compare_with} |"
+              f" {base['seconds'] / warm['seconds']:.2f}x faster"
+              f" (CPU: {base['cpu'] / warm['cpu']:.2f}x) |")  # fmt: skip
     print(f"| `torchcontact --help` <= 0.3 s | {helps:.3f} s (python -c pass: {bare:.3f} s) |")
     print(f"| a second run while the first one's kernel builds | {second} |")
     print(f"| compilers at once, cold run (one kernel per log) <= 1 | {cold['compilers']} |")
@@ -435,6 +459,12 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="estimate --device")
     ap.add_argument("--tmp", default=None, help="folder for logs and caches (kept; reused)")
     ap.add_argument("--no-race-build", action="store_true", help="skip the second-run check")
+    ap.add_argument(
+        "--compare-with",
+        metavar="CHECKOUT",
+        help="another source tree (e.g. `git worktree add /tmp/old 4b41f9f`): its warm end to"
+        " end on the same log, in the same run",
+    )
     ap.add_argument("--mem", type=int, nargs=2, help="peak RSS of two log lengths")
     ap.add_argument("--ray", type=int, default=0, help="frames of the Ray comparison")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])

@@ -10,6 +10,7 @@ import multiprocessing
 import os
 import signal
 import socket
+import threading
 import time
 
 import numpy as np
@@ -174,6 +175,9 @@ def test_disk_full_mid_run_names_the_path_and_keeps_the_chunks(model, small, tmp
     assert msg.startswith(f"{out}.tmp: no space left on device (errno 28); free some space")
     assert "of 4 chunks are kept in" in msg and msg.endswith("for --resume")
     assert not out.exists() and not _side(out)[2].exists()
+    # the reader and writer threads ended with the run
+    names = {t.name for t in threading.enumerate()}
+    assert not names & {"torchcontact-reader", "torchcontact-writer"}
     monkeypatch.undo()
     s = estimate_file(log, model, out, batch_size=50, resume=True)
     assert s["resumed_chunks"] >= 2 and out.read_bytes() == ref.read_bytes()

@@ -449,6 +449,9 @@ class Run:
                     sink.put(d)
                 sink.finish()
             except BaseException as exc:
+                close = getattr(produce, "close", None)
+                if close is not None:  # stops the engine's threads (a generator's finally)
+                    close()
                 sink.abort()
                 writer.abort()
                 if isinstance(exc, TorchContactError):
