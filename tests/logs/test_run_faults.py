@@ -214,3 +214,29 @@ def test_exit_codes(model, small, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([*args, str(tmp_path / "d.parquet"), "--max-bad", "1.5"])
     assert e.value.code == 2 and "expected a fraction in [0, 1]" in capsys.readouterr().err
+
+
+def test_resume_of_a_derived_log_in_small_chunks(model, sim_log_q_only, tmp_path, monkeypatch):
+    """Chunks shorter than the derivative's context (2 h = 10 frames): a resumed run reads the
+    frames before its first chunk again and gives the solo run's bytes."""
+    log = tmp_path / "q.parquet"
+    pq.write_table(pq.read_table(sim_log_q_only).slice(0, 60), log)
+    ref = tmp_path / "ref.parquet"
+    estimate_file(log, model, ref, batch_size=7)
+    out = tmp_path / "o.parquet"
+    real = fmt.LogWriter.write
+    calls = []
+
+    def interrupted(self, table, *a, **k):
+        calls.append(1)
+        if len(calls) > 4:
+            raise KeyboardInterrupt
+        return real(self, table, *a, **k)
+
+    monkeypatch.setattr(fmt.LogWriter, "write", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        estimate_file(log, model, out, batch_size=7)
+    monkeypatch.undo()
+    s = estimate_file(log, model, out, batch_size=7, resume=True)
+    assert s["resumed_chunks"] >= 4 and s["derived"] == ["qd", "qdd"]
+    assert out.read_bytes() == ref.read_bytes()

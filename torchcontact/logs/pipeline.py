@@ -44,7 +44,7 @@ from torchcontact.logs.chunks import (
     decoded_chunks,
     estimate_stream,
 )
-from torchcontact.logs.decode import LogScan, log_columns, scan_log
+from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
 from torchcontact.logs.format import check_outputs, iter_chunks, open_log, read_journal
 from torchcontact.logs.run import Done, Run, background, side_paths
@@ -374,15 +374,7 @@ def estimate_file(
                 f"{out}: parts of {run.partial} are not consecutive; delete it and rerun"
             )
         first = done * batch_size
-        before = None
-        if le.derived and first:  # the frames before the first chunk: derivative context
-            ctx = read_chunks(pf, ["t_ns", "q"], 2 * half_window, str(path),
-                              max(0, first - 2 * half_window))  # fmt: skip
-            from torchcontact.logs.decode import stamps_and_positions
-
-            before = stamps_and_positions(next(ctx), le.perm, str(path))
-        elif first:  # the stamps before the first chunk: time segments
-            before = (_stamps_at(pf, first - 2, first, str(path)), np.zeros((2, model.nv)))
+        before = _context(pf, le, first, half_window, str(path))
         previous = read_journal(run.part(done - 1)) if done and constraints else None
         backend = kernel_backend(total - first, str(model.device))
 
@@ -404,13 +396,18 @@ def estimate_file(
         )
 
 
-def _stamps_at(pf: Any, lo: int, hi: int, source: str) -> np.ndarray:
-    """``t_ns`` of rows ``[max(lo, 0), hi)`` (the stamps before a resumed run's first chunk)."""
-    from torchcontact.logs.decode import _stamps
+def _context(
+    pf: Any, le: LogEstimator, first: int, half_window: int, source: str
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(t_ns, q)`` of the frames before row ``first`` that a resumed run needs (None: none).
 
-    lo = max(lo, 0)
-    tab = next(read_chunks(pf, ["t_ns"], hi - lo, source, lo))
-    return _stamps(tab.column("t_ns"), source, lo)
+    Derived ``qd``/``qdd`` need ``2 h`` frames (model joint order), time segments two stamps.
+    """
+    if not first:
+        return None
+    lo = max(0, first - (2 * half_window if le.derived else 2))
+    tab = next(read_chunks(pf, ["t_ns", "q"], first - lo, source, lo))
+    return stamps_and_positions(tab, le.perm, source, lo)
 
 
 def _path_or_none(x: Any) -> str | Path | None:
