@@ -7,6 +7,7 @@ Run on a quiet machine (each mode writes its own table; every timing runs in its
     python benchmarks/pipeline.py --mem 1000000 10000000 --robot tcarm # peak RSS vs log length
     python benchmarks/pipeline.py --ray 1000000 --workers 1 2 4 8 16   # Ray scaling (many cores)
     python benchmarks/pipeline.py --race 20                           # two runs on one output
+    python benchmarks/pipeline.py --wait-rule 50000 200000 1000000    # wait for the kernel?
     python benchmarks/pipeline.py --device cuda                       # estimate --device cuda
 
 The log (written once into ``--tmp``, default a new temporary folder; pass a folder to reuse it):
@@ -155,6 +156,11 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     elif kind == "e2e":
         import torchcontact as tc
         from torchcontact.logs import estimate_file
+
+        if os.environ.get("TC_BENCH_WAIT"):  # --wait-rule: the kernel-wait threshold to use
+            from torchcontact.logs import pipeline
+
+            pipeline.WAIT_FOR_KERNEL_FRAMES = int(os.environ["TC_BENCH_WAIT"])
 
         urdf, _, _ = robot_setup(robot)
         t0, c0 = time.perf_counter(), _cpu()
@@ -375,6 +381,28 @@ def mode_table(args, tmp: Path) -> None:
     print(f"| compilers at once, cold run (one kernel per log) <= 1 | {cold['compilers']} |")
 
 
+def mode_wait_rule(args, tmp: Path) -> None:
+    """First runs (empty cache) that wait for the kernel against runs that go on eagerly while
+    it builds, for several log lengths: the data behind WAIT_FOR_KERNEL_FRAMES."""
+    print(metadata())
+    print("| frames | waits for the kernel (s) | eager while it builds (s) | warm (s) |")
+    print("|---:|---:|---:|---:|")
+    for n in args.wait_rule:
+        log = write_log(args.robot, n, tmp / f"{args.robot}{n}.parquet")
+        out = tmp / "out.parquet"
+        cells = []
+        for wait in (0, 10**12):
+            t = []
+            for i in range(args.repeat):
+                cache = str(tmp / f"cache-rule-{time.time_ns()}-{i}")
+                env = {**os.environ, "TORCHCONTACT_CACHE": cache, "TC_BENCH_WAIT": str(wait)}
+                t.append(run_child("e2e", args.robot, log, out, args.device, env)["seconds"])
+            cells.append(statistics.median(t))
+        warm = median_run(args, "e2e", log, out, args.device,
+                          {**os.environ, "TORCHCONTACT_CACHE": cache})  # fmt: skip
+        print(f"| {n:,} | {cells[0]:.1f} | {cells[1]:.1f} | {warm['seconds']:.1f} |", flush=True)
+
+
 def mode_mem(args, tmp: Path) -> None:
     n0, n1 = args.mem
     rows = {}
@@ -467,6 +495,13 @@ def main() -> None:
         " end on the same log, in the same run",
     )
     ap.add_argument("--mem", type=int, nargs=2, help="peak RSS of two log lengths")
+    ap.add_argument(
+        "--wait-rule",
+        type=int,
+        nargs="+",
+        metavar="FRAMES",
+        help="first runs that wait for the kernel vs eager while it builds, per log length",
+    )
     ap.add_argument("--ray", type=int, default=0, help="frames of the Ray comparison")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--race", type=int, default=0, help="tries of two runs on one output")
@@ -479,6 +514,8 @@ def main() -> None:
     tmp.mkdir(parents=True, exist_ok=True)
     if a.mem:
         return mode_mem(a, tmp)
+    if a.wait_rule:
+        return mode_wait_rule(a, tmp)
     if a.ray:
         return mode_ray(a, tmp)
     if a.race:

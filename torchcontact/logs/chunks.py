@@ -548,7 +548,7 @@ def decoded_chunks(
     before: tuple[np.ndarray, np.ndarray] | None = None,
     after: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Iterator[Decoded]:
-    """Decode consecutive tables of a log: arrays, time segments, derived ``qd``/``qdd``, slots.
+    """Decode consecutive tables of a log: arrays, time segments, derived ``qd``/``qdd``.
 
     Args:
         le: the log's estimator.
@@ -589,7 +589,7 @@ def _finish_chunk(
     c: int,
     last_t: np.ndarray,
 ) -> Decoded:
-    """Derivatives (with the frames ahead as context), segment starts and slots of ``ahead[0]``."""
+    """Derivatives (with the frames ahead as context) and segment starts of ``ahead[0]``."""
     d = ahead[0]
     if stream is not None:
         nxt = list(ahead)[1:]
@@ -601,8 +601,7 @@ def _finish_chunk(
         le.decoder.derive(d, qd, qdd, starts, length)
     else:
         d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
-    le.decoder.slots(d, le.model.dtype, le.model.device)
-    return d
+    return d  # its slots are filled by the estimate (the reader thread has enough to do)
 
 
 def estimate_stream(
