@@ -85,10 +85,10 @@ def test_one_layout_per_log_same_rows_as_one_per_chunk(model, changing, tmp_path
     np.testing.assert_allclose(hand[0]["force"], hand[1]["force"], atol=1e-12)
 
 
-def test_large_logs_wait_for_their_kernel(model, sim_log, tmp_path, monkeypatch):
-    """A run with WAIT_FOR_KERNEL_FRAMES frames to estimate builds (or loads) its kernel before
-    the first chunk, then goes on with ``auto``; a shorter one never waits. A kernel that cannot
-    be built leaves the run eager, with the same rows."""
+def test_when_a_run_waits_for_its_kernel(model, sim_log, tmp_path, monkeypatch):
+    """By default the local engine never waits (``auto``: eager while the kernel builds); with
+    WAIT_FOR_KERNEL_FRAMES frames to estimate it builds (or loads) the kernel before its first
+    chunk, and a kernel that cannot be built leaves the run eager, with the same rows."""
     backends = []
     real = pl.LogEstimator.estimate
 
@@ -99,14 +99,15 @@ def test_large_logs_wait_for_their_kernel(model, sim_log, tmp_path, monkeypatch)
         return real(self, d, previous, backend)
 
     monkeypatch.setattr(pl.LogEstimator, "estimate", spy)
-    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", 600)
     a = pq.read_table(estimate_file(sim_log, model, tmp_path / "a.parquet", batch_size=256)
                       ["output"])  # fmt: skip
-    assert backends == ["cpu", "eager", "eager", "eager"]
+    assert pl.WAIT_FOR_KERNEL_FRAMES is None and backends == ["auto"] * 3
     backends.clear()
-    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", 601)
+    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", 600)
     b = pq.read_table(estimate_file(sim_log, model, tmp_path / "b.parquet", batch_size=256)
                       ["output"])  # fmt: skip
-    assert backends == ["auto"] * 3
+    assert backends == ["cpu", "eager", "eager", "eager"]
     assert a.equals(b)
-    assert pl.kernel_backend(10**6, "cpu") == "cpu" and pl.kernel_backend(10, "cpu") == "auto"
+    assert pl.kernel_backend(599, "cpu") == "auto" and pl.kernel_backend(600, "cpu") == "cpu"
+    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", None)
+    assert pl.kernel_backend(10, "cpu", shared=True) == "cpu"  # Ray tasks wait

@@ -18,10 +18,13 @@ thread reads and decodes chunks (pyarrow's reads release the GIL), the calling t
 them (the kernels release the GIL), the writer thread journals them and writes the Parquet
 output. Order, resume and checksums are those of a sequential run.
 
-Kernels: a log with at least :data:`WAIT_FOR_KERNEL_FRAMES` frames to estimate waits for its
-kernel to be built (or loaded from the cache) before its first chunk; a shorter one runs eagerly
-while the kernel builds in the background and switches to it at the first chunk after the build
-(``backend="auto"`` of :mod:`torchcontact.kernels`). A failed build falls back to eager torch.
+Kernels: a log's one kernel is built in the background while the first chunks run eagerly, and the
+run switches to it at the first chunk after the build (``backend="auto"`` of
+:mod:`torchcontact.kernels`); a kernel in the cache is loaded at once. Measured on first runs
+(empty cache), this beats waiting for the build at every log length tried (docs/pipeline.md):
+with one kernel per log, the eager frames only fill the one build's time. Ray tasks wait for the
+build instead (:func:`kernel_backend`): several worker processes share a machine, and one of them
+builds while the others wait for it. A failed build falls back to eager torch.
 """
 
 from __future__ import annotations
@@ -63,12 +66,11 @@ __all__ = [
     "prepare",
 ]
 
-#: A run with at least this many frames to estimate waits for its kernel rather than running
-#: eagerly while it builds. Measured (docs/pipeline.md): building a whole-robot estimator kernel
-#: costs about as much CPU as estimating ~200,000 frames eagerly, for the 7-joint tcarm (2.7 s vs
-#: 78 k frames/s) and the 32-joint iCub (7.5 s vs 28 k frames/s) alike; past that the kernel
-#: (30-40x faster) wins, and on a small machine the eager frames and the compiler share cores.
-WAIT_FOR_KERNEL_FRAMES = 200_000
+#: Frames to estimate from which the local engine waits for its kernel to be built rather than
+#: estimating eagerly while it builds; None: never. Measured on a 2-core machine (first runs of
+#: the iCub benchmark log, docs/pipeline.md): estimating eagerly while the kernel builds was
+#: faster than waiting at 50 k, 200 k and 1 M frames (15 vs 48 s, 49 vs 62 s, 81 vs 92 s).
+WAIT_FOR_KERNEL_FRAMES: int | None = None
 
 
 def resolve_device(device: str) -> str:
@@ -117,10 +119,20 @@ def _check_positive(**values: int) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
 
 
-def kernel_backend(frames: int, device: str) -> str:
-    """The estimator backend of a run with ``frames`` frames to estimate (see the module doc)."""
+def kernel_backend(frames: int, device: str, shared: bool = False) -> str:
+    """The estimator backend of a run: ``"auto"``, or ``"cpu"``/``"cuda"`` to wait for the kernel.
+
+    Args:
+        frames: frames the run will estimate.
+        device: the computation's device.
+        shared: several processes of the run share a machine (Ray tasks): wait, so that one of
+            them builds the kernel while the others wait for it (a build lock per kernel).
+    """
     kind = torch.device(device).type
-    return kind if frames >= WAIT_FOR_KERNEL_FRAMES and kind in ("cpu", "cuda") else "auto"
+    if kind not in ("cpu", "cuda"):
+        return "auto"
+    wait = WAIT_FOR_KERNEL_FRAMES is not None and frames >= WAIT_FOR_KERNEL_FRAMES
+    return kind if shared or wait else "auto"
 
 
 def read_chunks(

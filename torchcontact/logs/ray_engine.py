@@ -329,7 +329,7 @@ def estimate_file_ray(
         todo = [u for u in range(len(run.units)) if u not in run.done]
         options = dict(batch_size=batch_size, half_window=half_window, threads=threads,
                        device=device, dtype=str(dtype).removeprefix("torch."),
-                       backend=kernel_backend(total, device))  # fmt: skip
+                       backend=kernel_backend(total, device, shared=True))  # fmt: skip
 
         def produce() -> Iterator[Done]:
             if not todo:
