@@ -110,4 +110,9 @@ def test_when_a_run_waits_for_its_kernel(model, sim_log, tmp_path, monkeypatch):
     assert a.equals(b)
     assert pl.kernel_backend(599, "cpu") == "auto" and pl.kernel_backend(600, "cpu") == "cpu"
     monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", None)
-    assert pl.kernel_backend(10, "cpu", shared=True) == "cpu"  # Ray tasks wait
+    assert pl.kernel_backend(10**9, "cpu") == "auto"
+    big, small = pl.SHARED_WAIT_FRAMES, pl.SHARED_WAIT_FRAMES - 1  # Ray tasks of large logs wait
+    assert (
+        pl.kernel_backend(big, "cpu", True) == "cpu"
+        and pl.kernel_backend(small, "cpu", True) == "auto"
+    )

@@ -72,6 +72,11 @@ __all__ = [
 #: faster than waiting at 50 k, 200 k and 1 M frames (15 vs 48 s, 49 vs 62 s, 81 vs 92 s).
 WAIT_FOR_KERNEL_FRAMES: int | None = None
 
+#: Frames from which Ray tasks wait for the kernel: below, estimating them eagerly costs less
+#: than building it (building the whole-robot kernel costs as much CPU as ~200,000 eager frames,
+#: for the 7-joint tcarm and the 32-joint iCub alike).
+SHARED_WAIT_FRAMES = 200_000
+
 
 def resolve_device(device: str) -> str:
     """``auto`` -> ``cuda`` when available else ``cpu``; ``cuda`` must be available.
@@ -125,14 +130,15 @@ def kernel_backend(frames: int, device: str, shared: bool = False) -> str:
     Args:
         frames: frames the run will estimate.
         device: the computation's device.
-        shared: several processes of the run share a machine (Ray tasks): wait, so that one of
-            them builds the kernel while the others wait for it (a build lock per kernel).
+        shared: several processes of the run share a machine (Ray tasks): from
+            :data:`SHARED_WAIT_FRAMES` on, wait, so that one of them builds the kernel while the
+            others wait for it (a build lock per kernel) instead of each building it.
     """
     kind = torch.device(device).type
     if kind not in ("cpu", "cuda"):
         return "auto"
-    wait = WAIT_FOR_KERNEL_FRAMES is not None and frames >= WAIT_FOR_KERNEL_FRAMES
-    return kind if shared or wait else "auto"
+    limit = SHARED_WAIT_FRAMES if shared else WAIT_FOR_KERNEL_FRAMES
+    return kind if limit is not None and frames >= limit else "auto"
 
 
 def read_chunks(
