@@ -147,3 +147,22 @@ def test_warm_start_restarts_at_every_segment(model, sim_log, tmp_path):
     # before the gap, the gapped log is the whole log (same waves, same warm starts)
     assert a["iterations.base_ft"].to_pylist()[:g] == w["iterations.base_ft"].to_pylist()[:g]
     assert json.loads(a.schema.metadata[b"torchcontact.derived"])["columns"] == []
+
+
+def test_stamp_types_and_null_stamps(model, sim_log, tmp_path):
+    from torchcontact.errors import LogError
+
+    tab = pq.read_table(sim_log).slice(0, 40)
+    t = tab["t_ns"].to_numpy()
+    ref = tmp_path / "ns.parquet"
+    pq.write_table(tab, ref)
+    want = pq.read_table(estimate_file(ref, model, tmp_path / "a.parquet")["output"])
+    us = tmp_path / "us.parquet"  # a timestamp column in microseconds: the same instants
+    pq.write_table(tab.set_column(0, "t_ns", pa.array(t // 1000, pa.timestamp("us"))), us)
+    got = pq.read_table(estimate_file(us, model, tmp_path / "b.parquet")["output"])
+    assert got.equals(want)
+    null = tmp_path / "null.parquet"
+    pq.write_table(tab.set_column(0, "t_ns", pa.array([*t[:7], None, *t[8:]], pa.int64())), null)
+    with pytest.raises(LogError, match="t_ns has 1 null stamps in rows 0-39 \\(first at row 7\\)"):
+        estimate_file(null, model, tmp_path / "c.parquet")
+    assert not (tmp_path / "c.parquet.partial").exists()

@@ -253,6 +253,8 @@ def _stamps(column: Any, src: str, row: int) -> np.ndarray:
             f"{src}: t_ns has {column.null_count} null stamps in rows {row}-{row + len(column) - 1}"
             f" (first at row {row + first}); every frame needs a time stamp"
         )
+    if pa.types.is_timestamp(typ):  # any unit -> ns since the epoch
+        column = column.cast(pa.timestamp("ns", typ.tz))
     return np.asarray(column.cast(pa.int64()).to_numpy(zero_copy_only=False), np.int64)
 
 
@@ -274,6 +276,8 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
 
     if isinstance(lst, pa.ChunkedArray):
         lst = lst.combine_chunks()
+    if lst.null_count:  # null rows -> empty lists, as read_contacts
+        lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
     structs = lst.flatten()
     if not len(structs):
         return
@@ -422,7 +426,7 @@ class Decoded:
 
     Attributes:
         n: frames.
-        t_ns: the chunk's ``t_ns`` column (pyarrow int64).
+        t_ns: the chunk's ``t_ns`` as a pyarrow int64 array, ns.
         t: ``(n,)`` int64 stamps, ns.
         q: ``(n, nv)`` positions, model order (NaN where malformed).
         qd: ``(n, nv)`` velocities (logged, or derived by :meth:`ChunkDecoder.derive`).
@@ -578,8 +582,7 @@ class ChunkDecoder:
             records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
         slot = np.full(len(records), -1, np.int64)
         slot[~bad_record] = 0  # placed by slots()
-        t_ns = t_col.combine_chunks() if isinstance(t_col, pa.ChunkedArray) else t_col
-        return Decoded(N, t_ns.cast(pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
+        return Decoded(N, pa.array(t, pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
                        fields, slot, None, issues)  # fmt: skip
 
     def slots(self, d: Decoded, dtype: Any, device: Any) -> None:
