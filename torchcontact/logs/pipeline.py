@@ -354,23 +354,23 @@ def estimate_file(
     out = Path(out)
     robot_file = None if isinstance(robot, RobotModel) else robot
     check_outputs([out, *side_paths(out)], [path, robot_file, _path_or_none(residual)])
-    model = load_robot(robot, dtype, device)
-    if residual is not None and not hasattr(residual, "correct"):
-        residual = load_residual(residual, model)
-    if residual is not None:
-        residual.reset()  # a GRU's state starts afresh with each log
-    recurrent = residual is not None and residual.recurrent
-    if recurrent and resume:
-        raise LogError(
-            f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
-            " its state depends on every earlier frame; rerun from the start"
+    with Run(out, path) as run:  # the lock first: a second run stops before any work
+        model = load_robot(robot, dtype, device)
+        if residual is not None and not hasattr(residual, "correct"):
+            residual = load_residual(residual, model)
+        if residual is not None:
+            residual.reset()  # a GRU's state starts afresh with each log
+        recurrent = residual is not None and residual.recurrent
+        if recurrent and resume:
+            raise LogError(
+                f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
+                " its state depends on every earlier frame; rerun from the start"
+            )
+        pf, le, columns, scan = prepare(
+            path, model, sensors, residual, velocity_margin, ft_range, constraints
         )
-    pf, le, columns, scan = prepare(
-        path, model, sensors, residual, velocity_margin, ft_range, constraints
-    )
-    total = pf.metadata.num_rows
-    show = sys.stderr.isatty() if progress is None else progress
-    with Run(out, path) as run:
+        total = pf.metadata.num_rows
+        show = sys.stderr.isatty() if progress is None else progress
         # an interrupted run keeps its chunk size: read it before the ident is compared
         prev = run.previous() if resume else None
         if prev is not None:

@@ -310,18 +310,18 @@ def estimate_file_ray(
     out = Path(out)
     check_outputs([out, *side_paths(out)], [path, robot, residual])
     device = resolve_device(device)
-    model = load_robot(robot, dtype)
-    res = None if residual is None else load_residual(residual, model)
-    if res is not None and res.recurrent:
-        raise LogError(
-            f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
-            " order); use --engine local"
-        )
-    pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                    constraints)  # fmt: skip
-    total = pf.metadata.num_rows
-    show = sys.stderr.isatty() if progress is None else progress
-    with Run(out, path) as run:
+    with Run(out, path) as run:  # the lock first: a second run stops before any work
+        model = load_robot(robot, dtype)
+        res = None if residual is None else load_residual(residual, model)
+        if res is not None and res.recurrent:
+            raise LogError(
+                f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
+                " order); use --engine local"
+            )
+        pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
+                                        constraints)  # fmt: skip
+        total = pf.metadata.num_rows
+        show = sys.stderr.isatty() if progress is None else progress
         ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
                           half_window=half_window, batch_size=batch_size,
                           task_rows=task_rows)  # fmt: skip
