@@ -296,7 +296,6 @@ class Run:
         self.ident: dict = {}
         self.units: list[tuple[int, int]] = []
         self.done: set[int] = set()
-        self._journalled_now = 0
 
     # ------------------------------------------------------------------ lock and journal
     def __enter__(self) -> Run:
