@@ -4,6 +4,10 @@ Each concern registers its own sub-commands through an ``add_parser(subparsers)`
 that this module only wires them together; the residual-learning and export applications
 (``torchcontact train``, ``torchcontact export``, installed as :mod:`torchcontact.apps.training`
 and :mod:`torchcontact.apps.export`) bring their own parsers and are imported only when run.
+Start-up is lazy: a command imports only the module that registers it (:data:`COMMANDS`), and
+that module imports torch, pyarrow and the rest inside the command, so ``torchcontact --help``
+imports neither torch nor numpy, and ``estimate`` none of ray, matplotlib, onnx, rosbags or
+pymodbus.
 
 Every user error is one ``error:`` line on stderr and exit code 2 (usage: a bad option or
 argument) or 1 (data: a malformed file, a failed device); ``--debug`` adds the traceback.
@@ -22,7 +26,18 @@ from typing import Any
 
 from torchcontact.errors import TorchContactError
 
-__all__ = ["Parser", "build_parser", "guarded", "main"]
+__all__ = ["COMMANDS", "Parser", "build_parser", "guarded", "main"]
+
+#: Sub-commands: the module whose ``add_parser`` registers them, and their line in the help.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "estimate": ("torchcontact.logs.cli", "estimate contacts of every frame of logs"),
+    "simulate": ("torchcontact.logs.cli", "write a simulated log with known contacts"),
+    "demo": ("torchcontact.logs.cli", "simulate -> estimate -> plot into a folder"),
+    "plot": ("torchcontact.logs.cli", "PNG plots of an estimated log"),
+    "convert": ("torchcontact.logs.cli", "ROS 1/2 bag (sqlite3, MCAP) or CSV -> log"),
+    "sensor": ("torchcontact.drivers.cli", "F/T sensor drivers and simulator"),
+    "run": ("torchcontact.drivers.cli", "live loop: sensor + joints -> estimator -> JSON"),
+}
 
 #: Applications run by ``torchcontact <name> ...``: module (installed name, source-tree name), help.
 APPS: dict[str, tuple[str, str, str]] = {
@@ -120,17 +135,24 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
             return 1
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level argument parser with every sub-command registered."""
-    from torchcontact.drivers import cli as drivers_cli
-    from torchcontact.logs import cli as logs_cli
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """Build the top-level argument parser.
 
+    Args:
+        command: the sub-command about to run: only the module that registers it is imported
+            (None: none; ``"*"``: every module, e.g. to list every option). The other commands
+            appear in the help with their line from :data:`COMMANDS`.
+    """
     parser = Parser(prog="torchcontact", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    logs_cli.add_parser(sub)
-    drivers_cli.add_parser(sub)
-    add_cache_parser(sub)
+    wanted = [m for name, (m, _) in COMMANDS.items() if command in (name, "*")]
+    for module in dict.fromkeys(wanted):
+        importlib.import_module(module).add_parser(sub)
+    for name, (_, help_text) in COMMANDS.items():
+        if name not in sub.choices:  # listed only: registered when it runs
+            sub.add_parser(name, help=help_text, add_help=False)
+    add_cache_parser(sub)  # argparse only: always registered
     for name, (_, _, help_text) in APPS.items():
         sub.add_parser(name, help=help_text, add_help=False)  # parsed by the application
     return parser
@@ -226,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         rc = guarded(lambda: app_module(first).main(rest, prog=f"torchcontact {first}"), debug)
         _background_note()
         return rc
-    parser = build_parser()
+    parser = build_parser(first)
     args = parser.parse_args(argv)
     if args.version:
         from torchcontact import __version__

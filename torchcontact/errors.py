@@ -21,6 +21,7 @@ __all__ = [
     "LogError",
     "MissingExtraError",
     "ModelMismatchError",
+    "OutputBusyError",
     "ProfileError",
     "TorchContactError",
     "URDFError",
@@ -94,3 +95,7 @@ class MissingExtraError(TorchContactError, ImportError):
         super().__init__(f"this needs the package {package!r}: pip install 'torchcontact[{extra}]'")
         self.package = package
         self.extra = extra
+
+
+class OutputBusyError(TorchContactError, RuntimeError):
+    """Another live process holds the output's lock (``OUT.lock``): the message names it."""

@@ -8,8 +8,9 @@ status have NaN outputs, the rest of a batch is unaffected, except for
 :attr:`Status.NOT_CONVERGED`, a warning: the friction-cone constrained solve did not converge
 within its iteration budget (after restarting from the pseudo-inverse when it was warm-started),
 and the outputs are its last iterate, inside the cones but not at the optimum; such a frame is not
-ok. :attr:`Status.INVALID_CONTACT` is set by the log pipeline only: in Python and ONNX a contact
-on an unknown link is an error when the estimate is called.
+ok. :attr:`Status.INVALID_CONTACT` and :attr:`Status.NOT_DIFFERENTIABLE` are set by the log pipeline
+only: in Python and ONNX a contact on an unknown link is an error when the estimate is called, and
+derivatives are inputs.
 
 This module imports nothing heavy (the torch-free runtime reads it).
 """
@@ -54,6 +55,8 @@ class Status(enum.IntFlag):
     INVALID_CONTACT = 128
     #: the friction-cone constrained solve did not converge (outputs: its last iterate)
     NOT_CONVERGED = 256
+    #: qd/qdd derived from a time segment too short to differentiate (logs only)
+    NOT_DIFFERENTIABLE = 512
 
 
 _TEXT = {
@@ -70,6 +73,8 @@ _TEXT = {
     " sensor's subtree)",
     Status.NOT_CONVERGED: "constrained solve not converged within its iteration budget (outputs:"
     " last iterate)",
+    Status.NOT_DIFFERENTIABLE: "too few frames to differentiate q (qd/qdd derived from a t_ns"
+    " segment of < 3 frames)",
 }
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok): bit -> text.

@@ -106,6 +106,13 @@ def _config_path(config: str) -> Path:
 
 def cmd_train(args) -> int:
     """Fit a correction stack; write the checkpoint directory with its report."""
+    from torchcontact._lock import OutputLock
+
+    with OutputLock(Path(args.out), "train fit"):  # one writer per checkpoint folder at a time
+        return _train(args)
+
+
+def _train(args) -> int:
     if args.config:
         path = _config_path(args.config)
         try:

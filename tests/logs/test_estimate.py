@@ -233,7 +233,7 @@ def test_corrupted_input_is_detected_and_the_chunks_before_are_kept(model, sim_l
     out = tmp_path / "o.parquet"
     with pytest.raises(LogError, match=r"in.parquet: corrupted data in row group \d") as e:
         estimate_file(path, model, out, batch_size=50)
-    assert "chunks are estimated in" in str(e.value)
+    assert "chunks are kept in" in str(e.value) and "for --resume" in str(e.value)
     parts = sorted((tmp_path / "o.parquet.partial").glob("part-*.arrow"))
     assert parts and not out.exists()  # nothing complete-looking, the processed chunks kept
     assert all(read_journal(p).num_rows == 50 for p in parts)

@@ -1,19 +1,35 @@
-"""``--engine ray`` on one small local Ray instance: the local engine's rows and summary, qd/qdd
-derived across unit edges, resume, quiet output."""
+"""``--engine ray`` on a local two-node cluster (``ray.cluster_utils.Cluster``): the local
+engine's rows and summary, qd/qdd derived across unit edges, a worker killed mid-run, a driver
+killed mid-run then ``--resume``, the refusals. One cluster and one small log for the module."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
 ray = pytest.importorskip("ray")
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def local_ray():
-    # 2 CPUs: the tasks (one CPU each) and the driver
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
-    yield
+def cluster():
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    c.add_node(num_cpus=1)  # a second node: one task on each
+    c.wait_for_nodes()
+    ray.init(address=c.address, log_to_driver=False, logging_level="ERROR")
+    yield c
     ray.shutdown()
+    c.shutdown()
 
 
 @pytest.fixture(scope="module")
@@ -24,41 +40,117 @@ def small_groups(sim_log_q_only, tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def local(model, small_groups, tmp_path_factory):
+    from torchcontact.logs import estimate_file
+
+    out = tmp_path_factory.mktemp("local") / "local.parquet"
+    return estimate_file(small_groups, model, out, batch_size=64)
+
+
+KW = dict(batch_size=64, task_rows=200, workers=2)  # 3 units, one task per node at a time
+
+
 def _same_rows(a, b):
     assert a["t_ns"].equals(b["t_ns"]) and a["status"].equals(b["status"])
     assert a.schema.metadata == b.schema.metadata
-    for col in ("joint_torques",):
-        np.testing.assert_allclose(
-            np.stack(a[col].to_numpy(zero_copy_only=False)),
-            np.stack(b[col].to_numpy(zero_copy_only=False)),
-            rtol=0,
-            atol=1e-9,
-        )
+    np.testing.assert_array_equal(
+        np.stack(a["joint_torques"].to_numpy(zero_copy_only=False)),
+        np.stack(b["joint_torques"].to_numpy(zero_copy_only=False)),
+    )
     fa = [c["force"] for row in a["contacts"].to_pylist() for c in row]
     fb = [c["force"] for row in b["contacts"].to_pylist() for c in row]
-    np.testing.assert_allclose(fa, fb, rtol=0, atol=1e-9)  # slot layouts differ per chunk
+    np.testing.assert_array_equal(fa, fb)  # one slot layout for the log: the same program
 
 
-def test_ray_engine_same_rows_and_summary_as_local(model, small_groups, tmp_path, local_ray, capfd):
-    from torchcontact.logs import estimate_file
+def _task_pids():
+    """Ray worker processes running one of our units now."""
+    pids = []
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if cmd.startswith(b"ray::") and b"_estimate_units" in cmd:
+                pids.append(int(pid))
+    return pids
+
+
+def test_two_nodes_same_rows_and_summary_as_local(cluster, small_groups, local, tmp_path, capfd):
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
-    r = estimate_file_ray(
-        small_groups, tcarm_path(), tmp_path / "ray.parquet", batch_size=64, task_rows=250
-    )
+    r = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "ray.parquet", **KW)
     err = capfd.readouterr().err
     assert "INFO" not in err and "WARNING" not in err  # no Ray log lines, one progress bar
-    loc = estimate_file(small_groups, model, tmp_path / "local.parquet", batch_size=64)
-    assert set(r) == set(loc) and r["engine"] == "ray" and r["chunks"] == 3
-    for k in ("frames", "processed_now", "ok_now", "bad_now", "sensors", "derived"):
-        assert r[k] == loc[k], k
+    assert set(r) == set(local) | {"nodes"} and r["engine"] == "ray" and r["chunks"] == 3
+    assert r["nodes"] == 2  # the units ran on both nodes
+    for k in ("frames", "processed_now", "ok_now", "bad_now", "sensors", "derived", "slots"):
+        assert r[k] == local[k], k
     assert r["derived"] == ["qd", "qdd"]  # derived across the edges of the units
-    _same_rows(pq.read_table(r["output"]), pq.read_table(loc["output"]))
+    _same_rows(pq.read_table(r["output"]), pq.read_table(local["output"]))
 
 
-def test_ray_engine_resumes(model, small_groups, tmp_path, local_ray, monkeypatch):
-    from torchcontact.logs import LogError, estimate_file
+def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local, tmp_path):
+    from torchcontact.logs.ray_engine import estimate_file_ray
+    from torchcontact.robots import tcarm_path
+
+    killed = []
+    done = threading.Event()
+
+    def killer():
+        while not done.is_set() and not killed:
+            for pid in _task_pids():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                break
+            time.sleep(0.002)
+
+    t = threading.Thread(target=killer, daemon=True)
+    t.start()
+    try:
+        kw = dict(KW, batch_size=32)  # several chunks per unit: a unit takes a while
+        r = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "k.parquet", **kw)
+    finally:
+        done.set()
+        t.join()
+    assert killed, "no unit was running to be killed"
+    assert r["frames"] == 600 and r["processed_now"] == 600
+    _same_rows(pq.read_table(r["output"]), pq.read_table(local["output"]))
+
+
+def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
+    from torchcontact.logs.ray_engine import estimate_file_ray
+    from torchcontact.robots import tcarm_path
+
+    out = tmp_path / "d.parquet"
+    # units of 8 x --batch-size = 256 frames: 3 units
+    cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(small_groups), "--out",
+           str(out), "--engine", "ray", "--workers", "2", "--batch-size", "32", "--quiet"]  # fmt: skip
+    env = {**os.environ, "RAY_ADDRESS": cluster.address, "PYTHONPATH": str(ROOT)}
+    driver = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    partial = tmp_path / "d.parquet.partial"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and driver.poll() is None:
+        if list(partial.glob("part-*.arrow")):
+            break
+        time.sleep(0.005)
+    if driver.poll() is not None:
+        pytest.fail(f"the driver ended before it could be killed: {driver.communicate()}")
+    driver.kill()  # SIGKILL
+    driver.wait()
+    assert not out.exists() and partial.is_dir()
+    sidecar = json.loads((tmp_path / "d.parquet.progress.json").read_text())
+    assert sidecar["engine"] == "ray" and sidecar["task_rows"] == 256
+    r = estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, workers=2, resume=True)
+    assert r["resumed_chunks"] >= 1 and r["frames"] == 600 and r["chunks"] == 3
+    assert not partial.exists()
+    _same_rows(pq.read_table(out), pq.read_table(local["output"]))
+
+
+def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch):
+    from torchcontact.logs import LogError
     from torchcontact.logs import format as pl
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
@@ -69,28 +161,24 @@ def test_ray_engine_resumes(model, small_groups, tmp_path, local_ray, monkeypatc
         raise KeyboardInterrupt
 
     monkeypatch.setattr(pl.LogWriter, "close", crash)
-    kw = dict(batch_size=64, task_rows=250)
     with pytest.raises(KeyboardInterrupt):
-        estimate_file_ray(small_groups, tcarm_path(), out, **kw)
+        estimate_file_ray(small_groups, tcarm_path(), out, **KW)
     monkeypatch.undo()
-    partial = tmp_path / "r.parquet.partial"
     assert not out.exists() and not (tmp_path / "r.parquet.tmp").exists()
-    (partial / "part-00000001.arrow").unlink()  # as if that unit had not finished
     with pytest.raises(LogError, match="pass --resume"):
-        estimate_file_ray(small_groups, tcarm_path(), out, **kw)
+        estimate_file_ray(small_groups, tcarm_path(), out, **KW)
     with pytest.raises(LogError, match="other inputs or options"):
         estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, resume=True)
-    s = estimate_file_ray(small_groups, tcarm_path(), out, resume=True, **kw)
-    assert s["resumed_chunks"] == 2 and s["processed_now"] == 250 and s["frames"] == 600
-    assert not partial.exists() and not (tmp_path / "r.parquet.progress.json").exists()
-    ref = estimate_file(small_groups, model, tmp_path / "ref.parquet", batch_size=64)
-    _same_rows(pq.read_table(out), pq.read_table(ref["output"]))
+    s = estimate_file_ray(small_groups, tcarm_path(), out, resume=True, **KW)
+    assert s["resumed_chunks"] == 3 and s["processed_now"] == 0 and s["frames"] == 600
 
 
 def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     import torch
 
+    from torchcontact._lock import OutputLock
     from torchcontact.cli import main
+    from torchcontact.errors import OutputBusyError
     from torchcontact.logs import LogError
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.residual import FeatureSpec, ResidualCorrection, ResidualGRU
@@ -107,3 +195,5 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     out = str(tmp_path / "o.parquet")
     assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--workers", "0"]) == 2
     assert "--workers must be an integer >= 1" in capsys.readouterr().err
+    with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
+        estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts

@@ -94,9 +94,27 @@ def _constraints(args: argparse.Namespace) -> Any:
     return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
 
 
+def _fraction(text: str) -> float:
+    """``--max-bad``: a number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1], got {text!r}")
+    return value
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
-    """Estimate the contacts of every frame of one or more logs."""
+    """Estimate the contacts of every frame of one or more logs.
+
+    Exit codes: 0 when every input has usable frames; 1 when an input has none, or more than
+    ``--max-bad`` of its frames have a non-zero status (its output is written all the same),
+    and for data errors; 2 for usage errors; 130 when interrupted.
+    """
+    from torchcontact.errors import LogError
     from torchcontact.logs.pipeline import estimate_files
+    from torchcontact.logs.run import unusable
 
     _threads(args)
     kwargs: dict[str, Any] = dict(
@@ -140,6 +158,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     else ""
                 )
             )
+    failed = [m for m in (unusable(s, args.max_bad) for s in summaries) if m]
+    if failed:
+        raise LogError("; ".join(failed) + " (the outputs are written, with each frame's status)")
     return 0
 
 
@@ -257,18 +278,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    """PNGs of an estimated log."""
+    """PNGs of an estimated log (one writer per output folder: ``OUT.lock``)."""
+    from torchcontact._lock import OutputLock
     from torchcontact.logs.plot import plot_log
 
     out = Path(args.out) if args.out else Path(args.log).with_suffix("")
-    pngs = plot_log(
-        args.log,
-        _robot(args.robot),
-        out,
-        frame=args.frame,
-        input_log=args.input,
-        progress=_progress(args),
-    )
+    with OutputLock(out, "plot"):
+        pngs = plot_log(
+            args.log,
+            _robot(args.robot),
+            out,
+            frame=args.frame,
+            input_log=args.input,
+            progress=_progress(args),
+        )
     for p in pngs:
         print(p)
     return 0
@@ -385,6 +408,14 @@ def add_parser(subparsers: Any) -> None:
         "--no-warm-start",
         action="store_true",
         help="start every frame from the pseudo-inverse, not its predecessor (--constraints)",
+    )
+    est.add_argument(
+        "--max-bad",
+        type=_fraction,
+        default=1.0,
+        metavar="FRACTION",
+        help="exit 1 when more than this share of an input's frames has a non-zero status (1:"
+        " only when no frame is usable)",
     )
     est.add_argument("--json", action="store_true", help="print a JSON summary at the end")
     est.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -574,7 +574,8 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
     import pyarrow.compute as pc
 
     lst = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
-    lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
+    if lst.null_count:  # null rows -> empty lists (if_else rebuilds the whole column)
+        lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
     structs = lst.flatten()
     frame = np.asarray(pc.list_parent_indices(lst).to_numpy(zero_copy_only=False), np.int64)
     fields = dict(zip([f.name for f in structs.type], structs.flatten(), strict=True))

@@ -1,82 +1,61 @@
-"""Estimate the contacts of every frame of a Parquet log, streamed in chunks.
+"""Estimate the contacts of every frame of a Parquet log: the entry points and the local engine.
 
-:class:`LogEstimator` turns one chunk (a pyarrow table in the log format of
-:mod:`torchcontact.logs.format`) into output rows; it is shared by the local engine
-(:func:`estimate_file`) and the Ray engine (:mod:`torchcontact.logs.ray_engine`).
+The data's way through a run:
 
-Crash safety: the output is written to ``OUT.tmp`` and renamed to ``OUT`` when every chunk is
-done, so an interrupted run never leaves a file named ``OUT``. Each estimated chunk ``k`` is also
-journalled to ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
-``OUT.progress.json`` records the progress. ``resume=True`` writes the journalled chunks into a
-fresh ``OUT.tmp`` and processes the rest with the same chunking, so no frame is missing or
-duplicated. An output that is, or contains, an input is
-refused before anything is written.
+1. **Decoding** (:mod:`torchcontact.logs.decode`): the schema is checked, one pass over the cheap
+   columns of the whole file fixes **one slot layout for the log** (the most records of each
+   ``(link, kind)`` pair in one frame; slots a frame does not use are inactive) and the log's time
+   segments; each chunk's Arrow columns become numpy arrays with per-frame problems.
+2. **The per-chunk estimate** (:mod:`torchcontact.logs.chunks`, :class:`LogEstimator`): every
+   chunk runs the same compiled program (one layout, one kernel), then its output rows are built
+   with vectorised numpy and pyarrow only.
+3. **The run** (:mod:`torchcontact.logs.run`, shared with the Ray engine): an OS lock on the
+   output, the journal for ``--resume``, an ordered writer thread, cleanup, the summary.
 
-Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
-(its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
-joint beyond its velocity limit, ...). Frames with a non-zero code have NaN outputs; the rest of
-the log is processed.
+:func:`prepare` does step 1 for a log and builds its :class:`LogEstimator`. The local engine
+(:func:`estimate_file`) overlaps the three steps on threads joined by bounded queues: a reader
+thread reads and decodes chunks (pyarrow's reads release the GIL), the calling thread estimates
+them (the kernels release the GIL), the writer thread journals them and writes the Parquet
+output. Order, resume and checksums are those of a sequential run.
 
-Friction cones (:class:`LogConstraints`, ``estimate --constraints``): every pushing contact's force
-is kept inside the friction cone of its ``normal`` (contact field) and friction coefficient
-(``friction`` or ``cone_angle`` field, else the run's default); the output adds per sensor
-``converged.<sensor>`` and ``iterations.<sensor>`` and per contact ``cone_active``. Frames are
-warm-started from their predecessor's estimate (:class:`~torchcontact.PreviousFrame`), across
-chunks too: a chunk's first frame starts from the previous chunk's last estimates, matched by
-link, kind and order. Non-convergence is not a status bit (status bits mean NaN outputs; a frame
-that did not converge keeps its last interior-point iterate, inside the cones): it is
-``converged.<sensor> = false``.
+Kernels: a log's one kernel is built in the background while the first chunks run eagerly, and the
+run switches to it at the first chunk after the build (``backend="auto"`` of
+:mod:`torchcontact.kernels`); a kernel in the cache is loaded at once. Measured on first runs
+(empty cache), this beats waiting for the build at every log length tried (docs/pipeline.md):
+with one kernel per log, the eager frames only fill the one build's time. Ray tasks wait for the
+build instead (:func:`kernel_backend`): several worker processes share a machine, and one of them
+builds while the others wait for it. A failed build falls back to eager torch.
 """
 
 from __future__ import annotations
 
 import glob
-import json
 import os
-import shutil
-import sys
 import time
-import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from torchcontact.constrained import FrictionCones, PreviousFrame
-from torchcontact.contacts import KINDS, ContactRecords, Contacts
 from torchcontact.errors import InputError, LogError
-from torchcontact.estimation import ContactEstimator
-from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, savgol_derivatives
-from torchcontact.logs.format import (
-    BASE_COLUMNS,
-    META_DERIVED,
-    META_RESIDUAL,
-    META_SENSORS,
-    META_URDF_SHA256,
-    META_VERSION,
-    LogWriter,
-    check_outputs,
-    fixed_list,
-    ft_column,
-    iter_chunks,
-    joint_names_of,
-    joint_permutation,
-    open_log,
-    output_schema,
-    read_contacts,
-    read_journal,
-    struct_list,
-    vectors,
-    write_journal,
+from torchcontact.logs.chunks import (
+    DEFAULT_VELOCITY_MARGIN,
+    LogConstraints,
+    LogEstimator,
+    decoded_chunks,
+    estimate_stream,
 )
+from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
+from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
+from torchcontact.logs.format import check_outputs, iter_chunks, open_log, read_journal
+from torchcontact.logs.run import Done, Run, background, side_paths
 from torchcontact.model import RobotModel
-from torchcontact.status import status_messages
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
+    "WAIT_FOR_KERNEL_FRAMES",
     "LogConstraints",
     "LogError",
     "LogEstimator",
@@ -84,13 +63,19 @@ __all__ = [
     "estimate_files",
     "expand_inputs",
     "load_robot",
+    "prepare",
 ]
 
-#: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
-DEFAULT_VELOCITY_MARGIN = 2.0
+#: Frames to estimate from which the local engine waits for its kernel to be built rather than
+#: estimating eagerly while it builds; None: never. Measured on a 2-core machine (first runs of
+#: the iCub benchmark log, docs/pipeline.md): estimating eagerly while the kernel builds was
+#: faster than waiting at 50 k, 200 k and 1 M frames (15 vs 48 s, 49 vs 62 s, 81 vs 92 s).
+WAIT_FOR_KERNEL_FRAMES: int | None = None
 
-# The plausibility bit (64) and the non-finite-output bit (32) are set by the estimator
-# (ContactEstimator(..., velocity_margin=..., ft_range=...)), one meaning in Python and logs.
+#: Frames from which Ray tasks wait for the kernel: below, estimating them eagerly costs less
+#: than building it (building the whole-robot kernel costs as much CPU as ~200,000 eager frames,
+#: for the 7-joint tcarm and the 32-joint iCub alike).
+SHARED_WAIT_FRAMES = 200_000
 
 
 def resolve_device(device: str) -> str:
@@ -139,565 +124,54 @@ def _check_positive(**values: int) -> None:
             raise InputError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
 
 
-def ft_ranges(ft_range: Mapping[str, Any] | None, sensors: Sequence[str]) -> dict[str, np.ndarray]:
-    """``{sensor: (6,) or scalar}`` -> ``{sensor: (6,)}`` limits [N; N m], for sensors in use.
-
-    Raises:
-        InputError: a sensor not in use, a limit that is not 1 or 6 positive numbers.
-    """
-    out: dict[str, np.ndarray] = {}
-    for s, v in (ft_range or {}).items():
-        if s not in sensors:
-            raise InputError(f"--ft-range {s}: not a sensor in use ({list(sensors)})")
-        arr = np.broadcast_to(np.asarray(v, np.float64).reshape(-1), (6,)).copy()
-        if np.asarray(v).size not in (1, 6) or not (arr > 0).all():
-            raise InputError(f"--ft-range {s}: give 1 or 6 positive numbers [N; N m], got {v}")
-        out[s] = arr
-    return out
-
-
-@dataclass(frozen=True)
-class LogConstraints:
-    """Friction-cone constrained estimation of a log (``estimate --constraints``).
-
-    Attributes:
-        cones: the solver's settings (iteration budget, ``eps``, ``tol``).
-        friction: friction coefficient of the contacts whose records give neither ``friction``
-            nor ``cone_angle`` (None: such a contact is an invalid record, status bit 4).
-        warm_start: start each frame from its predecessor's estimate (else from the
-            pseudo-inverse solution).
-        wave: frames per batched call of the warm-started waves
-            (:class:`~torchcontact.PreviousFrame`).
-
-    Raises:
-        InputError: a friction coefficient that is not a finite number > 0, a wave < 1.
-
-    Example:
-        >>> LogConstraints(friction=0.5).cones.iterations
-        25
-    """
-
-    cones: FrictionCones = field(default_factory=FrictionCones)
-    friction: float | None = None
-    warm_start: bool = True
-    wave: int = 1024
-
-    def __post_init__(self) -> None:
-        if self.friction is not None and not (0 < float(self.friction) < np.inf):
-            raise InputError(f"--friction must be a finite number > 0, got {self.friction}")
-        if not (isinstance(self.wave, int) and self.wave >= 1):
-            raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
-
-
-class _Issues:
-    """Per-frame problems found by the pipeline: status bits and details, in priority order."""
-
-    def __init__(self, n: int) -> None:
-        self.code = np.zeros(n, np.int64)
-        self.items: list[tuple[np.ndarray, str]] = []
-
-    def add(self, rows: np.ndarray, bit: int, detail: str) -> None:
-        if rows.any():
-            self.code[rows] |= bit
-            self.items.append((rows, detail))
-
-    def details(self) -> np.ndarray:
-        out = np.full(len(self.code), None, dtype=object)
-        for rows, text in self.items:
-            idx = np.flatnonzero(rows)
-            out[idx] = [text if c is None else f"{c}; {text}" for c in out[idx]]
-        return out
-
-
-@dataclass
-class LogEstimator:
-    """Per-chunk estimation for one robot and one input schema.
+def kernel_backend(frames: int, device: str, shared: bool = False) -> str:
+    """The estimator backend of a run: ``"auto"``, or ``"cpu"``/``"cuda"`` to wait for the kernel.
 
     Args:
-        model: the robot (its dtype and device are those of the computation).
-        input_joint_names: joint order of the log's ``q`` columns.
-        sensors: F/T sensors to use (each needs an ``ft.<sensor>`` column).
-        contact_fields: ``(name, type)`` fields of the input contact struct (output adds
-            ``force`` and ``moment``); empty when the log has no ``contacts`` column.
-        source: file name used in error messages.
-        derived: ``qd``/``qdd`` when derived from ``q`` (recorded in the output metadata).
-        residual: learned F/T correction (:class:`~torchcontact.residual.ResidualCorrection`)
-            subtracted from its sensor's reading before estimation, or None.
-        velocity_margin: frames with a joint velocity beyond ``margin`` times its URDF limit get
-            status bit 64 (None: no check).
-        ft_range: ``{sensor: (6,) or scalar}`` [N; N m]: frames with a reading beyond it get
-            status bit 64.
-        constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
-
-    Raises:
-        LogError: joints missing from or extra to the model (mimic joints are not coordinates),
-            an unknown sensor, or a residual for a sensor or joints not in use.
-        InputError: a bad ``ft_range``.
+        frames: frames the run will estimate.
+        device: the computation's device.
+        shared: several processes of the run share a machine (Ray tasks): from
+            :data:`SHARED_WAIT_FRAMES` on, wait, so that one of them builds the kernel while the
+            others wait for it (a build lock per kernel) instead of each building it.
     """
-
-    model: RobotModel
-    input_joint_names: Sequence[str]
-    sensors: Sequence[str]
-    contact_fields: Sequence[tuple[str, Any]] = ()
-    source: str = ""
-    derived: Sequence[str] = ()
-    residual: Any = None
-    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN
-    ft_range: Mapping[str, Any] | None = None
-    constraints: LogConstraints | None = None
-    estimator: ContactEstimator = field(init=False)
-    perm: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.perm = joint_permutation(
-            self.input_joint_names, self.model.joint_names, self.model.name, self.source
-        )
-        if self.velocity_margin is not None and not self.velocity_margin > 0:
-            raise InputError(f"--velocity-margin must be > 0, got {self.velocity_margin}")
-        self._ft_range = ft_ranges(self.ft_range, self.sensors)
-        guards = {"velocity_margin": self.velocity_margin, "ft_range": self._ft_range}
-        try:
-            self.estimator = ContactEstimator(self.model, list(self.sensors), **guards)
-        except ValueError as exc:
-            raise LogError(f"{self.source}: {exc}") from None
-        # contact links the estimator can use: known frames inside some sensor's region
-        self._link_ok: dict[str | None, str | None] = {}
-        if self.residual is not None and self.residual.sensor not in self.sensors:
-            raise LogError(
-                f"{self.source}: the residual checkpoint corrects sensor"
-                f" {self.residual.sensor!r}, which is not among the sensors in use"
-                f" {list(self.sensors)}"
-            )
-
-    def residual_columns(self) -> list[str]:
-        """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
-        return [] if self.residual is None else self.residual.extra_columns
-
-    # ------------------------------------------------------------------ schema
-    def output_schema(self) -> Any:
-        """Schema of the output rows, with joint names, robot hash and version in the metadata."""
-        from torchcontact import __version__
-
-        derived = {
-            "columns": list(self.derived),
-            "method": f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1} frames"
-            if self.derived
-            else "",
-        }
-        meta = {
-            META_URDF_SHA256: self.model.urdf_sha256,
-            META_VERSION: __version__,
-            META_SENSORS: json.dumps(list(self.sensors)),
-            META_DERIVED: json.dumps(derived),
-        }
-        if self.residual is not None:
-            meta[META_RESIDUAL] = json.dumps(
-                {
-                    "checkpoint": self.residual.source,
-                    "weights_sha256": self.residual.meta.get("weights_sha256"),
-                    "sensor": self.residual.sensor,
-                    "kind": "+".join(self.residual.layers),
-                }
-            )
-        return output_schema(
-            self.model.joint_names,
-            self.sensors,
-            self.contact_fields,
-            meta,
-            constraints=self.constraints is not None,
-        )
-
-    # ------------------------------------------------------------------ helpers
-    def _link_problem(self, link: str | None) -> str | None:
-        if link not in self._link_ok:
-            model, est = self.model, self.estimator
-            if link is None:
-                msg: str | None = "contact without a link"
-            elif link not in model.frames:
-                msg = f"unknown link {link!r}"
-            elif est.region[model.frame(link).body] < 0:
-                msg = f"link {link!r} is outside every F/T sensor's subtree"
-            else:
-                msg = None
-            self._link_ok[link] = msg
-        return self._link_ok[link]
-
-    def _vectors(self, table: Any, name: str, n: int, bit: int, issues: _Issues) -> np.ndarray:
-        vals, bad = vectors(table.column(name), n)
-        issues.add(bad, bit, f"{name} is not {n} floats")
-        return vals
-
-    def _check_contacts(
-        self, records: ContactRecords, malformed: dict[str, np.ndarray], n: int, issues: _Issues
-    ) -> np.ndarray:
-        """Per-record problems -> frame issues (bit 128 or 4); returns the bad-record mask."""
-        M = len(records)
-        bit = np.zeros(M, np.int64)
-        # per distinct link and kind (few), mapped back to the records
-        ln, lc, kn, kc = records.name_codes()
-        link_msg = [self._link_problem(None if n is None else str(n)) for n in ln]
-        kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
-        reason = np.array(link_msg, dtype=object)[lc]
-        reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
-        bit[~np.equal(reason, None)] = 128
-        # a vector field is required only by the kind that uses it
-        kinds = records.kinds
-        for need, col, width, kind in (
-            (np.ones(M, bool), "position", 3, None),
-            (kinds == "force_dir", "direction", 3, "force_dir"),
-            (kinds == "known", "wrench", 6, "known"),
-        ):
-            bad = need & malformed[col] & (reason == None)  # noqa: E711 - object array
-            reason[bad] = (
-                "contact position is not 3 floats"
-                if kind is None
-                else f"{kind} contact without a {width}-float {col}"
-            )
-            bit[bad] = 4
-        if self.constraints is not None:
-            self._check_cones(records, malformed, reason, bit)
-        bad_record = reason != None  # noqa: E711
-        for msg in dict.fromkeys(reason[bad_record]):
-            rows = np.zeros(n, bool)
-            sel = reason == msg
-            rows[records.frame[sel]] = True
-            issues.add(rows, int(bit[sel][0]), msg)
-        return bad_record
-
-    def _check_cones(
-        self,
-        records: ContactRecords,
-        malformed: dict[str, np.ndarray],
-        reason: np.ndarray,
-        bit: np.ndarray,
-    ) -> None:
-        """The friction-cone fields of pushing force and wrench records (bits 4 and 8)."""
-        M = len(records)
-        kinds = records.kinds
-        push = (kinds != "known") if records.pushing is None else np.where(
-            np.isnan(records.pushing), kinds != "known", records.pushing > 0.5
-        )  # fmt: skip
-        cone = push & ((kinds == "force") | (kinds == "wrench")) & np.equal(reason, None)
-        nrm = np.full((M, 3), np.nan) if records.normals is None else records.normals
-        no_normal = malformed.get("normal", np.ones(M, bool)) | ~np.isfinite(nrm).all(-1)
-        nan = np.full(M, np.nan)
-        mu = nan if records.friction is None else records.friction
-        angle = nan if records.cone_angle is None else records.cone_angle
-        default = self.constraints.friction
-        checks = (
-            (no_normal, 4, "pushing contact without a finite 3-float normal (--constraints)"),
-            (~no_normal & ~(np.abs(nrm) > 0).any(-1), 8, "zero-length contact normal"),
-            (~np.isnan(mu) & ~np.isnan(angle), 4, "contact gives both friction and cone_angle"),
-            (~np.isnan(mu) & ~((mu > 0) & (mu < np.inf)), 4,
-             "contact friction is not a finite number > 0"),
-            (~np.isnan(angle) & ~((angle > 0) & (angle < np.pi / 2)), 4,
-             "contact cone_angle is not in (0, pi/2) rad"),
-            (np.isnan(mu) & np.isnan(angle) & (default is None), 4,
-             "contact without friction or cone_angle (give --friction or --cone-angle)"),
-        )  # fmt: skip
-        for mask, b, msg in checks:
-            bad = cone & mask & np.equal(reason, None)
-            reason[bad] = msg
-            bit[bad] = b
-
-    # ------------------------------------------------------------------ one chunk
-    def process(
-        self,
-        table: Any,
-        qd: np.ndarray | None = None,
-        qdd: np.ndarray | None = None,
-        previous: Any = None,
-    ) -> Any:
-        """Estimate every frame of a chunk.
-
-        Args:
-            table: pyarrow table or record batch in the log format.
-            qd: ``(N, nv)`` velocities in the model's joint order when derived (else read).
-            qdd: ``(N, nv)`` accelerations likewise.
-            previous: the output of the chunk before (with constraints and warm starts, its last
-                frame's estimates start this chunk's first frame), or None.
-
-        Returns:
-            A pyarrow table with :meth:`output_schema`.
-        """
-        import pyarrow as pa
-
-        if isinstance(table, pa.RecordBatch):
-            table = pa.Table.from_batches([table])
-        model, est, perm = self.model, self.estimator, self.perm
-        N, nv = table.num_rows, model.nv
-        issues = _Issues(N)
-        q = self._vectors(table, "q", nv, 2, issues)[:, perm]
-        if qd is None:
-            qd = self._vectors(table, "qd", nv, 2, issues)[:, perm]
-        if qdd is None:
-            qdd = self._vectors(table, "qdd", nv, 2, issues)[:, perm]
-        ft = {s: self._vectors(table, ft_column(s), 6, 1, issues) for s in self.sensors}
-        if self.residual is not None:
-            ft[self.residual.sensor] = self._corrected(table, ft[self.residual.sensor], q, qd, qdd)
-        tau = None
-        if "tau_measured" in table.column_names:
-            tau = self._vectors(table, "tau_measured", nv, 16, issues)[:, perm]
-        base = {}
-        for col, key in BASE_COLUMNS.items():
-            if col in table.column_names:
-                base[key] = self._vectors(table, col, 3, 2, issues)
-        if base and len(base) != 3:
-            raise LogError(f"{self.source}: need all of {list(BASE_COLUMNS)} or none")
-
-        # ---- contacts: records -> validated -> slots (one layout per chunk)
-        if self.contact_fields:
-            records, fields, malformed = read_contacts(table.column("contacts"))
-            bad_record = self._check_contacts(records, malformed, N, issues)
-        else:
-            records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
-        good = np.flatnonzero(~bad_record)
-        cons = self.constraints
-        contacts, slot_good = Contacts.from_records(
-            records.select(good), N, dtype=model.dtype, device=model.device,
-            friction=None if cons is None else cons.friction,
-        )  # fmt: skip
-        slot = np.full(len(records), -1, np.int64)
-        slot[good] = slot_good
-
-        # ---- estimate (Del Prete et al. 2012, Sec. 2) on the model's device and dtype
-        def t(x: np.ndarray) -> torch.Tensor:
-            return torch.tensor(x, dtype=model.dtype, device=model.device)  # copy: arrow is r/o
-
-        cone_args: dict[str, Any] = {}
-        if cons is not None:
-            before = _last_estimates(previous, contacts.links, contacts.kinds)
-            cone_args["constraints"] = cons.cones
-            if cons.warm_start:
-                cone_args["warm_start"] = PreviousFrame(
-                    None if before is None else tuple(t(v) for v in before), cons.wave
-                )
-        res = est.estimate(
-            t(q),
-            t(qd),
-            t(qdd),
-            {s: t(v) for s, v in ft.items()},
-            contacts,
-            base=None if not base else _base_motion(base, t),
-            tau_measured=None if tau is None else t(tau),
-            **cone_args,
-        )
-        force = res.force.detach().cpu().numpy()
-        moment = res.moment.detach().cpu().numpy()
-        jt = res.joint_torques.detach().cpu().numpy()
-        resid = {s: res.residual[s].detach().cpu().numpy().astype(np.float64) for s in self.sensors}
-        code = res.status.cpu().numpy().astype(np.int64) | issues.code
-        self._explain(code, qd, ft, issues)
-        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
-        bad = code != 0
-        jt = np.where(bad[:, None], np.nan, jt)
-        for s in self.sensors:
-            resid[s] = np.where(bad, np.nan, resid[s])
-
-        # ---- output rows: input contacts with force and moment added, in record order
-        M = len(records)
-        cf = np.full((M, 3), np.nan)
-        cm = np.full((M, 3), np.nan)
-        ok_c = (slot >= 0) & ~bad[records.frame] if M else np.zeros(0, bool)
-        if ok_c.any():
-            cf[ok_c] = force[records.frame[ok_c], slot[ok_c]]
-            cm[ok_c] = moment[records.frame[ok_c], slot[ok_c]]
-        schema = self.output_schema()
-        ctype = schema.field("contacts").type.value_type
-        children = {n: fields[n] for n, _ in self.contact_fields}
-        children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
-        if cons is not None:  # the cone binds; null where the contact was not estimated
-            act = res.cones.active.cpu().numpy()
-            ca = np.zeros(M, bool)
-            ca[ok_c] = act[records.frame[ok_c], slot[ok_c]]
-            children["cone_active"] = pa.array(ca, mask=~ok_c)
-        out: dict[str, Any] = {"t_ns": table.column("t_ns").combine_chunks().cast(pa.int64())}
-        out["contacts"] = struct_list(children, records.frame, N, ctype)
-        out["joint_torques"] = fixed_list(jt)
-        for s in self.sensors:
-            rank = res.rank[s].cpu().numpy().astype(np.int64)
-            unknowns = res.unknowns[s].cpu().numpy().astype(np.int64)
-            out[f"rank.{s}"], out[f"unknowns.{s}"] = pa.array(rank), pa.array(unknowns)
-            out[f"nullity.{s}"] = pa.array(unknowns - rank)
-            out[f"residual.{s}"] = pa.array(resid[s])
-            if cons is not None:  # the solver's status; null on frames with a non-zero status
-                conv = res.cones.converged[s].cpu().numpy()
-                its = res.cones.iterations[s].cpu().numpy().astype(np.int64)
-                out[f"converged.{s}"] = pa.array(conv, mask=bad)
-                out[f"iterations.{s}"] = pa.array(its, mask=bad)
-        out["status_code"] = pa.array(code)
-        text = np.full(N, "ok", dtype=object)
-        for c in np.unique(code[bad]):
-            text[code == c] = status_messages(int(c))
-        out["status"] = pa.array(text.tolist(), pa.string())
-        out["status_detail"] = pa.array(issues.details().tolist(), pa.string())
-        return pa.table(out, schema=schema)
-
-    def _explain(
-        self, code: np.ndarray, qd: np.ndarray, ft: dict[str, np.ndarray], issues: _Issues
-    ) -> None:
-        """Details of the estimator's bits 64 (which value is implausible) and 32 (overflow)."""
-        flagged = (code & 64) != 0
-        if flagged.any():
-            if self.velocity_margin is not None:
-                limit = np.asarray(
-                    self.model.joint_limits.get("velocity", np.full(self.model.nv, np.inf))
-                )
-                over = (np.abs(qd) > self.velocity_margin * limit) & flagged[:, None]
-                for j in np.flatnonzero(over.any(0)):
-                    issues.add(
-                        over[:, j],
-                        0,
-                        f"qd of {self.model.joint_names[j]!r} beyond {self.velocity_margin:g} x"
-                        f" its URDF velocity limit {limit[j]:g}",
-                    )
-            for s, lim in self._ft_range.items():
-                beyond = (np.abs(ft[s]) > lim).any(1) & flagged
-                issues.add(beyond, 0, f"{ft_column(s)} beyond its range {lim.tolist()}")
-        issues.add((code & 32) != 0, 0, "non-finite output from finite inputs")
-
-    def _corrected(
-        self, table: Any, ft: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
-    ) -> np.ndarray:
-        """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
-        extra = {
-            c: np.array(table.column(c).to_numpy(zero_copy_only=False), dtype=np.float64)
-            for c in self.residual_columns()
-        }
-        joints = (torch.as_tensor(v) for v in (q, qd, qdd))
-        return self.residual.correct(torch.tensor(ft), *joints, extra).cpu().numpy()
+    kind = torch.device(device).type
+    if kind not in ("cpu", "cuda"):
+        return "auto"
+    limit = SHARED_WAIT_FRAMES if shared else WAIT_FOR_KERNEL_FRAMES
+    return kind if limit is not None and frames >= limit else "auto"
 
 
-def _last_estimates(
-    previous: Any, links: Sequence[str], kinds: Sequence[str]
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The last frame's estimates of an output table, matched to slots: ``(force, moment)``.
-
-    A slot takes the estimate of the previous frame's contact with its link and kind and the same
-    rank among them (the slot assignment's rule); ``(K, 3)`` each, NaN where none matches (that
-    slot starts cold). None without a previous table or contacts.
-    """
-    if previous is None or previous.num_rows == 0 or not len(links):
-        return None
-    last = previous.column("contacts")[previous.num_rows - 1].as_py() or []
-    seen: dict[tuple[str, str], int] = {}
-    found: dict[tuple[str, str, int], tuple] = {}
-    for c in last:
-        key = (c.get("link"), c.get("kind"))
-        r = seen.get(key, 0)
-        seen[key] = r + 1
-        if c.get("force") is not None and c.get("moment") is not None:
-            found[(*key, r)] = (c["force"], c["moment"])
-    force = np.full((len(links), 3), np.nan)
-    moment = np.full((len(links), 3), np.nan)
-    rank: dict[tuple[str, str], int] = {}
-    for k, key in enumerate(zip(links, kinds, strict=True)):
-        r = rank.get(key, 0)
-        rank[key] = r + 1
-        if (*key, r) in found:
-            force[k], moment[k] = found[(*key, r)]
-    return force, moment
-
-
-def _base_motion(base: dict, t: Any) -> Any:
-    from torchcontact.dynamics import BaseMotion
-
-    return BaseMotion(t(base["omega"]), t(base["domega"]), t(base["proper_acc"]))
-
-
-# ---------------------------------------------------------------------- streaming
-def times_and_positions(chunk: Any, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a chunk."""
-    q, _ = vectors(chunk.column("q"), len(perm))
-    return chunk.column("t_ns").to_numpy().astype(np.int64), q[:, perm]
-
-
-def chunks_with_derivatives(
-    chunks: Iterator[Any],
-    perm: np.ndarray,
-    derive: bool,
-    h: int,
-    before: tuple[np.ndarray, np.ndarray] | None = None,
-    after: tuple[np.ndarray, np.ndarray] | None = None,
-) -> Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]:
-    """Yield ``(chunk, qd, qdd)``; derivatives from ``q`` with ``h`` frames of context each side.
-
-    Args:
-        chunks: consecutive tables of a log.
-        perm: the log's joint columns -> the model's order.
-        derive: compute ``qd``/``qdd`` (else None).
-        h: half window of :func:`~torchcontact.logs.derive.savgol_derivatives`.
-        before: ``(t_ns, q)`` of the up to ``h`` frames preceding the first chunk (model order).
-        after: ``(t_ns, q)`` of the up to ``h`` frames following the last chunk.
-    """
-    if not derive:
-        for c in chunks:
-            yield c, None, None
-        return
-    nv = len(perm)
-    empty = (np.zeros(0, np.int64), np.zeros((0, nv)))
-    prev_t, prev_q = before if before is not None else empty
-    cur = next(chunks, None)
-    while cur is not None:
-        nxt = next(chunks, None)
-        t_c, q_c = times_and_positions(cur, perm)
-        if nxt is not None:
-            t_n, q_n = times_and_positions(nxt.slice(0, h), perm)
-        else:
-            t_n, q_n = after if after is not None else empty
-        t_all = np.concatenate([prev_t, t_c, t_n[:h]])
-        q_all = np.concatenate([prev_q, q_c, q_n[:h]])
-        lo = len(prev_t)
-        qd, qdd = savgol_derivatives(t_all, q_all, h, lo, lo + len(t_c))
-        yield cur, qd, qdd
-        prev_t = np.concatenate([prev_t, t_c])[-h:]
-        prev_q = np.concatenate([prev_q, q_c])[-h:]
-        cur = nxt
-
-
-def estimate_chunks(
-    le: LogEstimator,
-    chunks: Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]],
-    previous: Any = None,
+def read_chunks(
+    pf: Any, columns: Sequence[str], batch_size: int, source: str, first_row: int = 0
 ) -> Iterator[Any]:
-    """Output tables of :func:`chunks_with_derivatives`' chunks.
+    """Tables of ``batch_size`` rows from row ``first_row`` on (only the row groups needed)."""
+    import pyarrow as pa
 
-    Derived columns only replace the missing ones; logged ``qd``/``qdd`` are kept. Each chunk
-    gets the output of the one before (``previous`` for the first: e.g. the last part of an
-    interrupted run), whose last frame warm-starts a constrained estimate.
-    """
-    for chunk, qd, qdd in chunks:
-        previous = le.process(
-            chunk,
-            qd if "qd" in le.derived else None,
-            qdd if "qdd" in le.derived else None,
-            previous=previous,
-        )
-        yield previous
-
-
-def _atomic_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
-def _sensors_of(schema: Any, model: RobotModel, sensors: Sequence[str] | None, src: str) -> list:
-    cols = [n for n in schema.names if n.startswith("ft.")]
-    if sensors:
-        missing = [s for s in sensors if ft_column(s) not in cols]
-        if missing:
-            raise LogError(f"{src}: no column for sensors {missing} (found {cols})")
-        return list(sensors)
-    found = [c[3:] for c in cols if c[3:] in model.ft_sensors]
-    if not found:
-        raise LogError(
-            f"{src}: no ft.<sensor> column for the robot's sensors {list(model.ft_sensors)}"
-            f" (found {cols})"
-        )
-    return found
+    if first_row == 0:
+        yield from iter_chunks(pf, columns, batch_size, source)
+        return
+    sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+    bounds = np.cumsum([0, *sizes])
+    g0 = int(np.searchsorted(bounds, first_row, side="right") - 1)
+    skip = first_row - int(bounds[g0])
+    buf: list[Any] = []
+    have = 0
+    for tab in iter_chunks(pf, columns, batch_size, source, range(g0, len(sizes))):
+        if skip:
+            cut = min(skip, tab.num_rows)
+            tab, skip = tab.slice(cut), skip - cut
+        buf.append(tab)
+        have += tab.num_rows
+        while have >= batch_size:
+            t = pa.concat_tables(buf).combine_chunks()
+            yield t.slice(0, batch_size)
+            rest = t.slice(batch_size)
+            buf, have = [rest], rest.num_rows
+    if have:
+        yield pa.concat_tables(buf).combine_chunks()
 
 
+# ---------------------------------------------------------------------- preparing a log
 def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
     """Load a residual checkpoint for ``model`` (its robot hash must match).
 
@@ -728,10 +202,12 @@ def prepare(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
-) -> tuple[Any, LogEstimator, list[str]]:
-    """Open a log and build its :class:`LogEstimator`.
+) -> tuple[Any, LogEstimator, list[str], LogScan]:
+    """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
 
-    A log without a ``contacts`` column is estimated as contact-free, with one warning.
+    A log without a ``contacts`` column is estimated as contact-free, with one warning; a log
+    whose ``qd``/``qdd`` are derived and whose ``t_ns`` splits into several time segments gets
+    one warning that counts them.
 
     Args:
         path: the log.
@@ -743,171 +219,40 @@ def prepare(
         constraints: see :class:`LogEstimator`.
 
     Returns:
-        ``(ParquetFile, LogEstimator, columns to read)``.
+        ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
 
     Raises:
         LogError: not Parquet, no joint names, mismatched joints, no sensor column, no ``q``, a
-            residual whose sensor is not in use or whose feature columns the log lacks.
+            bad ``t_ns``, a residual whose sensor is not in use or whose feature columns the
+            log lacks.
         InputError: ``constraints`` on a log whose contacts have no ``normal`` field, or no
             ``friction``/``cone_angle`` field and no default friction.
     """
-    import pyarrow as pa
+    import warnings
 
     src = str(path)
     pf = open_log(path)
-    schema = pf.schema_arrow
-    for col in ("t_ns", "q"):
-        if col not in schema.names:
-            raise LogError(f"{src}: missing column {col!r} (found {schema.names})")
-    joint_names = joint_names_of(schema, src)
-    used = _sensors_of(schema, model, sensors, src)
-    derived = [c for c in ("qd", "qdd") if c not in schema.names]
-    contact_fields: list[tuple[str, Any]] = []
-    if "contacts" in schema.names:
-        ctype = schema.field("contacts").type
-        if not (pa.types.is_list(ctype) or pa.types.is_large_list(ctype)) or not pa.types.is_struct(
-            ctype.value_type
-        ):
-            raise LogError(f"{src}: contacts must be a list of structs, found {ctype}")
-        contact_fields = [(f.name, f.type) for f in ctype.value_type]
-        names = [n for n, _ in contact_fields]
-        for need in ("link", "kind", "position"):
-            if need not in names:
-                raise LogError(f"{src}: contact struct lacks field {need!r} (has {names})")
-    else:
-        warnings.warn(
-            f"{src}: no 'contacts' column: every frame is estimated as contact-free (any contact"
-            " load shows in residual.<sensor>)",
-            UserWarning,
-            stacklevel=2,
-        )
-    if constraints is not None and contact_fields:
-        names = [n for n, _ in contact_fields]
-        if "normal" not in names:
-            raise InputError(
-                f"--constraints: the contacts of {src} have no 'normal' field (outward surface"
-                f" normal, link frame); found {names}"
-            )
-        if constraints.friction is None and not {"friction", "cone_angle"} & set(names):
-            raise InputError(
-                f"--constraints: the contacts of {src} have no friction or cone_angle field;"
-                " give a default with --friction or --cone-angle"
-            )
+    extra = [] if residual is None else residual.extra_columns
+    cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra)
+    scan = scan_log(pf, src, bool(cols.contact_fields))
     le = LogEstimator(
         model,
-        joint_names,
-        used,
-        contact_fields,
+        cols.joint_names,
+        cols.sensors,
+        cols.contact_fields,
         src,
-        derived,
+        cols.derived,
         residual,
         velocity_margin=velocity_margin,
         ft_range=ft_range,
         constraints=constraints,
+        step_ns=scan.step_ns,
     )
-    for col in le.residual_columns():
-        if col not in schema.names:
-            raise LogError(
-                f"{src}: the residual checkpoint needs column {col!r}, which the log lacks"
-                f" (found {schema.names})"
-            )
-    columns = ["t_ns", "q", *[c for c in ("qd", "qdd") if c in schema.names]]
-    columns += [ft_column(s) for s in used]
-    columns += [c for c in ("tau_measured", *BASE_COLUMNS, "contacts") if c in schema.names]
-    columns += [c for c in le.residual_columns() if c not in columns]
-    return pf, le, columns
-
-
-@dataclass
-class RunState:
-    """The files of one output while it is being written, and the progress already made.
-
-    Attributes:
-        out: the final output file.
-        partial: ``OUT.partial/``, the journal: one part per chunk (or Ray unit).
-        sidecar: ``OUT.progress.json``.
-        ident: what the run is (input, robot, options); a resume must match it.
-        done: parts already written by an interrupted run.
-    """
-
-    out: Path
-    partial: Path
-    sidecar: Path
-    ident: dict
-    done: set[int] = field(default_factory=set)
-
-    @classmethod
-    def side_paths(cls, out: Path) -> list[Path]:
-        """Every path an estimate writes besides ``out`` itself."""
-        return [out.with_name(out.name + s) for s in (".partial", ".progress.json", ".tmp")]
-
-    def part(self, k: int) -> Path:
-        """Path of part ``k``."""
-        return self.partial / f"part-{k:08d}.arrow"
-
-    def start(self, resume: bool, recurrent: bool = False) -> None:
-        """Create the folder, or take over an interrupted run's parts (``resume``).
-
-        Raises:
-            LogError: parts of an interrupted run without ``resume``, a run for other inputs or
-                options, or a recurrent residual (which cannot resume).
-        """
-        if self.partial.exists() or self.sidecar.exists():
-            if recurrent:
-                # the GRU state after the parts already written is not saved: refuse, not guess
-                raise LogError(
-                    f"{self.out}: an interrupted run left {self.partial.name}; a recurrent (GRU)"
-                    " residual needs every frame in order and cannot resume: delete it and rerun"
-                )
-            if not resume:
-                raise LogError(
-                    f"{self.out}: an interrupted run left {self.partial.name}; pass --resume"
-                    " (resume=True) to finish it or delete it"
-                )
-            try:
-                rec = json.loads(self.sidecar.read_text())
-            except (OSError, ValueError):
-                rec = None
-            if not isinstance(rec, dict) or any(rec.get(k) != v for k, v in self.ident.items()):
-                raise LogError(
-                    f"{self.out}: the interrupted run was for other inputs or options (engine,"
-                    f" batch size, sensors, ...); delete {self.partial} and"
-                    f" {self.sidecar.name} to start afresh"
-                )
-            for tmp in self.partial.glob("*.tmp"):
-                tmp.unlink()
-            self.done = {
-                int(p.stem.removeprefix("part-")) for p in self.partial.glob("part-*.arrow")
-            }
-        else:
-            self.out.parent.mkdir(parents=True, exist_ok=True)
-            self.partial.mkdir()
-        self.record()
-
-    def record(self) -> None:
-        """Write the sidecar (atomically)."""
-        _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
-
-    def clean(self) -> None:
-        """Remove the journal and the sidecar (the output is complete)."""
-        shutil.rmtree(self.partial)
-        self.sidecar.unlink()
-
-
-def write_part(path: Path, tables: Iterator[Any] | Sequence[Any]) -> tuple[int, int]:
-    """Journal output tables as one part; returns ``(rows, rows with status 0)``."""
-    import pyarrow.compute as pc
-
-    counts = [0, 0]
-
-    def counted() -> Iterator[Any]:
-        for tab in tables:
-            counts[0] += tab.num_rows
-            counts[1] += int(pc.sum(pc.equal(tab.column("status_code"), 0)).as_py() or 0)
-            yield tab
-
-    write_journal(counted(), path)
-    return counts[0], counts[1]
+    le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
+    le.decoder.whole_log_segment = scan.segments == 1
+    if cols.derived and scan.segments > 1:
+        warnings.warn(f"{src}: {scan.describe_time()}", UserWarning, stacklevel=3)
+    return pf, le, cols.columns, scan
 
 
 def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: Any) -> dict:
@@ -930,27 +275,17 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
     return ident
 
 
-def summary(
-    path: str | Path, out: Path, rows: int, counts: dict, t0: float, le: LogEstimator, **more: Any
-) -> dict:
-    """The summary dict both engines return (and ``--json`` prints)."""
-    seconds = time.perf_counter() - t0
-    now = counts["ok"] + counts["bad"]
-    return {
-        "input": str(path),
-        "output": str(out),
-        "frames": rows,
-        "processed_now": now,
-        "ok_now": counts["ok"],
-        "bad_now": counts["bad"],
-        "seconds": round(seconds, 3),
-        "frames_per_s": round(now / max(seconds, 1e-9), 1),
-        "sensors": list(le.sensors),
-        "derived": list(le.derived),
-        **more,
-    }
+def log_summary(le: LogEstimator, scan: LogScan) -> dict:
+    """Summary keys that describe the log itself (the same for both engines)."""
+    out: dict[str, Any] = {"sensors": list(le.sensors), "derived": list(le.derived)}
+    out["slots"] = len(le.layout.links) if le.layout is not None else None
+    out["time_segments"] = scan.segments
+    if le.derived:
+        out["not_differentiable"] = scan.short_frames
+    return out
 
 
+# ---------------------------------------------------------------------- the local engine
 def estimate_file(
     path: str | Path,
     robot: str | Path | RobotModel,
@@ -973,7 +308,8 @@ def estimate_file(
     Args:
         path: input Parquet log (format of :mod:`torchcontact.logs.format`).
         robot: URDF path or a :class:`RobotModel`.
-        out: output Parquet file; ``out.partial/`` and ``out.progress.json`` exist while running.
+        out: output Parquet file; ``out.partial/``, ``out.progress.json`` and ``out.lock`` exist
+            while running.
         sensors: sensors to use (default: those with an ``ft.<sensor>`` column).
         batch_size: frames per chunk (memory is flat in the log length).
         device: ``auto``, ``cpu`` or ``cuda``.
@@ -993,145 +329,103 @@ def estimate_file(
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
-        frames_per_s, sensors, derived, resumed_chunks, chunks, engine (with constraints also
-        ``cones``: ``converged`` share, ``iterations_mean`` and ``iterations_max`` over the frames
-        estimated now).
+        frames_per_s, sensors, derived, slots (of the log's layout), time_segments (and with
+        derived ``qd``/``qdd`` not_differentiable), resumed_chunks, chunks, engine, bad_frames
+        (frames of the output with a non-zero status), bad_details (the most frequent details
+        of those, with counts); with constraints also ``cones``: ``converged`` share,
+        ``iterations_mean`` and ``iterations_max`` over the frames estimated now.
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
             or contains an input, a missing URDF.
+        OutputBusyError: another live process is writing ``out`` (nothing was written).
         LogError: the input cannot be processed at all (message names the file), or is
             corrupted (the chunks before the damage stay in ``out.partial`` for a resume); an
             existing ``out.partial`` without ``resume``; a ``resume`` whose input or options
             changed; a residual checkpoint for another robot, an unused sensor or with a column
-            the log lacks; ``resume`` with a recurrent residual.
+            the log lacks; ``resume`` with a recurrent residual; an I/O error writing (the
+            message names the path and what is kept for ``resume``).
         URDFError: an unusable URDF.
     """
-    from tqdm import tqdm
+    import sys
 
     t0 = time.perf_counter()
     _check_positive(batch_size=batch_size, half_window=half_window)
     out = Path(out)
     robot_file = None if isinstance(robot, RobotModel) else robot
-    check_outputs([out, *RunState.side_paths(out)], [path, robot_file, _path_or_none(residual)])
-    model = load_robot(robot, dtype, device)
-    if residual is not None and not hasattr(residual, "correct"):
-        residual = load_residual(residual, model)
-    if residual is not None:
-        residual.reset()  # a GRU's state starts afresh with each log
-    if residual is not None and residual.recurrent and resume:
-        raise LogError(
-            f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
-            " its state depends on every earlier frame; rerun from the start"
-        )
-    pf, le, columns = prepare(
-        path, model, sensors, residual, velocity_margin, ft_range, constraints
-    )
-    run = RunState(
-        out,
-        *RunState.side_paths(out)[:2],
-        run_ident(path, model, le, engine="local", dtype=str(dtype), half_window=half_window),
-    )
-    # an interrupted run keeps its chunk size: read it before the ident is compared
-    if resume and run.sidecar.exists():
-        try:
-            batch_size = int(json.loads(run.sidecar.read_text())["batch_size"])
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
-        if batch_size < 1:
+    check_outputs([out, *side_paths(out)], [path, robot_file, _path_or_none(residual)])
+    with Run(out, path) as run:  # the lock first: a second run stops before any work
+        model = load_robot(robot, dtype, device)
+        if residual is not None and not hasattr(residual, "correct"):
+            residual = load_residual(residual, model)
+        if residual is not None:
+            residual.reset()  # a GRU's state starts afresh with each log
+        recurrent = residual is not None and residual.recurrent
+        if recurrent and resume:
             raise LogError(
-                f"{run.sidecar}: batch_size {batch_size} is invalid; delete it and rerun"
+                f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
+                " its state depends on every earlier frame; rerun from the start"
             )
-    run.ident["batch_size"] = batch_size
-    run.start(resume, recurrent=residual is not None and residual.recurrent)
-    done = len(run.done)
-    if run.done != set(range(done)):
-        raise LogError(f"{out}: parts of {run.partial} are not consecutive; delete it and rerun")
-    total = pf.metadata.num_rows
-    n_chunks = (total + batch_size - 1) // batch_size
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=total, unit="frames", disable=not show, desc=Path(path).name)
-    bar.update(min(done * batch_size, total))
-    schema = le.output_schema()
-    counts = {"ok": 0, "bad": 0}
-    chunks = iter_chunks(pf, columns, batch_size, path)
-    derive = bool(le.derived)
-    if not derive:  # nothing to carry between chunks but the last estimates: skip the done ones
-        chunks = (c for k, c in enumerate(chunks) if k >= done)
+        pf, le, columns, scan = prepare(
+            path, model, sensors, residual, velocity_margin, ft_range, constraints
+        )
+        total = pf.metadata.num_rows
+        show = sys.stderr.isatty() if progress is None else progress
+        # an interrupted run keeps its chunk size: read it before the ident is compared
+        prev = run.previous() if resume else None
+        if prev is not None:
+            try:
+                batch_size = int(prev["batch_size"])
+            except (KeyError, TypeError, ValueError):
+                pass
+            if batch_size < 1:
+                raise LogError(
+                    f"{run.sidecar}: batch_size {batch_size} is invalid; delete it and rerun"
+                )
+        ident = run_ident(path, model, le, engine="local", dtype=str(dtype),
+                          half_window=half_window, batch_size=batch_size)  # fmt: skip
+        units = [(a, min(a + batch_size, total)) for a in range(0, total, batch_size)]
+        run.start(ident, units, resume, recurrent)
+        done = len(run.done)
+        if run.done != set(range(done)):
+            raise LogError(
+                f"{out}: parts of {run.partial} are not consecutive; delete it and rerun"
+            )
+        first = done * batch_size
+        before = _context(pf, le, first, half_window, str(path))
         previous = read_journal(run.part(done - 1)) if done and constraints else None
-        stream = enumerate(
-            estimate_chunks(
-                le, chunks_with_derivatives(chunks, le.perm, False, half_window), previous
-            ),
-            done,
+        backend = kernel_backend(total - first, str(model.device))
+
+        def produce() -> Iterator[Done]:
+            tables = read_chunks(pf, columns, batch_size, str(path), first)
+            decoded = decoded_chunks(le, tables, half_window, first, before)
+            with background(decoded, name="reader") as chunks:
+                for k, tab in enumerate(estimate_stream(le, iter(chunks), previous, backend)):
+                    yield Done(done + k, tab.num_rows, tab)
+
+        return run.execute(
+            produce(),
+            le.output_schema(),
+            progress=show,
+            cone_sensors=list(le.sensors) if constraints is not None else [],
+            t0=t0,
+            **log_summary(le, scan),
+            engine="local",
         )
-    else:
-        stream = enumerate(
-            estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, True, half_window))
-        )
-    writer = LogWriter(out, schema)  # the output itself, renamed into place when complete
-    try:
-        for k in range(done):  # chunks of the interrupted run, from its journal
-            writer.write(read_journal(run.part(k)))
-        cones = _ConeTally(le)
-        for k, res in stream:
-            if k < done:
-                continue
-            writer.write(res)
-            cones.add(res)
-            rows, ok = write_part(run.part(k), [res])
-            counts["ok"] += ok
-            counts["bad"] += rows - ok
-            run.done.add(k)
-            run.record()
-            bar.update(rows)
-        if len(run.done) != n_chunks:
-            missing = n_chunks - len(run.done)
-            raise LogError(f"{out}: {missing} chunks missing; delete {run.partial} and rerun")
-        rows = writer.rows
-        writer.close()
-    except LogError as exc:
-        writer.abort()
-        raise LogError(
-            f"{exc}; {len(run.done)} of {n_chunks} chunks are estimated in {run.partial}"
-        ) from None
-    except BaseException:
-        writer.abort()
-        raise
-    finally:
-        bar.close()
-    run.clean()
-    return summary(
-        path, out, rows, counts, t0, le, resumed_chunks=done, chunks=n_chunks, engine="local",
-        **cones.summary(),
-    )  # fmt: skip
 
 
-class _ConeTally:
-    """Convergence and iterations of the constrained solver over the output tables seen."""
+def _context(
+    pf: Any, le: LogEstimator, first: int, half_window: int, source: str
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(t_ns, q)`` of the frames before row ``first`` that a resumed run needs (None: none).
 
-    def __init__(self, le: LogEstimator) -> None:
-        self.sensors = list(le.sensors) if le.constraints is not None else []
-        self.n = self.converged = self.it_sum = self.it_max = 0
-
-    def add(self, table: Any) -> None:
-        for s in self.sensors:
-            conv = table.column(f"converged.{s}").to_numpy(zero_copy_only=False)
-            its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False)
-            ran = ~np.isnan(its.astype(float)) & (its.astype(float) > 0)
-            self.n += int(ran.sum())
-            self.converged += int(np.sum(conv[ran] == True))  # noqa: E712 - object array
-            if ran.any():
-                self.it_sum += int(its[ran].astype(np.int64).sum())
-                self.it_max = max(self.it_max, int(its[ran].astype(np.int64).max()))
-
-    def summary(self) -> dict:
-        if not self.sensors:
-            return {}
-        n = max(self.n, 1)
-        return {"cones": {"solved": self.n, "converged": round(self.converged / n, 4),
-                          "iterations_mean": round(self.it_sum / n, 2),
-                          "iterations_max": self.it_max}}  # fmt: skip
+    Derived ``qd``/``qdd`` need ``2 h`` frames (model joint order), time segments two stamps.
+    """
+    if not first:
+        return None
+    lo = max(0, first - (2 * half_window if le.derived else 2))
+    tab = next(read_chunks(pf, ["t_ns", "q"], first - lo, source, lo))
+    return stamps_and_positions(tab, le.perm, source, lo)
 
 
 def _path_or_none(x: Any) -> str | Path | None:
@@ -1182,7 +476,7 @@ def estimate_files(
     files = expand_inputs(inputs)
     outs = output_paths(files, out)
     for o in outs:
-        check_outputs([o, *RunState.side_paths(o)], [*files, robot, kwargs.get("residual")])
+        check_outputs([o, *side_paths(o)], [*files, robot, kwargs.get("residual")])
     model = load_robot(robot, kwargs.get("dtype", torch.float64), kwargs.pop("device", "cpu"))
     if kwargs.get("residual") is not None:  # load and verify once for all files
         kwargs["residual"] = load_residual(kwargs["residual"], model)

@@ -1,18 +1,20 @@
-"""``--engine ray``: the same per-chunk estimation (:class:`LogEstimator`) on a Ray cluster.
+"""``--engine ray``: the same per-chunk estimate (:class:`LogEstimator`) on a Ray cluster.
 
 The log is cut into *units* of ``task_rows`` consecutive frames (unit ``u`` holds rows
-``[u * task_rows, (u + 1) * task_rows)``, so every row's index is known). A Ray Data
-dataset of unit indices goes through ``map_batches`` (Ray tasks; each worker process builds the
-model and estimator once): a task reads its unit's rows straight from the Parquet file, estimates
-them in chunks of ``batch_size`` and writes ``OUT.partial/part-<u>.arrow`` (temporary name,
-atomic rename). The driver shows a progress bar as units finish and then merges the parts in unit
-order, which is the row order: no sort, and memory does not grow with the log.
+``[u * task_rows, (u + 1) * task_rows)``, so every row's index is known). A Ray Data dataset of
+unit indices goes through ``map_batches`` (Ray tasks; each worker process builds the model and
+estimator once): a task reads its unit's rows straight from the Parquet file (with ``2 h`` frames
+of context across the unit's edges), decodes and estimates them in chunks of ``batch_size`` with
+the local engine's functions and the log's one slot layout, and journals
+``OUT.partial/part-<u>.arrow`` (temporary name, atomic rename). The driver runs the same
+:class:`~torchcontact.logs.run.Run` as the local engine (lock, journal, ordered writer, summary):
+it writes the parts into the output in unit order, which is the row order, as they finish.
 
-As the local engine: ``qd``/``qdd`` missing from the log are derived with ``h`` frames of context
-read across unit edges, so the rows equal the local engine's; ``--resume`` keeps the parts an
-interrupted run wrote (``OUT.progress.json`` records the run); the summary has the same keys. A
-residual checkpoint must be stateless (MLP): units run in parallel and in any order, so a recurrent
-(GRU) residual, which needs every frame in time order, is refused.
+A worker process that dies (killed, out of memory) costs a retry of its unit
+(:data:`TASK_RETRIES`), not the run; a killed driver leaves the journal, and ``--resume`` keeps
+its units. A residual checkpoint must be stateless (MLP): units run in parallel and in any order,
+so a recurrent (GRU) residual, which needs every frame in time order, is refused. With
+``--constraints`` a unit's first frame starts cold (no warm start across units).
 
 ``workers`` tasks run at once, each holding ``worker_cpus`` CPUs.
 """
@@ -25,7 +27,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,26 +35,28 @@ import numpy as np
 import torch
 
 from torchcontact.errors import LogError, TorchContactError
-from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import LogWriter, check_outputs, open_log, read_journal
-from torchcontact.logs.pipeline import (
+from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
-    RunState,
-    _ConeTally,
-    chunks_with_derivatives,
-    estimate_chunks,
+    decoded_chunks,
+    estimate_stream,
+)
+from torchcontact.logs.decode import stamps_and_positions
+from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
+from torchcontact.logs.format import check_outputs, open_log, write_journal
+from torchcontact.logs.pipeline import (
+    _check_positive,
     expand_inputs,
+    kernel_backend,
     load_residual,
     load_robot,
+    log_summary,
     output_paths,
     prepare,
     resolve_device,
     run_ident,
-    summary,
-    times_and_positions,
-    write_part,
 )
+from torchcontact.logs.run import Done, Run, side_paths
 
 __all__ = ["estimate_file_ray", "estimate_files_ray", "plan_units"]
 
@@ -81,9 +85,9 @@ def _read_unit(pf: Any, columns: list[str], lo: int, hi: int, source: str) -> An
     return tab.slice(lo - int(bounds[groups[0]]), hi - lo)
 
 
-#: Per worker process: (path, robot, LogEstimator arguments, job) -> (LogEstimator, file, schema).
+#: Per worker process: (path, robot, LogEstimator arguments, job) -> (LogEstimator, file).
 #: Ray reuses worker processes across tasks, so the model is built once per process and config.
-_WORKER_CACHE: dict[str, tuple[LogEstimator, Any, Any]] = {}
+_WORKER_CACHE: dict[str, tuple[LogEstimator, Any]] = {}
 
 
 def _worker_state(path: str, robot: str, le_args: dict, job: dict) -> tuple:
@@ -93,38 +97,49 @@ def _worker_state(path: str, robot: str, le_args: dict, job: dict) -> tuple:
             torch.set_num_threads(job["threads"])
         model = load_robot(robot, getattr(torch, job["dtype"]), job["device"])
         res = None if job["residual"] is None else load_residual(job["residual"], model)
-        le = LogEstimator(model, residual=res, **le_args)
+        args = dict(le_args)
+        layout = args.pop("layout")
+        le = LogEstimator(model, residual=res, **args)
+        if layout is not None:
+            from torchcontact.contacts import SlotLayout
+
+            le.layout = le.decoder.layout = SlotLayout(*layout)
+        le.decoder.whole_log_segment = job["whole_log_segment"]
         _WORKER_CACHE.clear()
-        _WORKER_CACHE[key] = (le, open_log(path), le.output_schema())
+        _WORKER_CACHE[key] = (le, open_log(path))
     return _WORKER_CACHE[key]
 
 
 def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np.ndarray]:
-    """Ray Data task: estimate the units of ``batch["unit"]`` and write their parts."""
+    """Ray Data task: estimate the units of ``batch["unit"]`` and journal them."""
     path, robot, le_args, job = config
-    le, pf, schema = _worker_state(path, robot, le_args, job)
+    le, pf = _worker_state(path, robot, le_args, job)
     h, derive = job["half_window"], bool(le.derived)
     n, bs = pf.metadata.num_rows, job["batch_size"]
-    rows, ok = [], []
+    rows = []
     for u in batch["unit"]:
         start, stop = job["units"][int(u)]
-        # h frames of context across the unit's edges, as the local engine has
-        lo, hi = (max(0, start - h), min(n, stop + h)) if derive else (start, stop)
+        # context across the unit's edges, as the local engine has: 2 h frames each side for
+        # derived qd/qdd, else the two stamps before (a time segment may start at the unit)
+        c = 2 * h if derive else 2
+        lo, hi = max(0, start - c), min(n, stop + 2 * h) if derive else stop
         tab = _read_unit(pf, job["columns"], lo, hi, path)
         unit = tab.slice(start - lo, stop - start)
         before = after = None
-        if derive:
-            before = times_and_positions(tab.slice(0, start - lo), le.perm)
-            after = times_and_positions(tab.slice(stop - lo), le.perm)
+        if start > lo:
+            before = stamps_and_positions(tab.slice(0, start - lo), le.perm, path, lo)
+        if derive and hi > stop:
+            after = stamps_and_positions(tab.slice(stop - lo), le.perm, path, stop)
         chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
-        tables = estimate_chunks(
-            le, chunks_with_derivatives(chunks, le.perm, derive, h, before, after)
-        )
-        part = Path(job["partial"]) / f"part-{int(u):08d}.arrow"
-        n_rows, n_ok = write_part(part, tables)
-        rows.append(n_rows)
-        ok.append(n_ok)
-    return {"unit": batch["unit"], "rows": np.array(rows), "ok": np.array(ok)}
+        decoded = decoded_chunks(le, chunks, h, start, before, after)
+        # a unit's first frame starts cold: units run in parallel and in any order
+        tables = estimate_stream(le, decoded, None, job["backend"])
+        write_journal(tables, Path(job["partial"]) / f"part-{int(u):08d}.arrow")
+        rows.append(stop - start)
+    import ray
+
+    node = ray.get_runtime_context().get_node_id()
+    return {"unit": batch["unit"], "rows": np.array(rows), "node": np.array([node] * len(rows))}
 
 
 def _ensure_ray(num_cpus: int | None) -> Any:
@@ -141,13 +156,17 @@ def _ensure_ray(num_cpus: int | None) -> Any:
         # workers import the same torchcontact as this process
         root = str(Path(__file__).resolve().parents[2])
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
-        ray.init(
-            num_cpus=num_cpus,
+        kwargs: dict[str, Any] = dict(
             include_dashboard=False,
             log_to_driver=False,
             logging_level=logging.ERROR,
             runtime_env={"env_vars": {"PYTHONPATH": path}},
         )
+        if os.environ.get("RAY_ADDRESS"):  # a running cluster: it has its own resources
+            kwargs.pop("include_dashboard")
+            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs)
+        else:
+            ray.init(num_cpus=num_cpus, **kwargs)
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False
     if hasattr(ctx, "print_on_execution_start"):
@@ -170,26 +189,31 @@ def _user_error(exc: BaseException) -> BaseException:
     return exc
 
 
+#: Attempts of a unit whose worker process dies (a killed or crashed worker; the unit's journal
+#: part is written under a temporary name, so a retry starts clean).
+TASK_RETRIES = 3
+
+
 def _unit_dataset(
     ray: Any,
     todo: list[int],
     path: str | Path,
     robot: str | Path,
     le: LogEstimator,
-    run: RunState,
-    units: list[tuple[int, int]],
+    run: Run,
     columns: list[str],
     res: Any,
     workers: int,
     worker_cpus: float,
     options: dict,
 ) -> Any:
-    """The Ray Data pipeline: unit indices -> ``_estimate_units`` tasks -> per-unit counts."""
+    """The Ray Data pipeline: unit indices -> ``_estimate_units`` tasks -> per-unit rows."""
     job = {
-        "units": units,
+        "units": run.units,
         "columns": columns,
         "partial": str(run.partial.resolve()),
         "residual": None if res is None else res.source,
+        "whole_log_segment": le.decoder.whole_log_segment,
         **options,
     }
     le_args = {
@@ -201,6 +225,8 @@ def _unit_dataset(
         "velocity_margin": le.velocity_margin,
         "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
         "constraints": le.constraints,
+        "step_ns": le.step_ns,
+        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
     }
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
     config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
@@ -212,6 +238,7 @@ def _unit_dataset(
         compute=ray.data.TaskPoolStrategy(size=workers),
         num_cpus=worker_cpus,
         num_gpus=1 if options["device"].startswith("cuda") else 0,
+        max_retries=TASK_RETRIES,
     )
 
 
@@ -239,6 +266,9 @@ def estimate_file_ray(
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
+    Ray is started here with ``num_cpus`` CPUs, or joined at ``RAY_ADDRESS`` (a running cluster,
+    e.g. ``ray start --head`` and workers on other machines) when that variable is set.
+
     Args:
         path: input log.
         robot: URDF path.
@@ -246,7 +276,7 @@ def estimate_file_ray(
         sensors: sensors to use (default: those with a column).
         batch_size: frames per estimator call inside a unit.
         task_rows: frames of a unit (one Ray task; default ``8 * batch_size``).
-        device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per actor).
+        device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per task).
         dtype: computation dtype.
         resume: finish an interrupted Ray run from its parts.
         progress: show a progress bar (default: when stderr is a terminal).
@@ -260,121 +290,81 @@ def estimate_file_ray(
         velocity_margin: as :func:`estimate_file`.
         ft_range: as :func:`estimate_file`.
         constraints: as :func:`estimate_file` (warm starts run within a unit; a unit's first
-            frame starts cold).
+            frame starts cold, so its rows may differ from the local engine's within the
+            solver's tolerance).
 
     Returns:
-        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units).
+        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
+        ``nodes``: the Ray nodes that ran the units estimated now.
 
     Raises:
         InputError: as :func:`estimate_file`, or ``workers`` < 1.
+        OutputBusyError: another live process is writing ``out``.
         LogError: as :func:`estimate_file`, or a recurrent (GRU) residual.
     """
-    from tqdm import tqdm
-
-    from torchcontact.logs.pipeline import _check_positive
-
     t0 = time.perf_counter()
     task_rows = 8 * batch_size if task_rows is None else task_rows
     _check_positive(
         batch_size=batch_size, half_window=half_window, workers=workers, task_rows=task_rows
     )
     out = Path(out)
-    check_outputs([out, *RunState.side_paths(out)], [path, robot, residual])
+    check_outputs([out, *side_paths(out)], [path, robot, residual])
     device = resolve_device(device)
-    model = load_robot(robot, dtype)
-    res = None if residual is None else load_residual(residual, model)
-    if res is not None and res.recurrent:
-        raise LogError(
-            f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
-            " order); use --engine local"
-        )
-    pf, le, columns = prepare(path, model, sensors, res, velocity_margin, ft_range, constraints)
-    total = pf.metadata.num_rows
-    units = plan_units(total, task_rows)
-    ident = run_ident(
-        path,
-        model,
-        le,
-        engine="ray",
-        dtype=str(dtype),
-        half_window=half_window,
-        batch_size=batch_size,
-        task_rows=task_rows,
-    )
-    run = RunState(out, *RunState.side_paths(out)[:2], ident)
-    run.start(resume)
-    todo = [u for u in range(len(units)) if u not in run.done]
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=total, unit="frames", disable=not show, desc=f"{Path(path).name} (ray)")
-    bar.update(total - sum(units[u][1] - units[u][0] for u in todo))
-    counts = {"ok": 0, "bad": 0}
-    writer = LogWriter(out, le.output_schema())  # the output, renamed into place when complete
-    written = 0  # units written to the output: 0 .. written - 1, in order
-    cones, now = _ConeTally(le), set(todo)
+    with Run(out, path) as run:  # the lock first: a second run stops before any work
+        model = load_robot(robot, dtype)
+        res = None if residual is None else load_residual(residual, model)
+        if res is not None and res.recurrent:
+            raise LogError(
+                f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
+                " order); use --engine local"
+            )
+        pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
+                                        constraints)  # fmt: skip
+        total = pf.metadata.num_rows
+        show = sys.stderr.isatty() if progress is None else progress
+        ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
+                          half_window=half_window, batch_size=batch_size,
+                          task_rows=task_rows)  # fmt: skip
+        run.start(ident, plan_units(total, task_rows), resume)
+        todo = [u for u in range(len(run.units)) if u not in run.done]
+        options = dict(batch_size=batch_size, half_window=half_window, threads=threads,
+                       device=device, dtype=str(dtype).removeprefix("torch."),
+                       backend=kernel_backend(total, device, shared=True))  # fmt: skip
 
-    def drain() -> None:
-        """Write the units that are done and next in order (journal -> output)."""
-        nonlocal written
-        while written < len(units) and written in run.done:
-            tab = read_journal(run.part(written))
-            writer.write(tab)
-            if written in now:
-                cones.add(tab)
-            written += 1
-
-    try:
-        drain()  # units journalled by an interrupted run
-        if todo:
+        def produce() -> Iterator[Done]:
+            if not todo:
+                return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
                 ray = _ensure_ray(num_cpus)
-                ds = _unit_dataset(
-                    ray, todo, path, robot, le, run, units, columns, res, workers, worker_cpus,
-                    dict(batch_size=batch_size, half_window=half_window, threads=threads,
-                         device=device, dtype=str(dtype).removeprefix("torch.")),
-                )  # fmt: skip
+                ds = _unit_dataset(ray, todo, path, robot, le, run, columns, res, workers,
+                                   worker_cpus, options)  # fmt: skip
                 try:
                     batches = ds.iter_batches(
                         batch_size=1, batch_format="numpy", prefetch_batches=0
                     )
                     for b in batches:
-                        for u, n, k in zip(b["unit"], b["rows"], b["ok"], strict=True):
-                            run.done.add(int(u))
-                            counts["ok"] += int(k)
-                            counts["bad"] += int(n - k)
-                            bar.update(int(n))
-                        run.record()
-                        drain()  # overlaps writing the output with the estimation
+                        nodes.update(str(x) for x in b["node"])
+                        for u, n in zip(b["unit"], b["rows"], strict=True):
+                            yield Done(int(u), int(n))
                 except Exception as exc:
                     err = _user_error(exc)
                     if isinstance(err, TorchContactError):
-                        raise type(err)(
-                            f"{err}; {len(run.done)} of {len(units)} units are estimated in"
-                            f" {run.partial}"
-                        ) from None
+                        raise err from None
                     raise
-        if written != len(units):
-            raise LogError(f"{out}: units {written}.. missing; delete {run.partial} and rerun")
-        rows = writer.rows
-        writer.close()
-    except BaseException:
-        writer.abort()
-        raise
-    finally:
-        bar.close()
-    run.clean()
-    return summary(
-        path,
-        out,
-        rows,
-        counts,
-        t0,
-        le,
-        resumed_chunks=len(units) - len(todo),
-        chunks=len(units),
-        engine="ray",
-        **cones.summary(),
-    )
+
+        nodes: set[str] = set()
+        summary = run.execute(
+            produce(),
+            le.output_schema(),
+            progress=show,
+            cone_sensors=list(le.sensors) if constraints is not None else [],
+            t0=t0,
+            **log_summary(le, scan),
+            engine="ray",
+        )
+    summary["nodes"] = len(nodes)  # Ray nodes that ran units now
+    return summary
 
 
 def estimate_files_ray(
@@ -384,5 +374,5 @@ def estimate_files_ray(
     files = expand_inputs(inputs)
     outs = output_paths(files, out)
     for o in outs:
-        check_outputs([o, *RunState.side_paths(o)], [*files, robot, kwargs.get("residual")])
+        check_outputs([o, *side_paths(o)], [*files, robot, kwargs.get("residual")])
     return [estimate_file_ray(f, robot, o, **kwargs) for f, o in zip(files, outs, strict=True)]

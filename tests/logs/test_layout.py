@@ -1,0 +1,118 @@
+"""One slot layout per log: every chunk runs the same program, with the same rows as one layout
+per chunk; a log whose contact set changes mid-file; when a run waits for its kernel."""
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from torchcontact.contacts import SlotLayout
+from torchcontact.errors import KernelBuildError
+from torchcontact.estimation import ContactEstimator
+from torchcontact.logs import estimate_file
+from torchcontact.logs import pipeline as pl
+from torchcontact.logs.format import read_contacts
+
+
+@pytest.fixture(scope="module")
+def changing(sim_log, tmp_path_factory):
+    """The simulated log with its contact set changed mid-file: until frame 300 only the records
+    on forearm_skin, from there on every record plus a second copy of each hand_skin one."""
+    tab = pq.read_table(sim_log)
+    rows = tab["contacts"].to_pylist()
+    for i, row in enumerate(rows):
+        if i < 300:
+            rows[i] = [c for c in row if c["link"] == "forearm_skin"]
+        else:
+            rows[i] = row + [dict(c) for c in row if c["link"] == "hand_skin"]
+    contacts = pa.array(rows, tab.schema.field("contacts").type)
+    path = tmp_path_factory.mktemp("changing") / "log.parquet"
+    pq.write_table(tab.set_column(tab.schema.get_field_index("contacts"), "contacts", contacts),
+                   path)  # fmt: skip
+    return path
+
+
+def _per_chunk(model, path, batch_size):
+    """The output with one layout per chunk (the layout covering each chunk's own records)."""
+    pf, le, columns, _ = pl.prepare(path, model)
+    le.layout = le.decoder.layout = None
+    tables = pl.read_chunks(pf, columns, batch_size, str(path))
+    return pa.concat_tables(pl.estimate_stream(le, pl.decoded_chunks(le, tables, 5)))
+
+
+def _same_rows(a, b):
+    assert a.schema == b.schema
+    for name in a.column_names:
+        if name not in ("contacts", "joint_torques"):
+            assert a[name].equals(b[name]), name
+    for name in ("force", "moment", "true_force"):
+        fa = np.array([c[name] for row in a["contacts"].to_pylist() for c in row], float)
+        fb = np.array([c[name] for row in b["contacts"].to_pylist() for c in row], float)
+        np.testing.assert_allclose(fa, fb, rtol=0, atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(
+        np.stack(a["joint_torques"].to_numpy(zero_copy_only=False)),
+        np.stack(b["joint_torques"].to_numpy(zero_copy_only=False)),
+        rtol=0,
+        atol=1e-9,
+    )
+
+
+def test_one_layout_per_log_same_rows_as_one_per_chunk(model, changing, tmp_path, monkeypatch):
+    seen = []
+    real = ContactEstimator.estimate
+
+    def spy(self, q, qd, qdd, ft, contacts, **kw):
+        seen.append((contacts.links, contacts.kinds))
+        return real(self, q, qd, qdd, ft, contacts, **kw)
+
+    monkeypatch.setattr(ContactEstimator, "estimate", spy)
+    s = estimate_file(changing, model, tmp_path / "o.parquet", batch_size=128)
+    out = pq.read_table(s["output"])
+    # the most records of each (link, kind) in one frame over the whole file
+    records = read_contacts(pq.read_table(changing)["contacts"])[0]
+    layout = SlotLayout.covering(records)
+    assert s["slots"] == layout.K == len(seen[0][0]) and len(seen) == 5
+    assert set(seen) == {(layout.links, layout.kinds)}  # every chunk: one program
+    assert s["chunks"] == 5 and s["ok_now"] == 600
+    # per-chunk layouts differ from chunk to chunk and give the same rows
+    seen.clear()
+    _same_rows(out, _per_chunk(model, changing, 128))
+    assert len(set(seen)) >= 3 and seen[0] == ((), ())  # no contact in the first chunks
+    # the doubled hand contacts share their force (the minimum-norm split), the truth is kept
+    frame = next(i for i in range(300, 600) if sum(c["link"] == "hand_skin"
+                                                   for c in out["contacts"][i].as_py()) == 2)  # fmt: skip
+    hand = [c for c in out["contacts"][frame].as_py() if c["link"] == "hand_skin"]
+    np.testing.assert_allclose(hand[0]["force"], hand[1]["force"], atol=1e-12)
+
+
+def test_when_a_run_waits_for_its_kernel(model, sim_log, tmp_path, monkeypatch):
+    """By default the local engine never waits (``auto``: eager while the kernel builds); with
+    WAIT_FOR_KERNEL_FRAMES frames to estimate it builds (or loads) the kernel before its first
+    chunk, and a kernel that cannot be built leaves the run eager, with the same rows."""
+    backends = []
+    real = pl.LogEstimator.estimate
+
+    def spy(self, d, previous=None, backend=None):
+        backends.append(backend)
+        if backend == "cpu":  # no compiler on this machine, say
+            raise KernelBuildError("building kernel tck_estimator_x failed: no compiler")
+        return real(self, d, previous, backend)
+
+    monkeypatch.setattr(pl.LogEstimator, "estimate", spy)
+    a = pq.read_table(estimate_file(sim_log, model, tmp_path / "a.parquet", batch_size=256)
+                      ["output"])  # fmt: skip
+    assert pl.WAIT_FOR_KERNEL_FRAMES is None and backends == ["auto"] * 3
+    backends.clear()
+    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", 600)
+    b = pq.read_table(estimate_file(sim_log, model, tmp_path / "b.parquet", batch_size=256)
+                      ["output"])  # fmt: skip
+    assert backends == ["cpu", "eager", "eager", "eager"]
+    assert a.equals(b)
+    assert pl.kernel_backend(599, "cpu") == "auto" and pl.kernel_backend(600, "cpu") == "cpu"
+    monkeypatch.setattr(pl, "WAIT_FOR_KERNEL_FRAMES", None)
+    assert pl.kernel_backend(10**9, "cpu") == "auto"
+    big, small = pl.SHARED_WAIT_FRAMES, pl.SHARED_WAIT_FRAMES - 1  # Ray tasks of large logs wait
+    assert (
+        pl.kernel_backend(big, "cpu", True) == "cpu"
+        and pl.kernel_backend(small, "cpu", True) == "auto"
+    )

@@ -1,0 +1,55 @@
+"""Start-up: ``torchcontact --help`` imports neither torch nor numpy, and ``estimate`` none of the
+modules it does not use (each checked in a fresh interpreter)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from torchcontact.cli import COMMANDS, build_parser
+
+ROOT = Path(__file__).resolve().parents[2]
+UNUSED_BY_ESTIMATE = ("ray", "matplotlib", "onnx", "onnxruntime", "rosbags", "pymodbus", "serial")
+
+
+def _fresh(code: str) -> list:
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_help_imports_no_torch_or_numpy():
+    code = (
+        "import sys, json\n"
+        "from torchcontact.cli import main\n"
+        "for argv in (['--help'], ['estimate', '--help'], ['sensor', '--help']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "    if argv[0] == 'estimate':\n"
+        "        est = [m for m in ('torch', 'numpy', 'pyarrow') if m in sys.modules]\n"
+        "print(json.dumps([est, [m for m in ('torch', 'pyarrow') if m in sys.modules]]))\n"
+    )
+    estimate_help, after_sensor = _fresh(code)
+    assert estimate_help == [] and after_sensor == []
+
+
+def test_estimate_imports_only_what_it_uses(sim_log, tmp_path):
+    out = tmp_path / "o.parquet"
+    code = (
+        "import sys, json\n"
+        "from torchcontact.cli import main\n"
+        f"assert main(['estimate', {str(sim_log)!r}, '--out', {str(out)!r}, '--quiet']) == 0\n"
+        f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}}"
+        f" & set({UNUSED_BY_ESTIMATE!r}))))\n"
+    )
+    assert _fresh(code) == [] and out.exists()
+
+
+def test_the_command_table_is_what_the_modules_register():
+    parser = build_parser("*")
+    sub = next(a for a in parser._actions if a.dest == "command")
+    registered = {a.dest: a.help for a in sub._choices_actions}
+    for name, (_, help_text) in COMMANDS.items():
+        assert registered[name] == help_text, name

@@ -1,0 +1,628 @@
+"""The per-chunk estimate: a decoded chunk of a log -> its output rows, the same for both engines.
+
+:class:`LogEstimator` holds what is fixed for a log (the robot, the log's joint order and sensors,
+its one slot layout, the options); :func:`decoded_chunks` turns consecutive Arrow tables into
+decoded chunks (arrays, time segments, derived ``qd``/``qdd``, contacts in the log's slots:
+:mod:`torchcontact.logs.decode`) and :func:`estimate_stream` estimates them in order, carrying the
+last estimates of a chunk into the next one's warm start. The local engine runs these on its
+threads (:mod:`torchcontact.logs.pipeline`), the Ray engine inside each task
+(:mod:`torchcontact.logs.ray_engine`).
+
+Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
+(its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
+joint beyond its velocity limit, a frame too short to differentiate, ...). Frames with a non-zero
+code have NaN outputs; the rest of the log is processed.
+
+Friction cones (:class:`LogConstraints`, ``estimate --constraints``): every pushing contact's force
+is kept inside the friction cone of its ``normal`` (contact field) and friction coefficient
+(``friction`` or ``cone_angle`` field, else the run's default); the output adds per sensor
+``converged.<sensor>`` and ``iterations.<sensor>`` and per contact ``cone_active``. Frames are
+warm-started from their predecessor's estimate (:class:`~torchcontact.PreviousFrame`), across
+chunks too (a chunk's first frame starts from the previous chunk's last estimates, matched by
+link, kind and order), but never across a time-segment boundary (a repeated, backward or gapped
+``t_ns``): a segment's first frame starts cold. Non-convergence is not a status bit (status bits
+mean NaN outputs; a frame that did not converge keeps its last interior-point iterate, inside
+the cones): it is ``converged.<sensor> = false``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchcontact.constrained import FrictionCones, PreviousFrame
+from torchcontact.contacts import Contacts, SlotLayout
+from torchcontact.errors import InputError, KernelBuildError, LogError
+from torchcontact.estimation import ContactEstimator
+from torchcontact.logs.decode import ChunkDecoder, Decoded, FrameIssues, status_text
+from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, DerivativeStream, time_segments
+from torchcontact.logs.format import (
+    META_DERIVED,
+    META_RESIDUAL,
+    META_SENSORS,
+    META_URDF_SHA256,
+    META_VERSION,
+    fixed_list,
+    ft_column,
+    joint_permutation,
+    output_schema,
+    struct_list,
+)
+from torchcontact.model import RobotModel
+
+__all__ = [
+    "DEFAULT_VELOCITY_MARGIN",
+    "LogConstraints",
+    "LogEstimator",
+    "decoded_chunks",
+    "estimate_stream",
+]
+
+#: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
+DEFAULT_VELOCITY_MARGIN = 2.0
+
+# The plausibility bit (64) and the non-finite-output bit (32) are set by the estimator
+# (ContactEstimator(..., velocity_margin=..., ft_range=...)), one meaning in Python and logs.
+
+
+def ft_ranges(ft_range: Mapping[str, Any] | None, sensors: Sequence[str]) -> dict[str, np.ndarray]:
+    """``{sensor: (6,) or scalar}`` -> ``{sensor: (6,)}`` limits [N; N m], for sensors in use.
+
+    Raises:
+        InputError: a sensor not in use, a limit that is not 1 or 6 positive numbers.
+    """
+    out: dict[str, np.ndarray] = {}
+    for s, v in (ft_range or {}).items():
+        if s not in sensors:
+            raise InputError(f"--ft-range {s}: not a sensor in use ({list(sensors)})")
+        arr = np.broadcast_to(np.asarray(v, np.float64).reshape(-1), (6,)).copy()
+        if np.asarray(v).size not in (1, 6) or not (arr > 0).all():
+            raise InputError(f"--ft-range {s}: give 1 or 6 positive numbers [N; N m], got {v}")
+        out[s] = arr
+    return out
+
+
+@dataclass(frozen=True)
+class LogConstraints:
+    """Friction-cone constrained estimation of a log (``estimate --constraints``).
+
+    Attributes:
+        cones: the solver's settings (iteration budget, ``eps``, ``tol``).
+        friction: friction coefficient of the contacts whose records give neither ``friction``
+            nor ``cone_angle`` (None: such a contact is an invalid record, status bit 4).
+        warm_start: start each frame from its predecessor's estimate (else from the
+            pseudo-inverse solution).
+        wave: frames per batched call of the warm-started waves
+            (:class:`~torchcontact.PreviousFrame`).
+
+    Raises:
+        InputError: a friction coefficient that is not a finite number > 0, a wave < 1.
+
+    Example:
+        >>> LogConstraints(friction=0.5).cones.iterations
+        25
+    """
+
+    cones: FrictionCones = field(default_factory=FrictionCones)
+    friction: float | None = None
+    warm_start: bool = True
+    wave: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.friction is not None and not (0 < float(self.friction) < np.inf):
+            raise InputError(f"--friction must be a finite number > 0, got {self.friction}")
+        if not (isinstance(self.wave, int) and self.wave >= 1):
+            raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
+
+
+# ---------------------------------------------------------------------- one chunk
+@dataclass
+class LogEstimator:
+    """Per-chunk estimation for one robot and one input schema.
+
+    Args:
+        model: the robot (its dtype and device are those of the computation).
+        input_joint_names: joint order of the log's ``q`` columns.
+        sensors: F/T sensors to use (each needs an ``ft.<sensor>`` column).
+        contact_fields: ``(name, type)`` fields of the input contact struct (output adds
+            ``force`` and ``moment``); empty when the log has no ``contacts`` column.
+        source: file name used in error messages.
+        derived: ``qd``/``qdd`` when derived from ``q`` (recorded in the output metadata).
+        residual: learned F/T correction (:class:`~torchcontact.residual.ResidualCorrection`)
+            subtracted from its sensor's reading before estimation, or None.
+        velocity_margin: frames with a joint velocity beyond ``margin`` times its URDF limit get
+            status bit 64 (None: no check).
+        ft_range: ``{sensor: (6,) or scalar}`` [N; N m]: frames with a reading beyond it get
+            status bit 64.
+        constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
+        layout: the log's slot layout (:meth:`LogScan.layout`): every chunk runs the same
+            program; None: each chunk gets the layout covering its own records.
+        step_ns: the log's median time step (segments: :mod:`torchcontact.logs.derive`).
+
+    Raises:
+        LogError: joints missing from or extra to the model (mimic joints are not coordinates),
+            an unknown sensor, or a residual for a sensor or joints not in use.
+        InputError: a bad ``ft_range``.
+    """
+
+    model: RobotModel
+    input_joint_names: Sequence[str]
+    sensors: Sequence[str]
+    contact_fields: Sequence[tuple[str, Any]] = ()
+    source: str = ""
+    derived: Sequence[str] = ()
+    residual: Any = None
+    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN
+    ft_range: Mapping[str, Any] | None = None
+    constraints: LogConstraints | None = None
+    layout: SlotLayout | None = None
+    step_ns: float = 0.0
+    estimator: ContactEstimator = field(init=False)
+    perm: np.ndarray = field(init=False)
+    decoder: ChunkDecoder = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.perm = joint_permutation(
+            self.input_joint_names, self.model.joint_names, self.model.name, self.source
+        )
+        if self.velocity_margin is not None and not self.velocity_margin > 0:
+            raise InputError(f"--velocity-margin must be > 0, got {self.velocity_margin}")
+        self._ft_range = ft_ranges(self.ft_range, self.sensors)
+        guards = {"velocity_margin": self.velocity_margin, "ft_range": self._ft_range}
+        try:
+            self.estimator = ContactEstimator(self.model, list(self.sensors), **guards)
+        except ValueError as exc:
+            raise LogError(f"{self.source}: {exc}") from None
+        if self.residual is not None and self.residual.sensor not in self.sensors:
+            raise LogError(
+                f"{self.source}: the residual checkpoint corrects sensor"
+                f" {self.residual.sensor!r}, which is not among the sensors in use"
+                f" {list(self.sensors)}"
+            )
+        cons = self.constraints
+        self.decoder = ChunkDecoder(
+            self.model, self.perm, self.sensors, self.contact_fields, self.derived,
+            self.estimator.region, self.layout, None if cons is None else cons.friction,
+            cons is not None, self.residual_columns(), self.source,
+        )  # fmt: skip
+        self._schema = None
+
+    def residual_columns(self) -> list[str]:
+        """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
+        return [] if self.residual is None else self.residual.extra_columns
+
+    # ------------------------------------------------------------------ schema
+    def output_schema(self) -> Any:
+        """Schema of the output rows, with joint names, robot hash and version in the metadata."""
+        if self._schema is not None:
+            return self._schema
+        from torchcontact import __version__
+
+        derived = {
+            "columns": list(self.derived),
+            "method": f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1} frames"
+            if self.derived
+            else "",
+        }
+        meta = {
+            META_URDF_SHA256: self.model.urdf_sha256,
+            META_VERSION: __version__,
+            META_SENSORS: json.dumps(list(self.sensors)),
+            META_DERIVED: json.dumps(derived),
+        }
+        if self.residual is not None:
+            meta[META_RESIDUAL] = json.dumps(
+                {
+                    "checkpoint": self.residual.source,
+                    "weights_sha256": self.residual.meta.get("weights_sha256"),
+                    "sensor": self.residual.sensor,
+                    "kind": "+".join(self.residual.layers),
+                }
+            )
+        self._schema = output_schema(
+            self.model.joint_names,
+            self.sensors,
+            self.contact_fields,
+            meta,
+            constraints=self.constraints is not None,
+        )
+        return self._schema
+
+    # ------------------------------------------------------------------ one chunk
+    def process(
+        self,
+        table: Any,
+        qd: np.ndarray | None = None,
+        qdd: np.ndarray | None = None,
+        previous: Any = None,
+    ) -> Any:
+        """Estimate every frame of one chunk on its own (no time segments across chunks).
+
+        Args:
+            table: pyarrow table or record batch in the log format.
+            qd: ``(N, nv)`` velocities in the model's joint order when derived (else read).
+            qdd: ``(N, nv)`` accelerations likewise.
+            previous: the output of the chunk before (with constraints and warm starts, its last
+                frame's estimates start this chunk's first frame), or None.
+
+        Returns:
+            A pyarrow table with :meth:`output_schema`.
+        """
+        d = self.decoder.decode(table)
+        if self.derived:
+            if qd is None or qdd is None:
+                raise LogError(f"{self.source}: qd and qdd are derived: pass them")
+            d.qd = qd if "qd" in self.derived else d.qd
+            d.qdd = qdd if "qdd" in self.derived else d.qdd
+        return self.estimate(d, previous)
+
+    def estimate(self, d: Decoded, previous: Any = None, backend: str | None = None) -> Any:
+        """Estimate a decoded chunk and build its output rows (Del Prete et al. 2012, Sec. 2).
+
+        Args:
+            d: the chunk (:meth:`ChunkDecoder.decode`, derivatives and segments set).
+            previous: the output of the chunk before (warm starts of constrained estimates), or
+                None.
+            backend: the estimator's backend for this chunk (None: ``"auto"``).
+
+        Returns:
+            A pyarrow table with :meth:`output_schema`.
+
+        Raises:
+            KernelBuildError: ``backend`` ``"cpu"``/``"cuda"`` and the kernel cannot be built.
+        """
+        import pyarrow as pa
+
+        model, N = self.model, d.n
+        if d.contacts is None:
+            self.decoder.slots(d, model.dtype, model.device)
+        contacts, records, slot = d.contacts, d.records, d.slot
+        assert contacts is not None
+        if d.qd is None or d.qdd is None:
+            raise LogError(f"{self.source}: qd/qdd of a chunk were not derived")
+        ft = dict(d.ft)
+        if self.residual is not None:
+            ft[self.residual.sensor] = self._corrected(d, ft[self.residual.sensor])
+        res = self._solve(d, ft, contacts, previous, backend)
+
+        code = res["status"]
+        if d.short is not None and d.short.any():
+            # derivatives that cannot be derived are NaN by design: Status.NOT_DIFFERENTIABLE
+            # (from the decoder's issues) says so instead of bit 2, unless the state is bad
+            state_ok = np.isfinite(d.q).all(1)
+            for v in d.base.values():
+                state_ok &= np.isfinite(v).all(1)
+            code = np.where(d.short & state_ok, code & ~2, code)
+        code = code | d.issues.code
+        self._explain(code, d.qd, ft, d.issues)
+        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
+        bad = code != 0
+        jt = np.where(bad[:, None], np.nan, res["tau"])
+
+        # ---- output rows: input contacts with force and moment added, in record order
+        M = len(records)
+        cf = np.full((M, 3), np.nan)
+        cm = np.full((M, 3), np.nan)
+        ok_c = (slot >= 0) & ~bad[records.frame] if M else np.zeros(0, bool)
+        if ok_c.any():
+            cf[ok_c] = res["force"][records.frame[ok_c], slot[ok_c]]
+            cm[ok_c] = res["moment"][records.frame[ok_c], slot[ok_c]]
+        schema = self.output_schema()
+        ctype = schema.field("contacts").type.value_type
+        children = {n: d.fields[n] for n, _ in self.contact_fields}
+        children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
+        cons = self.constraints
+        if cons is not None:  # the cone binds; null where the contact was not estimated
+            ca = np.zeros(M, bool)
+            ca[ok_c] = res["active"][records.frame[ok_c], slot[ok_c]]
+            children["cone_active"] = pa.array(ca, mask=~ok_c)
+        out: dict[str, Any] = {"t_ns": d.t_ns}
+        out["contacts"] = struct_list(children, records.frame, N, ctype)
+        out["joint_torques"] = fixed_list(jt)
+        for s in self.sensors:
+            rank, unknowns = res[f"rank.{s}"], res[f"unknowns.{s}"]
+            out[f"rank.{s}"], out[f"unknowns.{s}"] = pa.array(rank), pa.array(unknowns)
+            out[f"nullity.{s}"] = pa.array(unknowns - rank)
+            out[f"residual.{s}"] = pa.array(np.where(bad, np.nan, res[f"residual.{s}"]))
+            if cons is not None:  # the solver's status; null on frames with a non-zero status
+                out[f"converged.{s}"] = pa.array(res[f"converged.{s}"], mask=bad)
+                out[f"iterations.{s}"] = pa.array(res[f"iterations.{s}"], mask=bad)
+        out["status_code"] = pa.array(code)
+        out["status"] = status_text(code)
+        out["status_detail"] = d.issues.details()
+        return pa.table(out, schema=schema)
+
+    def _solve(
+        self,
+        d: Decoded,
+        ft: dict[str, np.ndarray],
+        contacts: Contacts,
+        previous: Any,
+        backend: str | None,
+    ) -> dict[str, np.ndarray]:
+        """Run the estimator on a chunk; its outputs as numpy arrays (:func:`_arrays`)."""
+        model, est, cons = self.model, self.estimator, self.constraints
+
+        share = model.dtype == torch.float64 and model.device.type == "cpu"
+
+        def t(x: np.ndarray) -> torch.Tensor:
+            if share and x.dtype == np.float64 and x.flags.writeable and x.flags.c_contiguous:
+                return torch.from_numpy(x)  # the chunk's own array: no copy
+            return torch.tensor(x, dtype=model.dtype, device=model.device)  # Arrow memory is r/o
+
+        args = {
+            "q": t(d.q), "qd": t(d.qd), "qdd": t(d.qdd),  # type: ignore[arg-type]
+            "ft": {s: t(v) for s, v in ft.items()},
+        }  # fmt: skip
+        kw: dict[str, Any] = {"backend": backend}
+        if d.base:
+            kw["base"] = _base_motion(d.base, t)
+        if d.tau is not None:
+            kw["tau_measured"] = t(d.tau)
+        if cons is None:
+            return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
+        kw["constraints"] = cons.cones
+        if not cons.warm_start:
+            return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
+        starts = d.starts if d.starts is not None else np.zeros(d.n, bool)
+        before = None
+        if previous is not None and d.n and not starts[0]:
+            before = _last_estimates(previous, contacts.links, contacts.kinds)
+        restart = starts.copy()
+        restart[:1] = False
+        if not restart.any():  # one time segment: the estimator's own waves
+            warm = PreviousFrame(None if before is None else (t(before[0]), t(before[1])),
+                                 cons.wave)  # fmt: skip
+            return _arrays(
+                est.estimate(**args, contacts=contacts, warm_start=warm, **kw), self.sensors
+            )
+        return self._waves(args, contacts, before, restart, kw, t)
+
+    def _waves(
+        self,
+        args: dict[str, Any],
+        contacts: Contacts,
+        before: tuple[np.ndarray, np.ndarray] | None,
+        restart: np.ndarray,
+        kw: dict[str, Any],
+        t: Any,
+    ) -> dict[str, np.ndarray]:
+        """The waves of :class:`~torchcontact.PreviousFrame`, restarted at segment starts.
+
+        Frames ``j, j + S, j + 2 S, ...`` form wave ``j`` (``S = ceil(n / wave)``); wave ``j``
+        starts from wave ``j - 1``'s estimates, wave 0 cold but for frame 0 (``before``); a
+        frame that starts a time segment (``restart``) starts cold. Without restarts this is
+        exactly the estimator's ``PreviousFrame`` schedule.
+        """
+        assert self.constraints is not None
+        n, K = len(restart), contacts.K
+        S = max(1, -(-n // self.constraints.wave))
+        out: dict[str, np.ndarray] = {}
+        prev: np.ndarray | None = None
+        for j in range(min(S, n)):
+            rows = np.arange(j, n, S)
+            idx = torch.as_tensor(rows, device=self.model.device)
+            m = len(rows)
+            start = np.full((m, K, 6), np.nan)
+            if prev is not None:
+                start[:] = prev[:m]
+            elif before is not None:
+                start[0] = np.concatenate(before, -1)
+            start[restart[rows]] = np.nan
+            sub = {k: v[idx] for k, v in args.items() if k != "ft"}
+            sub["ft"] = {s: v[idx] for s, v in args["ft"].items()}
+            skw = dict(kw)
+            if "base" in kw:
+                skw["base"] = type(kw["base"])(*(x[idx] for x in kw["base"]))
+            if "tau_measured" in kw:
+                skw["tau_measured"] = kw["tau_measured"][idx]
+            r = _arrays(
+                self.estimator.estimate(
+                    **sub, contacts=_take(contacts, idx),
+                    warm_start=(t(start[..., :3]), t(start[..., 3:])), **skw,
+                ),
+                self.sensors,
+            )  # fmt: skip
+            for key, v in r.items():
+                if key not in out:
+                    out[key] = np.empty((n, *v.shape[1:]), v.dtype)
+                out[key][rows] = v
+            prev = np.concatenate([r["force"], r["moment"]], -1)
+        return out
+
+    def _explain(
+        self, code: np.ndarray, qd: np.ndarray, ft: dict[str, np.ndarray], issues: FrameIssues
+    ) -> None:
+        """Details of the estimator's bits 64 (which value is implausible) and 32 (overflow)."""
+        flagged = (code & 64) != 0
+        if flagged.any():
+            if self.velocity_margin is not None:
+                limit = np.asarray(
+                    self.model.joint_limits.get("velocity", np.full(self.model.nv, np.inf))
+                )
+                over = (np.abs(qd) > self.velocity_margin * limit) & flagged[:, None]
+                for j in np.flatnonzero(over.any(0)):
+                    issues.add(
+                        over[:, j],
+                        0,
+                        f"qd of {self.model.joint_names[j]!r} beyond {self.velocity_margin:g} x"
+                        f" its URDF velocity limit {limit[j]:g}",
+                    )
+            for s, lim in self._ft_range.items():
+                beyond = (np.abs(ft[s]) > lim).any(1) & flagged
+                issues.add(beyond, 0, f"{ft_column(s)} beyond its range {lim.tolist()}")
+        issues.add((code & 32) != 0, 0, "non-finite output from finite inputs")
+
+    def _corrected(self, d: Decoded, ft: np.ndarray) -> np.ndarray:
+        """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
+        joints = (torch.as_tensor(v) for v in (d.q, d.qd, d.qdd))
+        return self.residual.correct(torch.tensor(ft), *joints, d.extra).cpu().numpy()
+
+
+def _arrays(res: Any, sensors: Sequence[str]) -> dict[str, np.ndarray]:
+    """A :class:`~torchcontact.ContactEstimate` as numpy arrays (flat keys, per-sensor dots)."""
+
+    def np_(x: torch.Tensor) -> np.ndarray:
+        return x.detach().cpu().numpy()
+
+    out = {
+        "force": np_(res.force),
+        "moment": np_(res.moment),
+        "tau": np_(res.joint_torques),
+        "status": np_(res.status).astype(np.int64),
+    }
+    for s in sensors:
+        out[f"rank.{s}"] = np_(res.rank[s]).astype(np.int64)
+        out[f"unknowns.{s}"] = np_(res.unknowns[s]).astype(np.int64)
+        out[f"residual.{s}"] = np_(res.residual[s]).astype(np.float64)
+        if res.cones is not None:
+            out[f"converged.{s}"] = np_(res.cones.converged[s])
+            out[f"iterations.{s}"] = np_(res.cones.iterations[s]).astype(np.int64)
+    if res.cones is not None:
+        out["active"] = np_(res.cones.active)
+    return out
+
+
+def _take(contacts: Contacts, idx: torch.Tensor) -> Contacts:
+    """The slots of some frames (every ``(B, K, ...)`` field indexed by ``idx``)."""
+    from dataclasses import fields, replace
+
+    sub = {
+        f.name: getattr(contacts, f.name)[idx]
+        for f in fields(contacts)
+        if isinstance(getattr(contacts, f.name), torch.Tensor)
+        and getattr(contacts, f.name).dim() >= 2
+    }
+    return replace(contacts, **sub)
+
+
+def _last_estimates(
+    previous: Any, links: Sequence[str], kinds: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The last frame's estimates of an output table, matched to slots: ``(force, moment)``.
+
+    A slot takes the estimate of the previous frame's contact with its link and kind and the same
+    rank among them (the slot assignment's rule); ``(K, 3)`` each, NaN where none matches (that
+    slot starts cold). None without a previous table or contacts.
+    """
+    if previous is None or previous.num_rows == 0 or not len(links):
+        return None
+    last = previous.column("contacts")[previous.num_rows - 1].as_py() or []
+    seen: dict[tuple[str, str], int] = {}
+    found: dict[tuple[str, str, int], tuple] = {}
+    for c in last:  # the records of one frame
+        key = (c.get("link"), c.get("kind"))
+        r = seen.get(key, 0)
+        seen[key] = r + 1
+        if c.get("force") is not None and c.get("moment") is not None:
+            found[(*key, r)] = (c["force"], c["moment"])
+    force = np.full((len(links), 3), np.nan)
+    moment = np.full((len(links), 3), np.nan)
+    rank: dict[tuple[str, str], int] = {}
+    for k, key in enumerate(zip(links, kinds, strict=True)):
+        r = rank.get(key, 0)
+        rank[key] = r + 1
+        if (*key, r) in found:
+            force[k], moment[k] = found[(*key, r)]
+    return force, moment
+
+
+def _base_motion(base: dict, t: Any) -> Any:
+    from torchcontact.dynamics import BaseMotion
+
+    return BaseMotion(t(base["omega"]), t(base["domega"]), t(base["proper_acc"]))
+
+
+# ---------------------------------------------------------------------- streaming
+def decoded_chunks(
+    le: LogEstimator,
+    tables: Iterator[Any],
+    half_window: int,
+    first_row: int = 0,
+    before: tuple[np.ndarray, np.ndarray] | None = None,
+    after: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Iterator[Decoded]:
+    """Decode consecutive tables of a log: arrays, time segments, derived ``qd``/``qdd``.
+
+    Args:
+        le: the log's estimator.
+        tables: consecutive tables (chunks) of the log.
+        half_window: ``h`` of the differentiator; ``2 h`` frames of context are carried.
+        first_row: the first table's first row in the log.
+        before: ``(t_ns, q)`` of the up to ``2 h`` frames preceding the first table (model
+            order), or None at the log's start.
+        after: ``(t_ns, q)`` of the up to ``2 h`` frames following the last table, or None at
+            the log's end.
+
+    Yields:
+        :class:`~torchcontact.logs.decode.Decoded`, ready for :meth:`LogEstimator.estimate`.
+    """
+    dec = le.decoder
+    c = 2 * half_window
+    stream = DerivativeStream(half_window, le.step_ns, before) if le.derived else None
+    # the last two stamps before a chunk (time segments of a log without derived qd/qdd)
+    last_t = np.zeros(0, np.int64) if before is None else np.asarray(before[0][-2:], np.int64)
+    ahead: deque[Decoded] = deque()
+    row = first_row
+    for tab in tables:
+        ahead.append(dec.decode(tab, row))
+        row += tab.num_rows
+        while len(ahead) > 1 and sum(x.n for x in list(ahead)[1:]) >= c:
+            yield _finish_chunk(le, ahead, stream, after, c, last_t)
+            last_t = np.r_[last_t, ahead.popleft().t][-2:]
+    while ahead:
+        yield _finish_chunk(le, ahead, stream, after, c, last_t)
+        last_t = np.r_[last_t, ahead.popleft().t][-2:]
+
+
+def _finish_chunk(
+    le: LogEstimator,
+    ahead: deque,
+    stream: DerivativeStream | None,
+    after: tuple[np.ndarray, np.ndarray] | None,
+    c: int,
+    last_t: np.ndarray,
+) -> Decoded:
+    """Derivatives (with the frames ahead as context) and segment starts of ``ahead[0]``."""
+    d = ahead[0]
+    if stream is not None:
+        nxt = list(ahead)[1:]
+        t_n = np.concatenate([x.t for x in nxt]) if nxt else np.zeros(0, np.int64)
+        q_n = np.concatenate([x.q for x in nxt]) if nxt else np.zeros((0, d.q.shape[1]))
+        if len(t_n) < c and after is not None:
+            t_n, q_n = np.concatenate([t_n, after[0]]), np.concatenate([q_n, after[1]])
+        qd, qdd, starts, length = stream.derive(d.t, d.q, t_n[:c], q_n[:c])
+        le.decoder.derive(d, qd, qdd, starts, length)
+    else:
+        d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
+    return d  # its slots are filled by the estimate (the reader thread has enough to do)
+
+
+def estimate_stream(
+    le: LogEstimator,
+    decoded: Iterator[Decoded],
+    previous: Any = None,
+    backend: str = "auto",
+) -> Iterator[Any]:
+    """Output tables of decoded chunks, in order (the calling thread runs the estimator).
+
+    Each chunk gets the output of the one before (``previous`` for the first: e.g. the last part
+    of an interrupted run), whose last frame warm-starts a constrained estimate. With ``backend``
+    ``"cpu"``/``"cuda"`` the first chunk waits for its kernel; if it cannot be built the run goes
+    on eagerly (the kernel layer warns once).
+    """
+    for d in decoded:
+        try:
+            previous = le.estimate(d, previous, backend)
+        except KernelBuildError:
+            backend = "eager"
+            previous = le.estimate(d, previous, backend)
+        if backend in ("cpu", "cuda"):
+            backend = "auto"  # built or loaded: auto finds it ready from now on
+        yield previous

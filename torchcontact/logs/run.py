@@ -1,0 +1,568 @@
+"""The run of one estimate job, shared by the local and the Ray engine.
+
+An engine only computes output tables; :class:`Run` does everything around them, the same way for
+both:
+
+1. **One writer**: an OS lock on ``OUT.lock`` (:class:`~torchcontact._lock.OutputLock`) is held
+   from before anything is written until the end. A second run on the same output, with or
+   without ``--resume``, stops at once naming the first (pid, host, start time); ``--resume`` and
+   the "interrupted run" message apply only when no live process holds the lock.
+2. **Journal**: each unit ``k`` (a chunk of the local engine, a Ray unit) is written to
+   ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
+   ``OUT.progress.json`` records what the run is (:meth:`Run.start`); ``--resume`` keeps the
+   journalled units of an interrupted run with the same inputs and options.
+3. **Output**: units are written to ``OUT.tmp`` in order, on a writer thread fed through a bounded
+   queue (so writing overlaps the engine's work and memory stays flat), then renamed to ``OUT``.
+4. **Failures leave the ground clean**: a run that fails before journalling any unit removes
+   ``OUT.partial``, ``OUT.progress.json`` and ``OUT.tmp``; otherwise the message says how many
+   units are kept for ``--resume``. An I/O error (a full disk, a read-only folder) names the path.
+5. **Summary**: the same dict from both engines, with the frames whose status is not 0 and
+   their most frequent details (:func:`unusable`, the CLI's ``--max-bad``).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import queue
+import re
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchcontact._lock import OutputLock, lock_path
+from torchcontact.errors import LogError, TorchContactError
+from torchcontact.logs.format import LogWriter, read_journal, write_journal
+
+__all__ = ["Done", "Run", "background", "side_paths", "unusable"]
+
+#: Items waiting between two pipeline stages (chunks in flight stay bounded: memory is flat).
+QUEUE_DEPTH = 2
+
+
+def side_paths(out: Path) -> list[Path]:
+    """Every path an estimate writes besides ``out``: journal, sidecar, temporary file, lock."""
+    out = Path(out)
+    return [out.with_name(out.name + s) for s in (".partial", ".progress.json", ".tmp")] + [
+        lock_path(out)
+    ]
+
+
+@dataclass
+class Done:
+    """A unit the engine finished.
+
+    Attributes:
+        unit: its index.
+        rows: its frames.
+        table: its output table, journalled and written by the run; None when the engine has
+            journalled it itself (a Ray worker).
+    """
+
+    unit: int
+    rows: int
+    table: Any = None
+
+
+# ---------------------------------------------------------------------- threads
+class background:  # noqa: N801 - used like a function: for item in background(it)
+    """Iterate ``items`` on a thread, ``QUEUE_DEPTH`` items ahead (order kept).
+
+    Exceptions of the thread are raised by the consumer; :meth:`close` (or leaving a ``with``
+    block) stops the thread and waits for it.
+
+    Example:
+        >>> with background(iter(range(5))) as it:
+        ...     list(it)
+        [0, 1, 2, 3, 4]
+    """
+
+    _END = object()
+
+    def __init__(self, items: Iterator[Any], depth: int = QUEUE_DEPTH, name: str = "reader"):
+        self._items = items
+        self._q: queue.Queue = queue.Queue(depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"torchcontact-{name}", daemon=True)
+        self._thread.start()
+
+    def _put(self, item: Any) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _run(self) -> None:
+        try:
+            for item in self._items:
+                if not self._put((True, item)):
+                    break
+        except BaseException as exc:  # handed to the consumer
+            self._put((False, exc))
+            return
+        finally:
+            close = getattr(self._items, "close", None)
+            if close is not None:
+                close()
+        self._put((True, self._END))
+
+    def __iter__(self) -> Iterator[Any]:
+        while True:
+            ok, item = self._q.get()
+            if not ok:
+                raise item
+            if item is self._END:
+                return
+            yield item
+
+    def close(self) -> None:
+        """Stop the thread (the item it is working on is finished first)."""
+        self._stop.set()
+        while self._thread.is_alive():
+            try:
+                self._q.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        self._thread.join()
+
+    def __enter__(self) -> background:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------- I/O errors
+def io_error(path: Path | str, exc: BaseException) -> LogError:
+    """A LogError naming ``path`` for an OS or Arrow I/O error (full disk, read-only, ...)."""
+    code = getattr(exc, "errno", None)
+    if code is None:
+        m = re.search(r"errno (\d+)", str(exc), re.IGNORECASE)
+        code = int(m.group(1)) if m else None
+    if code is not None:
+        what = os.strerror(code).lower()
+        hint = {
+            errno.ENOSPC: "free some space",
+            errno.EDQUOT: "free some space",
+            errno.EROFS: "write to another folder",
+            errno.EACCES: "check the folder's permissions",
+            errno.EPERM: "check the folder's permissions",
+        }.get(code)
+        return LogError(f"{path}: {what} (errno {code})" + (f"; {hint}" if hint else ""))
+    return LogError(f"{path}: {exc}")
+
+
+def _io(path: Path, fn: Callable[[], Any]) -> Any:
+    import pyarrow as pa
+
+    try:
+        return fn()
+    except (OSError, pa.ArrowException) as exc:
+        raise io_error(path, exc) from None
+
+
+def _atomic_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+
+    def write() -> None:
+        with open(tmp, "w") as f:
+            json.dump(data, f, indent=1)
+            f.flush()
+        os.replace(tmp, path)
+
+    _io(tmp, write)
+
+
+# ---------------------------------------------------------------------- tallies
+@dataclass
+class _Tally:
+    """Frames, statuses and cone solves of the tables written to the output."""
+
+    cone_sensors: list[str]
+    rows: int = 0
+    bad: int = 0
+    ok_now: int = 0
+    bad_now: int = 0
+    details: dict[str, int] = field(default_factory=dict)
+    solved: int = 0
+    converged: int = 0
+    it_sum: int = 0
+    it_max: int = 0
+
+    def add(self, table: Any, now: bool) -> None:
+        import pyarrow.compute as pc
+
+        code = table.column("status_code")
+        bad = pc.not_equal(code, 0)
+        n_bad = int(pc.sum(bad).as_py() or 0)
+        self.rows += table.num_rows
+        self.bad += n_bad
+        if now:
+            self.ok_now += table.num_rows - n_bad
+            self.bad_now += n_bad
+        if n_bad:
+            why = pc.coalesce(table.column("status_detail"), table.column("status"))
+            counts = pc.value_counts(pc.filter(why, bad)).to_pylist()
+            for c in counts:
+                self.details[c["values"]] = self.details.get(c["values"], 0) + c["counts"]
+        if now:
+            for s in self.cone_sensors:
+                its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False)
+                conv = table.column(f"converged.{s}").to_numpy(zero_copy_only=False)
+                its = its.astype(float)
+                ran = ~np.isnan(its) & (its > 0)
+                self.solved += int(ran.sum())
+                self.converged += int(np.sum(conv[ran] == True))  # noqa: E712 - object array
+                if ran.any():
+                    self.it_sum += int(its[ran].sum())
+                    self.it_max = max(self.it_max, int(its[ran].max()))
+
+    def summary(self) -> dict:
+        top = sorted(self.details.items(), key=lambda kv: (-kv[1], kv[0]))[:3]
+        out: dict[str, Any] = {"bad_frames": self.bad, "bad_details": [list(t) for t in top]}
+        if self.cone_sensors:
+            n = max(self.solved, 1)
+            out["cones"] = {
+                "solved": self.solved,
+                "converged": round(self.converged / n, 4),
+                "iterations_mean": round(self.it_sum / n, 2),
+                "iterations_max": self.it_max,
+            }
+        return out
+
+
+def unusable(summary: dict, max_bad: float = 1.0) -> str | None:
+    """Why an estimated input fails the CLI's ``--max-bad`` test, or None when it passes.
+
+    An input fails when none of its frames is usable (every status is non-zero, or it has no
+    frame), or when more than ``max_bad`` of its frames have a non-zero status.
+
+    Args:
+        summary: the dict :func:`~torchcontact.logs.estimate_file` returns.
+        max_bad: the largest share of frames with a non-zero status that passes, in [0, 1].
+
+    Example:
+        >>> s = {"input": "a.parquet", "frames": 4, "bad_frames": 4,
+        ...      "bad_details": [["q is not 7 floats", 4]]}
+        >>> unusable(s)
+        'a.parquet: no usable frame (4 of 4 frames have a non-zero status; most frequent: "q is not 7 floats" (4))'
+        >>> unusable({**s, "bad_frames": 1}, 0.5) is None
+        True
+    """  # noqa: E501
+    frames, bad = summary["frames"], summary["bad_frames"]
+    if frames == 0:
+        return f"{summary['input']}: no usable frame (the log has no rows)"
+    if bad < frames and bad <= max_bad * frames:
+        return None
+    top = "; ".join(f'"{t}" ({n})' for t, n in summary.get("bad_details", []))
+    head = "no usable frame" if bad == frames else f"more than {max_bad:g} of its frames unusable"
+    return (
+        f"{summary['input']}: {head} ({bad} of {frames} frames have a non-zero status"
+        + (f"; most frequent: {top}" if top else "")
+        + ")"
+    )
+
+
+# ---------------------------------------------------------------------- the run
+class Run:
+    """One estimate of one input into one output: lock, journal, ordered writer, summary.
+
+    Use as a context manager: entering takes the lock (nothing else is written before), leaving
+    releases it; an exception inside cleans up (see the module doc) and propagates.
+
+    Args:
+        out: the output Parquet file.
+        source: the input (for messages and the summary).
+
+    Raises:
+        OutputBusyError: another live process holds the output's lock (on entering).
+    """
+
+    def __init__(self, out: str | Path, source: str | Path) -> None:
+        self.out = Path(out)
+        self.source = source
+        self.partial, self.sidecar, self.tmp, _ = side_paths(self.out)
+        self.lock = OutputLock(self.out, "estimate")
+        self.ident: dict = {}
+        self.units: list[tuple[int, int]] = []
+        self.done: set[int] = set()
+
+    # ------------------------------------------------------------------ lock and journal
+    def __enter__(self) -> Run:
+        self.lock.acquire()
+        return self
+
+    def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
+        try:
+            if exc_type is not None:
+                self._clean_failed()
+        finally:
+            self.lock.release()
+
+    def previous(self) -> dict | None:
+        """The record of an interrupted run of this output (None: none, or no part kept)."""
+        if not self._parts():
+            return None
+        try:
+            rec = json.loads(self.sidecar.read_text())
+        except (OSError, ValueError):
+            return None
+        return rec if isinstance(rec, dict) else None
+
+    def _parts(self) -> list[Path]:
+        return sorted(self.partial.glob("part-*.arrow")) if self.partial.is_dir() else []
+
+    def part(self, k: int) -> Path:
+        """Path of unit ``k``'s journal part."""
+        return self.partial / f"part-{k:08d}.arrow"
+
+    def start(
+        self, ident: dict, units: list[tuple[int, int]], resume: bool, recurrent: bool = False
+    ) -> None:
+        """Begin the journal, or take over an interrupted run's units (``resume``).
+
+        Args:
+            ident: what the run is (input identity, robot, options); a resume must match it.
+            units: row ranges ``[lo, hi)`` of the units, in order.
+            resume: keep the units an interrupted run journalled.
+            recurrent: the estimate carries state across units (a GRU residual): no resume.
+
+        Raises:
+            LogError: an interrupted run's parts without ``resume`` (or with ``recurrent``), a run
+                for other inputs or options, parts that do not fit the units.
+        """
+        self.ident, self.units = ident, units
+        if self._parts():
+            if recurrent:
+                # the GRU state after the parts already written is not saved: refuse, not guess
+                raise LogError(
+                    f"{self.out}: an interrupted run left {self.partial.name}; a recurrent (GRU)"
+                    " residual needs every frame in order and cannot resume: delete it and rerun"
+                )
+            if not resume:
+                raise LogError(
+                    f"{self.out}: an interrupted run left {self.partial.name} (no process is"
+                    " writing it now); pass --resume (resume=True) to finish it, or delete it"
+                )
+            rec = self.previous()
+            if rec is None or any(rec.get(k) != v for k, v in ident.items()):
+                raise LogError(
+                    f"{self.out}: the interrupted run was for other inputs or options (engine,"
+                    f" batch size, sensors, ...); delete {self.partial} and"
+                    f" {self.sidecar.name} to start afresh"
+                )
+            for tmp in self.partial.glob("*.tmp"):
+                tmp.unlink()
+            self.done = {int(p.stem.removeprefix("part-")) for p in self._parts()}
+            if not self.done <= set(range(len(units))):
+                raise LogError(
+                    f"{self.out}: parts of {self.partial} do not fit the run; delete it and rerun"
+                )
+        try:
+            if not self.done:
+                # nothing journalled: leftovers of a run killed before its first unit go
+                shutil.rmtree(self.partial, ignore_errors=True)
+                self.out.parent.mkdir(parents=True, exist_ok=True)
+                _io(self.partial, self.partial.mkdir)
+            self.record()
+        except LogError as exc:
+            raise LogError(f"{exc}; {self.kept()}") from None
+
+    def record(self) -> None:
+        """Write the sidecar (atomically)."""
+        _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
+
+    def _clean_failed(self) -> None:
+        """After a failure: drop ``OUT.tmp``; with no unit journalled, the journal too."""
+        self.tmp.unlink(missing_ok=True)
+        if self.partial.is_dir():
+            for tmp in self.partial.glob("*.tmp"):
+                tmp.unlink(missing_ok=True)
+        if not self._parts():
+            shutil.rmtree(self.partial, ignore_errors=True)
+            self.sidecar.unlink(missing_ok=True)
+            self.sidecar.with_name(self.sidecar.name + ".tmp").unlink(missing_ok=True)
+
+    def kept(self) -> str:
+        """What a failure leaves for ``--resume`` (the end of an error message)."""
+        n = len(self._parts())
+        if n == 0:
+            return "nothing was kept (no unit had been estimated)"
+        return f"{n} of {len(self.units)} chunks are kept in {self.partial} for --resume"
+
+    # ------------------------------------------------------------------ running
+    def execute(
+        self,
+        produce: Iterable[Done],
+        schema: Any,
+        *,
+        progress: bool = False,
+        cone_sensors: list[str] | None = None,
+        t0: float | None = None,
+        **summary: Any,
+    ) -> dict:
+        """Write the engine's units into the output, in order, and return the summary.
+
+        Args:
+            produce: the engine's finished units (those not done yet), in any order; the local
+                engine's come in order with their tables, the Ray engine's from its journal.
+            schema: the output schema.
+            progress: show a progress bar.
+            cone_sensors: sensors with friction-cone columns (their solves are tallied).
+            t0: ``time.perf_counter()`` when the job started (the summary's ``seconds`` count
+                from there; default: now).
+            **summary: more keys of the summary (input, sensors, derived, engine, ...).
+
+        Returns:
+            The summary: input, output, frames, processed_now, ok_now, bad_now, seconds,
+            frames_per_s, resumed_chunks, chunks, bad_frames, bad_details, the given keys, and
+            with cones ``cones``.
+
+        Raises:
+            LogError: an I/O error (names the path), units missing at the end; an engine's
+                error, with how many units are kept for ``--resume``.
+        """
+        from tqdm import tqdm
+
+        t0 = time.perf_counter() if t0 is None else t0
+        total = sum(hi - lo for lo, hi in self.units)
+        resumed = len(self.done)
+        bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
+        bar.update(sum(self.units[k][1] - self.units[k][0] for k in self.done))
+        tally = _Tally(list(cone_sensors or []))
+        writer = LogWriter(self.out, schema)
+        sink = _OrderedSink(self, writer, tally, bar)
+        try:
+            try:
+                for d in produce:
+                    sink.put(d)
+                sink.finish()
+            except BaseException as exc:
+                close = getattr(produce, "close", None)
+                if close is not None:  # stops the engine's threads (a generator's finally)
+                    close()
+                sink.abort()
+                writer.abort()
+                if isinstance(exc, TorchContactError):
+                    raise type(exc)(f"{exc}; {self.kept()}") from None
+                raise
+            if sink.written != len(self.units):
+                writer.abort()
+                missing = len(self.units) - sink.written
+                raise LogError(f"{self.out}: {missing} chunks missing; {self.kept()}")
+            _io(self.tmp, writer.close)
+        finally:
+            bar.close()
+        shutil.rmtree(self.partial)
+        self.sidecar.unlink()
+        seconds = time.perf_counter() - t0
+        now = tally.ok_now + tally.bad_now
+        return {
+            "input": str(self.source),
+            "output": str(self.out),
+            "frames": tally.rows,
+            "processed_now": now,
+            "ok_now": tally.ok_now,
+            "bad_now": tally.bad_now,
+            "seconds": round(seconds, 3),
+            "frames_per_s": round(now / max(seconds, 1e-9), 1),
+            **summary,
+            "resumed_chunks": resumed,
+            "chunks": len(self.units),
+            **tally.summary(),
+        }
+
+
+class _OrderedSink:
+    """The writer thread: journals the units it is given and writes them to the output in order.
+
+    Units journalled before (a resume) or by the engine (Ray) are read back from the journal when
+    their turn comes; at most one estimated table waits in memory besides the queue.
+    """
+
+    def __init__(self, run: Run, writer: LogWriter, tally: _Tally, bar: Any) -> None:
+        self.run, self.writer, self.tally, self.bar = run, writer, tally, bar
+        self.written = 0
+        self.now: set[int] = set()
+        self._held: dict[int, Any] = {}
+        self._q: queue.Queue = queue.Queue(QUEUE_DEPTH)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name="torchcontact-writer", daemon=True)
+        self._thread.start()
+
+    # producer side (main thread)
+    def put(self, d: Done) -> None:
+        while True:
+            self._raise()
+            try:
+                self._q.put(d, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def finish(self) -> None:
+        """No more units: wait until everything is written."""
+        self.put(None)  # type: ignore[arg-type]
+        self._thread.join()
+        self._raise()
+
+    def abort(self) -> None:
+        """The engine failed: journal what was handed over already, then stop."""
+        try:
+            while self._thread.is_alive():
+                try:
+                    self._q.put(None, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+        finally:
+            self._thread.join()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            err, self._error = self._error, None
+            if isinstance(err, TorchContactError):
+                raise type(err)(f"{err}; {self.run.kept()}") from None
+            raise err
+
+    # writer thread
+    def _work(self) -> None:
+        try:
+            self._drain()  # units of an interrupted run
+            while True:
+                d = self._q.get()
+                if d is None:
+                    return
+                run = self.run
+                if d.table is not None:
+                    part = run.part(d.unit)
+                    _io(part, lambda: write_journal([d.table], part))  # noqa: B023
+                    self._held[d.unit] = d.table
+                run.done.add(d.unit)
+                self.now.add(d.unit)
+                run.record()
+                self.bar.update(d.rows)
+                self._drain()
+        except BaseException as exc:
+            self._error = exc
+
+    def _drain(self) -> None:
+        run = self.run
+        while self.written < len(run.units) and self.written in run.done:
+            k = self.written
+            tab = self._held.pop(k, None)
+            if tab is None:
+                tab = read_journal(run.part(k))
+            _io(self.run.tmp, lambda: self.writer.write(tab))  # noqa: B023
+            self.tally.add(tab, k in self.now)
+            self.written += 1
