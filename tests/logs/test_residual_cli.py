@@ -93,11 +93,15 @@ def test_residual_cli_recovers_forces_that_the_effects_spoil(
 def test_foreign_robot_and_unknown_sensor_are_refused(model, offset_log, tmp_path, capsys):
     ckpt = _exact(model, tmp_path / "ckpt")
     meta = json.loads((ckpt / "checkpoint.json").read_text())
-    (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "robot_sha256": "f" * 64}))
+    # a checkpoint of another robot: its recorded identity differs (here: the base link's mass)
+    other = json.loads(json.dumps(meta))
+    entry = next(e for e in other["robot_identity"] if e[:2] == ["link base_link", "mass"])
+    entry[2] = [entry[2][0] + 0.01]
+    (ckpt / "checkpoint.json").write_text(json.dumps(other))
     out = tmp_path / "o.parquet"
     assert main(["estimate", str(offset_log), "--out", str(out), "--residual", str(ckpt)]) == 1
     err = capsys.readouterr().err
-    assert "trained for robot ffff" in err and model.urdf_sha256 in err
+    assert "not this robot" in err and "link base_link: mass 4.01 vs 4 kg" in err, err
     assert not out.exists() and not out.with_name("o.parquet.partial").exists()
     (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "sensor": "wrist_ft"}))
     with pytest.raises(LogError, match="corrects sensor 'wrist_ft', which tcarm does not have"):
