@@ -38,6 +38,7 @@ from torchcontact.logs.format import (
     iter_chunks,
     joint_names_of,
     read_contacts,
+    timestamps,
     vectors,
 )
 from torchcontact.model import RobotModel
@@ -233,31 +234,6 @@ class LogScan:
         )
 
 
-def _stamps(column: Any, src: str, row: int) -> np.ndarray:
-    """``t_ns`` as int64 ns; an integer or timestamp column without nulls.
-
-    Raises:
-        LogError: another type, or null stamps (the message names the first row).
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks()
-    typ = column.type
-    if not (pa.types.is_integer(typ) or pa.types.is_timestamp(typ)):
-        raise LogError(f"{src}: t_ns must be integer nanoseconds (int64), found {typ}")
-    if column.null_count:
-        first = int(pc.index(column.is_null(), True).as_py())
-        raise LogError(
-            f"{src}: t_ns has {column.null_count} null stamps in rows {row}-{row + len(column) - 1}"
-            f" (first at row {row + first}); every frame needs a time stamp"
-        )
-    if pa.types.is_timestamp(typ):  # any unit -> ns since the epoch
-        column = column.cast(pa.timestamp("ns", typ.tz))
-    return np.asarray(column.cast(pa.int64()).to_numpy(zero_copy_only=False), np.int64)
-
-
 def _name_leaf(pf: Any, name: str) -> str | None:
     """The Parquet column path of the contacts' ``name`` field (``contacts.list.element.link``)."""
     meta = pf.metadata
@@ -329,7 +305,7 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
     last: int | None = None
     done = 0
     for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src):
-        t = _stamps(tab.column("t_ns"), src, done)
+        t = timestamps(tab.column("t_ns"), src, done)
         step_histogram(t if last is None else np.r_[last, t], hist)
         if contacts:
             _pair_counts(tab.column("contacts"), names, counts)
@@ -342,7 +318,7 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
     ctx = np.zeros(0, np.int64)  # the last two stamps before the block
     done = 0
     for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src):
-        t = _stamps(tab.column("t_ns"), src, done)
+        t = timestamps(tab.column("t_ns"), src, done)
         if not len(t):
             continue
         starts = time_segments(np.r_[ctx, t], step)[len(ctx) :]
@@ -554,7 +530,7 @@ class ChunkDecoder:
         N, nv, perm = table.num_rows, self.model.nv, self.perm
         issues = FrameIssues(N)
         t_col = table.column("t_ns")
-        t = _stamps(t_col, self.source, first_row)
+        t = timestamps(t_col, self.source, first_row)
         q = _joints(self._vectors(table, "q", nv, 2, issues), perm)
         qd = qdd = None
         if "qd" not in self.derived:
@@ -717,4 +693,4 @@ def stamps_and_positions(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a table (context)."""
     q, _ = vectors(table.column("q"), len(perm))
-    return _stamps(table.column("t_ns"), source, first_row), _joints(q, perm)
+    return timestamps(table.column("t_ns"), source, first_row), _joints(q, perm)

@@ -928,8 +928,13 @@ def read_log_columns(
     return out
 
 
-def timestamps(column: Any, source: object = "") -> np.ndarray:
-    """A ``t_ns`` column as ``(N,)`` int64 ns (integers of any width, or time stamps).
+def timestamps(column: Any, source: object = "", first_row: int = 0) -> np.ndarray:
+    """A ``t_ns`` column as ``(N,)`` int64 ns (integers of any width, or time stamps of any unit).
+
+    Args:
+        column: the Arrow column.
+        source: the file, for messages.
+        first_row: the file row of the column's first value, for messages.
 
     Raises:
         LogError: a type other than integers or time stamps, or null time stamps (naming the
@@ -939,6 +944,8 @@ def timestamps(column: Any, source: object = "") -> np.ndarray:
         >>> import pyarrow as pa
         >>> timestamps(pa.array([0, 10], pa.int32())).tolist()
         [0, 10]
+        >>> timestamps(pa.array([1, 2], pa.timestamp("us"))).tolist()
+        [1000, 2000]
     """
     import pyarrow as pa
 
@@ -952,8 +959,10 @@ def timestamps(column: Any, source: object = "") -> np.ndarray:
         first = int(np.flatnonzero(column.is_null().to_numpy(zero_copy_only=False))[0])
         raise LogError(
             f"{where}{column.null_count} frames have no time stamp (null t_ns), the first in row"
-            f" {first}; every frame needs one"
+            f" {first_row + first}; every frame needs one"
         )
+    if pa.types.is_timestamp(typ):  # any unit -> ns since the epoch
+        column = column.cast(pa.timestamp("ns", typ.tz))
     try:
         ints = column.cast(pa.int64())
     except pa.ArrowInvalid as exc:  # uint64 beyond int64
