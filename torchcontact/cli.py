@@ -44,9 +44,11 @@ class _HelpFormatter(argparse.HelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
-        if "(default" in text or action.required or action.default in (None, False):
+        # identity, not ==: a default of 0 or 0.0 is worth showing, and 0 == False
+        unset = action.default is None or action.default is False
+        if "(default" in text or action.required or unset or not action.option_strings:
             return text
-        if action.default is argparse.SUPPRESS or not action.option_strings:
+        if action.default is argparse.SUPPRESS:
             return text
         return f"{text} (default: %(default)s)"
 
@@ -125,7 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     from torchcontact.drivers import cli as drivers_cli
     from torchcontact.logs import cli as logs_cli
 
-    parser = Parser(prog="torchcontact", description=__doc__.splitlines()[0])
+    parser = Parser(
+        prog="torchcontact",
+        description="torchcontact: contact forces from F/T sensors and tactile skin; every job is"
+        " a command (torchcontact COMMAND --help)",
+    )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     logs_cli.add_parser(sub)

@@ -117,20 +117,23 @@ def load_robot(
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
 ) -> RobotModel:
-    """The robot model from a URDF path (or a model, moved to ``device`` and ``dtype``).
+    """The robot model of a robot argument (or a model, moved to ``device`` and ``dtype``).
+
+    ``robot`` is ``tcarm``, ``icub``, a URDF path or a :class:`~torchcontact.robots.RobotSpec`
+    (with declared F/T sensors): :func:`torchcontact.robots.load_robot_model`.
 
     Raises:
-        InputError: no such URDF file, or an unusable device.
+        InputError: no such URDF file, not a URDF, or an unusable device.
         URDFError: a URDF torchcontact cannot model (the message names the element).
     """
+    from torchcontact.robots import load_robot_model
+
     device = resolve_device(device)
     if isinstance(robot, RobotModel):
         if robot.dtype == dtype and str(robot.device) == device:
             return robot
         return robot.to(device, dtype)
-    if not Path(robot).is_file():
-        raise InputError(f"--robot {robot}: no such URDF file")
-    return RobotModel.from_urdf(robot, dtype=dtype, device=device)
+    return load_robot_model(robot, dtype=dtype, device=device)
 
 
 def _check_positive(**values: int) -> None:
@@ -425,7 +428,7 @@ class LogEstimator:
         if isinstance(table, pa.RecordBatch):
             table = pa.Table.from_batches([table])
         model, est, perm = self.model, self.estimator, self.perm
-        N, nv = table.num_rows, model.nv
+        N, nv = table.num_rows, len(self.input_joint_names)  # the log's joints (perm: the model's)
         issues = _Issues(N)
         q = self._vectors(table, "q", nv, 2, issues)[:, perm]
         if qd is None:
@@ -606,9 +609,15 @@ def _base_motion(base: dict, t: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- streaming
-def times_and_positions(chunk: Any, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a chunk."""
-    q, _ = vectors(chunk.column("q"), len(perm))
+def times_and_positions(
+    chunk: Any, perm: np.ndarray, width: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a chunk.
+
+    ``width`` is the number of joints of the log (default ``len(perm)``; more when the log has
+    joints the robot lacks).
+    """
+    q, _ = vectors(chunk.column("q"), len(perm) if width is None else width)
     return chunk.column("t_ns").to_numpy().astype(np.int64), q[:, perm]
 
 
@@ -619,6 +628,7 @@ def chunks_with_derivatives(
     h: int,
     before: tuple[np.ndarray, np.ndarray] | None = None,
     after: tuple[np.ndarray, np.ndarray] | None = None,
+    width: int | None = None,
 ) -> Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]:
     """Yield ``(chunk, qd, qdd)``; derivatives from ``q`` with ``h`` frames of context each side.
 
@@ -629,6 +639,7 @@ def chunks_with_derivatives(
         h: half window of :func:`~torchcontact.logs.derive.savgol_derivatives`.
         before: ``(t_ns, q)`` of the up to ``h`` frames preceding the first chunk (model order).
         after: ``(t_ns, q)`` of the up to ``h`` frames following the last chunk.
+        width: the number of joints of the log (:func:`times_and_positions`).
     """
     if not derive:
         for c in chunks:
@@ -640,9 +651,9 @@ def chunks_with_derivatives(
     cur = next(chunks, None)
     while cur is not None:
         nxt = next(chunks, None)
-        t_c, q_c = times_and_positions(cur, perm)
+        t_c, q_c = times_and_positions(cur, perm, width)
         if nxt is not None:
-            t_n, q_n = times_and_positions(nxt.slice(0, h), perm)
+            t_n, q_n = times_and_positions(nxt.slice(0, h), perm, width)
         else:
             t_n, q_n = after if after is not None else empty
         t_all = np.concatenate([prev_t, t_c, t_n[:h]])
@@ -1067,7 +1078,12 @@ def estimate_file(
         )
     else:
         stream = enumerate(
-            estimate_chunks(le, chunks_with_derivatives(chunks, le.perm, True, half_window))
+            estimate_chunks(
+                le,
+                chunks_with_derivatives(
+                    chunks, le.perm, True, half_window, width=len(le.input_joint_names)
+                ),
+            )
         )
     writer = LogWriter(out, schema)  # the output itself, renamed into place when complete
     try:

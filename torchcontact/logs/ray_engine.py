@@ -113,12 +113,13 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
         tab = _read_unit(pf, job["columns"], lo, hi, path)
         unit = tab.slice(start - lo, stop - start)
         before = after = None
+        width = len(le.input_joint_names)  # the log's joints (le.perm: the model's)
         if derive:
-            before = times_and_positions(tab.slice(0, start - lo), le.perm)
-            after = times_and_positions(tab.slice(stop - lo), le.perm)
+            before = times_and_positions(tab.slice(0, start - lo), le.perm, width)
+            after = times_and_positions(tab.slice(stop - lo), le.perm, width)
         chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
         tables = estimate_chunks(
-            le, chunks_with_derivatives(chunks, le.perm, derive, h, before, after)
+            le, chunks_with_derivatives(chunks, le.perm, derive, h, before, after, width)
         )
         part = Path(job["partial"]) / f"part-{int(u):08d}.arrow"
         n_rows, n_ok = write_part(part, tables)
