@@ -239,7 +239,7 @@ def test_estimate_takes_the_robot_from_the_log_and_never_silently_the_bundled_ar
 
 
 # ----------------------------------------------------------------------- own robot: --ft-sensor
-def test_ft_sensor_on_a_urdf_without_one_simulate_then_estimate(tmp_path, capsys):
+def test_ft_sensor_on_a_urdf_without_one_simulate_then_estimate(tmp_path, capsys, monkeypatch):
     """The panda of example-robot-data declares no F/T sensor: a wrist sensor on the fixed joint
     carrying the hand, simulated, then estimated with the robot (and sensor) from the log."""
     from robots import erd_path
@@ -259,19 +259,30 @@ def test_ft_sensor_on_a_urdf_without_one_simulate_then_estimate(tmp_path, capsys
     toml.write_text('[[ft_sensor]]\nname = "wrist_ft"\njoint = "panda_hand_joint"\n')
     c = load_robot_model(panda, [str(toml)]).ft_sensors["wrist_ft"]
     np.testing.assert_array_equal(c.p_child_sensor, b.p_child_sensor)
-    log, est = tmp_path / "log.parquet", tmp_path / "est.parquet"
-    sim = ["simulate", "--robot", str(panda), "--ft-sensor", "wrist_ft:panda_hand", "--frames",
-           "200", "--contact-links", "panda_hand,panda_leftfinger", "--out", str(log), "--quiet"]  # fmt: skip
-    assert main(sim) == 0
+    # the example of docs/cli.md, as written there
+    import re
+    import shlex
+
+    block = re.search(r"```sh\n(pip install example-robot-data.*?)```", ref_text(), re.S).group(1)
+    commands = block.replace("\\\n", "").splitlines()  # shell line continuations
+    lines = [ln.split("#")[0] for ln in commands if ln.startswith("torchcontact ")]
+    assert len(lines) == 3
+    monkeypatch.chdir(tmp_path)
+    for line in lines:
+        argv = shlex.split(line.replace('"$PANDA"', shlex.quote(str(panda))))
+        assert main([*argv[1:], "--quiet"] if argv[1] != "export" else argv[1:]) == 0, line
     capsys.readouterr()
-    assert "ft.wrist_ft" in pq.read_schema(log).names
-    assert main(["estimate", str(log), "--out", str(est), "--quiet", "--json"]) == 0  # no --robot
-    assert json.loads(capsys.readouterr().out)["frames"] == 200
-    tab = pq.read_table(est)
+    assert "ft.wrist_ft" in pq.read_schema("panda.parquet").names
+    tab = pq.read_table("panda_est.parquet")  # estimated without --robot: robot and sensor logged
     assert set(tab["status"].to_pylist()) == {"ok"}
     one = [r[0] for r in tab["contacts"].to_pylist() if len(r) == 1]
-    assert len(one) > 20
+    assert len(one) > 40
     np.testing.assert_allclose([c["force"] for c in one], [c["true_force"] for c in one], atol=1e-8)
+    assert (tmp_path / "panda.onnx").stat().st_size > 0
+
+
+def ref_text():
+    return (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
 
 
 def test_bad_ft_sensor_specs_are_one_line_exit_2(tmp_path, capsys):
@@ -297,43 +308,31 @@ def test_bad_ft_sensor_specs_are_one_line_exit_2(tmp_path, capsys):
 MARKUP = ("``", ":mod:", ":func:", ":class:", ":meth:", ":data:", ":attr:")
 
 
-def _parsers(monkeypatch):
-    """(command path, parser) of every command and sub-command, the applications' included."""
+def _cli_reference():
+    """docs/cli_reference.py: the walk over every parser, and the writer of docs/cli.md."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "cli_reference.py"
+    spec = importlib.util.spec_from_file_location("cli_reference", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_docs_cli_md_is_generated_from_the_parsers():
+    ref = _cli_reference()
+    assert ref.main(["--check"]) == 0, "docs/cli.md is not current: python docs/cli_reference.py"
+    text = ref.OUT.read_text()
+    for cmd in ("estimate", "simulate", "demo", "plot", "convert", "sensor read", "run",
+                "train fit", "export estimator", "export residual"):  # fmt: skip
+        assert f"### `torchcontact {cmd}`" in text, cmd
+    assert "| `--strict-joints` |" in text and "| 2 | usage error" in text
+
+
+def test_every_help_shows_its_defaults_and_no_markup(capsys):
     import argparse
 
-    from torchcontact.cli import APPS, Parser, app_module, build_parser
-
-    def walk(path, parser):
-        yield path, parser
-        for action in parser._actions:
-            if isinstance(action, argparse._SubParsersAction):
-                seen = set()
-                for name, sub in action.choices.items():
-                    if id(sub) not in seen:  # aliases (train fit / train train) once
-                        seen.add(id(sub))
-                        yield from walk([*path, name], sub)
-
-    top = build_parser()
-    out = list(walk([], top))
-    for name in APPS:  # each application builds its parser in main(): take it at parse time
-        grabbed = {}
-
-        def grab(self, *a, _into=grabbed, **k):
-            _into["parser"] = self
-            raise SystemExit(0)
-
-        with monkeypatch.context() as m:
-            m.setattr(Parser, "parse_args", grab)
-            with pytest.raises(SystemExit):
-                app_module(name).main([], prog=f"torchcontact {name}")
-        out += list(walk([name], grabbed["parser"]))
-    return out
-
-
-def test_every_help_shows_its_defaults_and_no_markup(monkeypatch, capsys):
-    import argparse
-
-    parsers = _parsers(monkeypatch)
+    parsers = list(_cli_reference().iter_parsers())
     paths = [" ".join(p) for p, _ in parsers]
     for cmd in ("estimate", "simulate", "demo", "plot", "convert", "sensor read",
                 "sensor simulate", "run", "train fit", "train benchmark", "train heldout",

@@ -320,7 +320,7 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--noise", type=float, nargs="+", help="noise std, 1 or 6 numbers [N; N m] (default: 0)"
     )
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch default)")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads, 0: torch's default")
     p.add_argument("--no-derivatives", action="store_true", help="omit qd/qdd (derive them)")
     p.add_argument(
         "--temperature",
@@ -354,7 +354,7 @@ def add_parser(subparsers: Any) -> None:
     )
     est.add_argument("--dtype", default="float64", choices=list(DTYPES), help="computation dtype")
     est.add_argument("--batch-size", type=int, default=8192, help="frames per chunk")
-    est.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: default)")
+    est.add_argument("--threads", type=int, default=1, help="torch CPU threads, 0: torch's default")
     est.add_argument("--resume", action="store_true", help="finish an interrupted run")
     est.add_argument(
         "--engine", default="local", choices=["local", "ray"], help="local process or Ray"
@@ -370,7 +370,7 @@ def add_parser(subparsers: Any) -> None:
         "--velocity-margin",
         type=float,
         default=2.0,
-        help="status bit 64 when |qd| > margin x the URDF velocity limit (0: no check)",
+        help="status bit 64 when |qd| > margin x the URDF velocity limit, 0: no check",
     )
     est.add_argument(
         "--ft-range",
