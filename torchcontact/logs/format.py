@@ -304,7 +304,7 @@ def joint_permutation(
         if missing:
             msg += f" the log lacks joints {missing}"
         if extra:
-            msg += f"{';' if missing else ''} extra {extra} (mimic and fixed joints are not"
+            msg += f" extra {extra} (mimic and fixed joints are not"
             msg += " coordinates)"
         raise LogError(msg)
     if len(set(names)) != len(names):
