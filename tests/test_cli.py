@@ -372,3 +372,11 @@ def test_every_help_shows_its_defaults_and_no_markup(capsys):
     assert takes_robot >= {"estimate", "simulate", "demo", "plot", "convert", "run", "train fit",
                            "train benchmark", "train heldout", "export estimator",
                            "export residual"}  # fmt: skip
+
+
+def test_a_missing_optional_dependency_names_its_extra(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "tqdm", None)  # as in an install without the logs extra
+    assert main(["simulate", "--frames", "3", "--out", str(tmp_path / "s.parquet")]) == 1
+    line = _error_line(capsys)
+    assert "needs tqdm, which is not installed: pip install 'torchcontact[logs]'" in line
+    assert "unexpected" not in line and not (tmp_path / "s.parquet").exists()

@@ -39,6 +39,22 @@ APPS: dict[str, tuple[str, str, str]] = {
 }
 
 
+#: Optional dependencies -> the extra that installs them (pyproject.toml), for the error a
+#: command gives when one is missing.
+EXTRA_OF = {
+    "pyarrow": "logs",
+    "tqdm": "logs",
+    "matplotlib": "logs",
+    "rosbags": "logs",
+    "ray": "ray",
+    "pymodbus": "drivers",
+    "serial": "drivers",
+    "onnx": "export",
+    "onnxruntime": "export",
+    "safetensors": "train",
+}
+
+
 class _HelpFormatter(argparse.HelpFormatter):
     """Appends ``(default: X)`` to an option's help when it has a default worth showing."""
 
@@ -88,7 +104,8 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
 
     Returns:
         The command's exit code, or the error's: :attr:`TorchContactError.exit_code` (2 usage,
-        1 data), 1 for an operating-system error (a missing file, no space), 130 when
+        1 data), 1 for an operating-system error (a missing file, no space) or a missing
+        optional dependency (the message names the extra that installs it), 130 when
         interrupted.
     """
 
@@ -115,6 +132,14 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
             show(f"{where}{exc.strerror or exc}")
             return 1
         except Exception as exc:  # a bug: say so, one line unless --debug
+            missing = getattr(exc, "name", None) if isinstance(exc, ModuleNotFoundError) else None
+            extra = EXTRA_OF.get((missing or "").split(".")[0])
+            if extra is not None:  # an optional dependency: the extra that brings it
+                show(
+                    f"this command needs {missing}, which is not installed: pip install"
+                    f" 'torchcontact[{extra}]'"
+                )
+                return 1
             show(
                 f"unexpected {type(exc).__name__}: {exc} (please report it; --debug shows the"
                 " traceback)"
