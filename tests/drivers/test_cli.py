@@ -120,7 +120,7 @@ def _strict_json(line):
     return json.loads(line, parse_constant=reject)
 
 
-def test_run_publishes_strict_json_with_null_for_nan(simulate, tmp_path, capsys, monkeypatch):
+def test_run_publishes_strict_json_with_null_for_nan(tcp_sim, tmp_path, capsys, monkeypatch):
     """Torques a ``--joints sensed`` graph does not compute are NaN: published as null."""
     (tmp_path / "nan_estimator.py").write_text(
         "import numpy as np\n"
@@ -128,8 +128,9 @@ def test_run_publishes_strict_json_with_null_for_nan(simulate, tmp_path, capsys,
         "    return {'joint_torques': np.array([1.5, np.nan, -np.inf]), 'gain': float('nan')}\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
-    proc, where = simulate("--tcp", "127.0.0.1:0", "--profile", "generic-float32")
-    args = ["run", "--profile", "generic-float32", "--tcp", where, "--duration", "0.5"]
+    sim = tcp_sim(profile="generic-float32")  # in this process: no interpreter to start
+    args = ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}"]
+    args += ["--duration", "0.5"]
     assert main([*args, "--estimator", "nan_estimator:estimate"]) == 0
     out, err = capsys.readouterr()
     lines = [_strict_json(x) for x in out.splitlines()]
