@@ -208,6 +208,9 @@ def test_estimate_takes_the_robot_from_the_log_and_never_silently_the_bundled_ar
     est = tmp_path / "est.parquet"
     assert main(["estimate", str(log), "--out", str(est), "--quiet"]) == 0  # no --robot
     capsys.readouterr()
+    both = ["estimate", str(log), str(small_log), "--out", str(tmp_path / "both")]
+    assert main(both) == 2  # two robots' logs: which one?
+    assert "the input logs record different robots" in _error_line(capsys)
     import torchcontact as tc
 
     assert pq.read_schema(est).metadata[b"torchcontact.urdf_sha256"].decode() == (

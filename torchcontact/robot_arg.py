@@ -108,7 +108,8 @@ def robot_from_logs(files: Sequence[str | Path]) -> RobotSpec:
     (a log recorded on another machine, where the URDF lay elsewhere).
 
     Args:
-        files: the logs (all must record the same robot).
+        files: the logs (what each records must agree: an estimate's output records the URDF
+            sha256 only).
 
     Returns:
         The :class:`~torchcontact.robots.RobotSpec` (with the recorded ``--ft-sensor``).
@@ -122,13 +123,16 @@ def robot_from_logs(files: Sequence[str | Path]) -> RobotSpec:
 
     recorded = {Path(f): logged_robot(open_log(f).schema_arrow) for f in files}
     first = next(iter(recorded))
-    kinds = {json.dumps(r, sort_keys=True) + sha for r, sha in recorded.values()}
-    if len(kinds) > 1:
+    # a log may record the sha256 only (estimate's output): logs agree when what they record does
+    shas = {sha for _, sha in recorded.values() if sha}
+    recs = {json.dumps(r, sort_keys=True): r for r, _ in recorded.values() if r is not None}
+    if len(shas) > 1 or len(recs) > 1:
         seen = sorted(
-            {(r or {}).get("robot", "?") + f" ({sha[:12]})" for r, sha in recorded.values()}
+            {f"{(r or {}).get('robot', '?')} ({sha[:12]})" for r, sha in recorded.values()}
         )
         raise InputError(f"the input logs record different robots {seen}: give --robot")
-    rec, sha = recorded[first]
+    rec = next(iter(recs.values()), None)
+    sha = next(iter(shas), "")
     if rec is None and not sha:
         raise InputError(
             f"no --robot given, and {first} records no robot in its metadata: give --robot"

@@ -254,7 +254,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out else Path(args.log).with_suffix("")
     # without --robot: the robot recorded by the input log, else the estimate's URDF sha256
-    robot = resolve_robot_argument(args, logs=[args.input or args.log])
+    robot = resolve_robot_argument(args, logs=[args.log, *([args.input] if args.input else [])])
     if args.strict_joints and args.input:
         check_log_joints([args.input], robot.load(), strict=True)
     pngs = plot_log(
