@@ -191,6 +191,9 @@ def test_robot_names_tcarm_and_icub(tmp_path, monkeypatch, capsys):
     assert "--robot icub needs the icub-models package (pip install icub-models)" in _error_line(
         capsys
     )
+    assert main(["estimate", str(out), "--out", str(tmp_path / "e.parquet")]) == 2  # the log's
+    line = _error_line(capsys)
+    assert "recorded for robot icub" in line and "needs the icub-models package" in line
 
 
 def test_estimate_takes_the_robot_from_the_log_and_never_silently_the_bundled_arm(

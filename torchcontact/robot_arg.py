@@ -141,12 +141,14 @@ def robot_from_logs(files: Sequence[str | Path]) -> RobotSpec:
     sensors = ft_sensor_specs((rec or {}).get("ft_sensors", []))
     candidates = [rec["robot"]] if rec else []
     candidates += [n for n in ROBOT_NAMES if n not in candidates]
-    changed = None
+    changed, missing = None, ""
     for cand in candidates:
         try:
             path = robot_urdf(cand)
-        except InputError:
-            continue  # not here (another machine's path, icub-models not installed)
+        except InputError as exc:  # not here (another machine's path, icub-models missing)
+            if rec is not None and cand == rec["robot"] and cand in ROBOT_NAMES:
+                missing = f" ({exc})"
+            continue
         got = _urdf_sha256(path)
         if not sha or got == sha:
             return RobotSpec.of(cand, sensors)
@@ -156,7 +158,7 @@ def robot_from_logs(files: Sequence[str | Path]) -> RobotSpec:
     why = (
         f"whose URDF has changed since (sha256 {sha[:12]}... then, {changed[:12]}... now)"
         if changed
-        else f"(URDF sha256 {sha[:12]}...), which is not found here"
+        else f"(URDF sha256 {sha[:12]}...), which is not found here{missing}"
     )
     raise InputError(f"{first} was recorded for {where} {why}: give --robot")
 
