@@ -183,7 +183,8 @@ def wheelhouse(wheel: Path, extras: str, pins: list[str]) -> Path:
 
     The key hashes the wheel's ``Requires-Dist``, the extras, the pins, the Python version and
     the platform. Downloaded into a temporary folder beside the target and renamed into place
-    under a file lock, so a concurrent or killed run never leaves a partial wheelhouse.
+    under a file lock, so a concurrent or killed run never leaves a partial wheelhouse; the
+    wheelhouses of other keys (stale requirements) are removed.
     ``TORCHCONTACT_TEST_WHEELHOUSE`` relocates the cache (default: ``~/.cache/torchcontact-tests``).
     """
     import hashlib
@@ -223,6 +224,13 @@ def wheelhouse(wheel: Path, extras: str, pins: list[str]) -> Path:
                 os.replace(partial, target)
             finally:
                 shutil.rmtree(partial, ignore_errors=True)
+    for old in root.glob("wheelhouse-*"):  # other requirement sets: stale, 300+ MB each
+        if old.is_dir() and old != target and "." not in old.name:  # not another's partial
+            try:
+                with FileLock(str(old) + ".lock", timeout=0):  # not in use by another run
+                    shutil.rmtree(old, ignore_errors=True)
+            except TimeoutError:
+                pass
     return target
 
 
