@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from torchcontact.cli import Parser, guarded
 from torchcontact.errors import InputError, ModelMismatchError
 from torchcontact.logs.format import check_outputs
+from torchcontact.robot_arg import add_robot_argument, resolve_robot_argument
 
 
 def _slots(args: argparse.Namespace) -> tuple[list[str], list[str]]:
@@ -48,13 +49,11 @@ def _estimator(args: argparse.Namespace) -> int:
 
     if args.format == "c":
         return _estimator_c(args)
-    if (args.robot is None) == (args.urdf is None):
-        raise InputError("give exactly one of --robot tcarm or --urdf PATH")
-    path = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
-    check_outputs([args.out], [path, args.contacts])
+    robot = resolve_robot_argument(args)
+    check_outputs([args.out], [robot, args.contacts])
     from torchcontact.logs.pipeline import load_robot
 
-    model = load_robot(path)
+    model = load_robot(robot)
     links, kinds = _slots(args)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]
     opset = args.opset or DEFAULT_OPSET
@@ -100,21 +99,18 @@ def _estimator_c(args: argparse.Namespace) -> int:
     """``export estimator --format c``: the single-frame estimator as a C library."""
     import torch
 
-    import torchcontact as tc
     from torchcontact.logs.pipeline import load_robot
     from torchcontact.online.cstep import export_c_step
 
-    if (args.robot is None) == (args.urdf is None):
-        raise InputError("give exactly one of --robot tcarm or --urdf PATH")
     if args.constraints or args.cone_iterations is not None:
         raise InputError("--format c: the friction-cone estimator is exported as ONNX only")
     if not args.out.endswith(".so"):
         raise InputError(f"--format c writes a shared library: --out NAME.so, got {args.out!r}")
-    path = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
+    robot = resolve_robot_argument(args)
     stem = args.out.removesuffix(".so")
     outs = [args.out] + [f"{stem}{x}" for x in (".h", ".cpp", ".json")]
-    check_outputs(outs, [path, args.contacts])
-    model = load_robot(path)
+    check_outputs(outs, [robot, args.contacts])
+    model = load_robot(robot)
     links, kinds = _slots(args)
     joints = args.joints
     if joints and joints not in ("all", "sensed"):
@@ -162,11 +158,11 @@ def _estimator_c(args: argparse.Namespace) -> int:
 
 
 def _residual(args: argparse.Namespace) -> int:
-    import torchcontact as tc
     from torchcontact.export import DEFAULT_OPSET, export_residual_checkpoint
 
     check_outputs([args.out], [args.checkpoint])
-    robot = tc.robots.tcarm_path() if args.robot == "tcarm" else args.urdf
+    spec = resolve_robot_argument(args)
+    robot = None if spec is None else spec.load()  # None: the URDF recorded at training
     try:
         with _stage("residual graph" + ("" if args.no_check else " and parity check")):
             meta = export_residual_checkpoint(
@@ -196,15 +192,24 @@ def _stage(what: str) -> Iterator[None]:
 
 def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     """Entry point of ``torchcontact export`` and ``python -m export``; returns the exit code."""
-    p = Parser(prog=prog, description=__doc__.splitlines()[0])
+    p = Parser(
+        prog=prog,
+        description="write deployment artefacts: the contact estimator or a learned residual as"
+        " ONNX graphs",
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("estimator", help="the whole contact estimator as one ONNX graph")
-    e.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
-    e.add_argument("--urdf", help="URDF file of the robot")
+    add_robot_argument(e, aliases=("--urdf",), required=True)
     e.add_argument("--sensor", action="append", help="F/T sensor to use (repeat; default all)")
-    e.add_argument("--slot", action="append", help="contact slot LINK:KIND (repeat)")
     e.add_argument(
-        "--contacts", help="contact-spec file (TOML/JSON): one slot per contact, instead of --slot"
+        "--slot",
+        action="append",
+        help="contact slot LINK:KIND (repeatable; default: none, give --slot or --contacts)",
+    )
+    e.add_argument(
+        "--contacts",
+        help="contact-spec file (TOML/JSON): one slot per contact, instead of --slot (default:"
+        " none)",
     )
     e.add_argument(
         "--format",
@@ -239,14 +244,15 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     e.add_argument(
         "--residual",
         action="append",
-        help="correction graph to chain (torchcontact export residual; repeat); --format c: a"
-        " correction checkpoint folder (its offset and inertial layers go into the library)",
+        help="correction graph to chain, from torchcontact export residual (repeatable;"
+        " default: none); --format c: a correction checkpoint folder (its offset and inertial"
+        " layers go into the library)",
     )
     e.add_argument(
         "--velocity-margin",
         type=float,
         default=None,
-        help="status bit 64 beyond this multiple of the URDF velocity limits",
+        help="status bit 64 beyond this multiple of the URDF velocity limits (default: no check)",
     )
     e.add_argument(
         "--constraints",
@@ -273,8 +279,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     )
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")
-    r.add_argument("--robot", choices=["tcarm"], help="a bundled robot")
-    r.add_argument("--urdf", help="URDF of the robot (default: the one recorded at training)")
+    add_robot_argument(r, aliases=("--urdf",), default_help="the URDF recorded at training")
     r.add_argument("--out", required=True, help="output .onnx path")
     r.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")

@@ -54,14 +54,32 @@ APPS: dict[str, tuple[str, str, str]] = {
 }
 
 
+#: Optional dependencies -> the extra that installs them (pyproject.toml), for the error a
+#: command gives when one is missing.
+EXTRA_OF = {
+    "pyarrow": "logs",
+    "tqdm": "logs",
+    "matplotlib": "logs",
+    "rosbags": "logs",
+    "ray": "ray",
+    "pymodbus": "drivers",
+    "serial": "drivers",
+    "onnx": "export",
+    "onnxruntime": "export",
+    "safetensors": "train",
+}
+
+
 class _HelpFormatter(argparse.HelpFormatter):
     """Appends ``(default: X)`` to an option's help when it has a default worth showing."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
-        if "(default" in text or action.required or action.default in (None, False):
+        # identity, not ==: a default of 0 or 0.0 is worth showing, and 0 == False
+        unset = action.default is None or action.default is False
+        if "(default" in text or action.required or unset or not action.option_strings:
             return text
-        if action.default is argparse.SUPPRESS or not action.option_strings:
+        if action.default is argparse.SUPPRESS:
             return text
         return f"{text} (default: %(default)s)"
 
@@ -101,7 +119,8 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
 
     Returns:
         The command's exit code, or the error's: :attr:`TorchContactError.exit_code` (2 usage,
-        1 data), 1 for an operating-system error (a missing file, no space), 130 when
+        1 data), 1 for an operating-system error (a missing file, no space) or a missing
+        optional dependency (the message names the extra that installs it), 130 when
         interrupted.
     """
 
@@ -128,6 +147,14 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
             show(f"{where}{exc.strerror or exc}")
             return 1
         except Exception as exc:  # a bug: say so, one line unless --debug
+            missing = getattr(exc, "name", None) if isinstance(exc, ModuleNotFoundError) else None
+            extra = EXTRA_OF.get((missing or "").split(".")[0])
+            if extra is not None:  # an optional dependency: the extra that brings it
+                show(
+                    f"this command needs {missing}, which is not installed: pip install"
+                    f" 'torchcontact[{extra}]'"
+                )
+                return 1
             show(
                 f"unexpected {type(exc).__name__}: {exc} (please report it; --debug shows the"
                 " traceback)"
@@ -143,7 +170,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             (None: none; ``"*"``: every module, e.g. to list every option). The other commands
             appear in the help with their line from :data:`COMMANDS`.
     """
-    parser = Parser(prog="torchcontact", description=__doc__.splitlines()[0])
+    parser = Parser(
+        prog="torchcontact",
+        description="torchcontact: contact forces from F/T sensors and tactile skin; every job is"
+        " a command (torchcontact COMMAND --help)",
+    )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     wanted = [m for name, (m, _) in COMMANDS.items() if command in (name, "*")]

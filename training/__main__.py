@@ -26,6 +26,13 @@ import torch
 import torchcontact as tc
 from torchcontact.cli import Parser, guarded
 from torchcontact.errors import InputError
+from torchcontact.robot_arg import (
+    add_robot_argument,
+    add_strict_joints_argument,
+    check_log_joints,
+    resolve_robot_argument,
+)
+from torchcontact.robots import RobotSpec
 
 from .data import ResidualDataset
 from .fit import TrainConfig
@@ -39,7 +46,6 @@ from .pipeline import (
     log,
     make_dataset,
     predict,
-    resolve_robot,
     score_methods,
     table_markdown,
     train,
@@ -90,8 +96,9 @@ def _meta() -> dict:
     }
 
 
-def _model_and_sensor(robot: str, sensor: str | None) -> tuple[tc.RobotModel, str]:
-    model = tc.RobotModel.from_urdf(resolve_robot(robot))
+def _model_and_sensor(robot: str | RobotSpec, sensor: str | None) -> tuple[tc.RobotModel, str]:
+    spec = robot if isinstance(robot, RobotSpec) else RobotSpec.of(robot)
+    model = spec.load()
     sensor = sensor or next(iter(model.ft_sensors), "")
     if sensor not in model.ft_sensors:
         raise InputError(f"{model.name} has no F/T sensor {sensor!r} ({list(model.ft_sensors)})")
@@ -124,8 +131,10 @@ def _train(args) -> int:
     data = cfg.data
     if args.log:
         data = replace(data, source="parquet", paths=list(args.log))
-    if args.robot or args.urdf:
-        data = replace(data, robot=args.urdf or args.robot)
+    if args.robot is None:
+        args.robot = data.robot  # the config's robot (tcarm by default)
+    spec = resolve_robot_argument(args)
+    data = replace(data, robot=spec.robot)
     if args.sensor:
         data = replace(data, sensor=args.sensor)
     if args.extra is not None:
@@ -135,8 +144,10 @@ def _train(args) -> int:
     cfg = replace(cfg, data=data)
     if args.layers:
         cfg = replace(cfg, stack=replace(cfg.stack, layers=args.layers.split(",")))
+    model, sensor = _model_and_sensor(spec, data.sensor or None)
+    if data.source == "parquet" and args.strict_joints:  # else extra joints: one warning each
+        check_log_joints(data.paths, model, strict=True)
     _seed(cfg.train.seed)
-    model, sensor = _model_and_sensor(data.robot, data.sensor or None)
     ds = make_dataset(model, data, sensor)
     t0 = time.perf_counter()
     trained = train(model, ds, cfg, out=args.out, device=args.device)
@@ -186,7 +197,8 @@ def cmd_benchmark(args) -> int:
     """Cross-validated benchmark of the correction stack on synthetic conditions."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model, sensor = _model_and_sensor(args.robot, args.sensor)
+    spec = resolve_robot_argument(args)
+    model, sensor = _model_and_sensor(spec, args.sensor)
     conditions = _conditions(args)
     train_cfg = TrainConfig(kind=args.learned, seed=args.seed, epochs=args.epochs)
     results, timing, chosen = {}, {}, {}
@@ -194,7 +206,7 @@ def cmd_benchmark(args) -> int:
     for i, (name, fx) in enumerate(conditions.items()):
         _seed(args.seed)
         data = DataConfig(
-            robot=args.robot,
+            robot=spec.robot,
             sensor=sensor,
             frames=args.frames,
             seed=args.seed + i,
@@ -298,9 +310,10 @@ def cmd_heldout(args) -> int:
     """The issue's held-out scoring: train on one log, estimate contacts on another."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model, sensor = _model_and_sensor(args.robot, args.sensor)
+    spec = resolve_robot_argument(args)
+    model, sensor = _model_and_sensor(spec, args.sensor)
     cfg = Config(
-        data=DataConfig(robot=args.robot, sensor=sensor, force_max=args.force_max),
+        data=DataConfig(robot=spec.robot, sensor=sensor, force_max=args.force_max),
         train=TrainConfig(kind=args.learned, seed=args.seed, epochs=args.epochs),
     )
     results, timing, chosen = {}, {}, {}
@@ -412,7 +425,11 @@ def cmd_study(args) -> int:
 
 def main(argv=None, prog: str = "python -m training") -> int:
     """Entry point of ``torchcontact train`` and ``python -m training``; returns the exit code."""
-    p = Parser(prog=prog, description=__doc__.splitlines()[0])
+    p = Parser(
+        prog=prog,
+        description="learn an F/T residual correction (fit) and measure it (benchmark, heldout,"
+        " study)",
+    )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="{fit,benchmark,heldout,study}")
     t = sub.add_parser(
         "fit", aliases=["train"], help="fit a correction stack on logs; write the checkpoint"
@@ -420,53 +437,101 @@ def main(argv=None, prog: str = "python -m training") -> int:
     t.add_argument(
         "--config",
         default=None,
-        help="TOML config (flags override it), or a bundled one by name: example",
+        help="TOML config (flags override it), or a bundled one by name: example (default: none,"
+        " the built-in defaults: a simulated log of tcarm)",
     )
-    t.add_argument("--log", nargs="+", default=None, help="Parquet logs in the documented format")
-    t.add_argument("--robot", default=None, help="tcarm, icub, or a URDF path")
-    t.add_argument("--urdf", default=None, help="robot URDF (same as --robot PATH)")
+    t.add_argument(
+        "--log",
+        nargs="+",
+        default=None,
+        help="Parquet logs in the documented format (default: the config's; none: a simulated log)",
+    )
+    add_robot_argument(t, aliases=("--urdf",), default_help="the config's [data] robot, else tcarm")
+    add_strict_joints_argument(t)
     t.add_argument("--sensor", default=None, help="F/T sensor (default: the robot's first)")
-    t.add_argument("--extra", nargs="*", default=None, help="extra feature columns")
+    t.add_argument(
+        "--extra",
+        nargs="*",
+        default=None,
+        help="extra feature columns (default: the config's, temperature)",
+    )
     t.add_argument("--layers", default=None, help="e.g. offset,inertial,mlp (default: auto)")
-    t.add_argument("--folds", type=int, default=None, help="cross-validation folds (0: none)")
+    t.add_argument(
+        "--folds",
+        type=int,
+        default=None,
+        help="cross-validation folds, 0: none (default: the config's, 5)",
+    )
     t.add_argument("--out", required=True, help="checkpoint directory")
     for name, fn in (("benchmark", cmd_benchmark), ("heldout", cmd_heldout)):
         b = sub.add_parser(name, help=fn.__doc__.splitlines()[0])
-        b.add_argument("--robot", default="tcarm", help="tcarm, icub, or a URDF path")
-        b.add_argument("--sensor", default=None)
-        b.add_argument("--conditions", nargs="+", default=list(CONDITIONS))
-        b.add_argument("--cable", type=float, default=None, help="cable force amplitude, N")
+        add_robot_argument(b, default="tcarm")
+        b.add_argument("--sensor", default=None, help="F/T sensor (default: the robot's first)")
+        b.add_argument(
+            "--conditions", nargs="+", default=list(CONDITIONS), help="synthetic conditions"
+        )
+        b.add_argument(
+            "--cable",
+            type=float,
+            default=None,
+            help="cable force amplitude, N (default: each condition's, 3 for drift+cable)",
+        )
         b.add_argument(
             "--noise-scale", type=float, default=1.0, help="times the F/T noise of the conditions"
         )
         b.add_argument("--force-max", type=float, default=10.0, help="peak contact force, N")
-        b.add_argument("--learned", choices=["mlp", "gru"], default="mlp")
-        b.add_argument("--epochs", type=int, default=TrainConfig.epochs, help="learned layer")
-        b.add_argument("--seed", type=int, default=0)
-        b.add_argument("--out", required=True)
-    sub.choices["benchmark"].add_argument("--frames", type=int, default=36000)
-    sub.choices["benchmark"].add_argument("--folds", type=int, default=5)
-    sub.choices["benchmark"].add_argument("--block-seconds", type=float, default=10.0)
+        b.add_argument(
+            "--learned", choices=["mlp", "gru"], default="mlp", help="kind of the learned layer"
+        )
+        b.add_argument(
+            "--epochs", type=int, default=TrainConfig.epochs, help="epochs of the learned layer"
+        )
+        b.add_argument("--seed", type=int, default=0, help="random seed")
+        b.add_argument("--out", required=True, help="output folder of the results")
+    bench = sub.choices["benchmark"]
+    bench.add_argument("--frames", type=int, default=36000, help="frames per condition")
+    bench.add_argument("--folds", type=int, default=5, help="cross-validation folds")
+    bench.add_argument(
+        "--block-seconds", type=float, default=10.0, help="time blocks of the splits, s"
+    )
     h = sub.choices["heldout"]
-    h.add_argument("--train-frames", type=int, default=36000)
-    h.add_argument("--test-frames", type=int, default=12000)
+    h.add_argument("--train-frames", type=int, default=36000, help="training frames")
+    h.add_argument("--test-frames", type=int, default=12000, help="scored frames")
     h.add_argument(
         "--new-session",
         action="store_true",
         help="test on another simulated session (another workspace region), not the next frames",
     )
-    s = sub.add_parser("study", help=cmd_study.__doc__)
-    s.add_argument("--robots", nargs="+", default=["tcarm:base_ft", "icub:l_arm_ft"])
-    s.add_argument("--conditions", nargs="+", default=["payload", "drift+cable"])
-    s.add_argument("--cable", type=float, default=None)
-    s.add_argument("--noise-scale", type=float, default=1.0)
-    s.add_argument("--force-max", type=float, default=10.0)
-    s.add_argument("--learned", choices=["mlp", "gru"], default="mlp")
-    s.add_argument("--epochs", type=int, default=TrainConfig.epochs)
-    s.add_argument("--train-frames", type=int, default=36000)
-    s.add_argument("--test-frames", type=int, default=12000)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True)
+    s = sub.add_parser("study", help=cmd_study.__doc__.splitlines()[0])
+    s.add_argument(
+        "--robots",
+        nargs="+",
+        default=["tcarm:base_ft", "icub:l_arm_ft"],
+        help="ROBOT:SENSOR pairs (ROBOT as --robot)",
+    )
+    s.add_argument(
+        "--conditions", nargs="+", default=["payload", "drift+cable"], help="synthetic conditions"
+    )
+    s.add_argument(
+        "--cable",
+        type=float,
+        default=None,
+        help="cable force amplitude, N (default: each condition's, 3 for drift+cable)",
+    )
+    s.add_argument(
+        "--noise-scale", type=float, default=1.0, help="times the F/T noise of the conditions"
+    )
+    s.add_argument("--force-max", type=float, default=10.0, help="peak contact force, N")
+    s.add_argument(
+        "--learned", choices=["mlp", "gru"], default="mlp", help="kind of the learned layer"
+    )
+    s.add_argument(
+        "--epochs", type=int, default=TrainConfig.epochs, help="epochs of the learned layer"
+    )
+    s.add_argument("--train-frames", type=int, default=36000, help="training frames")
+    s.add_argument("--test-frames", type=int, default=12000, help="scored frames")
+    s.add_argument("--seed", type=int, default=0, help="random seed")
+    s.add_argument("--out", required=True, help="output folder of the results")
     for sp in {id(v): v for v in sub.choices.values()}.values():
         sp.add_argument("--device", default="cpu", help="torch device")
         sp.add_argument(

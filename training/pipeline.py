@@ -215,22 +215,6 @@ def load_config(path: str | Path) -> tuple[Config, dict]:
     return cfg, raw
 
 
-def resolve_robot(robot: str) -> Path:
-    """URDF path of ``"tcarm"``, ``"icub"`` (icub-models' iCubGenova04) or a path."""
-    if robot == "tcarm":
-        return tc.robots.tcarm_path()
-    if robot.lower() in ("icub", "icubgenova04"):
-        try:
-            import icub_models
-        except ImportError:
-            raise ValueError("--robot icub needs the icub-models package") from None
-        return Path(icub_models.get_model_file("iCubGenova04"))
-    path = Path(robot)
-    if not path.is_file():
-        raise ValueError(f"robot {robot!r}: not 'tcarm', 'icub' or a URDF file")
-    return path
-
-
 def make_dataset(model: tc.RobotModel, cfg: DataConfig, sensor: str) -> ResidualDataset:
     """Simulate (with ``cfg.effects``) or load Parquet files (joints mapped by name)."""
     if cfg.source == "simulate":
@@ -712,8 +696,10 @@ def _urdf_of(model: tc.RobotModel, robot: str) -> str | None:
     """The resolved URDF path of ``robot`` when it is ``model``'s (same text hash), else None."""
     import hashlib
 
+    from torchcontact.robots import robot_urdf
+
     try:
-        path = resolve_robot(robot)
+        path = robot_urdf(robot)
     except ValueError:
         return None
     digest = hashlib.sha256(path.read_text().encode()).hexdigest()

@@ -109,3 +109,32 @@ def test_import_does_not_need_pymodbus():
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert res.stdout.strip() == "False", res.stderr
+
+
+def _strict_json(line):
+    """Parse as a strict parser does (JavaScript, Go, serde, jq): no NaN or Infinity."""
+
+    def reject(token):
+        raise ValueError(f"not JSON: {token}")
+
+    return json.loads(line, parse_constant=reject)
+
+
+def test_run_publishes_strict_json_with_null_for_nan(tcp_sim, tmp_path, capsys, monkeypatch):
+    """Torques a ``--joints sensed`` graph does not compute are NaN: published as null."""
+    (tmp_path / "nan_estimator.py").write_text(
+        "import numpy as np\n"
+        "def estimate(q, qd, qdd, ft):\n"
+        "    return {'joint_torques': np.array([1.5, np.nan, -np.inf]), 'gain': float('nan')}\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sim = tcp_sim(profile="generic-float32")  # in this process: no interpreter to start
+    args = ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}"]
+    args += ["--duration", "0.5"]
+    assert main([*args, "--estimator", "nan_estimator:estimate"]) == 0
+    out, err = capsys.readouterr()
+    lines = [_strict_json(x) for x in out.splitlines()]
+    assert len(lines) > 3
+    for r in lines:
+        assert r["estimate"] == {"joint_torques": [1.5, None, None], "gain": None}
+    assert _strict_json(err.strip().splitlines()[-1])["summary"]["published"] == len(lines)

@@ -223,3 +223,40 @@ def test_convert_errors_name_the_file(tmp_path, sim_log):
     _write_bag("ros1", bag, sim_log)
     with pytest.raises(ConvertError, match="no topic '/nope'"):
         convert(bag, tmp_path / "o.parquet", wrench_topics=["/nope"])
+
+
+def test_a_wrench_frame_naming_no_robot_sensor_is_kept_with_a_warning(sim_log, tmp_path, capsys):
+    bag = tmp_path / "b.bag"
+    _write_bag("ros1", bag, sim_log, frame_id="ft_sensor_link")
+    args = ["convert", str(bag), "--wrench", "/ft", "--robot", "tcarm", "--quiet", "--out"]
+    assert main([*args, str(tmp_path / "a.parquet")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: "), err
+    assert "/ft: its frame_id 'ft_sensor_link' names no F/T sensor of tcarm" in err[0]
+    assert "(its sensors: ['base_ft']" in err[0] and "--wrench /ft=SENSOR" in err[0]
+    assert "ft.ft_sensor_link" in pq.read_schema(tmp_path / "a.parquet").names
+    # an explicit TOPIC=SENSOR naming no sensor of the robot: warned as well
+    args[3] = "/ft=wrist"
+    assert main([*args, str(tmp_path / "b.parquet")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sensor 'wrist' names no F/T sensor of tcarm" in err[0]
+    # a sensor declared with --ft-sensor matches the frame_id of its child link: no warning,
+    # and the log records the robot with its sensor for estimate
+    bag2 = tmp_path / "c.bag"
+    _write_bag("ros1", bag2, sim_log, frame_id="hand_skin")
+    out = tmp_path / "c.parquet"
+    conv = ["convert", str(bag2), "--wrench", "/ft", "--robot", "tcarm", "--ft-sensor",
+            "wrist_ft:hand_skin", "--out", str(out), "--quiet"]  # fmt: skip
+    assert main(conv) == 0
+    assert capsys.readouterr().err == ""
+    meta = pq.read_schema(out).metadata
+    assert "ft.wrist_ft" in pq.read_schema(out).names
+    assert json.loads(meta[b"torchcontact.robot"]) == {
+        "robot": "tcarm",
+        "ft_sensors": ["wrist_ft:hand_skin"],
+    }
+    from torchcontact.robot_arg import robot_from_logs
+
+    spec = robot_from_logs([out])
+    assert spec.robot == "tcarm" and [str(s) for s in spec.ft_sensors] == ["wrist_ft:hand_skin"]
+    assert "wrist_ft" in spec.load().ft_sensors

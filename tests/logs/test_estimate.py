@@ -68,23 +68,92 @@ def test_joint_columns_reordered_by_name_and_plain_lists(model, sim_log, tmp_pat
     )
 
 
-@pytest.mark.parametrize(
-    "change,match", [("drop", "lacks joints \\['wrist_roll'\\]"), ("add", "extra")]
-)
-def test_missing_or_extra_joints_are_clear_errors(model, sim_log, tmp_path, change, match):
+def _with_joints(sim_log, model, path, names, extra_value=0.0):
+    """The log with joint list ``names``: robot joints keep their columns, others are constant."""
     tab = pq.read_table(sim_log)
+    idx = {n: i for i, n in enumerate(model.joint_names)}
+    cols = {}
+    for c in tab.column_names:
+        if c in ("q", "qd", "qdd"):
+            v = np.stack(tab.column(c).to_numpy(zero_copy_only=False))
+            z = np.full(len(v), extra_value)
+            cols[c] = fixed_list(np.stack([v[:, idx[n]] if n in idx else z for n in names], -1))
+        else:
+            cols[c] = tab.column(c)
+    meta = dict(tab.schema.metadata)
+    meta[b"torchcontact.joint_names"] = json.dumps(names).encode()
+    pq.write_table(pa.table(cols).replace_schema_metadata(meta), path)
+    return path
+
+
+def test_extra_log_joints_are_left_out_with_one_warning(model, sim_log, tmp_path, capsys):
+    """A gripper joint the robot lacks: estimate, plot and train leave it out with one warning
+    line naming it (--strict-joints refuses it); the estimates are those of the arm-only log."""
+    from torchcontact.cli import main
+
     names = list(model.joint_names)
-    names = names[:-1] + ["not_a_joint"] if change == "drop" else names
-    if change == "add":
-        names = names[:-1] + ["extra_joint"]
-        match = "extra \\['extra_joint'\\]"
-    path = tmp_path / "bad.parquet"
-    pq.write_table(
-        tab.replace_schema_metadata({b"torchcontact.joint_names": json.dumps(names)}), path
-    )
-    assert model.joint_names[-1] == "wrist_roll"
-    with pytest.raises(LogError, match=match):
-        estimate_file(path, model, tmp_path / "o.parquet")
+    log = _with_joints(sim_log, model, tmp_path / "grip.parquet", [*names[:3], "gripper", *names[3:]],
+                       extra_value=0.02)  # fmt: skip
+    out = tmp_path / "o.parquet"
+    assert main(["estimate", str(log), "--out", str(out), "--quiet", "--robot", "tcarm"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: ") and "['gripper']" in err[0], err
+    assert "grip.parquet: leaving out joints ['gripper'], which tcarm does not have" in err[0]
+    ref = pq.read_table(estimate_file(sim_log, model, tmp_path / "ref.parquet")["output"])
+    got = pq.read_table(out)
+    for c in ("joint_torques", "residual.base_ft"):
+        np.testing.assert_array_equal(
+            np.stack(got[c].to_numpy(zero_copy_only=False)),
+            np.stack(ref[c].to_numpy(zero_copy_only=False)),
+        )
+    assert got["contacts"].to_pylist() == ref["contacts"].to_pylist()
+    # the same log, refused with --strict-joints (nothing written)
+    strict = tmp_path / "strict.parquet"
+    args = ["estimate", str(log), "--out", str(strict), "--robot", "tcarm", "--strict-joints"]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "extra ['gripper']" in err[0]
+    assert not strict.exists()
+    # plot: the input log's joints matched the same way (the posed robot of robot.png and
+    # nullspace.png; drawing them takes seconds, the matching is what is tested here)
+    from torchcontact.logs.plot import _posed
+
+    with pytest.warns(UserWarning, match=r"leaving out joints \['gripper'\]"):
+        q, _ = _posed(got, model, log, 5)
+    ref_q = np.stack(pq.read_table(sim_log)["q"].to_numpy(zero_copy_only=False))[5]
+    np.testing.assert_array_equal(q.numpy(), ref_q)
+    png = tmp_path / "png"
+    assert main(["plot", str(out), "--input", str(log), "--out", str(png), "--strict-joints"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "extra ['gripper']" in err[0] and not png.exists()
+    # training reads logs through the same matching
+    from training.data import load_parquet
+
+    with pytest.warns(UserWarning, match=r"leaving out joints \['gripper'\]"):
+        ds = load_parquet([str(log)], model, "base_ft", [])
+    assert len(ds) == 600
+    ckpt = tmp_path / "ckpt"
+    train = ["train", "fit", "--log", str(log), "--robot", "tcarm", "--out", str(ckpt)]
+    assert main([*train, "--strict-joints"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "extra ['gripper']" in err[0] and not ckpt.exists()
+
+
+def test_a_robot_joint_missing_from_the_log_is_an_error_naming_it(model, sim_log, tmp_path):
+    names = list(model.joint_names)
+    assert names[-1] == "wrist_roll"
+    log = _with_joints(sim_log, model, tmp_path / "short.parquet", [*names[:-1], "gripper"])
+    with pytest.raises(
+        LogError, match=r"the log lacks joints \['wrist_roll'\] extra \['gripper'\]"
+    ):
+        estimate_file(log, model, tmp_path / "o.parquet")
+    from torchcontact.cli import main
+
+    for strict in ([], ["--strict-joints"]):
+        assert main(["estimate", str(log), "--out", str(tmp_path / "o.parquet"), *strict]) == 1
+    dup = _with_joints(sim_log, model, tmp_path / "dup.parquet", [*names, names[0]])
+    with pytest.raises(LogError, match="duplicate joint names"):
+        estimate_file(dup, model, tmp_path / "o.parquet")
 
 
 def test_not_parquet_names_the_file(model, tmp_path):

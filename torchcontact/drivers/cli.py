@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import sys
 import time
@@ -18,6 +19,7 @@ import numpy as np
 
 from torchcontact.drivers.profiles import available_profiles
 from torchcontact.errors import InputError, TorchContactError
+from torchcontact.robot_arg import add_robot_argument, resolve_robot_argument
 
 
 def _is_loopback(host: str) -> bool:
@@ -81,13 +83,23 @@ def _onnx_estimator(path: str, contacts: str | None) -> Any:
 def _add_source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--port", help="serial port (Modbus RTU), e.g. /dev/ttyUSB0")
-    where.add_argument("--tcp", metavar="HOST:PORT", help="Modbus TCP server")
+    where.add_argument(
+        "--port", help="serial port (Modbus RTU), e.g. /dev/ttyUSB0 (default: none; or --tcp)"
+    )
+    where.add_argument(
+        "--tcp", metavar="HOST:PORT", help="Modbus TCP server (default: none; or --port)"
+    )
     p.add_argument("--stream", action="store_true", help="FT 300 stream mode (100 Hz)")
-    p.add_argument("--sensor", help="sensor name for the log column ft.<sensor>")
+    p.add_argument(
+        "--sensor",
+        help="sensor name for the log column ft.<sensor> (default: the profile's name; with"
+        " --onnx, the graph's first sensor)",
+    )
     p.add_argument("--timeout", type=float, default=0.05, help="response timeout, s")
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
-    p.add_argument("--out", help="Parquet log of the frames (t_ns, ft.<sensor>)")
+    p.add_argument(
+        "--duration", type=float, default=None, help="stop after S seconds (default: never)"
+    )
+    p.add_argument("--out", help="Parquet log of the frames, t_ns and ft.<sensor> (default: none)")
     p.add_argument("--tare", type=int, default=0, metavar="N", help="software zero over N frames")
 
 
@@ -206,7 +218,10 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
             extra[name] = float(value)
         except ValueError:
             raise InputError(f"--extra takes NAME=VALUE (a number), got {item!r}") from None
-    est = OnnxEstimator(args.onnx, None, robot=args.robot, residual=args.residual or None)
+    robot: Any = resolve_robot_argument(args)
+    if robot is not None:  # identified by its URDF's hash (no torch), its model with --ft-sensor
+        robot = robot.load() if robot.ft_sensors else os.fspath(robot)
+    est = OnnxEstimator(args.onnx, None, robot=robot, residual=args.residual or None)
     rt = est.runtime
     spec: dict[str, Any] = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
     if args.contacts:
@@ -262,6 +277,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         LiveLoop,
         UdpJointSource,
         UdpPublisher,
+        json_line,
         load_estimator,
     )
     from torchcontact.drivers.log import FTLogWriter
@@ -274,8 +290,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.onnx:
             estimator, src = _onnx_estimator(args)
         else:
-            if args.source or args.residual or args.robot or args.extra:
-                raise InputError("--source, --residual, --robot and --extra go with --onnx")
+            if args.source or args.residual or args.robot or args.ft_sensor or args.extra:
+                raise InputError(
+                    "--source, --residual, --robot, --ft-sensor and --extra go with --onnx"
+                )
             estimator = load_estimator(args.estimator)
             src = None
         joints_at = parse_hostport(args.joints.removeprefix("udp://")) if args.joints else None
@@ -307,7 +325,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             log.close()
         if joints is not None:
             joints.close()
-    print(json.dumps({"summary": summary}), file=sys.stderr, flush=True)
+    print(json_line({"summary": summary}), file=sys.stderr, flush=True)
     return 0
 
 
@@ -321,12 +339,25 @@ def add_parser(subparsers: Any) -> None:
     sim.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
     where = sim.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="Modbus RTU on a pseudo-terminal")
-    where.add_argument("--tcp", metavar="HOST:PORT", help="Modbus TCP, e.g. 127.0.0.1:1502")
-    sim.add_argument("--link", help="stable path for the pty (symlink); default a temp path")
+    where.add_argument(
+        "--tcp",
+        metavar="HOST:PORT",
+        help="Modbus TCP, e.g. 127.0.0.1:1502 (default: none; or --pty)",
+    )
+    sim.add_argument(
+        "--link", help="stable path for the pty, a symlink (default: a temporary path)"
+    )
     sim.add_argument("--allow-remote", action="store_true", help="allow a non-loopback address")
-    sim.add_argument("--replay", help="Parquet log to replay (column ft.<sensor>)")
-    sim.add_argument("--replay-sensor", help="sensor name of the replayed column")
-    sim.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    sim.add_argument(
+        "--replay", help="Parquet log to replay, column ft.<sensor> (default: a sinusoid)"
+    )
+    sim.add_argument(
+        "--replay-sensor",
+        help="sensor name of the replayed column (default: the log's first ft.* column)",
+    )
+    sim.add_argument(
+        "--duration", type=float, default=None, help="stop after S seconds (default: never)"
+    )
     sim.add_argument("--drop", type=float, default=0.0, help="probability a frame is dropped")
     sim.add_argument("--corrupt", type=float, default=0.0, help="probability of a bad CRC")
     sim.add_argument("--split", type=float, default=0.0, help="probability a write is split")
@@ -352,29 +383,33 @@ def add_parser(subparsers: Any) -> None:
     which.add_argument(
         "--onnx",
         metavar="FILE.onnx",
-        help="exported contact estimator (python -m export estimator) via onnxruntime",
+        help="exported contact estimator (torchcontact export estimator), run with onnxruntime"
+        " (default: none, --estimator runs)",
     )
-    run.add_argument(
-        "--robot",
-        help="with --onnx: URDF (or tcarm) of the robot; refuses a graph exported for another one",
+    add_robot_argument(
+        run,
+        what="with --onnx, the robot the graph was exported for (a graph exported for another"
+        " one is refused)",
+        default_help="none: the graph is not checked against a robot",
     )
     run.add_argument(
         "--source",
         action="append",
         metavar="SENSOR=ADDRESS",
-        help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial port (repeat)",
+        help="with --onnx: another sensor of the graph, tcp://HOST:PORT or a serial port"
+        " (repeatable; default: none, the graph reads one sensor)",
     )
     run.add_argument(
         "--residual",
         action="append",
         metavar="FILE.onnx",
-        help="with --onnx: a residual-correction graph to chain (repeat)",
+        help="with --onnx: a residual-correction graph to chain (repeatable; default: none)",
     )
     run.add_argument(
         "--extra",
         action="append",
         metavar="NAME=VALUE",
-        help="with --onnx: a constant extra input of the corrections (repeat)",
+        help="with --onnx: a constant extra input of the corrections (repeatable; default: none)",
     )
     run.add_argument(
         "--contacts",
@@ -382,7 +417,11 @@ def add_parser(subparsers: Any) -> None:
         help='with --onnx: contact-spec file (TOML [[contact]] tables or JSON {"contact": [...]},'
         " each with link, kind, position), placed in the graph's slots; default no contact",
     )
-    run.add_argument("--joints", metavar="udp://HOST:PORT", help="joint-state UDP packets")
+    run.add_argument(
+        "--joints",
+        metavar="udp://HOST:PORT",
+        help="joint-state UDP packets (default: none; frames carry no joint state)",
+    )
     run.add_argument("--require-joints", action="store_true", help="skip frames without joints")
     run.add_argument("--publish", default="stdout", help="stdout or udp://127.0.0.1:PORT")
     run.add_argument("--allow-remote", action="store_true", help="allow a non-loopback target")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import math
 import socket
 import struct
 import sys
@@ -165,6 +166,7 @@ class Publisher(Protocol):
 
 
 def _jsonable(x: Any) -> Any:
+    """Plain JSON values: arrays as lists, and NaN or infinite numbers as None (JSON null)."""
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -172,10 +174,27 @@ def _jsonable(x: Any) -> Any:
     if hasattr(x, "detach"):  # torch tensor, without importing torch
         x = x.detach().cpu().numpy()
     if isinstance(x, np.ndarray):
-        return x.tolist()
+        if x.dtype.kind == "f" and np.isfinite(x).all():
+            return x.tolist()
+        return _jsonable(x.tolist())
     if isinstance(x, np.generic):
-        return x.item()
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
     return x
+
+
+def json_line(record: Any) -> str:
+    """One line of strict JSON (RFC 8259): NaN and infinities become ``null``.
+
+    Python's ``json`` writes bare ``NaN``, which strict parsers (JavaScript, Go, serde, jq)
+    reject; a torque a ``--joints sensed`` graph does not compute is NaN.
+
+    Example:
+        >>> json_line({"tau": np.array([1.0, np.nan]), "x": float("inf")})
+        '{"tau":[1.0,null],"x":null}'
+    """
+    return json.dumps(_jsonable(record), separators=(",", ":"), allow_nan=False)
 
 
 class JsonLinesPublisher:
@@ -186,7 +205,7 @@ class JsonLinesPublisher:
 
     def publish(self, record: dict[str, Any]) -> None:
         """Write one line and flush."""
-        self.stream.write(json.dumps(record, separators=(",", ":")) + "\n")
+        self.stream.write(json_line(record) + "\n")
         self.stream.flush()
 
 
@@ -210,7 +229,7 @@ class UdpPublisher:
 
     def publish(self, record: dict[str, Any]) -> None:
         """Send one datagram (dropped silently by the OS if nobody listens)."""
-        data = (json.dumps(record, separators=(",", ":")) + "\n").encode()
+        data = (json_line(record) + "\n").encode()
         try:
             self.sock.sendto(data, self.dest)
         except OSError:

@@ -187,7 +187,8 @@ class LogEstimator:
             )
         cons = self.constraints
         self.decoder = ChunkDecoder(
-            self.model, self.perm, self.sensors, self.contact_fields, self.derived,
+            self.model, self.perm, len(self.input_joint_names), self.sensors,
+            self.contact_fields, self.derived,
             self.estimator.region, self.layout, None if cons is None else cons.friction,
             cons is not None, self.residual_columns(), self.source,
         )  # fmt: skip

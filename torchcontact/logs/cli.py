@@ -14,6 +14,12 @@ from pathlib import Path
 from typing import Any
 
 from torchcontact.errors import InputError
+from torchcontact.robot_arg import (
+    add_robot_argument,
+    add_strict_joints_argument,
+    check_log_joints,
+    resolve_robot_argument,
+)
 
 DTYPES = ("float64", "float32")
 
@@ -31,12 +37,6 @@ def _threads(args: argparse.Namespace) -> None:
 
     if getattr(args, "threads", 0):
         torch.set_num_threads(args.threads)
-
-
-def _robot(path: str | None) -> str:
-    from torchcontact.robots import tcarm_path
-
-    return str(path) if path else str(tcarm_path())
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -113,10 +113,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     and for data errors; 2 for usage errors; 130 when interrupted.
     """
     from torchcontact.errors import LogError
-    from torchcontact.logs.pipeline import estimate_files
+    from torchcontact.logs.pipeline import estimate_files, expand_inputs
     from torchcontact.logs.run import unusable
 
     _threads(args)
+    files = expand_inputs(args.inputs)
+    robot = resolve_robot_argument(args, logs=files)  # never silently the bundled arm
+    if args.strict_joints:
+        check_log_joints(files, robot.load(), strict=True)
     kwargs: dict[str, Any] = dict(
         sensors=args.sensor or None,
         batch_size=args.batch_size,
@@ -134,12 +138,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         if args.engine == "ray":
             from torchcontact.logs.ray_engine import estimate_files_ray
 
+            if robot.ft_sensors:
+                raise InputError(
+                    "--ft-sensor applies to --engine local only (Ray workers load the robot from"
+                    " its URDF)"
+                )
             kwargs.update(workers=args.workers, threads=args.threads)
-            summaries = estimate_files_ray(args.inputs, _robot(args.robot), args.out, **kwargs)
+            summaries = estimate_files_ray(files, robot, args.out, **kwargs)
         else:
             if args.workers != 1:
                 raise InputError("--workers applies to --engine ray only")
-            summaries = estimate_files(args.inputs, _robot(args.robot), args.out, **kwargs)
+            summaries = estimate_files(files, robot, args.out, **kwargs)
     except KeyboardInterrupt:
         print("interrupted: run again with --resume to finish", file=sys.stderr)
         return 130
@@ -202,7 +211,8 @@ def _simulate(args: argparse.Namespace, out: Path) -> Path:
         raise InputError(f"--frames must be >= 1, got {args.frames}")
     if args.max_contacts < 1:
         raise InputError(f"--max-contacts must be >= 1, got {args.max_contacts}")
-    robot = _robot(args.robot)
+    robot = resolve_robot_argument(args)
+    assert robot is not None  # simulate and demo default to tcarm
     check_outputs([out, out.with_name(out.name + ".tmp")], [robot])
     model = load_robot(robot)
     surface = _contact_surface(args, model, robot)
@@ -220,6 +230,8 @@ def _simulate(args: argparse.Namespace, out: Path) -> Path:
         progress=_progress(args),
         skin=not getattr(args, "no_skin", False),
         surface=surface,
+        robot=robot.robot,
+        ft_sensors=[str(s) for s in robot.ft_sensors],
     )
 
 
@@ -268,8 +280,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     (folder / "estimate.parquet.progress.json").unlink(missing_ok=True)
     show = _progress(args)
     log = _simulate(args, folder / "log.parquet")
-    summary = estimate_file(log, _robot(args.robot), est, progress=show)
-    pngs = plot_log(est, _robot(args.robot), folder, input_log=log, progress=show)
+    robot = resolve_robot_argument(args)
+    summary = estimate_file(log, robot, est, progress=show)
+    pngs = plot_log(est, robot, folder, input_log=log, progress=show)
     print(f"simulated log:  {log}")
     print(f"estimates:      {est} ({summary['frames']} frames, {summary['frames_per_s']:.0f}/s)")
     for p in pngs:
@@ -283,10 +296,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from torchcontact.logs.plot import plot_log
 
     out = Path(args.out) if args.out else Path(args.log).with_suffix("")
+    # without --robot: the robot recorded by the input log, else the estimate's URDF sha256
+    robot = resolve_robot_argument(args, logs=[args.log, *([args.input] if args.input else [])])
+    if args.strict_joints and args.input:
+        check_log_joints([args.input], robot.load(), strict=True)
     with OutputLock(out, "plot"):
         pngs = plot_log(
             args.log,
-            _robot(args.robot),
+            robot,
             out,
             frame=args.frame,
             input_log=args.input,
@@ -301,6 +318,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     """ROS 1/2 bags or CSV -> log format."""
     from torchcontact.logs.convert import convert
 
+    robot = resolve_robot_argument(args)
     summary = convert(
         args.input,
         args.out,
@@ -308,7 +326,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         wrench_topics=args.wrench,
         contacts_topic=args.contacts_topic,
         contacts_file=args.contacts,
-        robot=args.robot,
+        robot=robot,
         joints=_names(args.joints),
         drop_joints=_names(args.drop_joints) or [],
         progress=_progress(args),
@@ -318,7 +336,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _add_sim_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", help="URDF (default: the bundled tcarm)")
+    add_robot_argument(p, default="tcarm", what="the robot simulated")
     p.add_argument("--sensor", help="F/T sensor to simulate (default: the robot's first)")
     p.add_argument(
         "--contact-links",
@@ -330,14 +348,23 @@ def _add_sim_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=2000, help="number of frames (100 Hz)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--max-contacts", type=int, default=2, help="most simultaneous contacts")
-    p.add_argument("--offset", type=float, nargs="+", help="sensor offset, 1 or 6 numbers")
-    p.add_argument("--drift", type=float, nargs="+", help="thermal drift, 1 or 6 numbers")
+    p.add_argument(
+        "--offset",
+        type=float,
+        nargs="+",
+        help="sensor offset, 1 or 6 numbers [N; N m] (default: 0)",
+    )
+    p.add_argument(
+        "--drift", type=float, nargs="+", help="thermal drift, 1 or 6 numbers [N; N m] (default: 0)"
+    )
     p.add_argument("--cable", type=float, default=0.0, help="cable force amplitude, N")
     p.add_argument("--cable-link", help="link the cable pulls on (default: tcarm's upper_arm)")
     p.add_argument("--payload", type=float, default=0.0, help="unmodelled payload, kg")
     p.add_argument("--payload-link", help="link carrying the payload (default: tcarm's hand)")
-    p.add_argument("--noise", type=float, nargs="+", help="noise std, 1 or 6 numbers")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch default)")
+    p.add_argument(
+        "--noise", type=float, nargs="+", help="noise std, 1 or 6 numbers [N; N m] (default: 0)"
+    )
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads, 0: torch's default")
     p.add_argument("--no-derivatives", action="store_true", help="omit qd/qdd (derive them)")
     p.add_argument(
         "--temperature",
@@ -352,17 +379,26 @@ def add_parser(subparsers: Any) -> None:
     """Register ``estimate``, ``simulate``, ``demo``, ``plot`` and ``convert``."""
     est = subparsers.add_parser("estimate", help="estimate contacts of every frame of logs")
     est.add_argument("inputs", nargs="+", metavar="INPUT", help="Parquet files, folders or globs")
-    est.add_argument("--robot", help="URDF (default: the bundled tcarm)")
+    add_robot_argument(
+        est,
+        default_help="the robot recorded in the logs' metadata by simulate or convert --robot;"
+        " never silently the bundled arm",
+    )
+    add_strict_joints_argument(est)
     est.add_argument(
         "--out", required=True, help="output file (one input) or folder; never an input"
     )
-    est.add_argument("--sensor", action="append", help="F/T sensor to use (repeatable)")
+    est.add_argument(
+        "--sensor",
+        action="append",
+        help="F/T sensor to use (repeatable; default: every sensor of the robot the log has)",
+    )
     est.add_argument(
         "--device", default="auto", choices=["auto", "cpu", "cuda"], help="torch device"
     )
     est.add_argument("--dtype", default="float64", choices=list(DTYPES), help="computation dtype")
     est.add_argument("--batch-size", type=int, default=8192, help="frames per chunk")
-    est.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: default)")
+    est.add_argument("--threads", type=int, default=1, help="torch CPU threads, 0: torch's default")
     est.add_argument("--resume", action="store_true", help="finish an interrupted run")
     est.add_argument(
         "--engine", default="local", choices=["local", "ray"], help="local process or Ray"
@@ -371,20 +407,21 @@ def add_parser(subparsers: Any) -> None:
     est.add_argument(
         "--residual",
         metavar="CHECKPOINT",
-        help="residual checkpoint folder: subtract its learned F/T correction before estimating",
+        help="residual checkpoint folder: subtract its learned F/T correction before estimating"
+        " (default: none)",
     )
     est.add_argument(
         "--velocity-margin",
         type=float,
         default=2.0,
-        help="status bit 64 when |qd| > margin x the URDF velocity limit (0: no check)",
+        help="status bit 64 when |qd| > margin x the URDF velocity limit, 0: no check",
     )
     est.add_argument(
         "--ft-range",
         action="append",
         metavar="SENSOR=LIMIT[,...]",
         help="status bit 64 when a reading exceeds the sensor's range: 1 or 6 limits [N; N m]"
-        " (repeatable)",
+        " (repeatable; default: no range check)",
     )
     est.add_argument(
         "--constraints",
@@ -393,10 +430,18 @@ def add_parser(subparsers: Any) -> None:
         " normal (contact field 'normal'; friction from 'friction'/'cone_angle' or the default)",
     )
     est.add_argument(
-        "--friction", type=float, metavar="MU", help="default friction coefficient (--constraints)"
+        "--friction",
+        type=float,
+        metavar="MU",
+        help="friction coefficient of contacts whose record gives neither friction nor cone_angle"
+        " (--constraints; default: none, every contact must give one)",
     )
     est.add_argument(
-        "--cone-angle", type=float, metavar="RAD", help="default cone half-angle (--constraints)"
+        "--cone-angle",
+        type=float,
+        metavar="RAD",
+        help="cone half-angle of those contacts, instead of --friction (--constraints; default:"
+        " none)",
     )
     est.add_argument(
         "--cone-iterations",
@@ -444,7 +489,12 @@ def add_parser(subparsers: Any) -> None:
 
     plot = subparsers.add_parser("plot", help="PNG plots of an estimated log")
     plot.add_argument("log", help="output of torchcontact estimate")
-    plot.add_argument("--robot", help="URDF (default: the bundled tcarm)")
+    add_robot_argument(
+        plot,
+        default_help="the robot recorded in the --input log, else the known robot with the"
+        " estimate's URDF sha256",
+    )
+    add_strict_joints_argument(plot)
     plot.add_argument(
         "--frame",
         type=int,
@@ -452,7 +502,9 @@ def add_parser(subparsers: Any) -> None:
         " frame; for nullspace.png the frame with the most unobservable directions)",
     )
     plot.add_argument(
-        "--input", help="the input log (joint positions for robot.png and nullspace.png)"
+        "--input",
+        help="the input log, for the joint positions of robot.png and nullspace.png (default:"
+        " none, and those two are not drawn)",
     )
     plot.add_argument("--out", help="folder of the PNGs (default: the log's name without suffix)")
     plot.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -466,16 +518,29 @@ def add_parser(subparsers: Any) -> None:
         "--wrench",
         action="append",
         metavar="TOPIC[=SENSOR]",
-        help="geometry_msgs/WrenchStamped topic, optionally =sensor name (repeatable)",
-    )
-    conv.add_argument("--contacts-topic", help="geometry_msgs/PointStamped (frame_id = link)")
-    conv.add_argument("--contacts", help="contact-spec file (TOML or JSON)")
-    conv.add_argument(
-        "--robot", help="URDF: keep its joints, name F/T columns after its sensors' frames"
+        help="geometry_msgs/WrenchStamped topic, optionally =sensor name (repeatable; bags need"
+        " one; default sensor name: the robot's sensor of the header's frame_id, else the"
+        " frame_id)",
     )
     conv.add_argument(
-        "--joints", action="append", metavar="J[,J...]", help="keep these joints, in this order"
+        "--contacts-topic",
+        help="geometry_msgs/PointStamped topic of contact points, frame_id = link (default: none)",
     )
-    conv.add_argument("--drop-joints", action="append", metavar="J[,J...]", help="drop joints")
+    conv.add_argument("--contacts", help="contact-spec file, TOML or JSON (default: none)")
+    add_robot_argument(
+        conv,
+        what="keep its joints (in its order), name F/T columns after its sensors and record it in"
+        " the log for estimate",
+        default_help="none: keep every joint",
+    )
+    conv.add_argument(
+        "--joints",
+        action="append",
+        metavar="J[,J...]",
+        help="keep these joints, in this order (default: the robot's, else every joint seen)",
+    )
+    conv.add_argument(
+        "--drop-joints", action="append", metavar="J[,J...]", help="drop joints (default: none)"
+    )
     conv.add_argument("--quiet", action="store_true", help="no progress bar")
     conv.set_defaults(func=cmd_convert)

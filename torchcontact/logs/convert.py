@@ -28,6 +28,7 @@ CSV: a header with ``t_ns``, ``q.<joint>`` (and optionally ``qd.<joint>``, ``qdd
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -39,11 +40,13 @@ from torchcontact.errors import ConvertError, InputError
 from torchcontact.logs.format import (
     META_JOINT_NAMES,
     META_SOURCE,
+    META_URDF_SHA256,
     check_outputs,
     contact_struct_type,
     contacts_column,
     fixed_list,
     ft_column,
+    robot_metadata,
     write_table,
 )
 
@@ -169,10 +172,10 @@ def _interp(t: np.ndarray, ts: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t, ts, x[:, j]) for j in range(x.shape[1])], -1)
 
 
-def _write(out: Path, cols: dict, joint_names: Sequence[str], source: str) -> dict:
+def _write(out: Path, cols: dict, joint_names: Sequence[str], source: str, robot: dict) -> dict:
     import pyarrow as pa
 
-    meta = {META_JOINT_NAMES: json.dumps(list(joint_names)), META_SOURCE: source}
+    meta = {META_JOINT_NAMES: json.dumps(list(joint_names)), META_SOURCE: source, **robot}
     table = pa.table(cols).replace_schema_metadata(meta)
     write_table(table, out)
     return {
@@ -183,7 +186,9 @@ def _write(out: Path, cols: dict, joint_names: Sequence[str], source: str) -> di
     }
 
 
-def _convert_csv(path: Path, out: Path, spec: ContactSpec | None, select: dict, model: Any) -> dict:
+def _convert_csv(
+    path: Path, out: Path, spec: ContactSpec | None, select: dict, model: Any, robot: dict
+) -> dict:
     import pyarrow.csv as pcsv
 
     try:
@@ -222,7 +227,7 @@ def _convert_csv(path: Path, out: Path, spec: ContactSpec | None, select: dict, 
     cols["contacts"] = contacts_column(
         rec, len(t), struct_type=contact_struct_type(cone=bool(rec.cone_fields))
     )
-    return _write(out, cols, joints, f"csv:{path.name}")
+    return _write(out, cols, joints, f"csv:{path.name}", robot)
 
 
 class _JointSeries:
@@ -251,6 +256,20 @@ class _JointSeries:
         return t[o], np.asarray(self.q[name])[o], np.asarray(self.qd[name])[o]
 
 
+def _warn_unknown_sensor(path: Path, topic: str, model: Any, column: str, fid: str | None) -> None:
+    """Warn that a wrench topic's readings name no F/T sensor of the robot (the column stays)."""
+    what = f"its frame_id {fid!r}" if fid is not None else f"sensor {column!r}"
+    sensors = list(model.ft_sensors) or "none (declare one with --ft-sensor)"
+    warnings.warn(
+        f"{path}: {topic}: {what} names no F/T sensor of {model.name} (its sensors: {sensors},"
+        " matched by sensor, joint or reading-frame link name); the readings are written as"
+        f" ft.{column}, which estimate will not use for a sensor of {model.name}: name the"
+        f" sensor with --wrench {topic}=SENSOR",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 def _convert_bag(
     path: Path,
     out: Path,
@@ -261,6 +280,7 @@ def _convert_bag(
     select: dict,
     model: Any,
     progress: bool,
+    robot: dict,
 ) -> dict:
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -272,6 +292,9 @@ def _convert_bag(
     for w in wrench_topics:
         topic, _, sensor = w.partition("=")
         wrench[topic] = sensor or None
+    for topic, sensor in wrench.items():
+        if model is not None and sensor is not None and sensor not in model.ft_sensors:
+            _warn_unknown_sensor(path, topic, model, sensor, None)
     js = _JointSeries()
     ft: dict[str, tuple[list, list, str | None]] = {t: ([], [], s) for t, s in wrench.items()}
     points: list[tuple[int, str, list]] = []
@@ -303,12 +326,11 @@ def _convert_bag(
                     ft[conn.topic][1].append([f.x, f.y, f.z, tq.x, tq.y, tq.z])
                     if ft[conn.topic][2] is None:
                         fid = msg.header.frame_id
-                        name = (
-                            sensor_for_frame(model, fid)
-                            or fid
-                            or conn.topic.strip("/").replace("/", "_")
-                        )
+                        found = sensor_for_frame(model, fid)
+                        name = found or fid or conn.topic.strip("/").replace("/", "_")
                         ft[conn.topic] = (ft[conn.topic][0], ft[conn.topic][1], name)
+                        if model is not None and found is None:
+                            _warn_unknown_sensor(path, conn.topic, model, name, fid)
                 else:
                     p = msg.point
                     points.append((t, msg.header.frame_id, [p.x, p.y, p.z]))
@@ -347,7 +369,7 @@ def _convert_bag(
     cols["contacts"] = contacts_column(
         rec, len(t), struct_type=contact_struct_type(cone=bool(rec.cone_fields))
     )
-    return _write(out, cols, joints, f"bag:{path.name}")
+    return _write(out, cols, joints, f"bag:{path.name}", robot)
 
 
 def convert(
@@ -372,8 +394,11 @@ def convert(
         wrench_topics: ``geometry_msgs/WrenchStamped`` topics, each ``TOPIC`` or ``TOPIC=SENSOR``.
         contacts_topic: ``geometry_msgs/PointStamped`` topic of contact points (frame_id = link).
         contacts_file: contact-spec file (TOML or JSON, see module doc).
-        robot: URDF path or :class:`~torchcontact.RobotModel`: keep its joints (in its order)
-            and name F/T columns after its sensors.
+        robot: ``tcarm``, ``icub``, a URDF path, a :class:`~torchcontact.robots.RobotSpec` or a
+            :class:`~torchcontact.RobotModel`: keep its joints (in its order), name F/T columns
+            after its sensors (a wrench topic naming none of them is kept with a warning), and
+            record the robot in the log's metadata (name or path with its URDF sha256; only the
+            sha256 for a model) for ``estimate`` without ``--robot``.
         joints: keep these joints, in this order.
         drop_joints: drop these joints.
         progress: show a progress bar over the bag's messages.
@@ -386,25 +411,44 @@ def convert(
         InputError: an output that is, or contains, an input; a bad contact spec.
     """
     from torchcontact.model import RobotModel
+    from torchcontact.robots import RobotSpec
 
     path, out = Path(input), Path(out)
-    robot_path = robot if isinstance(robot, (str, Path)) else None
+    if isinstance(robot, (str, Path)):
+        robot = RobotSpec.of(robot)
+    robot_path = robot if isinstance(robot, RobotSpec) else None
     check_outputs([out, out.with_name(out.name + ".tmp")], [path, contacts_file, robot_path])
     if not path.exists():
         raise ConvertError(f"{path}: no such file or folder")
     if joints is not None and robot is not None:
         raise InputError("give --joints or --robot to select joints, not both")
-    model = robot
+    model, meta = robot, {}
     if robot_path is not None:
         from torchcontact.logs.pipeline import load_robot
 
         model = load_robot(robot_path)
+        # the robot in the log's metadata: estimate without --robot finds it
+        sensors = [str(s) for s in robot_path.ft_sensors]
+        meta = robot_metadata(robot_path.robot, model.urdf_sha256, sensors)
     elif robot is not None and not isinstance(robot, RobotModel):
-        raise InputError(f"robot must be a URDF path or a RobotModel, got {type(robot).__name__}")
+        raise InputError(
+            f"robot must be a URDF path, a RobotSpec or a RobotModel, got {type(robot).__name__}"
+        )
+    elif robot is not None:
+        meta = {META_URDF_SHA256: robot.urdf_sha256}
     spec = load_contact_spec(contacts_file) if contacts_file else None
     select = {"joints": joints, "drop": list(drop_joints)}
     if path.suffix.lower() == ".csv":
-        return _convert_csv(path, out, spec, select, model)
+        return _convert_csv(path, out, spec, select, model, meta)
     return _convert_bag(
-        path, out, joint_states, wrench_topics or [], contacts_topic, spec, select, model, progress
+        path,
+        out,
+        joint_states,
+        wrench_topics or [],
+        contacts_topic,
+        spec,
+        select,
+        model,
+        progress,
+        meta,
     )

@@ -446,6 +446,7 @@ class ChunkDecoder:
     Args:
         model: the robot.
         perm: the log's joint columns -> the model's order.
+        width: joints of the log (``len(perm)`` unless the log has joints the robot lacks).
         sensors: sensors in use.
         contact_fields: fields of the contact struct (empty: no contacts column).
         derived: columns derived from ``q`` (not read).
@@ -461,6 +462,7 @@ class ChunkDecoder:
         self,
         model: RobotModel,
         perm: np.ndarray,
+        width: int,
         sensors: Sequence[str],
         contact_fields: Sequence[tuple[str, Any]],
         derived: Sequence[str],
@@ -473,6 +475,7 @@ class ChunkDecoder:
     ) -> None:
         self.model = model
         self.perm = perm
+        self.width = width
         self.sensors = list(sensors)
         self.contact_fields = list(contact_fields)
         self.derived = list(derived)
@@ -527,7 +530,7 @@ class ChunkDecoder:
 
         if isinstance(table, pa.RecordBatch):
             table = pa.Table.from_batches([table])
-        N, nv, perm = table.num_rows, self.model.nv, self.perm
+        N, nv, perm = table.num_rows, self.width, self.perm  # nv: the log's joints
         issues = FrameIssues(N)
         t_col = table.column("t_ns")
         t = timestamps(t_col, self.source, first_row)
@@ -689,8 +692,11 @@ def _joints(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def stamps_and_positions(
-    table: Any, perm: np.ndarray, source: str = "", first_row: int = 0
+    table: Any, perm: np.ndarray, width: int, source: str = "", first_row: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a table (context)."""
-    q, _ = vectors(table.column("q"), len(perm))
+    """``t_ns (N,)`` int64 and ``q (N, nv)`` in the model's joint order of a table (context).
+
+    ``width``: the log's joints (more than ``len(perm)`` when it has joints the robot lacks).
+    """
+    q, _ = vectors(table.column("q"), width)
     return timestamps(table.column("t_ns"), source, first_row), _joints(q, perm)

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -58,6 +59,7 @@ __all__ = [
     "META_RESIDUAL",
     "META_SENSORS",
     "META_SOURCE",
+    "META_ROBOT",
     "META_URDF_SHA256",
     "META_VERSION",
     "LogWriter",
@@ -75,12 +77,14 @@ __all__ = [
     "joint_names_of",
     "joint_permutation",
     "localization_fields",
+    "logged_robot",
     "open_log",
     "output_schema",
     "read_contacts",
     "read_journal",
     "read_log_columns",
     "read_rows",
+    "robot_metadata",
     "struct_list",
     "timestamps",
     "vectors",
@@ -90,6 +94,10 @@ __all__ = [
 
 META_JOINT_NAMES = b"torchcontact.joint_names"
 META_URDF_SHA256 = b"torchcontact.urdf_sha256"
+#: The robot a log was written for: JSON ``{"robot": NAME_OR_URDF_PATH, "ft_sensors": [SPEC]}``
+#: (the ``--robot`` and ``--ft-sensor`` values, a path made absolute), beside
+#: :data:`META_URDF_SHA256`; ``torchcontact estimate`` without ``--robot`` uses them.
+META_ROBOT = b"torchcontact.robot"
 META_VERSION = b"torchcontact.version"
 META_SENSORS = b"torchcontact.sensors"
 META_DERIVED = b"torchcontact.derived"
@@ -302,24 +310,36 @@ def localization_fields(sensors: Sequence[str]) -> list[tuple[str, Any]]:
 
 
 def joint_permutation(
-    names: Sequence[str], model_names: Sequence[str], robot: str, source: object = ""
+    names: Sequence[str],
+    model_names: Sequence[str],
+    robot: str,
+    source: object = "",
+    *,
+    strict: bool = False,
 ) -> np.ndarray:
     """Index of each of the robot's joints in a log's joint list (joints matched by name).
 
-    The log must name exactly the robot's joint coordinates, in any order (what ``estimate`` and
-    training accept).
+    The log must name every one of the robot's joint coordinates, in any order. Joints the robot
+    lacks (a gripper's, a second arm's) are left out with one warning naming them, or refused
+    with ``strict`` (``--strict-joints``). This is the one place where ``estimate``, ``plot``
+    and training match a log's joints to a robot.
 
     Args:
         names: the log's joint names (:func:`joint_names_of`).
         model_names: the robot's coordinates (``model.joint_names``).
         robot: the robot's name, for messages.
         source: the log, for messages.
+        strict: refuse joints the robot lacks instead of leaving them out.
 
     Returns:
         ``(nv,)`` int64 ``perm`` with ``log_vector[..., perm]`` in the robot's order.
 
     Raises:
-        LogError: joints missing or extra (naming them), or duplicate names.
+        LogError: robot joints the log lacks, extra joints with ``strict`` (naming them), or
+            duplicate names.
+
+    Warns:
+        UserWarning: the log's joints the robot lacks, which are left out (not ``strict``).
 
     Example:
         >>> joint_permutation(["b", "a"], ["a", "b"], "robot").tolist()
@@ -328,15 +348,23 @@ def joint_permutation(
     names, model_names = list(names), list(model_names)
     missing = [n for n in model_names if n not in names]
     extra = [n for n in names if n not in model_names]
-    if missing or extra:
+    if missing or (extra and strict):
         msg = f"{source}: joint names of the log do not match {robot} (matched by name):"
         if missing:
             msg += f" the log lacks joints {missing}"
         if extra:
-            msg += f" extra {extra} (mimic and fixed joints are not coordinates)"
+            msg += f" extra {extra} (mimic and fixed joints are not"
+            msg += " coordinates)"
         raise LogError(msg)
     if len(set(names)) != len(names):
         raise LogError(f"{source}: duplicate joint names {names}")
+    if extra:
+        warnings.warn(
+            f"{source}: leaving out joints {extra}, which {robot} does not have"
+            " (--strict-joints refuses them)",
+            UserWarning,
+            stacklevel=2,
+        )
     return np.array([names.index(n) for n in model_names], dtype=np.int64)
 
 
@@ -359,6 +387,40 @@ def joint_names_of(schema: Any, path: object = "") -> list[str]:
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise LogError(f"{path}: {META_JOINT_NAMES.decode()} is not a JSON list of strings")
     return names
+
+
+def robot_metadata(robot: str, urdf_sha256: str, ft_sensors: Sequence[str] = ()) -> dict:
+    """Schema metadata naming a log's robot (:data:`META_ROBOT`, :data:`META_URDF_SHA256`).
+
+    Args:
+        robot: a robot name (``tcarm``) or an absolute URDF path.
+        urdf_sha256: sha256 of the URDF text (``RobotModel.urdf_sha256``).
+        ft_sensors: declared sensors (``--ft-sensor`` specs), if any.
+
+    Example:
+        >>> robot_metadata("tcarm", "ab12")[META_ROBOT]
+        '{"robot": "tcarm", "ft_sensors": []}'
+    """
+    return {
+        META_ROBOT: json.dumps({"robot": str(robot), "ft_sensors": [str(s) for s in ft_sensors]}),
+        META_URDF_SHA256: urdf_sha256,
+    }
+
+
+def logged_robot(schema: Any) -> tuple[dict | None, str]:
+    """The robot recorded in a log's metadata: ``(META_ROBOT as a dict or None, URDF sha256)``.
+
+    A malformed :data:`META_ROBOT` counts as absent; the sha256 is ``""`` when not recorded.
+    """
+    meta = getattr(schema, "metadata", None) or {}
+    sha = meta.get(META_URDF_SHA256, b"").decode()
+    try:
+        robot = json.loads(meta[META_ROBOT]) if META_ROBOT in meta else None
+    except ValueError:
+        robot = None
+    ok = isinstance(robot, dict) and isinstance(robot.get("robot"), str)
+    ok = ok and all(isinstance(s, str) for s in robot.get("ft_sensors", []))  # type: ignore[union-attr]
+    return (robot if ok else None), sha
 
 
 #: What a numeric log column may hold: numbers that convert to float64 without loss.

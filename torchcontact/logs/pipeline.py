@@ -102,20 +102,23 @@ def load_robot(
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
 ) -> RobotModel:
-    """The robot model from a URDF path (or a model, moved to ``device`` and ``dtype``).
+    """The robot model of a robot argument (or a model, moved to ``device`` and ``dtype``).
+
+    ``robot`` is ``tcarm``, ``icub``, a URDF path or a :class:`~torchcontact.robots.RobotSpec`
+    (with declared F/T sensors): :func:`torchcontact.robots.load_robot_model`.
 
     Raises:
-        InputError: no such URDF file, or an unusable device.
+        InputError: no such URDF file, not a URDF, or an unusable device.
         URDFError: a URDF torchcontact cannot model (the message names the element).
     """
+    from torchcontact.robots import load_robot_model
+
     device = resolve_device(device)
     if isinstance(robot, RobotModel):
         if robot.dtype == dtype and str(robot.device) == device:
             return robot
         return robot.to(device, dtype)
-    if not Path(robot).is_file():
-        raise InputError(f"--robot {robot}: no such URDF file")
-    return RobotModel.from_urdf(robot, dtype=dtype, device=device)
+    return load_robot_model(robot, dtype=dtype, device=device)
 
 
 def _check_positive(**values: int) -> None:
@@ -425,7 +428,7 @@ def _context(
         return None
     lo = max(0, first - (2 * half_window if le.derived else 2))
     tab = next(read_chunks(pf, ["t_ns", "q"], first - lo, source, lo))
-    return stamps_and_positions(tab, le.perm, source, lo)
+    return stamps_and_positions(tab, le.perm, len(le.input_joint_names), source, lo)
 
 
 def _path_or_none(x: Any) -> str | Path | None:

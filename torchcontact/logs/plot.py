@@ -296,14 +296,18 @@ def _posed(tab: Any, model: Any, input_log: str | Path, frame: int) -> tuple[Any
     import torch
 
     import torchcontact as tc
-    from torchcontact.logs.format import joint_names_of, open_log, read_rows, vectors
+    from torchcontact.logs.format import (
+        joint_names_of,
+        joint_permutation,
+        open_log,
+        read_rows,
+        vectors,
+    )
 
     t_ns = tab.column("t_ns")[frame].as_py()
     pf = open_log(input_log)
     names = joint_names_of(pf.schema_arrow, input_log)
-    missing = [n for n in model.joint_names if n not in names]
-    if missing:
-        raise LogError(f"{input_log}: joints {missing} of {model.name} are not in the input log")
+    perm = joint_permutation(names, model.joint_names, model.name, input_log)  # extra: a warning
     if pf.metadata.num_rows != tab.num_rows:
         raise LogError(
             f"{input_log}: {pf.metadata.num_rows} rows, the estimate has {tab.num_rows}: give the"
@@ -313,7 +317,7 @@ def _posed(tab: Any, model: Any, input_log: str | Path, frame: int) -> tuple[Any
     if row.column("t_ns")[0].as_py() != t_ns:
         raise LogError(f"{input_log}: row {frame} has another t_ns than the estimate's")
     q, _ = vectors(row.column("q"), len(names))
-    q = q[0, [names.index(n) for n in model.joint_names]]
+    q = q[0, perm]
     q = torch.as_tensor(q, dtype=model.dtype)
     zero = torch.zeros(model.nv, dtype=model.dtype)
     return q, tc.forward_pass(model, q, zero, zero)

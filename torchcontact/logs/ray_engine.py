@@ -126,10 +126,11 @@ def _estimate_units(batch: dict[str, np.ndarray], config: tuple) -> dict[str, np
         tab = _read_unit(pf, job["columns"], lo, hi, path)
         unit = tab.slice(start - lo, stop - start)
         before = after = None
+        width = len(le.input_joint_names)  # the log's joints (le.perm: the model's)
         if start > lo:
-            before = stamps_and_positions(tab.slice(0, start - lo), le.perm, path, lo)
+            before = stamps_and_positions(tab.slice(0, start - lo), le.perm, width, path, lo)
         if derive and hi > stop:
-            after = stamps_and_positions(tab.slice(stop - lo), le.perm, path, stop)
+            after = stamps_and_positions(tab.slice(stop - lo), le.perm, width, path, stop)
         chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
         decoded = decoded_chunks(le, chunks, h, start, before, after)
         # a unit's first frame starts cold: units run in parallel and in any order

@@ -14,6 +14,7 @@ to the ``true_contacts`` column (same struct), for ``estimate --localize``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +23,13 @@ import numpy as np
 from torchcontact.contacts import ContactRecords
 from torchcontact.errors import InputError
 from torchcontact.logs.format import (
+    META_URDF_SHA256,
     LogWriter,
     contacts_column,
     fixed_list,
     ft_column,
     input_schema,
+    robot_metadata,
 )
 from torchcontact.model import RobotModel
 from torchcontact.simulation import SimulatedLog, UnmodeledEffects, simulate
@@ -41,7 +44,12 @@ def _contact_extra() -> list[tuple[str, Any]]:
 
 
 def simulated_table(
-    log: SimulatedLog, *, derivatives: bool = True, t0_ns: int = 0, skin: bool = True
+    log: SimulatedLog,
+    *,
+    derivatives: bool = True,
+    t0_ns: int = 0,
+    skin: bool = True,
+    metadata: Mapping[bytes, bytes | str] | None = None,
 ) -> Any:
     """A pyarrow table in the log format from a :class:`SimulatedLog`.
 
@@ -51,6 +59,8 @@ def simulated_table(
         t0_ns: added to ``t_ns``.
         skin: the contacts go to ``contacts`` (True) or, as for a robot without skin, to
             ``true_contacts`` with ``contacts`` empty (False).
+        metadata: further schema metadata (the robot: :func:`~torchcontact.logs.format.
+            robot_metadata`).
 
     Returns:
         Table with ``t_ns, q[, qd, qdd], ft.<sensor>, contacts, temperature`` (and
@@ -65,6 +75,7 @@ def simulated_table(
         derivatives=derivatives,
         contact_extra=_contact_extra(),
         extra=[("temperature", pa.float64())],
+        metadata=metadata,
         cone=True,
     )
     ctype = schema.field("contacts").type.value_type
@@ -109,6 +120,8 @@ def write_simulated_log(
     temperature: bool = True,
     progress: bool = False,
     skin: bool = True,
+    robot: str | None = None,
+    ft_sensors: Sequence[str] = (),
     **kwargs: Any,
 ) -> Path:
     """Simulate ``frames`` frames and write them as a Parquet log, streamed in chunks.
@@ -128,6 +141,10 @@ def write_simulated_log(
         temperature: keep the ``temperature`` column.
         progress: show a progress bar (per segment).
         skin: False writes a log without skin contacts (the truth in ``true_contacts``).
+        robot: the robot argument ``model`` was built from (a name or an absolute URDF path),
+            recorded in the log's metadata with its URDF sha256 (:data:`~torchcontact.logs.format.
+            META_ROBOT`) so that ``estimate`` finds it; None records the sha256 only.
+        ft_sensors: the ``--ft-sensor`` specs ``model`` was built with, recorded with ``robot``.
         **kwargs: passed to :func:`torchcontact.simulation.simulate` (``sensor``, ``links``,
             ``max_contacts``, ``surface``, ...).
 
@@ -144,6 +161,9 @@ def write_simulated_log(
     if chunk < 1:
         raise InputError(f"chunk must be >= 1, got {chunk}")
     out = Path(out)
+    meta = {META_URDF_SHA256: model.urdf_sha256}
+    if robot is not None:
+        meta = robot_metadata(robot, model.urdf_sha256, ft_sensors)
     t0 = 0
     writer = None
     bar = tqdm(total=frames, unit="frames", desc="simulate", disable=not progress)
@@ -151,7 +171,7 @@ def write_simulated_log(
         for i, start in enumerate(range(0, frames, chunk)):
             n = min(chunk, frames - start)
             log = simulate(model, n, seed=seed + i, effects=effects, **kwargs)
-            tab = simulated_table(log, derivatives=derivatives, t0_ns=t0, skin=skin)
+            tab = simulated_table(log, derivatives=derivatives, t0_ns=t0, skin=skin, metadata=meta)
             if not temperature:
                 tab = tab.drop_columns(["temperature"])
             step = int(log.t_ns[1] - log.t_ns[0]) if n > 1 else 0
