@@ -96,7 +96,7 @@ def iter_parsers() -> Iterator[tuple[list[str], argparse.ArgumentParser]]:
                         seen.add(id(sub))
                         yield from walk([*path, name], sub)
 
-    yield from walk([], build_parser())
+    yield from walk([], build_parser("*"))
     original = Parser.parse_args
     for name in APPS:
         grabbed: dict[str, Any] = {}

@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         "--dtype",
         choices=["float32", "float64"],
         default=None,
-        help="graph dtype (default float32; float64 for --format c)",
+        help="graph dtype (default: float32; float64 for --format c)",
     )
     e.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     e.add_argument("--rank-rtol", type=float, default=None, help="rank tolerance (default: dtype)")

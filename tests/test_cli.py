@@ -122,7 +122,7 @@ def test_help_shows_defaults_and_every_command(capsys):
     assert "(default: cpu)" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["export", "estimator", "--help"])
-    assert "(default: float32)" in capsys.readouterr().out
+    assert "(default: float32; float64 for --format c)" in capsys.readouterr().out
 
 
 # ----------------------------------------------------------------------- one robot argument
