@@ -124,11 +124,13 @@ def build_parser() -> argparse.ArgumentParser:
     """Build the top-level argument parser with every sub-command registered."""
     from torchcontact.drivers import cli as drivers_cli
     from torchcontact.logs import cli as logs_cli
+    from torchcontact.view import cli as view_cli
 
     parser = Parser(prog="torchcontact", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     logs_cli.add_parser(sub)
+    view_cli.add_parser(sub)
     drivers_cli.add_parser(sub)
     for name, (_, _, help_text) in APPS.items():
         sub.add_parser(name, help=help_text, add_help=False)  # parsed by the application

@@ -10,7 +10,7 @@ an unknown link is an error when the estimate is called.
 
 from __future__ import annotations
 
-__all__ = ["STATUS", "status_messages"]
+__all__ = ["STATUS", "STATUS_NAMES", "status_bits", "status_messages"]
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok).
 STATUS: dict[int, str] = {
@@ -23,6 +23,29 @@ STATUS: dict[int, str] = {
     64: "implausible input (joint velocity beyond the URDF limit, or reading beyond sensor range)",
     128: "invalid contact (unknown link or kind, or a link outside every F/T sensor's subtree)",
 }
+
+
+#: A short name per bit of :data:`STATUS` (an identifier: plot legends, rerun entity paths).
+STATUS_NAMES: dict[int, str] = {
+    1: "ft_nonfinite",
+    2: "joints_nonfinite",
+    4: "contact_nonfinite",
+    8: "zero_direction",
+    16: "tau_nonfinite",
+    32: "output_nonfinite",
+    64: "implausible_input",
+    128: "invalid_contact",
+}
+
+
+def status_bits(code: int) -> list[str]:
+    """Short names (:data:`STATUS_NAMES`) of the bits set in a status code (``[]`` for 0).
+
+    Example:
+        >>> status_bits(1 | 64)
+        ['ft_nonfinite', 'implausible_input']
+    """
+    return [STATUS_NAMES.get(bit, f"bit{bit}") for bit in STATUS if code & bit]
 
 
 def status_messages(code: int) -> str:
