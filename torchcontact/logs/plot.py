@@ -163,7 +163,7 @@ def ill_posed_note(constrained: bool) -> str:
         constrained: the estimate was made with ``--constraints`` (friction cones).
     """
     what = "the friction-cone constrained estimate" if constrained else "the minimum-norm estimate"
-    return f"rank < unknowns: the sensors do not determine the forces, {what} is not the truth"
+    return f"rank < unknowns: the sensors do not determine the forces, {what} need not be the truth"
 
 
 def _rank_deficient(tab: Any, sensors: list[str]) -> np.ndarray:
@@ -361,11 +361,8 @@ def _forces(t: np.ndarray, fc: dict, deficient: np.ndarray, constrained: bool, p
     if deficient.any():
         handles.append(_ill_posed_patch(constrained))
     kind = "friction-cone constrained estimate" if constrained else "estimate"
-    fig.suptitle(
-        f"Contact wrenches per slot: {kind} (dots) and truth (lines); shaded: "
-        + ill_posed_note(constrained),
-        fontsize=10,
-    )
+    title = f"Contact wrenches per slot: {kind} (dots) and truth (lines); shaded: "
+    fig.suptitle(textwrap.fill(title + ill_posed_note(constrained), 150), fontsize=10)
     fig.tight_layout(rect=(0, 0, 0.8, 1))
     fig.legend(handles=handles, loc="center left", bbox_to_anchor=(0.8, 0.5), fontsize=8)
     fig.savefig(path, dpi=110)
@@ -427,8 +424,8 @@ def _quality(
     axes[0].set_ylabel("count")
     axes[1].set_ylabel("|A x - b|")
     axes[-1].set_xlabel("time [s]")
-    axes[0].set_title("Identifiability per sensor; shaded: " + ill_posed_note(constrained),
-                      fontsize=10)  # fmt: skip
+    title = "Identifiability per sensor; shaded: " + ill_posed_note(constrained)
+    axes[0].set_title(textwrap.fill(title, 110), fontsize=10)
     fig.tight_layout(rect=(0, 0, 0.78, 1))
     for ax in axes:
         h, labels = ax.get_legend_handles_labels()
@@ -756,8 +753,8 @@ def _nullspace_view(
         scale = 0.25 * size / fmax
         pts, arrows = [p], []
         for c, fw, m in parts:
-            ax.scatter(*c, color="tab:purple", s=20, depthshade=False)
-            ax.quiver(*c, *(fw * scale), color="tab:purple", lw=2.2, label="force")
+            ax.scatter(*c, color=_mpl(NULLSPACE_RGB), s=20, depthshade=False)
+            ax.quiver(*c, *(fw * scale), color=_mpl(NULLSPACE_RGB), lw=2.2, label="force")
             if m is not None and np.linalg.norm(m) > 1e-9:
                 ax.quiver(*c, *(m * scale), color="tab:green", lw=1.5, linestyle=":",
                           label="moment")  # fmt: skip

@@ -256,6 +256,7 @@ class RerunScene:
         if urdf is not None:
             self._load_meshes(urdf, require_meshes, package_dirs, links)
         self.size = 1.0
+        self.ft_scale = 1.0
         self._started = False
         self._dates = False
         self._styled: set[str] = set()
@@ -310,6 +311,12 @@ class RerunScene:
             mags = mags[np.isfinite(mags)]
             typical = float(np.percentile(mags, 95)) if len(mags) else 0.0
             self.scale = nice_scale(typical, 0.25 * self.size)
+        # the readings carry the robot's weight: their own scale, the median force half its size
+        ft = [np.linalg.norm(np.asarray(w)[:, :3], axis=-1) for w in frames.ft.values()]
+        ft_mags = np.concatenate(ft) if ft else np.zeros(0)
+        ft_mags = ft_mags[np.isfinite(ft_mags)]
+        self.ft_scale = nice_scale(float(np.median(ft_mags)) if len(ft_mags) else 0.0,
+                                   0.5 * self.size)  # fmt: skip
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         # meshes in their link frames; axes for links without one
         drawn: set[str] = set()
@@ -396,15 +403,18 @@ class RerunScene:
         ]
         for s in self.sensors:
             self._series(
-                f"plots/identifiability/{s}/rank", rr.SeriesLines(names=f"rank {s}", widths=1.5)
+                f"plots/identifiability/{s}/rank",
+                rr.SeriesLines(names=f"rank {s}", widths=1.5, colors=slot_rgb(1)),
             )
             self._series(
                 f"plots/identifiability/{s}/unknowns",
-                rr.SeriesLines(names=f"unknowns {s}", widths=3),
+                rr.SeriesLines(names=f"unknowns {s}", widths=3, colors=slot_rgb(0, 0.5)),
             )
             self._series(
                 f"plots/identifiability/{s}/nullity",
-                rr.SeriesLines(names=f"null-space dimension {s}", widths=1),
+                rr.SeriesLines(
+                    names=f"null-space dimension {s}", widths=1, colors=(*NULLSPACE_RGB, 255)
+                ),
             )
             self._series(f"plots/residual/{s}", rr.SeriesLines(names=f"|A x - b| {s}"))
             for what in ("measured", "residual"):
@@ -461,7 +471,9 @@ class RerunScene:
             ]
         lines += [
             "",
-            "F/T sensors: measured force (dark) and the force part of A x - b (red), sensor frame.",
+            f"F/T sensors, sensor frame: the measured force (dark) at **{self.ft_scale:g} N per m**"
+            f" (it carries the robot's weight), the force part of A x - b (red) at {self.scale:g}"
+            " N per m like the contacts.",
             "",
             f"Grey lane: {ill_posed_note(self.constrained)}; `--nullspace` draws the directions"
             " the sensors cannot see (purple, the largest 25 % of the robot's size).",
@@ -493,8 +505,8 @@ class RerunScene:
             rrb.TextDocumentView(origin="legend", name="legend"),
         ]
         eye = rrb.EyeControls3D(
-            position=[1.6 * self.size, -1.6 * self.size, 1.1 * self.size],
-            look_target=[0.0, 0.0, 0.35 * self.size],
+            position=[1.2 * self.size, -1.2 * self.size, 0.9 * self.size],
+            look_target=[0.0, 0.0, 0.4 * self.size],
             eye_up=[0.0, 0.0, 1.0],
         )
         return rrb.Blueprint(
@@ -502,7 +514,8 @@ class RerunScene:
                 rrb.Vertical(
                     rrb.Spatial3DView(
                         origin="world",
-                        name=f"robot, arrows {self.scale:g} N per m",
+                        name=f"robot; contact forces {self.scale:g} N per m, F/T readings"
+                        f" {self.ft_scale:g} N per m",
                         eye_controls=eye,
                     ),
                     rrb.StateTimelineView(origin="states", name="status, posedness, cones"),
@@ -622,9 +635,9 @@ class RerunScene:
         zero = np.zeros((N, 3), np.float32)
         for s in self.sensors:
             base = self._sensor_path(s)
-            for what, data, color in (
-                ("measured", frames.ft.get(s), _MEASURED_RGB),
-                ("residual", (frames.residual_wrench or {}).get(s), _RESIDUAL_RGB),
+            for what, data, color, scale in (
+                ("measured", frames.ft.get(s), _MEASURED_RGB, self.ft_scale),
+                ("residual", (frames.residual_wrench or {}).get(s), _RESIDUAL_RGB, self.scale),
             ):
                 if data is None:
                     continue
@@ -636,7 +649,7 @@ class RerunScene:
                     frames,
                     frame,
                     zero[ok],
-                    data[ok, :3] / self.scale,
+                    data[ok, :3] / scale,
                     np.tile(color, (len(frame), 1)),
                     0.012 * self.size,
                 )
@@ -674,7 +687,7 @@ class RerunScene:
                 radii=np.full(len(c), 0.012 * self.size, np.float32),
             ).partition(np.bincount(f, minlength=N)),
         )
-        radius = 0.01 * self.size
+        radius = 0.012 * self.size
         for what, data, alpha, r in (
             ("estimate", frames.force, 1.0, radius),
             ("truth", frames.true_force, TRUTH_ALPHA, 0.6 * radius),
@@ -813,7 +826,7 @@ class RerunScene:
                     frame.append(i)
                     origins.append(c)
                     vectors.append(fk * 0.25 * self.size / fmax)
-            color = np.tile([*NULLSPACE_RGB, 255], (len(frame), 1)).astype(np.uint8)
+            color = np.tile([*NULLSPACE_RGB, 170], (len(frame), 1)).astype(np.uint8)
             self._arrows(
                 path,
                 frames,
@@ -821,7 +834,7 @@ class RerunScene:
                 np.array(origins).reshape(-1, 3),
                 np.array(vectors).reshape(-1, 3),
                 color,
-                0.008 * self.size,
+                0.006 * self.size,
             )
         del N
 
@@ -946,8 +959,8 @@ def log_to_rerun(
         ...     wrenches=torch.tensor([0, 0, -5.0, 0, 0, 0]).expand(3, 1, 6).double()))
         >>> r = tc.ContactEstimator(model).estimate(q, q, q, ft, c)
         >>> scene = log_to_rerun(model, {"t_ns": [0, 10**7, 2 * 10**7], "q": q, "ft": ft,
-        ...                              "contacts": c}, r)  # doctest: +SKIP
-        >>> scene.frames_logged  # doctest: +SKIP
+        ...                              "contacts": c}, r)
+        >>> scene.frames_logged
         3
     """
     layout = None
