@@ -9,6 +9,10 @@ a forward pass of the model, and the estimator's own prediction of the readings.
 from __future__ import annotations
 
 import json
+import re
+import socket
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +23,7 @@ import torch
 
 import torchcontact as tc
 from torchcontact.cli import main
+from torchcontact.drivers.live import pack_joint_state
 from torchcontact.logs import estimate_file, write_simulated_log
 from torchcontact.logs.format import read_contacts, vectors, write_table
 from torchcontact.logs.plot import TRUTH_ALPHA, slot_rgb
@@ -477,3 +482,77 @@ def test_robot_meshes_of_installed_packages(robot, links, tmp_path):
     b = m.nb - 1
     pose = rows_of(ents[f"/world/robot/{m.body_names[b]}"], "Transform3D:translation")
     np.testing.assert_allclose(np.array(pose[1])[0], fp.p[1, b].numpy(), **F32)
+
+
+def test_run_view_draws_every_published_frame(tmp_path, capsys):
+    """``torchcontact run --onnx ... --view FILE.rrd``: the bundled tcarm's estimator exported
+    (slots forearm_skin and hand_skin), a simulated Modbus sensor serving the reading the model
+    predicts for a known force on hand_skin, joint states over UDP: every published frame is
+    drawn, its arrow the published force."""
+    pytest.importorskip("onnxruntime")
+    LINKS, KINDS = ("forearm_skin", "hand_skin"), ("force", "force")
+    POSITION, FORCE = [0.01, 0.02, 0.0], [1.5, -2.0, -6.0]  # m and N on hand_skin
+    from torchcontact.drivers.simulator import TcpSimulator, constant_signal
+    from torchcontact.export import export_estimator
+
+    model = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    onnx = tmp_path / "tcarm.onnx"
+    export_estimator(model, ["base_ft"], list(LINKS), list(KINDS), onnx)
+    q = np.linspace(0.2, -0.4, model.nv)
+    qt, zero = torch.tensor(q), torch.zeros(model.nv, dtype=torch.float64)
+    contact = tc.Contacts(
+        ["hand_skin"], ["known"], torch.tensor([POSITION]).double(),
+        wrenches=torch.tensor([[*FORCE, 0.0, 0.0, 0.0]]).double(),
+    )  # fmt: skip
+    ft = (
+        tc.ContactEstimator(model, backend="eager")
+        .predict_ft(qt, zero, zero, contact)["base_ft"]
+        .numpy()
+    )
+    sim = TcpSimulator(profile="generic-float32", signal=constant_signal(ft)).start()
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    spec = tmp_path / "contacts.json"
+    spec.write_text(json.dumps({"contact": [{"link": "hand_skin", "position": POSITION}]}))
+    stop = threading.Event()
+
+    def send():
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            tx.sendto(pack_joint_state(seq, 0, q, 0 * q, 0 * q), ("127.0.0.1", port))
+            time.sleep(0.01)
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    out = tmp_path / "live.rrd"
+    try:
+        rc = main(
+            ["run", "--profile", "generic-float32", "--tcp", f"127.0.0.1:{sim.port}", "--onnx",
+             str(onnx), "--robot", "tcarm", "--contacts", str(spec), "--joints",
+             f"udp://127.0.0.1:{port}", "--require-joints", "--duration", "1.0", "--view",
+             str(out)]
+        )  # fmt: skip
+    finally:
+        stop.set()
+        sender.join()
+        sim.stop()
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) > 3
+    ents = read_rrd(out)
+    legend = next(b.column("TextDocument:text").to_pylist()[0][0] for b in ents["/legend"])
+    scale = float(re.search(r"\*\*([\d.e+]+) N per m\*\*", legend).group(1))
+    arrows = rows_of(ents["/world/contacts/estimate"], "Arrows3D:vectors")
+    assert sorted(arrows) == list(range(len(lines)))  # every published frame, in order
+    fp = tc.forward_pass(model, qt[None], zero[None], zero[None])
+    R = model.frame_pose(fp, "hand_skin")[0][0].numpy()
+    for i, r in enumerate(lines):
+        published = np.array(r["estimate"]["force"][1])
+        np.testing.assert_allclose(published, FORCE, atol=2e-3)
+        np.testing.assert_allclose(np.array(arrows[i])[0] * scale, R @ published, atol=1e-4)
+    assert main(["run", "--tcp", "127.0.0.1:1", "--view", str(out)]) == 2
+    assert "--view goes with --onnx" in capsys.readouterr().err
