@@ -556,3 +556,31 @@ def test_run_view_draws_every_published_frame(tmp_path, capsys):
         np.testing.assert_allclose(np.array(arrows[i])[0] * scale, R @ published, atol=1e-4)
     assert main(["run", "--tcp", "127.0.0.1:1", "--view", str(out)]) == 2
     assert "--view goes with --onnx" in capsys.readouterr().err
+
+
+def test_constrained_estimate_draws_cones(model, logs, tmp_path):
+    """A ``--constraints`` estimate: per frame the number of contacts whose cone binds, the
+    iterations, and a convergence lane, as in the estimate's columns."""
+    from torchcontact.logs import LogConstraints
+    from torchcontact.view import view_log
+
+    _, log, _ = logs
+    est = estimate_file(
+        log, model, tmp_path / "c.parquet", constraints=LogConstraints(friction=0.5)
+    )
+    out = tmp_path / "c.rrd"
+    view_log(log, est["output"], tcarm_path(), out, every=2)
+    ents = read_rrd(out)
+    tab = pq.read_table(est["output"])
+    active = [sum(bool(c["cone_active"]) for c in row) for row in tab["contacts"].to_pylist()]
+    drawn = rows_of(ents["/plots/cones/active"], "Scalars:scalars")
+    assert sorted(drawn) == list(range(0, FRAMES, 2))
+    assert [drawn[f][0] for f in range(0, FRAMES, 2)] == active[::2]
+    assert max(active) >= 1  # some cone binds
+    iters = rows_of(ents["/plots/cones/base_ft/iterations"], "Scalars:scalars")
+    assert [iters[f][0] for f in range(0, FRAMES, 2)] == tab["iterations.base_ft"].to_pylist()[::2]
+    lane = rows_of(ents["/states/cones/base_ft"], "StateChange:state")
+    assert {v[0] for v in lane.values()} <= {"converged", "not converged", ""}
+    assert "converged" in {v[0] for v in lane.values()}
+    points = rows_of(ents["/world/contacts/cone_active"], "Points3D:positions")
+    assert [len(points[f]) for f in range(0, FRAMES, 2)] == active[::2]
