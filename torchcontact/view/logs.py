@@ -344,7 +344,7 @@ def view_log(
         raise InputError("--robot: give the robot's URDF")
     outs = [] if out is None else [Path(out), Path(str(out) + ".tmp")]
     check_outputs(outs, [log, estimate, robot])
-    rr = import_rerun()
+    import_rerun()  # before any work: a missing extra is one error line
     src, est_src = str(log), None if estimate is None else str(estimate)
     pf = open_log(log)
     schema = pf.schema_arrow
@@ -480,7 +480,6 @@ def view_log(
             rec.disconnect()
             tmp.unlink(missing_ok=True)
         raise
-    del rr
     return {
         "log": src,
         "estimate": est_src,

@@ -743,7 +743,6 @@ class RerunScene:
 
     def _log_quality(self, frames: ViewFrames) -> None:
         rr = self.rr
-        N = len(frames)
         rows = frames.rows
         events: list[tuple[int, str, str]] = []  # (index, level, text)
         if frames.rank is not None and frames.unknowns is not None:
@@ -801,10 +800,8 @@ class RerunScene:
                 rr.TextLog.columns(text=[e[2] for e in events], level=[e[1] for e in events]),
                 at,
             )
-        del N
 
     def _log_null(self, frames: ViewFrames) -> None:
-        N = len(frames)
         by: dict[tuple[str, int], list] = {}
         for i, dirs in enumerate(frames.null or []):
             for d in dirs or []:
@@ -836,7 +833,6 @@ class RerunScene:
                 color,
                 0.006 * self.size,
             )
-        del N
 
     def flush(self) -> None:
         """Hand everything logged so far to the recording's sink."""
