@@ -568,15 +568,18 @@ def _robot_view(
             pts.append((c + truth * scale)[None])
     _fit_view(ax, pts, [a[2] for a in arrows])
     posed = "well-posed" if not deficient[frame] else ill_posed_note(_constrained(tab))
-    ax.set_title(
+    title = (
         f"t = {(t_ns - tab.column('t_ns')[0].as_py()) * 1e-9:.2f} s (row {frame}), {len(sel)}"
-        f" contact(s), {posed}\narrows: {scale * 1000:.0f} mm per N, world frame",
+        f" contact(s), {posed}"
+    )
+    ax.set_title(
+        textwrap.fill(title, 80) + f"\narrows: {scale * 1000:.0f} mm per N, world frame",
         fontsize=10,
     )
     handles, labels = ax.get_legend_handles_labels()
     uniq = dict(zip(labels, handles, strict=True))
     if uniq:
-        fig.legend(uniq.values(), uniq.keys(), loc="upper right")
+        fig.legend(uniq.values(), uniq.keys(), loc="lower center", ncol=2, fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
