@@ -23,8 +23,10 @@ __all__ = [
     "LOCALIZE_STATUS",
     "STATUS",
     "LocalizeStatus",
+    "STATUS_NAMES",
     "Status",
     "localize_messages",
+    "status_bits",
     "status_messages",
 ]
 
@@ -79,6 +81,19 @@ _TEXT = {
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok): bit -> text.
 STATUS: dict[int, str] = {int(bit): text for bit, text in _TEXT.items()}
+
+#: A short name per bit of :data:`STATUS` (an identifier: plot legends, rerun entity paths).
+STATUS_NAMES: dict[int, str] = {int(bit): bit.name.lower() for bit in Status}
+
+
+def status_bits(code: int) -> list[str]:
+    """Short names (:data:`STATUS_NAMES`) of the bits set in a status code (``[]`` for 0).
+
+    Example:
+        >>> status_bits(1 | 64)
+        ['ft_nonfinite', 'implausible']
+    """
+    return [STATUS_NAMES.get(bit, f"bit{bit}") for bit in STATUS if code & bit]
 
 
 def status_messages(code: int) -> str:

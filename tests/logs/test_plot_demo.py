@@ -14,6 +14,14 @@ def test_demo_writes_log_estimate_and_pngs(tmp_path, capsys):
         assert (out / name).exists() and str(out / name) in printed
         assert (out / name).stat().st_size > 1000
     assert pq.read_table(out / "log.parquet").column_names[-1] == "temperature"
+    # with the extra 'view' installed, a rerun recording of the same log and estimate
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        assert "pip install 'torchcontact[view]'" in printed
+    else:
+        rrd = out / "demo.rrd"
+        assert rrd.stat().st_size > 100_000 and f"rerun {rrd}" in printed
 
 
 def test_plot_cli_frame_and_simulate_effects(tmp_path, capsys):

@@ -307,13 +307,21 @@ def cmd_run(args: argparse.Namespace) -> int:
             publishers.append(UdpPublisher(*publish_at, allow_remote=args.allow_remote))
         if src is None:
             src = _make_source(args)
+        view = None
+        if args.view:
+            if not args.onnx:
+                raise InputError("--view goes with --onnx (the exported estimator) and --robot")
+            from torchcontact.view.scene import LiveView
+
+            view = LiveView.for_estimator(estimator, args.robot, args.view)
         src.open()
     joints = None
     if joints_at is not None:
         joints = UdpJointSource(*joints_at)
         print(f"joint states on udp {joints.address[0]}:{joints.address[1]}", file=sys.stderr)
     log = FTLogWriter(args.out, src.name) if args.out else None
-    loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints)
+    loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints,
+                    on_frame=view)  # fmt: skip
     try:
         summary = loop.run(duration=args.duration)
     except ModelMismatchError as exc:  # the joint states come from another robot: stop
@@ -325,6 +333,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             log.close()
         if joints is not None:
             joints.close()
+        if view is not None:
+            view.close()
     print(json_line({"summary": summary}), file=sys.stderr, flush=True)
     return 0
 
@@ -425,4 +435,12 @@ def add_parser(subparsers: Any) -> None:
     run.add_argument("--require-joints", action="store_true", help="skip frames without joints")
     run.add_argument("--publish", default="stdout", help="stdout or udp://127.0.0.1:PORT")
     run.add_argument("--allow-remote", action="store_true", help="allow a non-loopback target")
+    run.add_argument(
+        "--view",
+        nargs="?",
+        const="spawn",
+        metavar="FILE.rrd",
+        help="with --onnx and --robot: draw the frames in a rerun viewer (or into FILE.rrd;"
+        " extra 'view')",
+    )
     run.set_defaults(func=cmd_run)

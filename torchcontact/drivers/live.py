@@ -505,6 +505,8 @@ class LiveLoop:
         log: Optional Parquet log of the F/T frames.
         require_joints: Skip frames until a joint state has arrived.
         latency_window: Number of recent latencies kept for the statistics.
+        on_frame: Called as ``on_frame(sample, joint_state, estimate)`` after each frame is
+            published (e.g. :class:`torchcontact.view.LiveView` for ``run --view``).
     """
 
     def __init__(
@@ -517,7 +519,9 @@ class LiveLoop:
         log: FTLogWriter | None = None,
         require_joints: bool = False,
         latency_window: int = 100_000,
+        on_frame: Callable[[FTSample, JointState | None, dict[str, Any]], None] | None = None,
     ) -> None:
+        self.on_frame = on_frame
         self.ft = ft_source
         self.joints = joint_source
         self.estimator = estimator
@@ -562,6 +566,8 @@ class LiveLoop:
         record = _jsonable(record)
         for pub in self.publishers:
             pub.publish(record)
+        if self.on_frame is not None:
+            self.on_frame(sample, js, estimate)
         self.latencies_ns.append(latency)
         self.published += 1
         return record

@@ -283,10 +283,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     robot = resolve_robot_argument(args)
     summary = estimate_file(log, robot, est, progress=show)
     pngs = plot_log(est, robot, folder, input_log=log, progress=show)
+    from torchcontact.view.logs import demo_recording
+
+    rrd = demo_recording(folder, log, est, robot, progress=show)
     print(f"simulated log:  {log}")
     print(f"estimates:      {est} ({summary['frames']} frames, {summary['frames_per_s']:.0f}/s)")
     for p in pngs:
         print(f"plot:           {p}")
+    if rrd is not None:
+        print(f"rerun view:     {rrd} (open it with: rerun {rrd})")
+    else:
+        print("rerun view:     pip install 'torchcontact[view]' to get demo.rrd too")
     return 0
 
 
