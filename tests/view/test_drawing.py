@@ -68,8 +68,11 @@ def test_tcarm_visual_geometry_changes_neither_kinematics_nor_inertias():
     b = tc.RobotModel.from_urdf(io.StringIO(bare))
     assert a.body_names == b.body_names and a.joint_names == b.joint_names
     assert a.frames.keys() == b.frames.keys() and a.ft_sensors.keys() == b.ft_sensors.keys()
-    for name in ("C0", "C1", "C2", "p0", "axis", "mass", "com", "inertia_com", "q_to_body"):
+    from torchcontact.model import _TENSOR_FIELDS
+
+    for name in _TENSOR_FIELDS:
         assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert a.identity.sha256 == b.identity.sha256  # the robot's identity ignores visual geometry
     for f in a.frames:
         np.testing.assert_array_equal(a.frames[f].p_body_frame, b.frames[f].p_body_frame)
         np.testing.assert_array_equal(a.frames[f].R_body_frame, b.frames[f].R_body_frame)

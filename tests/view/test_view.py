@@ -561,13 +561,15 @@ def test_run_view_draws_every_published_frame(tmp_path, capsys):
 def test_constrained_estimate_draws_cones(model, logs, tmp_path):
     """A ``--constraints`` estimate: per frame the number of contacts whose cone binds, the
     iterations, and a convergence lane, as in the estimate's columns."""
+    from torchcontact import FrictionCones
     from torchcontact.logs import LogConstraints
     from torchcontact.view import view_log
 
     _, log, _ = logs
-    est = estimate_file(
-        log, model, tmp_path / "c.parquet", constraints=LogConstraints(friction=0.5)
-    )
+    # the minimum-norm objective, whose solutions lie on the cones' boundaries where they bind
+    # (the default MAP estimate is an interior point of the cones)
+    cons = LogConstraints(FrictionCones(objective="min_norm"), friction=0.5)
+    est = estimate_file(log, model, tmp_path / "c.parquet", constraints=cons)
     out = tmp_path / "c.rrd"
     view_log(log, est["output"], tcarm_path(), out, every=2)
     ents = read_rrd(out)

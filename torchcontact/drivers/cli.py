@@ -441,6 +441,6 @@ def add_parser(subparsers: Any) -> None:
         const="spawn",
         metavar="FILE.rrd",
         help="with --onnx and --robot: draw the frames in a rerun viewer (or into FILE.rrd;"
-        " extra 'view')",
+        " extra 'view') (default: no drawing)",
     )
     run.set_defaults(func=cmd_run)

@@ -110,7 +110,7 @@ def _first_pass(
     """Check the time stamps; the window's rows, its slot layout and a sample of its forces.
 
     Returns:
-        ``(r0, r1, t0_ns, layout, force_sample)``.
+        ``(r0, r1, t0_ns, layout, force_sample, median_step_ns)``.
 
     Raises:
         LogError: the estimate's ``t_ns`` differ from the log's (another log), time stamps that
@@ -118,6 +118,7 @@ def _first_pass(
         InputError: no frame in the window.
     """
     from torchcontact.contacts import SlotLayout
+    from torchcontact.logs.derive import median_step, step_histogram
     from torchcontact.logs.format import iter_chunks, read_contacts, vectors
 
     rng = np.random.default_rng(0)
@@ -137,8 +138,10 @@ def _first_pass(
     t0 = None
     row = 0
     span = 0.0
+    steps: dict[int, int] = {}  # the log's time steps, for the derivatives' gap rule
     for tab in log_it:
         t = tab.column("t_ns").to_numpy(zero_copy_only=False)
+        step_histogram(t, steps)
         etab = None
         if est_it is not None:
             etab = next(est_it, None)
@@ -187,7 +190,63 @@ def _first_pass(
         )
     links = [k[0] for k in sorted(mult) for _ in range(mult[k])]
     kinds = [k[1] for k in sorted(mult) for _ in range(mult[k])]
-    return r0, r1, int(t0), SlotLayout(tuple(links), tuple(kinds)), sample
+    layout = SlotLayout(tuple(links), tuple(kinds))
+    return r0, r1, int(t0), layout, sample, median_step(steps)
+
+
+def _with_derivatives(
+    tables: Iterator[Any],
+    joints: tuple[np.ndarray, int, str, int],
+    derive: tuple[int, float] | None,
+    before: tuple[np.ndarray, np.ndarray] | None,
+    after: tuple[np.ndarray, np.ndarray] | None,
+) -> Iterator[tuple[Any, np.ndarray | None, np.ndarray | None]]:
+    """``(table, qd, qdd)`` of consecutive tables, derived as ``estimate`` derives them.
+
+    The log pipeline's differentiator (:class:`~torchcontact.logs.derive.DerivativeStream`:
+    Savitzky-Golay within each time segment, ``2 h`` frames of context across tables).
+
+    Args:
+        tables: consecutive tables of the log.
+        joints: ``(perm, width, source, first_row)`` of the log's ``q`` columns.
+        derive: ``(h, median_step_ns)``, or None when the log has ``qd``/``qdd``.
+        before: ``(t_ns, q)`` of the frames preceding the first table (None at the start).
+        after: ``(t_ns, q)`` of the frames following the last table (None at the end).
+    """
+    from collections import deque
+
+    from torchcontact.logs.decode import stamps_and_positions
+    from torchcontact.logs.derive import DerivativeStream
+
+    if derive is None:
+        for tab in tables:
+            yield tab, None, None
+        return
+    perm, width, src, row = joints
+    h, step_ns = derive
+    stream, c = DerivativeStream(h, step_ns, before), 2 * h
+    empty = (np.zeros(0, np.int64), np.zeros((0, len(perm))))
+    ahead: deque = deque()
+
+    def finish() -> tuple[Any, np.ndarray, np.ndarray]:
+        tab, t, q = ahead.popleft()
+        nxt = list(ahead)
+        if nxt:
+            t_n = np.concatenate([x[1] for x in nxt])[:c]
+            q_n = np.concatenate([x[2] for x in nxt])[:c]
+        else:
+            t_n, q_n = after if after is not None else empty
+        qd, qdd, _, _ = stream.derive(t, q, t_n, q_n)
+        return tab, qd, qdd
+
+    for tab in tables:
+        t, q = stamps_and_positions(tab, perm, width, src, row)
+        row += tab.num_rows
+        ahead.append((tab, t, q))
+        while len(ahead) > 1 and sum(len(x[1]) for x in list(ahead)[1:]) >= c:
+            yield finish()
+    while ahead:
+        yield finish()
 
 
 def _covering_pairs(records: Any) -> tuple[list[tuple[str, str]], list[int]]:
@@ -317,6 +376,7 @@ def view_log(
     """
     from tqdm import tqdm
 
+    from torchcontact.logs.decode import stamps_and_positions
     from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
     from torchcontact.logs.format import (
         BASE_COLUMNS,
@@ -328,7 +388,7 @@ def view_log(
         open_log,
         read_rows,
     )
-    from torchcontact.logs.pipeline import chunks_with_derivatives, load_robot, times_and_positions
+    from torchcontact.logs.pipeline import load_robot
     from torchcontact.view.scene import RerunScene, import_rerun
 
     t_start = time.perf_counter()
@@ -355,7 +415,9 @@ def view_log(
     if rows == 0:
         raise LogError(f"{src}: no frames to view (an empty log)")
     model = load_robot(robot)
-    perm = joint_permutation(joint_names_of(schema, src), model.joint_names, model.name, src)
+    log_joints = joint_names_of(schema, src)
+    perm = joint_permutation(log_joints, model.joint_names, model.name, src)
+    width = len(log_joints)
     epf = None
     sensors = [s for s in model.ft_sensors if ft_column(s) in schema.names]
     if estimate is not None:
@@ -367,7 +429,9 @@ def view_log(
     unknown = [s for s in sensors if s not in model.ft_sensors]
     if unknown:
         raise LogError(f"{est_src}: sensors {unknown} are not F/T sensors of {model.name}")
-    r0, r1, _, layout, sample = _first_pass(pf, epf, src, est_src, (start, end), batch_size)
+    r0, r1, _, layout, sample, step_ns = _first_pass(
+        pf, epf, src, est_src, (start, end), batch_size
+    )
     econ = [] if epf is None else epf.schema_arrow.names
     constrained = any(c.startswith("converged.") for c in econ)
     correction = epf is not None and META_RESIDUAL in (epf.schema_arrow.metadata or {})
@@ -396,8 +460,8 @@ def view_log(
         import torchcontact as tc
         from torchcontact.view.scene import nice_scale
 
-        q0 = times_and_positions(read_rows(log, r0, r0 + 1, ["t_ns", "q"]), perm)[1]
-        q0 = torch.as_tensor(q0, dtype=model.dtype)
+        q0 = stamps_and_positions(read_rows(log, r0, r0 + 1, ["t_ns", "q"]), perm, width)[1]
+        q0 = torch.tensor(q0, dtype=model.dtype)
         p = tc.forward_pass(model, q0, torch.zeros_like(q0), torch.zeros_like(q0)).p[0].numpy()
         size = max(float(np.max(p.max(0) - p.min(0))), 0.2)
         scene.scale = nice_scale(float(np.percentile(sample, 95)), 0.25 * size)
@@ -434,13 +498,17 @@ def view_log(
     before = after = None
     if derive:
         lo, hi = max(r0 - h, 0), min(r1 + h, rows)
-        before = times_and_positions(read_rows(log, lo, r0, ["t_ns", "q"]), perm)
-        after = times_and_positions(read_rows(log, r1, hi, ["t_ns", "q"]), perm)
+        before = stamps_and_positions(read_rows(log, lo, r0, ["t_ns", "q"]), perm, width, src, lo)
+        after = stamps_and_positions(read_rows(log, r1, hi, ["t_ns", "q"]), perm, width, src, r1)
     residual = None if epf is None or correction else _Residual(model, sensors)
     drawn = 0
     try:
-        chunks = chunks_with_derivatives(
-            _rows(pf, columns, r0, r1, batch_size, src), perm, bool(derive), h, before, after
+        chunks = _with_derivatives(
+            _rows(pf, columns, r0, r1, batch_size, src),
+            (perm, width, src, r0),
+            (h, step_ns) if derive else None,
+            before,
+            after,
         )
         echunks = None if epf is None else _rows(epf, ecolumns, r0, r1, batch_size, est_src)
         row = r0
