@@ -202,17 +202,19 @@ class OnlineState:
         ``contact_free`` signal (bool, or ``(S,)`` per sensor, e.g. from a contact localizer or
         a user's switch; None: no signal) does not say otherwise.
         """
-        free = self._all_free.copy()
-        if active is not None and len(self.slot_regions):
-            on = active if type(active) is np.ndarray else np.asarray(active, dtype=np.float64)
-            if on.size != len(self.slot_regions):
-                raise InputError(f"active must have {len(self.slot_regions)} values")
-            for k in np.flatnonzero(on.reshape(-1) > 0.5):
-                free[self._regions[k]] = False
+        free = [True] * len(self.sensors)  # a few sensors and slots: plain Python is fastest
+        if active is not None and self._regions:
+            on = (active if type(active) is np.ndarray else np.asarray(active, np.float64)).ravel()
+            if on.size != len(self._regions):
+                raise InputError(f"active must have {len(self._regions)} values")
+            for k, a in enumerate(on.tolist()):
+                if a > 0.5:
+                    free[self._regions[k]] = False
         if contact_free is not None:
             user = np.asarray(contact_free, dtype=bool)
-            free &= np.broadcast_to(user, free.shape) if user.ndim == 0 else user.reshape(-1)
-        return free
+            user = np.broadcast_to(user, (len(free),)) if user.ndim == 0 else user.reshape(-1)
+            free = [f and bool(u) for f, u in zip(free, user.tolist(), strict=True)]
+        return np.array(free)
 
     def after_step(
         self,
@@ -237,10 +239,12 @@ class OnlineState:
         """
         z = np.asarray(ft, dtype=np.float64) - ft_model
         self._recent.append((z, free.copy()))
-        use = free.copy() if self.track else np.zeros(len(self.sensors), dtype=bool)
+        use = free if self.track else np.zeros(len(self.sensors), dtype=bool)
         for i, ident in enumerate(self.identifiers):
             if ident is None:
                 continue
+            if use is free:
+                use = free.copy()
             use[i] = False  # the identification fits the offset itself
             Y = None if regressors is None else regressors[i]
             if Y is None:

@@ -141,6 +141,11 @@ _FIELDS = frozenset(f.name for f in dataclasses.fields(Inputs))
 _SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
 #: How :meth:`EstimatorRuntime.step` fills a field of the packed input.
 _PLAIN, _FT, _MASK, _EXTRA, _STATE = range(5)
+#: How :meth:`EstimatorRuntime.step` reads a field of the packed output.
+_VIEW, _FM, _INT, _STATUS, _TAU = range(5)
+#: The outputs every step returns (``fm`` of the ONNX step holds ``force`` and ``moment``).
+_OUTPUTS = frozenset(("force", "moment", "joint_torques", "rank", "unknowns", "residual",
+                      "status", "covariance"))  # fmt: skip
 
 
 def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
@@ -409,6 +414,11 @@ class EstimatorRuntime:
         self._tau_idx = (
             None if n_tau == self.nv else np.array([self.joint_names.index(j) for j in tj])
         )
+        # how _decode reads each output field
+        kinds = {"fm": _FM, "rank": _INT, "unknowns": _INT, "status": _STATUS,
+                 "joint_torques": _VIEW if self._tau_idx is None else _TAU}  # fmt: skip
+        self._plan = [(k, a, b, sh, kinds.get(k, _VIEW)) for k, (a, b, sh) in self._out.items()
+                      if k in _OUTPUTS or k == "fm"]  # fmt: skip
 
     def _put(self, name: str, view: np.ndarray, value: Any, default: float | None) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
@@ -485,7 +495,9 @@ class EstimatorRuntime:
             return {k: (v[0] if k != "status" else int(v[0])) for k, v in out.items()}
         if "ft" not in given:
             raise InputError(f"ft is required by this graph, shape {self._xv['ft'].shape}")
-        raw = ft = self._ft_array(given["ft"])
+        raw = ft = given["ft"]
+        if type(ft) is not np.ndarray:
+            raw = ft = self._ft_array(ft)
         extra = given.get("extra")
         if self.residuals:
             ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
@@ -525,7 +537,9 @@ class EstimatorRuntime:
             out = out.copy()
         res = self._decode(out)
         if onl is not None:  # the offsets learn from the reading the step was given
-            net = np.asarray(ft, np.float64).reshape(self.S, 6)
+            net = ft
+            if not (type(ft) is np.ndarray and ft.dtype == np.float64 and ft.shape == (self.S, 6)):
+                net = np.asarray(ft, np.float64).reshape(self.S, 6)
             if fres is not None:
                 net = net - np.asarray(fres, np.float64).reshape(self.S, 6)
             ft_model, res["bias"] = onl.after(out, net, res["status"], contact_free, t)
@@ -536,30 +550,23 @@ class EstimatorRuntime:
         return res
 
     def _decode(self, out: np.ndarray) -> dict[str, Any]:
-        """The outputs of the packed output ``out`` (views into it)."""
-        lo = self._out
-        if "fm" in lo:  # the ONNX step: [force, moment, ...] per slot
-            a, b, sh = lo["fm"]
-            fm = out[a:b].reshape(sh)
-            res = {"force": fm[:, 0:3], "moment": fm[:, 3:6]}
-        else:
-            res = {"force": self._field(out, "force"), "moment": self._field(out, "moment")}
-        a, b, _ = lo["joint_torques"]
-        tau = out[a:b]
-        if self._tau_idx is not None:  # only some joints' torques: the others are NaN
-            full = np.full(self.nv, np.nan, out.dtype)
-            full[self._tau_idx] = tau
-            tau = full
-        res["joint_torques"] = tau
-        a, b, _ = lo["rank"]
-        res["rank"] = out[a:b].astype(np.int64)
-        a, b, _ = lo["unknowns"]
-        res["unknowns"] = out[a:b].astype(np.int64)
-        a, b, _ = lo["residual"]
-        res["residual"] = out[a:b]
-        res["status"] = int(out[lo["status"][0]])
-        if "covariance" in lo:
-            res["covariance"] = self._field(out, "covariance")
+        """The outputs of the packed output ``out`` (views into it; the plan of ``_setup_step``)."""
+        res: dict[str, Any] = {}
+        for name, a, b, sh, kind in self._plan:
+            v = out[a:b]
+            if kind == _VIEW:
+                res[name] = v.reshape(sh)
+            elif kind == _FM:  # the ONNX step: [force, moment, ...] per slot
+                fm = v.reshape(sh)
+                res["force"], res["moment"] = fm[:, 0:3], fm[:, 3:6]
+            elif kind == _INT:
+                res[name] = v.astype(np.int64)
+            elif kind == _STATUS:
+                res[name] = int(v[0])
+            else:  # only some joints' torques: the others are NaN
+                full = np.full(self.nv, np.nan, out.dtype)
+                full[self._tau_idx] = v
+                res[name] = full
         for r in self._inside:
             if r.get("state_shape"):
                 self._state[r["sensor"]] = self._field(out, fmt.state_out(r["sensor"])).copy()

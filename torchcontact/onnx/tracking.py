@@ -111,12 +111,14 @@ class StepOnline:
         """
         st = self.state
         a, b, sh = self._ft_model
-        ft_model = out[a:b].reshape(sh).astype(np.float64)
+        ft_model = out[a:b].reshape(sh)
+        if ft_model.dtype != np.float64:
+            ft_model = ft_model.astype(np.float64)
         free = st.contact_free(self._active, contact_free)
         if status:
             free[:] = False
         regs = None
-        if any(i is not None for i in st.identifiers):  # only a running identification needs them
+        if st.identifiers.count(None) != len(st.identifiers):  # only an identification needs them
             regs = [out[o : o + 60].reshape(6, 10).astype(np.float64) for o in self._regs]
         return ft_model, st.after_step(ft, ft_model, free, regs, t)
 
