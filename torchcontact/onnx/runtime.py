@@ -499,13 +499,13 @@ class EstimatorRuntime:
         if type(ft) is not np.ndarray:
             raw = ft = self._ft_array(ft)
         extra = given.get("extra")
-        if self.residuals:
-            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
-                                    batch=False)  # fmt: skip
         if not given.keys() <= self._accepts:
             # a layout without force_dir (known) slots does not read directions (wrenches)
             bad = sorted(given.keys() - self._accepts)
             raise InputError(f"this graph has no input {bad[0]!r} (exported without it)")
+        if self.residuals:
+            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
+                                    batch=False)  # fmt: skip
         fres = given.get("ft_residual")
         if fres is not None and not self._residual_in:  # a step without the input: here
             ft = ft - np.asarray(fres, np.float64).reshape(np.shape(ft))
