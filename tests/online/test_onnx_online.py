@@ -186,3 +186,26 @@ def test_cli_online(tmp_path, capsys):
         main(argv[:7] + ["--payload-link", "base_ft=tool", "--out", str(tmp_path / "b.onnx")]) == 2
     )
     assert "--payload-link goes with --online" in capsys.readouterr().err
+
+
+def test_c_step_with_the_learned_layer_as_an_onnx_graph_beside_it(arm, arm_lib, tmp_path):
+    """EstimatorRuntime(lib, backend="c", residual=learned.onnx): the library holds the physics,
+    onnxruntime the network; the offsets learn from ft - (ft_model + the network's part)."""
+    from torchcontact.export import export_residual_checkpoint
+    from torchcontact.residual import FeatureSpec, ResidualCorrection, ResidualMLP
+
+    spec = FeatureSpec.default(arm, "base_ft", nominal=False)
+    torch.manual_seed(5)
+    net = ResidualMLP(len(spec.names(arm)), 16, 2)
+    net.set_normalisation(torch.randn(32, len(spec.names(arm))), torch.randn(32, 6))
+    ck = ResidualCorrection(arm, "base_ft", learned=net, features=spec).save(tmp_path / "ck")
+    export_residual_checkpoint(ck, tmp_path / "learned.onnx", arm)
+    rt = EstimatorRuntime(arm_lib[0], robot="tcarm", residual=tmp_path / "learned.onnx",
+                          track_bias=True)  # fmt: skip
+    t = OnlineEstimator(arm, None, LINKS, KINDS, correction=ck, track_bias=True, backend="eager")
+    for f in _frames(np.random.default_rng(2), arm.nv, len(LINKS), 4):
+        a = rt.step(f)
+        b = t.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"])
+        for key in ("force", "ft_model"):  # the network runs in float32
+            np.testing.assert_allclose(a[key], b[key], rtol=0, atol=1e-5, err_msg=key)
+        np.testing.assert_allclose(a["bias"].offset, b["bias"].offset, rtol=0, atol=1e-5)
