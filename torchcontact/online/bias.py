@@ -316,8 +316,8 @@ class BiasTracker:
                 since[i] = 0.0
                 updated[i] = True
             p[i] = pi
-        self.updated = upd = np.array(updated)
-        return BiasState(off.copy(), p.copy(), self.R, since.copy(), upd.copy())
+        self.updated = upd = np.array(updated)  # a new array each frame: shared, not copied
+        return BiasState(off.copy(), p.copy(), self.R, since.copy(), upd)
 
     def tare(self, residual: Any, contact_free: Any = True, frames: int = 1) -> BiasState:
         """Re-zero now: the offset becomes the residual (at the current pose, from the model).

@@ -479,9 +479,14 @@ class EstimatorRuntime:
             InputError: a wrong shape, an unknown input, a missing required input or extra
                 column.
         """
-        given = _given(inputs, args, named)
-        if self._x is None or not given.keys() <= self._accepts:
+        if type(inputs) is dict and not args and not named:
+            given = inputs  # the common case
+        else:
+            given = _given(inputs, args, named)
+        accepted = given.keys() <= self._accepts
+        if self._x is None or not accepted:
             given = _named(given)  # old spellings, None for absent
+            accepted = given.keys() <= self._accepts
         if self._x is None:  # the batched graph with N = 1
             one = {k: (np.asarray(v)[None] if k not in ("extra", "h_in") else v)
                    for k, v in given.items()}  # fmt: skip
@@ -499,7 +504,7 @@ class EstimatorRuntime:
         if type(ft) is not np.ndarray:
             raw = ft = self._ft_array(ft)
         extra = given.get("extra")
-        if not given.keys() <= self._accepts:
+        if not accepted:
             # a layout without force_dir (known) slots does not read directions (wrenches)
             bad = sorted(given.keys() - self._accepts)
             raise InputError(f"this graph has no input {bad[0]!r} (exported without it)")
