@@ -386,6 +386,7 @@ class EstimatorRuntime:
     def _setup_step(self) -> None:
         bk = self.backend
         self._xv: dict[str, np.ndarray] = {}
+        self._accepts: frozenset[str] = frozenset()
         if bk is None:
             self._x = None
             return
