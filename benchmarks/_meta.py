@@ -62,3 +62,32 @@ def first_call(code: str, cache: str | None = None) -> float:
         check=True,
     ).stdout  # fmt: skip
     return float(out.strip().splitlines()[-1])
+
+
+def load_old_package(commit: str, into: Path, name: str = "tc_old"):
+    """torchcontact as of ``commit``, importable beside this tree as package ``name``.
+
+    The commit's ``torchcontact/`` (``git archive``) is copied to ``into/name`` with its imports
+    of ``torchcontact`` renamed, so both versions run in one process (torch-free modules such
+    as the runtime; the graphs are exported by each version in its own process). Returns the
+    package module.
+    """
+    import importlib
+    import re
+    import tarfile
+
+    arch = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "torchcontact"],
+                          capture_output=True, check=True).stdout  # fmt: skip
+    tar = into / f"{name}.tar"
+    tar.write_bytes(arch)
+    tree = into / f"{name}-tree"
+    tree.mkdir(exist_ok=True)
+    with tarfile.open(tar) as t:
+        t.extractall(tree, filter="data")
+    pat = re.compile(r"(\bfrom |\bimport |import_module\(f?\")torchcontact\b")
+    for src in (tree / "torchcontact").rglob("*.py"):
+        dst = into / name / src.relative_to(tree / "torchcontact")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_text(pat.sub(lambda m: m.group(1) + name, src.read_text()))
+    sys.path.insert(0, str(into))
+    return importlib.import_module(name)

@@ -4,16 +4,23 @@
    ``l_forearm``; a correction stack with offset and inertial layers; float64; the joints the
    sensor determines), one frame per call, configurations interleaved in rounds, in one process:
 
-   - the C step (``export_c_step``, ctypes): the library call alone, and ``CStepRuntime.step``
-     (inputs, call, outputs, bias tracking, in Python);
+   - the C step (``export_c_step``): the library call alone (ctypes), and
+     ``EstimatorRuntime(path, backend="c").step`` (inputs, call, outputs, bias tracking, in
+     Python), beside round 1's ``CStepRuntime.step`` (the package of ``--before``, imported
+     beside this tree) on the same library: the wrapper's overhead, old against new;
    - the C step from C (``examples/c_step.c --bench``, a separate process, same machine);
-   - today's ONNX step (``EstimatorRuntime.step``, one onnxruntime thread) with the same
-     correction stack chained inside (offset + inertial), and with an MLP layer on top;
+   - the ONNX step (``EstimatorRuntime.step``, one onnxruntime thread) with the same
+     correction stack chained inside (offset + inertial), with an MLP layer on top (the step
+     with a learned correction), and the latter exported ``online`` (bias and payload inputs,
+     ``ft_model`` and the regressor outputs) with the bias tracked;
    - iDynTree's per-frame estimate (``updateKinematicsFromFixedBase`` +
      ``estimateExtWrenchesAndJointTorques``, whole iCub, its six F/T sensors, a full-wrench
      unknown at ``root_link``, a pure force on ``l_hand`` and one on ``l_forearm``: iDynTree
      returns NaN for the four slots' 15 unknowns on one sensor, which the C step solves by
      minimum norm, so it gets the 6-unknown case of ``benchmarks/estimator.py``).
+
+   Today's ONNX step against this tree's (graph and runtime, both versions in one process):
+   ``benchmarks/runtime_refactor.py --against <commit>``.
 
 2. **Streams** (simulated at 100 Hz, ``tests/online_scenes.py``; the C runtime): a 2 N offset step
    (contact-free seconds until the contact-force error is back below 0.3 N), and a 0.5 kg payload
@@ -29,7 +36,7 @@
 
 Every figure is printed with the CPU model (``lscpu``); the machine may be shared, so compare
 within one run. ``python benchmarks/online.py [--sections latency streams session]
-[--calls 20000]``.
+[--calls 20000] [--before ba76886]``.
 """
 
 from __future__ import annotations
@@ -49,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT))
-from _meta import metadata  # noqa: E402
+from _meta import load_old_package, metadata  # noqa: E402
 from online_scenes import (  # noqa: E402
     NOISE,
     bias_step_stream,
@@ -60,10 +67,10 @@ from online_scenes import (  # noqa: E402
 from robots import icub_path, load_model  # noqa: E402
 
 import torchcontact as tc  # noqa: E402
-from torchcontact.online.cruntime import CStepRuntime  # noqa: E402
 from torchcontact.online.cstep import export_c_step  # noqa: E402
 from torchcontact.online.payload import NotIdentifiableError  # noqa: E402
 from torchcontact.residual import ResidualCorrection, subtree_bodies  # noqa: E402
+from torchcontact.runtime import EstimatorRuntime  # noqa: E402
 
 ICUB = ("l_hand", "l_hand", "l_forearm", "l_forearm"), ("force", "force", "force", "wrench")
 
@@ -143,41 +150,51 @@ def _idyntree(model: tc.RobotModel, frame: dict) -> callable:
     return step
 
 
-def latency(calls: int, d: Path) -> None:
+def latency(calls: int, d: Path, before: str | None) -> None:
     """Section 1: single-frame latency, every path in this process."""
     from torchcontact.export import export_estimator, export_residual_checkpoint
-    from torchcontact.runtime import EstimatorRuntime
 
     model = load_model("icub")
     rng = np.random.default_rng(0)
     frame = dict(q=rng.uniform(-1, 1, model.nv), qd=rng.uniform(-1, 1, model.nv),
                  qdd=rng.uniform(-1, 1, model.nv), ft=rng.normal(0, 10, (1, 6)),
-                 positions=rng.uniform(-0.03, 0.03, (4, 3)), active=np.ones(4))  # fmt: skip
+                 positions=rng.uniform(-0.03, 0.03, (4, 3)), active=np.zeros(4))  # fmt: skip
     stack, stack_mlp = _stack(model, d, False), _stack(model, d, True)
     t0 = time.perf_counter()
     lib = d / "icub.so"
     export_c_step(model, ["l_arm_ft"], *ICUB, lib, correction=stack, joints="sensed")
     build_s = time.perf_counter() - t0
-    c = CStepRuntime(lib, robot=model, track_bias=True)
-    args = [frame[k] for k in ("q", "qd", "qdd", "ft", "positions", "active")]
-    assert c.step(*args)["status"] == 0
-    onnx = {}
-    for name, ck in (("offset + inertial", stack), ("offset + inertial + MLP", stack_mlp)):
+    c = EstimatorRuntime(lib, robot=model, track_bias=True)
+    assert c.step(frame)["status"] == 0
+    runs = {
+        "C step: the library call (ctypes)": c.backend.call_raw,
+        'C step: EstimatorRuntime(backend="c").step (Python I/O, bias tracking)':
+            lambda: c.step(frame),
+    }  # fmt: skip
+    if before:  # round 1's wrapper on the same library
+        import importlib
+
+        old = load_old_package(before, d)
+        oc = importlib.import_module(f"{old.__name__}.online.cruntime").CStepRuntime(
+            lib, track_bias=True
+        )
+        args = [frame[k] for k in ("q", "qd", "qdd", "ft", "positions", "active")]
+        np.testing.assert_allclose(oc.step(*args)["force"], c.step(frame)["force"], atol=1e-12)
+        runs[f"C step: CStepRuntime.step of {before} (round 1)"] = lambda: oc.step(*args)
+    for name, ck, online in (
+        ("offset + inertial", stack, False),
+        ("offset + inertial + MLP", stack_mlp, False),
+        ("offset + inertial + MLP, online, bias tracked", stack_mlp, True),
+    ):
         res = d / f"{ck.name}.onnx"
         export_residual_checkpoint(ck, res, model, check=False)
-        p = d / f"icub-{ck.name}.onnx"
+        p = d / f"icub-{ck.name}{'-online' if online else ''}.onnx"
         export_estimator(model, ["l_arm_ft"], *ICUB, p, dtype=torch.float64, residual=res,
-                         joints="sensed")  # fmt: skip
-        rt = EstimatorRuntime(p, robot=model)
-        onnx[name] = rt
-        assert rt.step(*args)["status"] == 0
-    idyn = _idyntree(model, frame)
-    runs = {
-        "C step: the library call (ctypes)": c.step_raw,
-        "C step: CStepRuntime.step (Python I/O, bias tracking)": lambda: c.step(*args),
-        **{f"ONNX step, {k}": (lambda rt=rt: rt.step(*args)) for k, rt in onnx.items()},
-        "iDynTree per-frame estimate (whole iCub)": idyn,
-    }
+                         joints="sensed", online=online)  # fmt: skip
+        rt = EstimatorRuntime(p, robot=model, track_bias=online)
+        assert rt.step(frame)["status"] == 0
+        runs[f"ONNX step, {name}"] = lambda rt=rt: rt.step(frame)
+    runs["iDynTree per-frame estimate (whole iCub)"] = _idyntree(model, frame)
     times: dict[str, list[int]] = {k: [] for k in runs}
     rounds = 10
     for _ in range(rounds):  # interleaved: a noisy moment hurts every path alike
@@ -190,21 +207,28 @@ def latency(calls: int, d: Path) -> None:
                 times[name].append(time.perf_counter_ns() - t)
     cpu = cpu_model()
     ref = _pct(times["iDynTree per-frame estimate (whole iCub)"])
-    print(f"\n1. single-frame latency, iCub l_arm_ft, 4 slots, offset + inertial correction, float64;"  # noqa: E501
-          f" {calls:,} calls per path; CPU: {cpu}\n")  # fmt: skip
+    print(f"\n1. single-frame latency, iCub l_arm_ft, 4 slots, offset + inertial correction,"
+          f" float64; {calls:,} calls per path; CPU: {cpu}\n")  # fmt: skip
     print("| path | p50 / p99 µs | p50 / p99 vs iDynTree | CPU |")
     print("|---|---|---|---|")
     for name in runs:
         p50, p99 = _pct(times[name])
         print(f"| {name} | {p50:,.1f} / {p99:,.1f} | {p50 / ref[0]:.3f} / {p99 / ref[1]:.3f} |"
               f" {cpu} |")  # fmt: skip
+    raw = _pct(times["C step: the library call (ctypes)"])[0]
+    new = _pct(times[list(runs)[1]])[0] - raw
+    line = f"\nPython around the C call (p50): {new:,.1f} µs"
+    if before:
+        old = _pct(times[f"C step: CStepRuntime.step of {before} (round 1)"])[0] - raw
+        line += f"; round 1's: {old:,.1f} µs (new / old {new / old:.2f})"
+    print(line + f"; CPU: {cpu}")
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc:
         exe = d / "c_step"
         subprocess.run([cc, "-O2", "-include", str(lib.with_suffix(".h")),
                         str(ROOT / "examples" / "c_step.c"), str(lib), f"-Wl,-rpath,{d}", "-lm",
                         "-o", str(exe)], check=True)  # fmt: skip
-        x = " ".join(repr(float(v)) for v in c._x)
+        x = " ".join(repr(float(v)) for v in c.backend.x)
         r = subprocess.run([str(exe), "--bench", str(calls * 5)], input=x, capture_output=True,
                            text=True, check=True).stdout.split()  # fmt: skip
         print(f"| C step from C (examples/c_step.c, own process) | {int(r[1]) / 1e3:,.1f} /"
@@ -215,7 +239,7 @@ def latency(calls: int, d: Path) -> None:
     )
 
 
-def _first_answer(rt: CStepRuntime, s, k0: int, truth: float) -> tuple[float, float]:
+def _first_answer(rt: EstimatorRuntime, s, k0: int, truth: float) -> tuple[float, float]:
     """Seconds of motion until identify_payload() answers, and the answer's relative error."""
     rt.start_identification()
     for i in range(k0, len(s.t)):
@@ -243,12 +267,14 @@ def streams(d: Path) -> None:
         step = bias_step_stream(model, seconds=30.0, step_s=10.0, sensor=sensor)
         lib = d / f"{robot}-stream.so"
         export_c_step(model, [sensor], step.links, step.kinds, lib, joints="sensed")
-        rt = CStepRuntime(lib, robot=model, track_bias=True, tracker_options=dict(ft_std=NOISE))
+        rt = EstimatorRuntime(lib, robot=model, track_bias=True,
+                              tracker_options=dict(ft_std=NOISE))  # fmt: skip
         k0 = int(np.searchsorted(step.t, 10.0))
         run_stream(rt, step, 0, k0)
         rec = recovery(step, run_stream(rt, step, k0), k0)
         pay = payload_stream(model, mass=0.5, seconds=30.0, change_s=5.0, sensor=sensor)
-        rt = CStepRuntime(lib, robot=model, track_bias=True, tracker_options=dict(ft_std=NOISE))
+        rt = EstimatorRuntime(lib, robot=model, track_bias=True,
+                              tracker_options=dict(ft_std=NOISE))  # fmt: skip
         k1 = int(np.searchsorted(pay.t, 5.0))
         run_stream(rt, pay, 0, k1)
         secs, err = _first_answer(rt, pay, k1, 0.5)
@@ -320,6 +346,11 @@ def main() -> None:
                     choices=["latency", "streams", "session"])  # fmt: skip
     ap.add_argument("--calls", type=int, default=20000)
     ap.add_argument("--epochs", type=int, default=150, help="learned layer (section 3)")
+    ap.add_argument(
+        "--before",
+        default="ba76886",
+        help="round 1's commit, for its CStepRuntime beside this tree (empty: skip)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     print(metadata())
@@ -327,7 +358,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         if "latency" in args.sections:
-            latency(args.calls, d)
+            latency(args.calls, d, args.before or None)
         if "streams" in args.sections:
             streams(d)
         if "session" in args.sections:

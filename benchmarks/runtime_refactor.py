@@ -1,11 +1,16 @@
 """Single-frame latency of the step graph and runtime: this tree against an earlier commit.
 
-The deployment wing moved into ``torchcontact/onnx/`` (issue 21); its latency must not get
-worse. This script exports the same graphs with both versions (the earlier one from a
-``git archive`` of ``--against``, in a subprocess) and times, in this one process, the earlier
-``EstimatorRuntime.step`` on its graphs against this tree's on its own, the configurations and
-the two versions interleaved in rounds (a noisy moment hurts both alike). Reported: p50 and p99
-of ``step()`` and of the bare ``session.run`` per version, and the ratios new / old.
+The deployment wing moved into ``torchcontact/onnx/`` (issue 21), the online wing was wired
+into it (issue 23: the C backend, the online stage); the latency of a step without the online
+options must not get worse. This script exports the same graphs with both versions (the
+earlier one from a ``git archive`` of ``--against``, in a subprocess) and times, in this one
+process, the earlier ``EstimatorRuntime.step`` (its package imported beside this tree,
+``_meta.load_old_package``) on its graphs against this tree's on its own, the configurations
+and the two versions interleaved in rounds (a noisy moment hurts both alike). Reported: p50 and
+p99 of ``step()`` and of the bare ``session.run`` per version, and the ratios new / old; the
+last configuration (a learned correction) is issue 23's ONNX-step goal (p99 <= 0.7x today's).
+The cost of the online options is the extra row: this tree's graph exported ``online``, bias
+tracked.
 
 Run on a quiet machine: ``flock -x /tmp/tc-cpu.lock python benchmarks/runtime_refactor.py``
 (``--calls 2000`` for a quick look).
@@ -30,7 +35,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "tests"))
-from _meta import metadata  # noqa: E402
+from _meta import load_old_package, metadata  # noqa: E402
 from robots import icub_path  # noqa: E402
 from runtime import icub_correction  # noqa: E402 - benchmarks/runtime.py
 
@@ -77,17 +82,19 @@ def _frame(nv: int, K: int, extra: bool, seed: int = 0) -> dict:
     return f
 
 
-def _old_runtime(tree: Path):
-    """The earlier ``torchcontact.runtime`` module (torch-free), loaded from its file."""
-    spec = importlib.util.spec_from_file_location("old_runtime", tree / "torchcontact/runtime.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
+def _raw(rt):
+    """The bare single-frame graph call of a runtime of either version."""
+    backend = getattr(rt, "backend", None)
+    if backend is not None and hasattr(backend, "call"):
+        return backend.call
+    run, names, x, ro, xin = (rt.step_session._sess.run, rt._out_names, rt._x, ort.RunOptions(),
+                              rt._in_name)  # fmt: skip
+    return lambda: run(names, {xin: x}, ro)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--against", default="4b41f9f", help="the earlier commit (default 4b41f9f)")
+    ap.add_argument("--against", default="ba76886", help="the earlier commit (default ba76886)")
     ap.add_argument("--calls", type=int, default=10000, help="timed calls per configuration")
     args = ap.parse_args()
     print(metadata())
@@ -109,7 +116,7 @@ def main() -> None:
 
         subprocess.run([sys.executable, "-c", _EXPORT, json.dumps(job)], check=True,
                        env={**os.environ, **env}, cwd=tree)  # fmt: skip
-        old = _old_runtime(tree)
+        old = importlib.import_module(f"{load_old_package(args.against, d).__name__}.runtime")
         models = {"tcarm": tc.RobotModel.from_urdf(tc.robots.tcarm_path()),
                   "icub": tc.RobotModel.from_urdf(icub_path())}  # fmt: skip
         export_residual_checkpoint(ckpt, d / "new-residual.onnx", models["icub"], check=False)
@@ -129,26 +136,38 @@ def main() -> None:
             a, b = rt_old.step(*legacy, **kw), rt_new.step(f)
             np.testing.assert_allclose(a["force"], b["force"], rtol=1e-4, atol=1e-4)
 
-            def raw(rt):
-                run, names, x, ro, xin = (rt.step_session._sess.run, rt._out_names, rt._x,
-                                          ort.RunOptions(), rt._in_name)  # fmt: skip
-                return lambda: run(names, {xin: x}, ro)
-
             nodes = [len(onnx.load(str(p.with_name(p.name.replace(".onnx", ".step.onnx"))))
                          .graph.node) for p in (d / f"old-{i}.onnx", path)]  # fmt: skip
             runs[name] = {
                 "old step": lambda rt=rt_old, a=legacy, kw=kw: rt.step(*a, **kw),
                 "new step": lambda rt=rt_new, f=f: rt.step(f),
-                "old run": raw(rt_old),
-                "new run": raw(rt_new),
+                "old run": _raw(rt_old),
+                "new run": _raw(rt_new),
                 "nodes": nodes,
             }
-        keys = ("old step", "new step", "old run", "new run")
-        times = {n: {k: [] for k in keys} for n in runs}
+        # the online options' cost: the last configuration exported online, the bias tracked
+        robot, sensors, (links, kinds), dt, res, joints = list(CONFIGS.values())[-1]
+        path = d / "new-online.onnx"
+        export_estimator(models[robot], sensors, links, kinds, path, dtype=getattr(torch, dt),
+                         joints=joints, residual=d / "new-residual.onnx" if res else None,
+                         online=True)  # fmt: skip
+        rt_on = EstimatorRuntime(path, track_bias=True)
+        f = _frame(models[robot].nv, len(links), res)
+        f["active"] = np.zeros(len(links))  # contact-free: the tracker updates every frame
+        rt_on.step(f)
+        n_on = len(onnx.load(str(path.with_name("new-online.step.onnx"))).graph.node)
+        runs[list(CONFIGS)[-1]].update(
+            {
+                "online step": lambda rt=rt_on, f=f: rt.step(f),
+                "online run": _raw(rt_on),
+                "online nodes": n_on,
+            }
+        )
+        times = {n: {k: [] for k in fns if "nodes" not in k} for n, fns in runs.items()}
         rounds = 20
         for _ in range(rounds):  # interleaved: configurations and versions alike
             for name, fns in runs.items():
-                for k in keys:
+                for k in times[name]:
                     fn = fns[k]
                     for _ in range(20):
                         fn()
@@ -167,6 +186,11 @@ def main() -> None:
         step = f"{so[0]:.0f} / {sn[0]:.0f} ({sn[0] / so[0]:.2f})"
         run = f"{ro[0]:.0f} / {rn[0]:.0f} ({rn[0] / ro[0]:.2f})"
         print(f"| {name} | {n_old} / {n_new} | {step} | {so[1]:.0f} / {sn[1]:.0f} | {run} |")
+        if "online step" in p:
+            on, rn_on = p["online step"], p["online run"]
+            print(f"| {name}, online, bias tracked (this tree) | - / {runs[name]['online nodes']}"
+                  f" | - / {on[0]:.0f} ({on[0] / so[0]:.2f}) | - / {on[1]:.0f} |"
+                  f" - / {rn_on[0]:.0f} ({rn_on[0] / ro[0]:.2f}) |")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -49,6 +49,8 @@ def _estimator(args: argparse.Namespace) -> int:
 
     if args.format == "c":
         return _estimator_c(args)
+    if args.payload_link and not args.online:
+        raise InputError("--payload-link goes with --online (or --format c)")
     robot = resolve_robot_argument(args)
     check_outputs([args.out], [robot, args.contacts])
     from torchcontact.logs.pipeline import load_robot
@@ -85,6 +87,7 @@ def _estimator(args: argparse.Namespace) -> int:
                 joints=None if joints in (None, "all") else joints,
                 velocity_margin=args.velocity_margin,
                 constraints=cones,
+                online=_payload_links(args) or bool(args.online),
             )
     except TorchContactError:
         raise
@@ -93,6 +96,17 @@ def _estimator(args: argparse.Namespace) -> int:
     step = str(step_graph_path(args.out))
     print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
     return 0
+
+
+def _payload_links(args: argparse.Namespace) -> dict[str, str]:
+    """``--payload-link SENSOR=LINK`` (repeat) as a dict."""
+    out = {}
+    for item in args.payload_link or []:
+        sensor, sep, link = item.partition("=")
+        if not sep or not sensor or not link:
+            raise InputError(f"--payload-link takes SENSOR=LINK, got {item!r}")
+        out[sensor] = link
+    return out
 
 
 def _estimator_c(args: argparse.Namespace) -> int:
@@ -115,12 +129,7 @@ def _estimator_c(args: argparse.Namespace) -> int:
     joints = args.joints
     if joints and joints not in ("all", "sensed"):
         joints = joints.split(",")
-    payload_links = {}
-    for item in args.payload_link or []:
-        sensor, sep, link = item.partition("=")
-        if not sep:
-            raise InputError(f"--payload-link takes SENSOR=LINK, got {item!r}")
-        payload_links[sensor] = link
+    payload_links = _payload_links(args)
     print(f"export: building the C step of {model.name} ({len(links)} slots) ...", file=sys.stderr)
     with _stage(f"C step of {model.name}, {len(links)} slots"):
         meta = export_c_step(
@@ -268,9 +277,16 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         "--no-build", action="store_true", help="--format c: write the source and header only"
     )
     e.add_argument(
+        "--online",
+        action="store_true",
+        help="step graph inputs bias, theta.<sensor> and outputs ft_model, regressor.<sensor>:"
+        " bias tracking, tare and payloads in the runtime (always in --format c)",
+    )
+    e.add_argument(
         "--payload-link",
         action="append",
-        help="--format c: SENSOR=LINK where payloads attach (default: the end of the subtree)",
+        help="with --online or --format c: SENSOR=LINK where payloads attach (repeat; default:"
+        " the deepest link of the sensor's subtree)",
     )
     e.add_argument(
         "--out",

@@ -95,7 +95,7 @@ def payload_stream(
 
 
 def run_stream(rt, s: Stream, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
-    """Step ``rt`` (a CStepRuntime or OnlineEstimator) through frames; forces and offsets."""
+    """Step ``rt`` (an EstimatorRuntime or OnlineEstimator) through frames; forces and offsets."""
     stop = len(s.t) if stop is None else stop
     forces, offsets, status = [], [], []
     for i in range(start, stop):

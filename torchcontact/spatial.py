@@ -257,6 +257,40 @@ def body_wrench_params(mass: Scalar, h: V3, inertia_origin: M3, v: Motion, a: Mo
     return v_add(Ia[0], vxIv[0]), v_add(Ia[1], vxIv[1])
 
 
+#: ``(row, column)`` of the rotational inertia's six parameters ``I_xx, I_xy, I_yy, I_xz, I_yz,
+#: I_zz`` (the order of :data:`torchcontact.online.payload.PARAM_NAMES` after ``m, m c``).
+INERTIA_PARAM_ENTRIES = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2))
+
+
+def body_wrench_link_params(Q: np.ndarray, theta: Sequence[Scalar], v: Motion, a: Motion) -> Force:
+    """:func:`body_wrench_params` of ten parameters given in another frame of the body.
+
+    The parameters ``theta = [m, m c (3), I_xx, I_xy, I_yy, I_xz, I_yz, I_zz]`` (about the
+    body origin) are in the link frame, the motion and the wrench in the body's internal frame,
+    which is the link frame turned by ``Q = R_link_internal``: ``h = Q^T (m c)``,
+    ``I = Q^T I_link Q``. Linear in ``theta`` (the sensor regressor's columns are its unit
+    vectors).
+
+    Args:
+        Q: ``(3, 3)`` constant rotation ``R_link_internal``.
+        theta: ten scalars (constants or traced symbols).
+        v: twist of the body, internal frame.
+        a: its acceleration.
+    """
+    Q = np.asarray(Q, dtype=float)
+    h = tuple(cmat_vec(Q.T, theta[1:4]))
+    rows = []
+    for r in range(3):
+        row = []
+        for c in range(3):
+            # (Q^T I Q)[r, c] = sum_ij Q[i, r] Q[j, c] I[i, j], I symmetric from 6 parameters
+            coeffs = [Q[i, r] * Q[j, c] + (Q[j, r] * Q[i, c] if i != j else 0.0)
+                      for i, j in INERTIA_PARAM_ENTRIES]  # fmt: skip
+            row.append(lincomb(coeffs, theta[4:10]))
+        rows.append(tuple(row))
+    return body_wrench_params(theta[0], h, tuple(rows), v, a)
+
+
 def add_forces(fs: Sequence[Force]) -> Force:
     """Sum of wrenches."""
     return v_sum([f[0] for f in fs]), v_sum([f[1] for f in fs])

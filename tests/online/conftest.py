@@ -30,3 +30,13 @@ def arm_lib(arm, tmp_path_factory):
     path = tmp_path_factory.mktemp("clib") / "tc_estimator.so"
     meta = export_c_step(arm, None, LINKS, KINDS, path)
     return path, meta
+
+
+@pytest.fixture(scope="session")
+def arm_onnx(arm, tmp_path_factory):
+    """The arm's ONNX graphs exported with ``online`` (float64, the layout of ``arm_lib``)."""
+    from torchcontact.export import export_estimator
+
+    path = tmp_path_factory.mktemp("onnx_online") / "arm.onnx"
+    export_estimator(arm, None, LINKS, KINDS, path, dtype=torch.float64, online=True)
+    return path

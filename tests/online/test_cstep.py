@@ -1,5 +1,5 @@
-"""The C step (torchcontact.online.cstep / cruntime): parity with the torch estimator in float64,
-the C program in examples/, the robot hash, bad input, the CLI."""
+"""The C step (torchcontact.online.cstep, run by EstimatorRuntime(backend="c")): parity with the
+torch estimator in float64, the C program in examples/, the robot identity, bad input, the CLI."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from online_scenes import KINDS, LINKS
 
 import torchcontact as tc
 from torchcontact.errors import InputError, ModelMismatchError
-from torchcontact.online.cruntime import CStepRuntime
 from torchcontact.online.estimator import OnlineEstimator
 from torchcontact.residual import ResidualCorrection, sensor_regressor, subtree_bodies
 
@@ -24,10 +23,23 @@ ROOT = Path(__file__).resolve().parents[2]
 TOL = dict(rtol=0.0, atol=1e-12)  # the issue's bound: C float64 vs torch float64 <= 1e-12 N
 
 
-def test_cruntime_imports_neither_torch_nor_onnxruntime():
+def CStepRuntime(path, robot=None, **kw):  # noqa: N802 - the runtime's C backend
+    from torchcontact.runtime import EstimatorRuntime
+
+    return EstimatorRuntime(path, robot, backend="c", **kw)
+
+
+def test_the_c_backend_imports_neither_torch_nor_onnxruntime(arm_lib):
+    """EstimatorRuntime(backend="c") steps with numpy and ctypes alone (onnxruntime blocked)."""
     code = (
-        "import sys, torchcontact.online.cruntime, torchcontact.online.derivatives;"
-        "bad = [m for m in ('torch', 'onnxruntime') if m in sys.modules];"
+        "import sys; sys.modules['onnxruntime'] = None;"
+        "import numpy as np, torchcontact.online.derivatives;"
+        "from torchcontact.runtime import EstimatorRuntime;"
+        f"rt = EstimatorRuntime({str(arm_lib[0])!r}, 'tcarm', track_bias=True);"
+        "out = rt.step({'q': np.zeros(7), 'qd': np.zeros(7), 'qdd': np.zeros(7),"
+        " 'ft': np.zeros((1, 6)), 'active': np.zeros(3)}); rt.tare();"
+        "assert out['status'] == 0 and out['bias'].updated[0];"
+        "bad = [m for m in ('torch',) if m in sys.modules];"
         "assert not bad, bad"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -65,15 +77,17 @@ def test_c_step_equals_the_torch_estimator_float64(arm, arm_lib):
     c.step(q[0].numpy(), qd[0].numpy(), qdd[0].numpy(), np.zeros((1, 6)))
     body = arm.frame(meta["online"][0]["payload_link"]).body
     Y = sensor_regressor(arm, "base_ft", q, qd, qdd, [body])[0].numpy()
-    np.testing.assert_allclose(c.outputs["regressor.base_ft"], Y, **TOL)
-    # batched: run() equals step() frame by frame
-    x = c.pack(3, q=rng.uniform(-1, 1, (3, arm.nv)), ft=rng.normal(0, 5, (3, 1, 6)))
-    out = c.unpack(c.run(x))
+    np.testing.assert_allclose(c.backend.output("regressor.base_ft"), Y, **TOL)
+    # batched: run() equals step() frame by frame (the payload in both)
+    frames = {"q": rng.uniform(-1, 1, (3, arm.nv)), "qd": rng.uniform(-1, 1, (3, arm.nv)),
+              "qdd": np.zeros((3, arm.nv)), "ft": rng.normal(0, 5, (3, 1, 6)),
+              "positions": rng.uniform(-0.03, 0.03, (3, 3, 3))}  # fmt: skip
+    out = c.run(frames)
+    assert out["force"].shape == (3, 3, 3) and out["status"].tolist() == [0, 0, 0]
     for i in range(3):
-        f = {k: x[i, o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in
-             meta["inputs"].items()}  # fmt: skip
-        one = c.step(f["q"], f["qd"], f["qdd"], f["ft"], f["positions"], f["active"])
+        one = c.step({k: v[i] for k, v in frames.items()})
         np.testing.assert_allclose(out["force"][i], one["force"], rtol=0, atol=0)
+        np.testing.assert_allclose(out["ft_model"][i], one["ft_model"], rtol=0, atol=0)
 
 
 def test_c_step_with_a_correction_stack_on_icub(tmp_path):
@@ -97,7 +111,7 @@ def test_c_step_with_a_correction_stack_on_icub(tmp_path):
     assert meta["correction"]["l_arm_ft"]["in_library"] == ["offset", "inertial"]
     c = CStepRuntime(path, robot=m)
     t = OnlineEstimator(m, ["l_arm_ft"], links, kinds, correction=stack, backend="eager")
-    np.testing.assert_allclose(c.state.bias(), t.state.bias(), rtol=0, atol=0)
+    np.testing.assert_allclose(c.online.state.bias(), t.state.bias(), rtol=0, atol=0)
     rng = np.random.default_rng(3)
     torques = [m.joint_names.index(j) for j in meta["torque_joints"]]
     for frame in _frames(rng, m.nv, 4, 6):
@@ -119,7 +133,7 @@ def test_status_bits_and_nan_outputs(arm_lib):
     assert out["status"] == 1
     with pytest.raises(InputError, match=r"q must have shape \(7,\)"):
         c.step(np.zeros(6), q, q, np.zeros((1, 6)))
-    with pytest.raises(InputError, match=r"ft must be \(1, 6\)"):
+    with pytest.raises(InputError, match=r"ft must have shape \(1, 6\)"):
         c.step(q, q, q, np.zeros(5))
     with pytest.raises(InputError, match="no input 'omega'"):
         c.step(q, q, q, np.zeros((1, 6)), omega=np.zeros(3))
@@ -180,14 +194,14 @@ def test_the_c_program_in_examples(arm_lib, tmp_path):
     )  # fmt: skip
     c = CStepRuntime(path)
     rng = np.random.default_rng(5)
-    x = c.pack(4, q=rng.uniform(-1, 1, (4, 7)), qd=rng.uniform(-1, 1, (4, 7)),
+    x = c.backend.pack(4, q=rng.uniform(-1, 1, (4, 7)), qd=rng.uniform(-1, 1, (4, 7)),
                ft=rng.normal(0, 5, (4, 1, 6)), positions=rng.uniform(-0.03, 0.03, (4, 3, 3)),
                active=[[1, 0, 1], [0, 1, 0], [1, 1, 1], [0, 0, 0]])  # fmt: skip
     x[2, meta["inputs"]["qdd"][0]] = np.nan  # a bad frame: status 2 from C too
     text = "\n".join(" ".join(repr(float(v)) for v in row) for row in x)
     r = subprocess.run([str(exe)], input=text, capture_output=True, text=True, check=True)
     rows = np.array([[float(v) for v in line.split()] for line in r.stdout.splitlines()])
-    ref = c.run(x)
+    ref = c.backend.run(x)
     assert rows[:, 0].tolist() == [0, 0, 2, 0]
     np.testing.assert_array_equal(rows[:, 1:], ref)  # same library, same bits
     meta_c = json.loads(subprocess.run([str(exe), "--meta"], capture_output=True, text=True,

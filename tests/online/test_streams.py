@@ -17,16 +17,22 @@ from online_scenes import (
 )
 
 import torchcontact as tc
-from torchcontact.online.cruntime import CStepRuntime
 from torchcontact.online.estimator import OnlineEstimator, track_log
 from torchcontact.online.payload import NotIdentifiableError
+from torchcontact.runtime import EstimatorRuntime
 from torchcontact.simulation import UnmodeledEffects, simulate
 
 
-def test_a_2_N_offset_step_is_tracked_within_2_s(arm, arm_lib):
+@pytest.fixture(params=["c", "onnx"])
+def step_file(request, arm_lib):
+    """The arm's step with online inputs: the C library, or the ONNX graph (--online)."""
+    return arm_lib[0] if request.param == "c" else request.getfixturevalue("arm_onnx")
+
+
+def test_a_2_N_offset_step_is_tracked_within_2_s(arm, step_file):
     s = bias_step_stream(arm, seconds=16.0, step_s=6.0)
     k0 = int(np.searchsorted(s.t, 6.0))
-    rt = CStepRuntime(arm_lib[0], robot="tcarm", track_bias=True,
+    rt = EstimatorRuntime(step_file, robot="tcarm", track_bias=True,
                       tracker_options=dict(time_constant=0.5, ft_std=NOISE))  # fmt: skip
     run_stream(rt, s, 0, k0)
     out = run_stream(rt, s, k0)
@@ -39,17 +45,17 @@ def test_a_2_N_offset_step_is_tracked_within_2_s(arm, arm_lib):
     late = contact & (free_time >= 2.0)
     assert late.sum() > 100 and err[late].max() < 0.3
     # without tracking the step stays in the estimate (the check above can fail)
-    rt = CStepRuntime(arm_lib[0], robot="tcarm", track_bias=False)
+    rt = EstimatorRuntime(step_file, robot="tcarm", track_bias=False)
     rt.step(s.q[0], s.qd[0], s.qdd[0], s.ft[0], active=np.zeros(3))
     rt.tare()
     out = run_stream(rt, s, k0)
     assert np.median(np.linalg.norm(out["force"] - s.force[k0:], axis=-1).max(-1)[late]) > 1.0
 
 
-def test_a_payload_added_mid_stream_is_identified_within_10_s(arm, arm_lib):
+def test_a_payload_added_mid_stream_is_identified_within_10_s(arm, step_file):
     s = payload_stream(arm, mass=0.5, seconds=16.0, change_s=4.0)
     k0 = int(np.searchsorted(s.t, 4.0))
-    rt = CStepRuntime(arm_lib[0], robot="tcarm", track_bias=True,
+    rt = EstimatorRuntime(step_file, robot="tcarm", track_bias=True,
                       tracker_options=dict(ft_std=NOISE))  # fmt: skip
     run_stream(rt, s, 0, k0)
     rt.start_identification()  # the tool change

@@ -59,27 +59,6 @@ def _user_errors() -> Iterator[None]:
         raise InputError(str(exc)) from exc
 
 
-def _onnx_estimator(path: str, contacts: str | None) -> Any:
-    """The exported estimator with the contact spec's records placed in the graph's slots."""
-    from torchcontact.contacts import SlotLayout, load_contact_spec
-    from torchcontact.drivers.live import OnnxEstimator
-
-    est = OnnxEstimator(path)
-    if contacts is None:
-        return est  # every slot inactive
-    rt = est.runtime
-    records = load_contact_spec(contacts).static()
-    layout = SlotLayout(rt.slot_links, rt.slot_kinds)
-    arrays, slot = layout.fill(records, 1)
-    if (slot < 0).any():
-        extra = [f"{records.links[i]}:{records.kinds[i]}" for i in np.flatnonzero(slot < 0)]
-        raise InputError(
-            f"--contacts {contacts}: {extra} find no free slot in {path}, whose slots are"
-            f" {[f'{a}:{b}' for a, b in zip(layout.links, layout.kinds, strict=True)]}"
-        )
-    return OnnxEstimator(path, {k: v[0] for k, v in arrays.items()})
-
-
 def _add_source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
     where = p.add_mutually_exclusive_group(required=True)
@@ -100,7 +79,18 @@ def _add_source_args(p: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=None, help="stop after S seconds (default: never)"
     )
     p.add_argument("--out", help="Parquet log of the frames, t_ns and ft.<sensor> (default: none)")
-    p.add_argument("--tare", type=int, default=0, metavar="N", help="software zero over N frames")
+    p.add_argument(
+        "--tare",
+        type=int,
+        nargs="?",
+        const=100,
+        default=0,
+        metavar="N",
+        help="zero over N frames (100 when N is left out): the sensor's software zero; run with"
+        " a step with online inputs (--c-step, --onnx exported with --online): from the model,"
+        " the reading less its prediction, once N frames in a row are contact-free (default: 0,"
+        " no zero)",
+    )
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -198,17 +188,54 @@ def cmd_read(args: argparse.Namespace) -> int:
     return 0
 
 
-def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
-    """``run --onnx``: the exported estimator and its F/T source (a group for several sensors).
+def _floats(text: str, option: str, n: tuple[int, ...]) -> list[float]:
+    """``A,B,C`` as floats (``n``: the counts allowed)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise InputError(f"{option} takes numbers separated by commas, got {text!r}") from None
+    if len(vals) not in n:
+        raise InputError(f"{option} takes {' or '.join(map(str, n))} numbers, got {text!r}")
+    return vals
 
-    ``--contacts SPEC`` (the contact-spec file) fills the graph's slots; without it every slot is
-    inactive. The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the graph's
+
+def _online_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The runtime estimator's online options from ``run``'s arguments."""
+    opts: dict[str, Any] = {"track_bias": bool(args.track_bias)}
+    tracker: dict[str, Any] = {"time_constant": args.bias_time_constant}
+    if not args.bias_time_constant > 0:
+        raise InputError(f"--bias-time-constant must be > 0 s, got {args.bias_time_constant}")
+    if args.ft_std:
+        tracker["ft_std"] = _floats(args.ft_std, "--ft-std", (6,))
+    if args.bias_gate is not None:
+        tracker["gate"] = args.bias_gate
+    opts["tracker_options"] = tracker
+    payloads = []
+    for item in args.payload or []:
+        parts = item.split(",")
+        if len(parts) not in (4, 5):
+            raise InputError(f"--payload takes MASS,CX,CY,CZ[,LINK], got {item!r}")
+        mass, *com = _floats(",".join(parts[:4]), "--payload", (4,))
+        payloads.append((mass, com, parts[4] if len(parts) == 5 else None))
+    opts["payloads"] = payloads
+    opts["identify"] = args.identify_payload
+    opts["tare"] = args.tare
+    return opts
+
+
+def _runtime_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
+    """``run --onnx`` / ``--c-step``: the exported estimator and its F/T source.
+
+    ``--contacts SPEC`` (the contact-spec file) fills the file's slots; without it every slot is
+    inactive. The sensor given by ``--port``/``--tcp`` is ``--sensor`` (default: the file's
     first); ``--source NAME=ADDRESS`` adds the others (``tcp://HOST:PORT`` or a serial port, same
     profile). ``--extra NAME=VALUE`` gives constant extra inputs of the residual corrections.
+    ``--track-bias``, ``--tare``, ``--payload``, ``--identify-payload``: the online state.
     """
     from torchcontact.contacts import SlotLayout, load_contact_spec
-    from torchcontact.drivers.live import OnnxEstimator, SensorGroup
+    from torchcontact.drivers.live import RuntimeEstimator, SensorGroup
 
+    path = args.onnx or args.c_step
     extra = {}
     for item in args.extra or []:
         name, sep, value = item.partition("=")
@@ -221,7 +248,14 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
     robot: Any = resolve_robot_argument(args)
     if robot is not None:  # identified by its URDF's hash (no torch), its model with --ft-sensor
         robot = robot.load() if robot.ft_sensors else os.fspath(robot)
-    est = OnnxEstimator(args.onnx, None, robot=robot, residual=args.residual or None)
+    est = RuntimeEstimator(
+        path,
+        None,
+        robot=robot,
+        residual=args.residual or None,
+        backend="c" if args.c_step else "onnx",
+        **_online_options(args),
+    )
     rt = est.runtime
     spec: dict[str, Any] = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
     if args.contacts:
@@ -232,7 +266,7 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
             left = [f"{records.links[i]}:{records.kinds[i]}" for i in np.flatnonzero(slot < 0)]
             slots = [f"{a}:{b}" for a, b in zip(layout.links, layout.kinds, strict=True)]
             raise InputError(
-                f"--contacts {args.contacts}: {left} find no free slot in {args.onnx}, whose"
+                f"--contacts {args.contacts}: {left} find no free slot in {path}, whose"
                 f" slots are {slots}"
             )
         spec = {k: v[0] for k, v in arrays.items()}
@@ -241,7 +275,7 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
     est.set_inputs(spec)
     primary = args.sensor or rt.sensor_names[0]
     if primary not in rt.sensor_names:
-        raise InputError(f"--sensor {primary!r} is not one of the graph's {list(rt.sensor_names)}")
+        raise InputError(f"--sensor {primary!r} is not one of the file's {list(rt.sensor_names)}")
     addresses = {primary: None}
     for item in args.source or []:
         name, sep, address = item.partition("=")
@@ -254,7 +288,7 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
     missing = [s for s in rt.sensor_names if s not in addresses]
     if missing:
         raise InputError(
-            f"{args.onnx} reads sensors {list(rt.sensor_names)}; give the others with --source"
+            f"{path} reads sensors {list(rt.sensor_names)}; give the others with --source"
             f" NAME=tcp://HOST:PORT (or a serial port): missing {missing}"
         )
     sources = []
@@ -273,6 +307,7 @@ def _onnx_estimator(args: argparse.Namespace) -> tuple[Any, Any]:
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the live loop: sensor + joint states -> estimator -> JSON lines."""
     from torchcontact.drivers.live import (
+        CausalJointSource,
         JsonLinesPublisher,
         LiveLoop,
         UdpJointSource,
@@ -285,15 +320,25 @@ def cmd_run(args: argparse.Namespace) -> int:
     from torchcontact.errors import ModelMismatchError
 
     with _user_errors():
-        if args.contacts and not args.onnx:
-            raise InputError("--contacts applies to --onnx (the exported estimator) only")
-        if args.onnx:
-            estimator, src = _onnx_estimator(args)
+        exported = args.onnx or args.c_step
+        if args.derivatives == "causal":
+            from torchcontact.online.derivatives import CausalDerivatives
+
+            if not args.joints:
+                raise InputError("--derivatives causal needs joint states (--joints)")
+            CausalDerivatives(1, args.derivative_window, args.derivative_order)  # checks them
+        if args.contacts and not exported:
+            raise InputError("--contacts applies to --onnx or --c-step (the exported estimator)")
+        if exported:
+            estimator, src = _runtime_estimator(args)
         else:
-            if args.source or args.residual or args.robot or args.ft_sensor or args.extra:
-                raise InputError(
-                    "--source, --residual, --robot, --ft-sensor and --extra go with --onnx"
-                )
+            given = {"--source": args.source, "--residual": args.residual, "--robot": args.robot,
+                     "--ft-sensor": args.ft_sensor, "--extra": args.extra,
+                     "--track-bias": args.track_bias, "--payload": args.payload,
+                     "--identify-payload": args.identify_payload is not None}  # fmt: skip
+            bad = [k for k, v in given.items() if v]
+            if bad:
+                raise InputError(f"{', '.join(bad)}: only with --onnx or --c-step")
             estimator = load_estimator(args.estimator)
             src = None
         joints_at = parse_hostport(args.joints.removeprefix("udp://")) if args.joints else None
@@ -315,11 +360,22 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             view = LiveView.for_estimator(estimator, args.robot, args.view)
         src.open()
-    joints = None
+        if args.tare and not exported:  # the sensor's software zero (no model to zero from)
+            print(f"tare: {src.tare(args.tare).round(4).tolist()}", file=sys.stderr, flush=True)
+    joints: Any = None
     if joints_at is not None:
-        joints = UdpJointSource(*joints_at)
-        print(f"joint states on udp {joints.address[0]}:{joints.address[1]}", file=sys.stderr)
-    log = FTLogWriter(args.out, src.name) if args.out else None
+        udp = UdpJointSource(*joints_at)
+        print(f"joint states on udp {udp.address[0]}:{udp.address[1]}", file=sys.stderr)
+        joints = udp
+    if args.derivatives == "causal":
+        joints = CausalJointSource(joints, args.derivative_window, args.derivative_order)
+        print(json_line({"derivatives": joints.describe()}), file=sys.stderr, flush=True)
+    log = None
+    if args.out:
+        runtime = getattr(estimator, "runtime", None)
+        sensors = list(runtime.sensor_names) if exported else [src.name]
+        online = runtime is not None and runtime.online is not None
+        log = FTLogWriter(args.out, sensors, bias=online)
     loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints,
                     on_frame=view)  # fmt: skip
     try:
@@ -335,6 +391,10 @@ def cmd_run(args: argparse.Namespace) -> int:
             joints.close()
         if view is not None:
             view.close()
+    if hasattr(estimator, "summary"):
+        summary["online"] = estimator.summary()
+    if isinstance(joints, CausalJointSource):
+        summary["derivatives"] = joints.describe()
     print(json_line({"summary": summary}), file=sys.stderr, flush=True)
     return 0
 
@@ -396,10 +456,16 @@ def add_parser(subparsers: Any) -> None:
         help="exported contact estimator (torchcontact export estimator), run with onnxruntime"
         " (default: none, --estimator runs)",
     )
+    which.add_argument(
+        "--c-step",
+        metavar="LIB.so",
+        help="exported C step library (export estimator --format c) via ctypes: no onnxruntime"
+        " (default: none)",
+    )
     add_robot_argument(
         run,
-        what="with --onnx, the robot the graph was exported for (a graph exported for another"
-        " one is refused)",
+        what="with --onnx or --c-step, the robot the graph or library was exported for (one"
+        " exported for another robot is refused)",
         default_help="none: the graph is not checked against a robot",
     )
     run.add_argument(
@@ -428,9 +494,76 @@ def add_parser(subparsers: Any) -> None:
         " each with link, kind, position), placed in the graph's slots; default no contact",
     )
     run.add_argument(
+        "--track-bias",
+        action="store_true",
+        help="with --c-step or --onnx (exported with --online): track each sensor's offset"
+        " against the model while no contact is active (no active slot in its region, no"
+        " contact flag in the joint state); every record and --out row carry the bias state",
+    )
+    run.add_argument(
+        "--bias-time-constant",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="time constant of the offset tracker, s (default: 0.5)",
+    )
+    run.add_argument(
+        "--ft-std",
+        metavar="FX,FY,FZ,MX,MY,MZ",
+        help="F/T noise standard deviations, N and N m: the offset's reported uncertainty"
+        " (default: 0.05 N and 0.005 N m)",
+    )
+    run.add_argument(
+        "--bias-gate",
+        type=float,
+        default=None,
+        metavar="CHI2",
+        help="also skip contact-free frames whose residual exceeds this chi-square (6 degrees of"
+        " freedom, e.g. 22.46 for 99.9 percent) (default: no gate)",
+    )
+    run.add_argument(
+        "--payload",
+        action="append",
+        metavar="MASS,CX,CY,CZ[,LINK]",
+        help="with --c-step or --onnx --online: a payload from the start, kg, its centre of mass"
+        " in LINK's frame, m (a point mass; default link: the sensor's payload link; repeat)",
+    )
+    run.add_argument(
+        "--identify-payload",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="SENSOR",
+        help="with --c-step or --onnx --online: identify the payload from the start while the"
+        " robot moves without contact; the first record whose data identify it carries"
+        " payload_identified, and it is applied (default sensor: the only one)",
+    )
+    run.add_argument(
+        "--derivatives",
+        choices=["sender", "causal"],
+        default="sender",
+        help="qd, qdd from the joint-state sender, or causal Savitzky-Golay derivatives of its q"
+        " (for a sender without them; the delay is printed on stderr) (default sender)",
+    )
+    run.add_argument(
+        "--derivative-window",
+        type=int,
+        default=15,
+        metavar="N",
+        help="--derivatives causal: frames of the fit (default: 15)",
+    )
+    run.add_argument(
+        "--derivative-order",
+        type=int,
+        default=3,
+        metavar="P",
+        help="--derivatives causal: polynomial degree, 3 for no low-frequency delay (default: 3)",
+    )
+    run.add_argument(
         "--joints",
         metavar="udp://HOST:PORT",
-        help="joint-state UDP packets (default: none; frames carry no joint state)",
+        help="joint-state UDP packets (flag bit 0: the sender reports a contact) (default: none;"
+        " frames carry no joint state)",
     )
     run.add_argument("--require-joints", action="store_true", help="skip frames without joints")
     run.add_argument("--publish", default="stdout", help="stdout or udp://127.0.0.1:PORT")

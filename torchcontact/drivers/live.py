@@ -6,7 +6,8 @@ little-endian, no padding (``struct`` format ``<4sHHQqI`` then ``3 n`` float64):
     offset  size   field
     0       4      magic  b"TCJS"
     4       2      version (uint16) = 1
-    6       2      reserved (uint16) = 0
+    6       2      flags (uint16): bit 0 CONTACT, the sender reports a contact (the bias
+                   tracker does not update on it: the user's contact-free signal); others 0
     8       8      seq (uint64), increasing per packet
     16      8      t_ns (int64), sender's monotonic time, ns
     24      4      n (uint32), number of joints
@@ -15,10 +16,16 @@ little-endian, no padding (``struct`` format ``<4sHHQqI`` then ``3 n`` float64):
     28+16n  8 n    qdd  (float64[n]), rad/s^2 or m/s^2
 
 For every new F/T sample the loop takes the newest joint state, calls
-``estimator(q, qd, qdd, ft) -> dict`` and publishes one JSON object per line
+``estimator(q, qd, qdd, ft) -> dict`` (an estimator with a ``frame(sample, joint_state)``
+method, :class:`RuntimeEstimator`, gets the sample and the joint state instead: their time
+stamps and flags) and publishes one JSON object per line
 (``{"t_ns", "seq", "ft", "joint_seq", "estimate", "latency_us"}``) to stdout or UDP, optionally
 logging the frames to Parquet. Latency is measured from the sample's timestamp (host time the
 frame was received) to the moment its result was handed to the publishers.
+
+:class:`CausalJointSource` replaces the sender's velocities and accelerations by causal
+Savitzky-Golay derivatives of its positions (:mod:`torchcontact.online.derivatives`), for a
+sender that has none.
 """
 
 from __future__ import annotations
@@ -45,6 +52,8 @@ from torchcontact.onnx import format as fmt
 MAGIC = b"TCJS"
 VERSION = 1
 _HEADER = struct.Struct("<4sHHQqI")
+#: Joint-state flag: the sender reports a contact (no bias update on it).
+JOINT_CONTACT = 1
 
 
 @dataclass(frozen=True)
@@ -57,6 +66,7 @@ class JointState:
         q: (n,) float64 positions, rad (revolute) or m (prismatic).
         qd: (n,) float64 velocities.
         qdd: (n,) float64 accelerations.
+        flags: bits of the packet's flags field (:data:`JOINT_CONTACT`).
     """
 
     seq: int
@@ -64,9 +74,10 @@ class JointState:
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
+    flags: int = 0
 
 
-def pack_joint_state(seq: int, t_ns: int, q: Any, qd: Any, qdd: Any) -> bytes:
+def pack_joint_state(seq: int, t_ns: int, q: Any, qd: Any, qdd: Any, flags: int = 0) -> bytes:
     """Encode a joint-state UDP packet (layout in the module docstring).
 
     Args:
@@ -75,6 +86,7 @@ def pack_joint_state(seq: int, t_ns: int, q: Any, qd: Any, qdd: Any) -> bytes:
         q: (n,) positions, rad or m.
         qd: (n,) velocities.
         qdd: (n,) accelerations.
+        flags: :data:`JOINT_CONTACT` when the sender knows of a contact, else 0.
 
     Returns:
         The packet, ``28 + 24 n`` bytes.
@@ -93,7 +105,9 @@ def pack_joint_state(seq: int, t_ns: int, q: Any, qd: Any, qdd: Any) -> bytes:
     n = len(arrays[0])
     if any(len(a) != n for a in arrays):
         raise ValueError(f"q, qd, qdd must have the same length, got {[len(a) for a in arrays]}")
-    return _HEADER.pack(MAGIC, VERSION, 0, seq, t_ns, n) + b"".join(a.tobytes() for a in arrays)
+    return _HEADER.pack(MAGIC, VERSION, int(flags), seq, t_ns, n) + b"".join(
+        a.tobytes() for a in arrays
+    )
 
 
 def unpack_joint_state(packet: bytes) -> JointState:
@@ -104,7 +118,7 @@ def unpack_joint_state(packet: bytes) -> JointState:
     """
     if len(packet) < _HEADER.size:
         raise ValueError(f"joint packet of {len(packet)} bytes is shorter than its header (28)")
-    magic, version, _, seq, t_ns, n = _HEADER.unpack_from(packet)
+    magic, version, flags, seq, t_ns, n = _HEADER.unpack_from(packet)
     if magic != MAGIC:
         raise ValueError(f"joint packet magic {magic!r} != {MAGIC!r}")
     if version != VERSION:
@@ -112,7 +126,7 @@ def unpack_joint_state(packet: bytes) -> JointState:
     if len(packet) != _HEADER.size + 24 * n:
         raise ValueError(f"joint packet has {len(packet)} bytes, expected {28 + 24 * n} (n={n})")
     data = np.frombuffer(packet, dtype="<f8", offset=_HEADER.size).astype(np.float64)
-    return JointState(seq, t_ns, data[:n], data[n : 2 * n], data[2 * n :])
+    return JointState(seq, t_ns, data[:n], data[n : 2 * n], data[2 * n :], flags)
 
 
 class UdpJointSource:
@@ -134,6 +148,8 @@ class UdpJointSource:
         self.received = 0
         self.rejected = 0
         self.stale = 0
+        #: called with every new joint state as it is read (a filter that needs them all)
+        self.on_state: Callable[[JointState], None] | None = None
 
     def __call__(self) -> JointState | None:
         """Drain the socket and return the newest valid joint state (or the last one seen)."""
@@ -152,10 +168,100 @@ class UdpJointSource:
                 continue
             self.received += 1
             self.latest = js
+            if self.on_state is not None:
+                self.on_state(js)
 
     def close(self) -> None:
         """Close the socket."""
         self.sock.close()
+
+
+class CausalJointSource:
+    """A joint-state source whose velocities and accelerations are causal derivatives.
+
+    Each new joint state (a higher ``seq``) updates a
+    :class:`~torchcontact.online.derivatives.CausalDerivatives` with its positions at its
+    sender's time stamp; calling the source returns the newest state with the filter's ``qd``
+    and ``qdd`` (NaN for the first ``order`` states: those frames get a status, no estimate).
+    For a sender that has no velocities or accelerations (``--derivatives causal``).
+
+    Args:
+        source: the underlying source (e.g. a :class:`UdpJointSource`).
+        window: frames of the fit.
+        order: its polynomial degree.
+    """
+
+    def __init__(
+        self, source: Callable[[], JointState | None], window: int = 15, order: int = 3
+    ) -> None:
+        from torchcontact.online.derivatives import CausalDerivatives
+
+        self.source, self.window, self.order = source, window, order
+        self._make = lambda nv: CausalDerivatives(nv, window, order)
+        CausalDerivatives(1, window, order)  # check the options now
+        self._filter: Any = None
+        self._seq: int | None = None
+        self._out: JointState | None = None
+        self._t: deque[int] = deque(maxlen=256)
+
+    def __call__(self) -> JointState | None:
+        """The newest joint state with causal ``qd``, ``qdd``.
+
+        A source that reports every state it reads (``on_state``, :class:`UdpJointSource`)
+        feeds the filter all of them; another one its newest state at each call.
+        """
+        if getattr(self.source, "on_state", False) is None:
+            self.source.on_state = self._feed  # type: ignore[attr-defined]
+        js = self.source()
+        if js is not None and js.seq != self._seq:
+            self._feed(js)
+        return self._out
+
+    def _feed(self, js: JointState) -> None:
+        """Add one joint state to the filter (once per ``seq``)."""
+        if js.seq == self._seq:
+            return
+        if self._filter is None or self._filter.nv != len(js.q):
+            self._filter = self._make(len(js.q))
+        try:
+            _, qd, qdd = self._filter.update(js.t_ns, js.q)
+        except InputError:  # the sender's clock went back (a restart): start afresh
+            self._filter.reset()
+            self._t.clear()
+            _, qd, qdd = self._filter.update(js.t_ns, js.q)
+        self._seq = js.seq
+        self._t.append(js.t_ns)
+        self._out = JointState(js.seq, js.t_ns, js.q, qd, qdd, js.flags)
+
+    def describe(self) -> dict[str, Any]:
+        """The filter and its delay (frames at low frequency; ms at the measured joint rate)."""
+        f = self._filter if self._filter is not None else self._make(1)
+        d = f.delay(1.0)
+        out: dict[str, Any] = {
+            "kind": "causal savitzky-golay",
+            "window": self.window,
+            "order": self.order,
+            "delay_frames_qd": round(d[1], 6),
+            "delay_frames_qdd": round(d[2], 6),
+        }
+        if len(self._t) > 2:
+            period = float(np.median(np.diff(np.asarray(self._t)))) * 1e-9
+            if period > 0:
+                slow, at1 = f.delay(period), f.delay(period, 1.0)
+                out.update(
+                    joint_rate_hz=round(1.0 / period, 3),
+                    delay_ms_qd=round(1e3 * slow[1], 4),
+                    delay_ms_qdd=round(1e3 * slow[2], 4),
+                    delay_ms_qd_1hz=round(1e3 * at1[1], 4),
+                    delay_ms_qdd_1hz=round(1e3 * at1[2], 4),
+                )
+        return out
+
+    def close(self) -> None:
+        """Close the underlying source."""
+        close = getattr(self.source, "close", None)
+        if close is not None:
+            close()
 
 
 class Publisher(Protocol):
@@ -348,14 +454,13 @@ class SensorGroup(FTSource):
         return FTSample(first.t_ns, first.seq, np.concatenate(self._latest), first.flags)
 
 
-class OnnxEstimator:
-    """The exported contact estimator (ONNX, onnxruntime) as a live-loop estimator.
+class RuntimeEstimator:
+    """The exported contact estimator (ONNX graph or C step library) as a live-loop estimator.
 
-    Wraps :class:`torchcontact.runtime.EstimatorRuntime` (numpy and onnxruntime only, no torch):
-    each call estimates one frame from the joint state and the readings of the graph's F/T
-    sensors (``(6 S,)``, sensors in the graph's order, e.g. from a :class:`SensorGroup`).
-    Contact positions and activity, and any other per-frame input of the graph, come from
-    ``contacts``:
+    Wraps :class:`torchcontact.runtime.EstimatorRuntime` (numpy and onnxruntime or ctypes, no
+    torch): each call estimates one frame from the joint state and the readings of its F/T
+    sensors (``(6 S,)``, sensors in the file's order, e.g. from a :class:`SensorGroup`).
+    Contact positions and activity, and any other per-frame input, come from ``contacts``:
 
     - ``None``: every slot inactive (no contact; the estimate then explains nothing and the
       forces are zero, while the F/T residual shows any unexplained load);
@@ -365,19 +470,44 @@ class OnnxEstimator:
       ``tau_mask``, ``ft_cov``, ``extra``: a dict of the residual corrections' extra columns);
     - a callable ``contacts(q) -> dict`` as above, called every frame (e.g. from a tactile skin).
 
+    On a step with online inputs (a C library, a graph exported with ``--online``) each estimate
+    also holds ``ft_model`` and ``bias`` (per sensor ``offset``, ``std``, ``since_update`` s or
+    null, ``updated``), whether the offsets are tracked or not; the loop's frames update the
+    tracker only where no active slot lies in a sensor's region and the joint state does not
+    carry :data:`JOINT_CONTACT`.
+
     Args:
-        path: ``.onnx`` file from ``python -m export estimator``.
+        path: ``.onnx`` file from ``export estimator``, or a C step ``NAME.so``.
         contacts: the contact spec above.
-        robot: the robot the joint states come from (URDF path, ``"tcarm"`` or a model): a graph
+        robot: the robot the joint states come from (URDF path, ``"tcarm"`` or a model): a file
             exported for another robot is refused.
         residual: residual-correction graph(s) to chain before the estimator.
-        expect_joint_names: refuse a graph with another joint order (the joint-state sender's).
+        expect_joint_names: refuse a file with another joint order (the joint-state sender's).
         intra_op_threads: onnxruntime threads (1: lowest single-frame latency).
+        backend: ``"onnx"`` or ``"c"`` (default: ``"c"`` for a shared library).
+        track_bias: track each sensor's offset on contact-free frames.
+        tracker_options: :class:`~torchcontact.online.bias.BiasTracker` options
+            (``time_constant``, ``ft_std``, ``gate``, ...).
+        tare: re-zero the offsets from the model once the first ``tare`` frames in a row are
+            contact-free (0: no).
+        payloads: ``[(mass kg, (cx, cy, cz) m, link or None)]`` set at the start (a point mass at
+            the centre of mass, in the link's frame; default link: the sensor's payload link).
+        identify: identify a payload from the start: a sensor name, ``""`` (the only sensor),
+            or None (no); the answer, once the data identify it, is applied and reported in
+            that frame's estimate (``payload_identified``) and in :attr:`events`.
+
+    Attributes:
+        events: what happened: ``{"tare": ...}``, ``{"payload_identified": ...}``, with their
+            sample's ``t_ns``.
 
     Raises:
-        torchcontact.runtime.ModelMismatchError: not an estimator graph, or another robot.
-        ValueError: a contact spec of the wrong shape.
+        torchcontact.runtime.ModelMismatchError: not an estimator, or another robot.
+        InputError: a contact spec of the wrong shape, online options on a step without online
+            inputs, a non-physical payload.
     """
+
+    #: The loop calls :meth:`frame` (time stamps, joint flags) instead of ``__call__``.
+    takes_frames = True
 
     def __init__(
         self,
@@ -388,19 +518,28 @@ class OnnxEstimator:
         residual: Any = None,
         expect_joint_names: Sequence[str] | None = None,
         intra_op_threads: int = 1,
+        backend: str | None = None,
+        track_bias: bool = False,
+        tracker_options: dict[str, Any] | None = None,
+        tare: int = 0,
+        payloads: Sequence[tuple[float, Any, str | None]] = (),
+        identify: str | None = None,
     ) -> None:
         import os
 
         from torchcontact.runtime import EstimatorRuntime
 
         if not os.path.isfile(path):
-            raise InputError(f"--onnx {path}: no such file")
+            raise InputError(f"{path}: no such file")
         self.runtime = EstimatorRuntime(
             path,
             robot,
+            backend=backend,
             residual=residual,
             expect_joint_names=expect_joint_names,
             intra_op_threads=intra_op_threads,
+            track_bias=track_bias,
+            tracker_options=tracker_options,
         )
         rt = self.runtime
         self.contacts = contacts
@@ -409,6 +548,31 @@ class OnnxEstimator:
             self._fixed = {"positions": np.zeros((rt.K, 3)), "active": np.zeros(rt.K)}
         elif not callable(contacts):
             self._fixed = self._check(contacts)
+        if (tare or payloads or identify is not None) and rt.online is None:
+            raise InputError(
+                f"{path} has no online inputs (bias, theta): --tare, --payload and"
+                " --identify-payload need a C step or a graph exported with --online"
+            )
+        self.events: list[dict[str, Any]] = []
+        self._tare, self._free_run = int(tare), 0
+        for mass, com, link in payloads:
+            p = rt.set_payload(mass, com, link=link, sensor=self._carrier(link))
+            self.events.append({"payload": _payload_record(p)})
+        self._identify: str | None = None
+        if identify is not None:
+            rt.start_identification(identify or None)
+            self._identify = rt.online.state.names[rt.online.state.index(identify or None)]  # type: ignore[union-attr]
+            self._since = 0
+
+    def _carrier(self, link: str | None) -> str | None:
+        """The sensor a payload on ``link`` loads: the nearest one carrying it (None: the only)."""
+        st = self.runtime.online.state  # type: ignore[union-attr]
+        if link is None or len(st.sensors) == 1:
+            return None
+        carriers = [s for s in st.sensors if link in s.frames]
+        if not carriers:
+            raise InputError(f"payload link {link!r} is carried by none of {list(st.names)}")
+        return min(carriers, key=lambda s: len(s.bodies)).name
 
     def set_inputs(self, spec: dict[str, Any]) -> None:
         """Use ``spec`` (the dict form of ``contacts`` above) for every following frame.
@@ -460,7 +624,7 @@ class OnnxEstimator:
         """Estimate one frame.
 
         Args:
-            q: ``(nv,)`` joint positions in the graph's joint order, rad or m.
+            q: ``(nv,)`` joint positions in the file's joint order, rad or m.
             qd: ``(nv,)`` joint velocities.
             qdd: ``(nv,)`` joint accelerations.
             ft: ``(6 S,)`` or ``(S, 6)`` readings ``[N; N m]`` in the sensors' frames, raw.
@@ -468,13 +632,27 @@ class OnnxEstimator:
         Returns:
             ``force (K, 3)`` N and ``moment (K, 3)`` N m in each slot's link frame,
             ``joint_torques (nv,)``, ``rank``, ``unknowns``, ``residual`` ``(S,)`` and ``status``
-            (0: ok), numpy arrays.
+            (0: ok), numpy arrays; on an online step ``ft_model (S, 6)`` and ``bias`` (JSON-ready,
+            see the class).
 
         Raises:
-            ModelMismatchError: the joint state does not have the graph's joint count (another
+            ModelMismatchError: the joint state does not have the file's joint count (another
                 robot: fatal, the loop stops).
             ValueError: a malformed reading or contact spec.
         """
+        return self._estimate(q, qd, qdd, ft, None, None, None)
+
+    def frame(self, sample: FTSample, js: JointState | None) -> dict[str, Any]:
+        """Estimate the frame of an F/T sample with a joint state (the live loop's call).
+
+        The sample's host time stamp is the bias tracker's clock; a joint state flagged
+        :data:`JOINT_CONTACT` does not update the offsets.
+        """
+        q, qd, qdd = (js.q, js.qd, js.qdd) if js is not None else (np.zeros(0),) * 3
+        busy = js is not None and bool(js.flags & JOINT_CONTACT)
+        return self._estimate(q, qd, qdd, sample.wrench, sample.t_ns, False if busy else None, js)
+
+    def _estimate(self, q, qd, qdd, ft, t_ns, contact_free, js) -> dict[str, Any]:
         from torchcontact.runtime import ModelMismatchError
 
         rt = self.runtime
@@ -490,7 +668,84 @@ class OnnxEstimator:
                 f" {list(rt.sensor_names)} (6 each)"
             )
         spec = self._fixed if self._fixed is not None else self._check(self.contacts(q))  # type: ignore[misc]
-        return rt.step({**spec, "q": q, "qd": qd, "qdd": qdd, "ft": ft.reshape(rt.S, 6)})
+        inputs = {**spec, "q": q, "qd": qd, "qdd": qdd, "ft": ft.reshape(rt.S, 6)}
+        if rt.online is None:
+            return rt.step(inputs)
+        t = None if t_ns is None else t_ns * 1e-9
+        out = rt.step(inputs, contact_free=contact_free, t=t)
+        bias = out.pop("bias")
+        st = rt.online.state
+        # --tare: re-zero once the first frames in a row are contact-free
+        if self._tare:
+            free = out["status"] == 0 and st.contact_free(spec.get("active"), contact_free).all()
+            self._free_run = self._free_run + 1 if free else 0
+            if self._free_run >= self._tare:
+                bias = rt.tare(self._tare)
+                out["tare"] = _bias_record(bias, st.names)
+                self.events.append({"t_ns": t_ns, "tare": out["tare"]})
+                self._tare = 0
+        # --identify-payload: ask every 10 frames until the data identify it
+        if self._identify is not None:
+            self._since += 1
+            if self._since % 10 == 0:
+                from torchcontact.online.payload import NotIdentifiableError
+
+                try:
+                    p = rt.identify_payload(self._identify)
+                except NotIdentifiableError:
+                    pass
+                else:
+                    bias = st.tracker.state  # the offset fitted with it
+                    out["payload_identified"] = {"sensor": self._identify, **_payload_record(p)}
+                    self.events.append(
+                        {"t_ns": t_ns, "payload_identified": out["payload_identified"]}
+                    )
+                    self._identify = None
+        out["bias"] = _bias_record(bias, st.names)
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """The online state at the end: offsets, payloads, events."""
+        rt = self.runtime
+        if rt.online is None:
+            return {}
+        st = rt.online.state
+        return {
+            "bias": _bias_record(st.last, st.names),
+            "payloads": {
+                n: (None if p is None else _payload_record(p))
+                for n, p in zip(st.names, st.payloads, strict=True)
+            },
+            "identifying": rt.online.identifying(),
+            "events": self.events,
+        }
+
+
+#: The name of earlier versions (it ran ONNX graphs only).
+OnnxEstimator = RuntimeEstimator
+
+
+def _finite(v: Any) -> Any:
+    """JSON-ready: lists of floats with null for NaN and infinities."""
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
+
+
+def _bias_record(state: Any, sensors: Sequence[str]) -> dict[str, Any]:
+    """A :class:`~torchcontact.online.bias.BiasState` per sensor, valid JSON (null for NaN)."""
+    return {k: {f: _finite(x) for f, x in v.items()} for k, v in state.as_dict(sensors).items()}
+
+
+def _payload_record(p: Any) -> dict[str, Any]:
+    return {
+        "mass": float(p.mass),
+        "com": _finite(np.asarray(p.com, float).tolist()),
+        "inertia": _finite(np.asarray(p.inertia, float).tolist()),
+        "link": p.link,
+    }
 
 
 class LiveLoop:
@@ -533,26 +788,36 @@ class LiveLoop:
         self.skipped_no_joints = 0
         self.estimator_errors = 0
         self._empty = np.zeros(0)
+        self._frames = bool(getattr(estimator, "takes_frames", False))
+
+    def _log(self, sample: FTSample, estimate: dict[str, Any] | None) -> None:
+        """Log the frame (every sample, with the estimate's bias state when it has one)."""
+        if self.log is not None:
+            self.log.append(sample.t_ns, sample.wrench, (estimate or {}).get("bias"))
 
     def step(self, timeout: float = 0.1) -> dict[str, Any] | None:
         """Process at most one F/T sample; return the published record or ``None``."""
         sample = self.ft.read(timeout)
         if sample is None:
             return None
-        if self.log is not None:
-            self.log.append(sample.t_ns, sample.wrench)
         js = self.joints() if self.joints is not None else None
         if js is None and self.require_joints:
             self.skipped_no_joints += 1
+            self._log(sample, None)
             return None
         q, qd, qdd = (js.q, js.qd, js.qdd) if js is not None else (self._empty,) * 3
         try:
-            estimate = self.estimator(q, qd, qdd, sample.wrench)
+            if self._frames:  # the sample's time stamp and the joint state's flags too
+                estimate = self.estimator.frame(sample, js)  # type: ignore[attr-defined]
+            else:
+                estimate = self.estimator(q, qd, qdd, sample.wrench)
         except ModelMismatchError:
+            self._log(sample, None)
             raise  # another robot: every frame would fail, stop with one error
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the loop
             self.estimator_errors += 1
             estimate = {"error": f"{type(exc).__name__}: {exc}"}
+        self._log(sample, estimate)
         record = {
             "t_ns": sample.t_ns,
             "seq": sample.seq,

@@ -280,23 +280,27 @@ class BiasTracker:
         S = len(self.sensors)
         if contact_free is True or contact_free is False:
             free = [contact_free] * S
+        elif type(contact_free) is np.ndarray and contact_free.shape == (S,):
+            free = contact_free.tolist()
         else:
             free = _per_sensor(contact_free, S, "contact_free").tolist()
         dt = self._advance(t)
         qdt = self.q_rate * dt
         off, p, since, rej = self.offset, self.p, self.since, self._rejected
-        updated = np.zeros(S, dtype=bool)
-        for i in range(S):  # a few sensors: scalar work per sensor, one 6-vector update each
+        updated = [False] * S
+        zs, offs = z.tolist(), off.tolist()  # a few sensors of 6 values: Python floats
+        for i in range(S):
             # predict: the random walk spreads the uncertainty
             pi = float(p[i]) + qdt
             since[i] += dt
             if free[i]:
-                innov = z[i] - off[i]
-                if not np.isfinite(innov).all():  # a NaN reading or model output: skip it
+                innov = [a - b for a, b in zip(zs[i], offs[i], strict=True)]
+                if not math.isfinite(sum(innov)):  # a NaN reading or model output: skip it
                     p[i] = pi
                     continue
                 if self.gate is not None:
-                    d2 = float(innov @ self._R_inv[i] @ innov) / (pi + 1.0)
+                    e = np.array(innov)
+                    d2 = float(e @ self._R_inv[i] @ e) / (pi + 1.0)
                     if d2 > self.gate:
                         rej[i] += 1
                         if rej[i] < self.gate_frames:
@@ -307,13 +311,13 @@ class BiasTracker:
                         rej[i] = 0
                 # update: scalar gain, the same on every axis (P = p R)
                 g = pi / (pi + 1.0)
-                off[i] += g * innov
+                off[i] = [o + g * d for o, d in zip(offs[i], innov, strict=True)]
                 pi *= 1.0 - g
                 since[i] = 0.0
                 updated[i] = True
             p[i] = pi
-        self.updated = updated
-        return self.state
+        self.updated = upd = np.array(updated)  # a new array each frame: shared, not copied
+        return BiasState(off.copy(), p.copy(), self.R, since.copy(), upd)
 
     def tare(self, residual: Any, contact_free: Any = True, frames: int = 1) -> BiasState:
         """Re-zero now: the offset becomes the residual (at the current pose, from the model).

@@ -26,7 +26,8 @@ unless told otherwise), ``NAME.h`` (the C API: packed input ``x`` and output ``o
 ``#define`` offsets of every field), ``NAME.cpp`` (the source, to build for another machine) and
 ``NAME.json`` (the metadata, also inside the library: ``<prefix>_metadata()``). A loader
 refuses a library exported for another robot by the URDF's sha256, the identity the ONNX graphs
-carry (``metadata_props["urdf_sha256"]``), see :mod:`torchcontact.online.cruntime`.
+record (``robot_identity``; libraries of earlier versions: the URDF text's sha256), see
+:class:`torchcontact.runtime.EstimatorRuntime` (``backend="c"``).
 """
 
 from __future__ import annotations
@@ -45,14 +46,14 @@ import torch
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
 from torchcontact import spatial as sp
-from torchcontact._scalar import Scalar, add, lincomb, mul, sub
+from torchcontact._scalar import Scalar, add, mul, sub
 from torchcontact.contacts import KINDS
 from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.estimation.layout import EstimationModel
 from torchcontact.estimation.programs import estimate_program
 from torchcontact.model import RobotModel
-from torchcontact.online.state import SensorLayout
+from torchcontact.online.state import payload_body, sensor_layouts
 
 __all__ = [
     "C_FORMAT",
@@ -60,6 +61,7 @@ __all__ = [
     "export_c_step",
     "payload_body",
     "sensor_layouts",
+    "stack_defaults",
     "step_program",
 ]
 
@@ -67,72 +69,6 @@ __all__ = [
 C_FORMAT = "torchcontact.cstep/1"
 #: Version of the C functions' signatures.
 C_ABI = 1
-
-_SYM = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2))  # PARAM_NAMES[4:] as matrix entries
-
-
-def payload_body(model: RobotModel, sensor: str) -> int:
-    """The default payload body of a sensor: the deepest body of its subtree (the end effector).
-
-    The same rule as the simulator's payload (:func:`torchcontact.simulation.effect_links`).
-    """
-    sub_ = model.subtree(model.ft_sensors[sensor].child_body)
-    depth = {b: d for d, (s, e) in enumerate(model.levels) for b in range(s, e)}
-    return max(sub_, key=lambda b: (depth[b], b))
-
-
-def sensor_layouts(
-    model: RobotModel,
-    sensors: Sequence[str],
-    payload_links: Mapping[str, str] | None = None,
-    theta0: Mapping[str, Any] | None = None,
-) -> list[SensorLayout]:
-    """Per sensor its :class:`~torchcontact.online.state.SensorLayout`.
-
-    Args:
-        model: the robot.
-        sensors: the sensors, in the estimator's order.
-        payload_links: sensor -> the link payloads attach to (default: the deepest body of the
-            sensor's subtree, by its link name).
-        theta0: sensor -> ``(10 B,)`` the correction stack's inertial change over the subtree.
-
-    Raises:
-        InputError: an unknown link, or one the sensor does not carry.
-    """
-    out = []
-    for s in sensors:
-        bodies = tuple(model.subtree(model.ft_sensors[s].child_body))
-        frames = {
-            name: (fr.body, np.asarray(fr.R_body_frame, float), np.asarray(fr.p_body_frame, float))
-            for name, fr in model.frames.items()
-            if fr.body in bodies
-        }
-        link = (payload_links or {}).get(s) or model.body_names[payload_body(model, s)]
-        if link not in frames:
-            raise InputError(
-                f"payload link {link!r} is not carried by sensor {s!r} of {model.name}"
-            )
-        th = np.zeros(10 * len(bodies))
-        if theta0 is not None and theta0.get(s) is not None:
-            th = np.asarray(theta0[s], dtype=np.float64).reshape(-1)
-            if th.shape != (10 * len(bodies),):
-                raise InputError(f"theta0[{s!r}] must have {10 * len(bodies)} values")
-        out.append(SensorLayout(s, bodies, frames, link, th))
-    return out
-
-
-def _param_wrench(Q: np.ndarray, th: Sequence[Scalar], v: sp.Motion, a: sp.Motion) -> sp.Force:
-    """Newton-Euler wrench of parameters ``th`` (link frame) on a body (internal frame, origin)."""
-    h = tuple(sp.cmat_vec(Q.T, th[1:4]))  # the internal frame is the link frame turned by Q
-    rows = []
-    for r in range(3):
-        row = []
-        for c in range(3):
-            # (Q^T I Q)[r, c] = sum_ij Q[i, r] Q[j, c] I[i, j], I symmetric from 6 parameters
-            coeffs = [Q[i, r] * Q[j, c] + (Q[j, r] * Q[i, c] if i != j else 0.0) for i, j in _SYM]
-            row.append(lincomb(coeffs, th[4:10]))
-        rows.append(tuple(row))
-    return sp.body_wrench_params(th[0], h, tuple(rows), v, a)
 
 
 @dataclass(frozen=True)
@@ -183,7 +119,9 @@ class InertialCorrection:
             theta = x[f"theta{i}"]
             fd: list = [None] * len(tree.bodies)
             for j, b in enumerate(self.bodies[i]):
-                fd[b] = _param_wrench(tree.bodies[b].Q, theta[10 * j : 10 * j + 10], v[b], a[b])
+                fd[b] = sp.body_wrench_link_params(
+                    tree.bodies[b].Q, theta[10 * j : 10 * j + 10], v[b], a[b]
+                )
             F_d, _ = _dyn.backward_pass(tree, X, fd)
             delta = at_sensor(reg, F_d[reg.child])
             nominal = at_sensor(reg, F_nom[reg.child])
@@ -205,7 +143,7 @@ class InertialCorrection:
             cols = []
             for c in range(10):
                 unit = [1.0 if k == c else 0.0 for k in range(10)]
-                w = _param_wrench(tree.bodies[rb].Q, unit, v[rb], a[rb])
+                w = sp.body_wrench_link_params(tree.bodies[rb].Q, unit, v[rb], a[rb])
                 cols.append(at_sensor(reg, sp.force_to_parent(T, w)))
             regs += [cols[c][r] for r in range(6) for c in range(10)]
         return out, {"ft_model": ft_model, "regressor": regs}
@@ -376,8 +314,7 @@ def export_c_step(
     em = est.layout(tuple(links), tuple(kinds))
     coords = em.torque_joints(joints if joints not in (None, "all") else None)
     stacks = _stacks(correction, model.to(dtype=torch.float64, device="cpu"), names)
-    theta0 = {s: c.graph.delta.cpu().numpy() for s, c in stacks.items() if c.delta is not None}
-    layouts = sensor_layouts(m, names, payload_links, theta0)
+    layouts = sensor_layouts(m, names, payload_links, *stack_defaults(stacks))
     corr = InertialCorrection(
         tuple(lay.bodies for lay in layouts), tuple(lay.payload_body for lay in layouts)
     )
@@ -389,10 +326,8 @@ def export_c_step(
     npd = np.dtype(str(dtype).removeprefix("torch."))
     defaults = np.zeros(in_size)
     for i, s in enumerate(names):
-        c = stacks.get(s)
-        if c is not None and c.offset is not None:
-            o = fin["bias"][0] + 6 * i
-            defaults[o : o + 6] = c.offset.detach().cpu().double().numpy()
+        o = fin["bias"][0] + 6 * i
+        defaults[o : o + 6] = layouts[i].offset0
         o = fin[f"theta.{s}"][0]
         defaults[o : o + len(layouts[i].theta0)] = layouts[i].theta0
     meta: dict[str, Any] = {
@@ -401,6 +336,9 @@ def export_c_step(
         "prefix": prefix,
         "robot": m.name,
         "urdf_sha256": m.urdf_sha256,
+        # the robot's identity, as the ONNX graphs record it (one check decides for both)
+        "robot_identity_sha256": m.identity.sha256,
+        "robot_identity": m.identity.to_json(),
         "joint_names": list(m.joint_names),
         "sensors": [
             {"name": s.name, "joint": s.joint, "frame": s.frame, "direction": s.measure_direction}
@@ -422,19 +360,7 @@ def export_c_step(
         "inputs": {k: [o, list(sh)] for k, (o, sh, _) in fin.items()},
         "outputs": {k: [o, list(sh)] for k, (o, sh, _) in fout.items()},
         "units": {k: u for k, (_, _, u) in {**fin, **fout}.items()},
-        "online": [
-            {
-                "sensor": lay.name,
-                "bodies": [m.body_names[b] for b in lay.bodies],
-                "body_index": list(lay.bodies),
-                "payload_link": lay.payload_link,
-                "frames": {
-                    k: [int(b), np.asarray(R).reshape(-1).tolist(), np.asarray(p).tolist()]
-                    for k, (b, R, p) in lay.frames.items()
-                },
-            }
-            for lay in layouts
-        ],
+        "online": [lay.to_json(m.body_names) for lay in layouts],
         "correction": {
             s: {
                 "source": c.source,
@@ -498,3 +424,18 @@ def _stacks(correction: Any, model: RobotModel, sensors: Sequence[str]) -> dict[
             raise InputError(f"two corrections for sensor {c.sensor!r}")
         out[c.sensor] = c
     return out
+
+
+def stack_defaults(
+    stacks: Mapping[str, Any],
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The inertial change and the offset of correction stacks by sensor, float64 numpy.
+
+    What the ``theta.<sensor>`` and ``bias`` inputs of an exported step default to (the C step,
+    an ONNX step graph exported with ``online``).
+    """
+    theta0 = {s: c.graph.delta.detach().cpu().double().numpy() for s, c in stacks.items()
+              if c.delta is not None}  # fmt: skip
+    offsets = {s: c.offset.detach().cpu().double().numpy() for s, c in stacks.items()
+               if c.offset is not None}  # fmt: skip
+    return theta0, offsets

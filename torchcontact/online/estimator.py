@@ -28,7 +28,7 @@ from torchcontact.errors import InputError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.model import RobotModel
 from torchcontact.online.bias import BiasState, BiasTrack, BiasTracker, smooth_bias
-from torchcontact.online.cstep import _stacks, sensor_layouts
+from torchcontact.online.cstep import _stacks, sensor_layouts, stack_defaults
 from torchcontact.online.payload import Payload
 from torchcontact.online.state import OnlineState
 from torchcontact.residual import ResidualCorrection, sensor_regressor
@@ -87,24 +87,15 @@ class OnlineEstimator:
         self.links, self.kinds = tuple(links), tuple(kinds)
         em = self.estimator.layout(self.links, self.kinds)
         stacks = _stacks(correction, model, names)
-        theta0 = {s: c.graph.delta.cpu().double().numpy() for s, c in stacks.items()
-                  if c.delta is not None}  # fmt: skip
-        self.layouts = sensor_layouts(model, names, payload_links, theta0)
+        self.layouts = sensor_layouts(model, names, payload_links, *stack_defaults(stacks))
         # the learned layers, alone (their offset and inertial layers are bias and theta)
         self._learned = {
             s: ResidualCorrection(model, s, learned=c.learned, features=c.features)
             for s, c in stacks.items()
             if c.learned is not None
         }
-        offset = np.zeros((len(names), 6))
-        for i, s in enumerate(names):
-            if s in stacks and stacks[s].offset is not None:
-                offset[i] = stacks[s].offset.detach().cpu().double().numpy()
-        tracker = track_bias if isinstance(track_bias, BiasTracker) else None
-        if tracker is None:
-            tracker = BiasTracker(names, **{"offset": offset, **dict(tracker_options or {})})
-        self.state = OnlineState(
-            self.layouts, [s.region for s in em.slots], tracker, track=bool(track_bias)
+        self.state = OnlineState.build(
+            self.layouts, [s.region for s in em.slots], track_bias, tracker_options
         )
         self._none = Contacts((), (), torch.zeros(1, 0, 3, dtype=model.dtype))
 
@@ -165,9 +156,9 @@ class OnlineEstimator:
     ) -> dict[str, Any]:
         """Estimate one frame from the raw readings, then update the online state.
 
-        Arguments and returns as :meth:`torchcontact.online.cruntime.CStepRuntime.step`
-        (``active`` defaults to all slots active), plus ``extra`` (the learned layers' extra
-        columns, name -> value).
+        Arguments and returns as :meth:`torchcontact.runtime.EstimatorRuntime.step` of an
+        online step (``active`` defaults to all slots active), plus ``extra`` (the learned
+        layers' extra columns, name -> value).
         """
         K, S = len(self.links), len(self.sensor_names)
         qt, qdt, qddt = (self._frame(x, n) for x, n in ((q, "q"), (qd, "qd"), (qdd, "qdd")))
@@ -222,7 +213,7 @@ class OnlineEstimator:
         link: str | None = None,
         sensor: str | None = None,
     ) -> Payload | None:
-        """A tool change (see :meth:`torchcontact.online.cruntime.CStepRuntime.set_payload`)."""
+        """A tool change (see :meth:`torchcontact.runtime.EstimatorRuntime.set_payload`)."""
         if mass is None or isinstance(mass, Payload):
             payload = mass
         else:

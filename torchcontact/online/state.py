@@ -1,8 +1,9 @@
 """What an online estimator keeps between frames: offsets, payloads, identification (numpy only).
 
 One :class:`OnlineState` serves every backend (the torch estimator
-:class:`~torchcontact.online.estimator.OnlineEstimator`, the C step
-:class:`~torchcontact.online.cruntime.CStepRuntime`, and next the ONNX runtime). A backend's step
+:class:`~torchcontact.online.estimator.OnlineEstimator`, and the deployment runtime
+:class:`torchcontact.runtime.EstimatorRuntime` on the C step and on an ONNX step graph exported
+with ``online``). A backend's step
 subtracts :meth:`OnlineState.bias` and the inertial change :meth:`OnlineState.theta` (the
 correction stack's inertial layer plus the payload) from the readings, computes
 ``ft_model`` (the contact-free reading the model predicts with that inertial change) and the
@@ -29,7 +30,7 @@ from torchcontact.errors import InputError
 from torchcontact.online.bias import BiasState, BiasTracker
 from torchcontact.online.payload import Payload, PayloadIdentifier
 
-__all__ = ["OnlineState", "SensorLayout"]
+__all__ = ["OnlineState", "SensorLayout", "payload_body", "sensor_layouts"]
 
 
 @dataclass(frozen=True)
@@ -51,11 +52,54 @@ class SensorLayout:
     frames: Mapping[str, tuple[int, Any, Any]]
     payload_link: str
     theta0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    offset0: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
     @property
     def payload_body(self) -> int:
         """The body of :attr:`payload_link`."""
         return int(self.frames[self.payload_link][0])
+
+    def to_json(self, body_names: Sequence[str]) -> dict[str, Any]:
+        """The ``online`` metadata entry of exported steps (C libraries, ONNX step graphs).
+
+        Args:
+            body_names: the model's body names (listed beside the indices, for people).
+        """
+        return {
+            "sensor": self.name,
+            "bodies": [body_names[b] for b in self.bodies],
+            "body_index": [int(b) for b in self.bodies],
+            "payload_link": self.payload_link,
+            "frames": {
+                k: [
+                    int(b),
+                    np.asarray(R, float).reshape(-1).tolist(),
+                    np.asarray(p, float).tolist(),
+                ]
+                for k, (b, R, p) in self.frames.items()
+            },
+            "offset": np.asarray(self.offset0, float).reshape(6).tolist(),
+            "theta0": np.asarray(self.theta0, float).reshape(-1).tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> SensorLayout:
+        """Inverse of :meth:`to_json` (``offset``/``theta0`` default to zeros: round-1 libraries).
+
+        Raises:
+            InputError: a malformed entry.
+        """
+        try:
+            bodies = tuple(int(b) for b in d["body_index"])
+            frames = {
+                k: (int(b), np.asarray(R, float).reshape(3, 3), np.asarray(p, float).reshape(3))
+                for k, (b, R, p) in d["frames"].items()
+            }
+            theta0 = np.asarray(d.get("theta0", np.zeros(10 * len(bodies))), float)
+            offset0 = np.asarray(d.get("offset", np.zeros(6)), float).reshape(6)
+            return cls(str(d["sensor"]), bodies, frames, str(d["payload_link"]), theta0, offset0)
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"malformed online metadata entry: {e!r}") from None
 
 
 class OnlineState:
@@ -96,6 +140,37 @@ class OnlineState:
         self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(1, tare_frames))
         self.last: BiasState = tracker.state
 
+    @classmethod
+    def build(
+        cls,
+        sensors: Sequence[SensorLayout],
+        slot_regions: Sequence[int],
+        track_bias: bool | BiasTracker = False,
+        tracker_options: Mapping[str, Any] | None = None,
+    ) -> OnlineState:
+        """The online state of a backend, as every backend makes it.
+
+        Args:
+            sensors: per sensor its layout (the offsets start at its ``offset0``).
+            slot_regions: per slot the index of its sensor.
+            track_bias: True (a :class:`BiasTracker` with ``tracker_options``), a tracker, or
+                False (offsets change only by :meth:`tare` and :meth:`identify_payload`).
+            tracker_options: :class:`BiasTracker` keyword arguments (``time_constant``,
+                ``period``, ``ft_std``, ``gate``, ...).
+
+        Raises:
+            InputError: bad tracker options.
+        """
+        tracker = track_bias if isinstance(track_bias, BiasTracker) else None
+        if tracker is None:
+            opts = dict(tracker_options or {})
+            opts.setdefault("offset", np.stack([np.asarray(s.offset0, float) for s in sensors]))
+            try:
+                tracker = BiasTracker([s.name for s in sensors], **opts)
+            except TypeError as e:  # an unknown option
+                raise InputError(f"bias tracker options: {e}") from None
+        return cls(sensors, slot_regions, tracker, track=bool(track_bias))
+
     # ----------------------------------------------------------------------------- per frame
     @property
     def names(self) -> tuple[str, ...]:
@@ -127,17 +202,19 @@ class OnlineState:
         ``contact_free`` signal (bool, or ``(S,)`` per sensor, e.g. from a contact localizer or
         a user's switch; None: no signal) does not say otherwise.
         """
-        free = self._all_free.copy()
-        if active is not None and len(self.slot_regions):
-            on = active if type(active) is np.ndarray else np.asarray(active, dtype=np.float64)
-            if on.size != len(self.slot_regions):
-                raise InputError(f"active must have {len(self.slot_regions)} values")
-            for k in np.flatnonzero(on.reshape(-1) > 0.5):
-                free[self._regions[k]] = False
+        free = [True] * len(self.sensors)  # a few sensors and slots: plain Python is fastest
+        if active is not None and self._regions:
+            on = (active if type(active) is np.ndarray else np.asarray(active, np.float64)).ravel()
+            if on.size != len(self._regions):
+                raise InputError(f"active must have {len(self._regions)} values")
+            for k, a in enumerate(on.tolist()):
+                if a > 0.5:
+                    free[self._regions[k]] = False
         if contact_free is not None:
             user = np.asarray(contact_free, dtype=bool)
-            free &= np.broadcast_to(user, free.shape) if user.ndim == 0 else user.reshape(-1)
-        return free
+            user = np.broadcast_to(user, (len(free),)) if user.ndim == 0 else user.reshape(-1)
+            free = [f and bool(u) for f, u in zip(free, user.tolist(), strict=True)]
+        return np.array(free)
 
     def after_step(
         self,
@@ -162,10 +239,12 @@ class OnlineState:
         """
         z = np.asarray(ft, dtype=np.float64) - ft_model
         self._recent.append((z, free.copy()))
-        use = free.copy() if self.track else np.zeros(len(self.sensors), dtype=bool)
+        use = free if self.track else np.zeros(len(self.sensors), dtype=bool)
         for i, ident in enumerate(self.identifiers):
             if ident is None:
                 continue
+            if use is free:
+                use = free.copy()
             use[i] = False  # the identification fits the offset itself
             Y = None if regressors is None else regressors[i]
             if Y is None:
@@ -266,3 +345,58 @@ class OnlineState:
             self.tracker.since[i] = 0.0
             self.identifiers[i] = None
         return payload
+
+
+def payload_body(model: Any, sensor: str) -> int:
+    """The default payload body of a sensor: the deepest body of its subtree (the end effector).
+
+    The same rule as the simulator's payload (:func:`torchcontact.simulation.effect_links`).
+    """
+    sub_ = model.subtree(model.ft_sensors[sensor].child_body)
+    depth = {b: d for d, (s, e) in enumerate(model.levels) for b in range(s, e)}
+    return max(sub_, key=lambda b: (depth[b], b))
+
+
+def sensor_layouts(
+    model: Any,
+    sensors: Sequence[str],
+    payload_links: Mapping[str, str] | None = None,
+    theta0: Mapping[str, Any] | None = None,
+    offsets: Mapping[str, Any] | None = None,
+) -> list[SensorLayout]:
+    """Per sensor its :class:`SensorLayout` (numpy; ``model`` is read, not computed with).
+
+    Args:
+        model: the robot (a :class:`~torchcontact.RobotModel`).
+        sensors: the sensors, in the estimator's order.
+        payload_links: sensor -> the link payloads attach to (default: the deepest body of the
+            sensor's subtree, by its link name).
+        theta0: sensor -> ``(10 B,)`` the correction stack's inertial change over the subtree.
+        offsets: sensor -> ``(6,)`` the correction stack's offset.
+
+    Raises:
+        InputError: an unknown link, or one the sensor does not carry.
+    """
+    out = []
+    for s in sensors:
+        bodies = tuple(model.subtree(model.ft_sensors[s].child_body))
+        frames = {
+            name: (fr.body, np.asarray(fr.R_body_frame, float), np.asarray(fr.p_body_frame, float))
+            for name, fr in model.frames.items()
+            if fr.body in bodies
+        }
+        link = (payload_links or {}).get(s) or model.body_names[payload_body(model, s)]
+        if link not in frames:
+            raise InputError(
+                f"payload link {link!r} is not carried by sensor {s!r} of {model.name}"
+            )
+        th = np.zeros(10 * len(bodies))
+        if theta0 is not None and theta0.get(s) is not None:
+            th = np.asarray(theta0[s], dtype=np.float64).reshape(-1)
+            if th.shape != (10 * len(bodies),):
+                raise InputError(f"theta0[{s!r}] must have {10 * len(bodies)} values")
+        off = np.zeros(6)
+        if offsets is not None and offsets.get(s) is not None:
+            off = np.asarray(offsets[s], dtype=np.float64).reshape(6)
+        out.append(SensorLayout(s, bodies, frames, link, th, off))
+    return out

@@ -53,7 +53,7 @@ def load_residual_graphs(residual, model, sensor_names: Sequence[str]) -> list:
     from onnx import version_converter
 
     from torchcontact.errors import ModelMismatchError
-    from torchcontact.onnx.runtime import ResidualGraph
+    from torchcontact.onnx.residuals import ResidualGraph
 
     if residual is None:
         return []

@@ -123,6 +123,7 @@ def export_estimator(
     residual: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
     joints: Sequence[str] | str | None = None,
     constraints: FrictionCones | None = None,
+    online: bool | Mapping[str, str] = False,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -163,6 +164,12 @@ def export_estimator(
             estimator instead (its program, the iterations one ONNX ``Loop``; one batched graph,
             more inputs and outputs, see the module docstring; metadata ``constraints``); fixed
             base and F/T rows only.
+        online: True, or sensor -> the link payloads attach to (default: the deepest body of
+            its subtree): the single-frame graph takes each sensor's offset ``bias (S, 6)`` and
+            inertial change ``theta.<sensor>`` as inputs and returns ``ft_model (S, 6)`` and
+            ``regressor.<sensor> (6, 10)`` (:mod:`torchcontact.onnx.step.online`; the runtime's
+            bias tracking, ``tare``, payloads); a correction stack's offset and inertial layers
+            become their defaults (metadata ``online``). The batched graph is unchanged.
 
     Returns:
         The metadata written into the files' ``metadata_props``.
@@ -182,6 +189,7 @@ def export_estimator(
     import onnx
 
     from torchcontact import __version__
+    from torchcontact.online.state import sensor_layouts
     from torchcontact.onnx.batched import (
         batched_graph,
         constrained_graph,
@@ -190,6 +198,7 @@ def export_estimator(
     )
     from torchcontact.onnx.builder import OPSET
     from torchcontact.onnx.step import build_step_graph
+    from torchcontact.onnx.step import online as online_stage
 
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -211,11 +220,13 @@ def export_estimator(
     path = Path(path)
     step = step_graph_path(path)
     coords = em.torque_joints(joints)
+    if online and not step_graph:
+        raise InputError("online: the online inputs are the single-frame graph's (step_graph)")
     if constraints is not None:
-        if any(flags) or res or joints is not None:
+        if any(flags) or res or joints is not None or online:
             raise InputError(
                 "constraints: the constrained graph takes the fixed-base F/T inputs only (no"
-                " moving_base, torque_rows, covariance, residual or joints)"
+                " moving_base, torque_rows, covariance, residual, joints or online)"
             )
         cones = constraints.program_flags(m.dtype)  # the objective's prior included
         gb, shapes = constrained_graph(em, cones, npd)
@@ -282,7 +293,15 @@ def export_estimator(
             " one ONNX Loop"
         )
     elif step_graph:
-        sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords)
+        layouts = []
+        if online:
+            links = online if isinstance(online, Mapping) else None
+            defaults = online_stage.stack_defaults(m, res, est.sensor_names)
+            layouts = sensor_layouts(m, est.sensor_names, links, *defaults)
+            meta[Key.ONLINE] = [lay.to_json(m.body_names) for lay in layouts]
+            meta[Key.SLOT_REGIONS] = [sl.region for sl in em.slots]
+        sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords,
+                                         online=layouts)  # fmt: skip
         meta[Key.STEP_INPUTS] = lin.as_dict()
         meta[Key.STEP_OUTPUTS] = lout.as_dict()
         graphs.append((sm, step, "step"))

@@ -201,6 +201,11 @@ class Key:
     STEP_INPUTS = "step_inputs"
     STEP_OUTPUTS = "step_outputs"
     CONSTRAINTS = "constraints"
+    #: per sensor the layout of the online inputs (step graphs exported with ``online``, C
+    #: libraries): :meth:`torchcontact.online.state.SensorLayout.to_json`
+    ONLINE = "online"
+    #: per contact slot the index of the sensor whose region it lies in (with ``online``)
+    SLOT_REGIONS = "slot_regions"
     VERSION = "torchcontact_version"
     # correction graphs
     SENSOR = "sensor"

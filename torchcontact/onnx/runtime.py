@@ -1,4 +1,4 @@
-"""Run an exported contact estimator with onnxruntime and numpy only (no torch import).
+"""Run an exported contact estimator with numpy only: ONNX graphs or a C step library.
 
 :func:`torchcontact.export.export_estimator` (``python -m export estimator ...``) writes two graphs
 of one robot, sensor set and slot layout, with the same ``metadata_props``:
@@ -9,14 +9,25 @@ of one robot, sensor set and slot layout, with the same ``metadata_props``:
   vector (layouts in the metadata), every stage vectorised over bodies and slots, a few hundred
   nodes (latency, :meth:`step`).
 
+``export estimator --format c`` writes the single-frame estimator as a C library instead
+(:mod:`torchcontact.online.cstep`): :class:`EstimatorRuntime` runs it with ``backend="c"``
+(ctypes; no onnxruntime), with the same inputs and outputs (:mod:`torchcontact.onnx.backends`).
+
 Both take the raw reading when a residual correction is chained into them (``--residual`` at
 export), or :class:`EstimatorRuntime` chains a separate correction graph (``residual=``); either
 way one call goes from the raw reading to the estimate. :class:`ResidualGraph` is the one place
 that knows the correction graphs' interfaces.
 
+A step with online inputs (a C library; a graph exported with ``online``) also tracks each
+sensor's offset against the model while no contact is active (``track_bias``), and takes
+:meth:`EstimatorRuntime.tare`, :meth:`~EstimatorRuntime.set_payload` and
+:meth:`~EstimatorRuntime.identify_payload` (:mod:`torchcontact.onnx.tracking`, on the one
+:class:`~torchcontact.online.state.OnlineState`); each step then returns the bias state.
+
 :meth:`EstimatorRuntime.step` and :meth:`EstimatorRuntime.run` take one :class:`Inputs` value
 (or a mapping) holding the inputs by their names (:data:`torchcontact.onnx.format.INPUTS`; the
 older spellings are accepted); a new input of a graph is one more name, not one more parameter.
+This module imports neither torch nor, for a C step, onnxruntime.
 
 Example:
     >>> rt = EstimatorRuntime("tcarm.onnx", robot="tcarm")  # doctest: +SKIP
@@ -27,7 +38,6 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -35,29 +45,38 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import onnxruntime as ort
 
 from torchcontact.errors import InputError, ModelMismatchError
-from torchcontact.identity import RobotIdentity
+from torchcontact.online.bias import BiasState, BiasTracker
+from torchcontact.online.payload import Payload
 from torchcontact.onnx import format as fmt
-from torchcontact.onnx.format import (
-    ESTIMATOR_FORMAT,
-    RESIDUAL_FORMAT,
-    RESIDUAL_FORMATS,
-    Key,
+from torchcontact.onnx.backends import (
+    LIBRARY_SUFFIXES,
+    CStep,
+    OnnxStep,
+    metadata_of,
+    open_session,
+    session_options,
 )
+from torchcontact.onnx.checks import check_file, identity_of, robot_identity
+from torchcontact.onnx.format import ESTIMATOR_FORMAT, RESIDUAL_FORMATS, Key
+from torchcontact.onnx.residuals import ResidualGraph
+from torchcontact.onnx.tracking import StepOnline
 
 __all__ = [
     "EstimatorRuntime",
     "Inputs",
     "ModelMismatchError",
     "ResidualGraph",
+    "identity_of",
     "robot_identity",
     "session_options",
 ]
 
 #: Format of the estimator graphs this runtime reads (``metadata_props["format"]``).
 FORMAT = ESTIMATOR_FORMAT
+#: Formats of the residual-correction graphs it chains (re-exported by torchcontact.runtime).
+RESIDUAL_FORMATS = RESIDUAL_FORMATS
 #: The positional order of :meth:`EstimatorRuntime.step` and ``run`` of earlier versions.
 _POSITIONAL = ("q", "qd", "qdd", "ft", "positions", "active", "directions", "wrenches",
                "ft_residual")  # fmt: skip
@@ -122,6 +141,11 @@ _FIELDS = frozenset(f.name for f in dataclasses.fields(Inputs))
 _SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
 #: How :meth:`EstimatorRuntime.step` fills a field of the packed input.
 _PLAIN, _FT, _MASK, _EXTRA, _STATE = range(5)
+#: How :meth:`EstimatorRuntime.step` reads a field of the packed output.
+_VIEW, _FM, _INT, _STATUS, _TAU = range(5)
+#: The outputs every step returns (``fm`` of the ONNX step holds ``force`` and ``moment``).
+_OUTPUTS = frozenset(("force", "moment", "joint_torques", "rank", "unknowns", "residual",
+                      "status", "covariance"))  # fmt: skip
 
 
 def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
@@ -165,292 +189,61 @@ def _named(given: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def session_options(intra_op_threads: int = 1) -> ort.SessionOptions:
-    """Onnxruntime options for one frame per call (chosen by measurement, benchmarks/runtime.py).
-
-    One intra-op thread and sequential execution (a single frame has no parallel work worth a
-    thread hand-off; more threads measured slower), no spinning (a spinning pool competes with the
-    caller on a loaded machine), every graph optimisation (constant folding, Gemm fusion), memory
-    arena and pattern planning on (output buffers are reused between calls).
-    """
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = intra_op_threads
-    so.inter_op_num_threads = 1
-    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.add_session_config_entry("session.inter_op.allow_spinning", "0")
-    so.log_severity_level = 3
-    return so
-
-
-def _metadata(session: ort.InferenceSession) -> dict[str, Any]:
-    return fmt.decode(session.get_modelmeta().custom_metadata_map)
-
-
-def identity_of(robot: Any) -> RobotIdentity:
-    """The :class:`~torchcontact.identity.RobotIdentity` of a model, URDF path or ``"tcarm"``.
-
-    A model carries its identity; for a URDF the model is built (this imports torch).
-
-    Raises:
-        ModelMismatchError: ``robot`` names no readable URDF file, or torch is not installed.
-    """
-    ident = getattr(robot, "identity", None)
-    if isinstance(ident, RobotIdentity):
-        return ident
-    try:
-        from torchcontact.model import RobotModel
-    except ImportError:  # pragma: no cover - a deployment without torch
-        raise ModelMismatchError(
-            "the URDF's text differs from the one the graph was exported with; comparing the"
-            " parsed robots needs torch (pip install torch) or a re-export"
-        ) from None
-    if str(robot) == "tcarm":
-        from torchcontact.robots import tcarm_path
-
-        robot = tcarm_path()
-    return RobotModel.from_urdf(robot).identity
-
-
-def robot_identity(robot: Any) -> tuple[str, tuple[str, ...] | None]:
-    """URDF sha256 and joint names of ``robot``, without torch.
-
-    Args:
-        robot: a :class:`torchcontact.RobotModel` (or anything with ``urdf_sha256`` and
-            ``joint_names``), a URDF file path, or ``"tcarm"`` (the bundled arm).
-
-    Returns:
-        ``(sha256 of the URDF text, joint names or None)``; for a file the hash identifies the
-        text, and with it the joint order the exporter derived from it.
-
-    Raises:
-        ModelMismatchError: ``robot`` names no readable URDF file.
-    """
-    if hasattr(robot, "urdf_sha256"):
-        return str(robot.urdf_sha256), tuple(getattr(robot, "joint_names", ())) or None
-    if str(robot) == "tcarm":
-        from torchcontact.robots import tcarm_path
-
-        robot = tcarm_path()
-    p = Path(os.fspath(robot))
-    if not p.is_file():
-        raise ModelMismatchError(f"robot {str(robot)!r}: no such URDF file (or 'tcarm')")
-    return hashlib.sha256(p.read_text().encode()).hexdigest(), None
-
-
-class ResidualGraph:
-    """A residual-correction graph: what it reads, what it returns, and its recurrent state.
-
-    Two interfaces are understood (``metadata_props["format"]``):
-
-    * ``torchcontact.residual/1`` (``python -m export residual``): input ``features (N, F)``,
-      columns named ``q.<joint>``, ``qd.<joint>``, ``qdd.<joint>`` or an extra column
-      (``feature_names``), optional ``h_in (N, L, H)``; output ``residual (N, 6)`` (and
-      ``h_out``);
-    * ``torchcontact.residual-graph/1`` (correction stacks): inputs ``q, qd, qdd (N, nv)`` in
-      ``joint_names`` order, optional ``extra (N, E)`` (``extra_columns``) and ``h_in``;
-      output ``correction (N, 6)`` (and ``h_out``).
-
-    Either output is a wrench ``[N; N m]`` in the sensor's frame and measure direction, subtracted
-    from that sensor's reading. This class is the one place that knows these interfaces: the
-    exporter wires them into a combined graph, the runtime feeds them.
-
-    Attributes:
-        path: the file.
-        sensor: the sensor it corrects.
-        joint_names: its joint order.
-        extra: names of its extra input columns (e.g. ``temperature``).
-        state_shape: ``(L, H)`` of a recurrent graph, else None.
-        robot_sha256: URDF hash recorded at training ("" if none).
-        inputs: per graph input, ``(name, columns)`` with columns ``("q" | "qd" | "qdd", joint)``
-            or ``("extra", name)`` (None for ``h_in``).
-        output: the correction's output name.
-    """
-
-    def __init__(
-        self,
-        path: str | os.PathLike,
-        metadata: Mapping[str, Any],
-        input_names: Sequence[str],
-        output_names: Sequence[str],
-    ) -> None:
-        self.path = str(path)
-        fmt_ = metadata.get(Key.FORMAT)
-        if fmt_ not in RESIDUAL_FORMATS:
-            raise ModelMismatchError(
-                f"{path} is not a residual-correction graph (format {fmt_!r}, expected one of"
-                f" {list(RESIDUAL_FORMATS)})"
-            )
-        self.format = fmt_
-        self.sensor = str(metadata.get(Key.SENSOR, ""))
-        self.joint_names = tuple(metadata.get(Key.JOINT_NAMES, []))
-        self.robot_sha256 = str(metadata.get(Key.ROBOT_SHA256, ""))
-        self.identity = fmt.recorded_identity(metadata)
-        recurrent = str(metadata.get(Key.RECURRENT, "false")).lower() == "true"
-        shape = metadata.get(Key.STATE_SHAPE)
-        self.state_shape = tuple(int(s) for s in shape[1:]) if recurrent and shape else None
-        inputs: list[tuple[str, list | None]] = []
-        if fmt_ == RESIDUAL_FORMAT:
-            cols: list = []
-            extra: list[str] = []
-            for name in metadata.get(Key.FEATURE_NAMES, []):
-                prefix, _, joint = name.partition(".")
-                if prefix in ("q", "qd", "qdd") and joint in self.joint_names:
-                    cols.append((prefix, joint))
-                else:
-                    cols.append(("extra", name))
-                    extra.append(name)
-            inputs.append((input_names[0], cols))
-            self.output = output_names[0]
-        else:
-            extra = list(metadata.get(Key.EXTRA_COLUMNS, []))
-            for name in input_names:
-                if name in ("q", "qd", "qdd"):
-                    inputs.append((name, [(name, j) for j in self.joint_names]))
-                elif name == "extra":
-                    inputs.append((name, [("extra", c) for c in extra]))
-            self.output = "correction"
-        if self.state_shape is not None:
-            inputs.append(("h_in", None))
-        self.extra = tuple(extra)
-        self.inputs = inputs
-        self.output_names = tuple(output_names)
-        self.dtype = np.dtype(str(metadata.get(Key.DTYPE, "float32")))
-
-    @classmethod
-    def load(cls, path: str | os.PathLike, intra_op_threads: int = 1) -> ResidualGraph:
-        """Open a correction graph (its session is kept in ``.session``).
-
-        Raises:
-            InputError: no such file.
-            ModelMismatchError: the file is not a correction graph.
-        """
-        if not os.path.isfile(path):
-            raise InputError(f"residual graph {path}: no such file")
-        sess = ort.InferenceSession(
-            str(path), session_options(intra_op_threads), providers=["CPUExecutionProvider"]
-        )
-        obj = cls(
-            path,
-            _metadata(sess),
-            [i.name for i in sess.get_inputs()],
-            [o.name for o in sess.get_outputs()],
-        )
-        obj.session = sess
-        return obj
-
-    def check(self, joint_names: Sequence[str], sensors: Sequence[str], robot: Any) -> None:
-        """Refuse a correction made for another robot, joint set or sensor.
-
-        Args:
-            joint_names: the estimator's joints.
-            sensors: the estimator's sensors.
-            robot: the estimator's robot: a model (its identity and URDF text hash), or the
-                metadata of an estimator graph (the identity and text hash it records).
-
-        Raises:
-            ModelMismatchError: naming what differs (the first differing quantity when both
-                record an identity).
-        """
-        if isinstance(robot, Mapping):
-            text, ident = str(robot.get(Key.URDF_SHA256, "")), fmt.recorded_identity(robot)
-        else:
-            text, ident = str(robot.urdf_sha256), robot.identity
-        if self.identity is not None and ident is not None:  # compare the parsed robots
-            why = self.identity.difference(ident)
-            if why is not None:
-                raise ModelMismatchError(
-                    f"residual graph {self.path} was trained on a robot with sha256"
-                    f" {self.identity.sha256[:12]}..., not this one ({why})"
-                )
-        elif self.robot_sha256 and self.robot_sha256 != text:  # earlier graphs: the URDF text
-            raise ModelMismatchError(
-                f"residual graph {self.path} was trained on a robot with URDF sha256"
-                f" {self.robot_sha256[:12]}..., not this one ({text[:12]}...)"
-            )
-        missing = [j for j in self.joint_names if j not in joint_names]
-        if missing:
-            raise ModelMismatchError(
-                f"residual graph {self.path} reads joints {missing} the estimator does not have"
-            )
-        if self.sensor not in sensors:
-            raise ModelMismatchError(
-                f"residual graph {self.path} corrects sensor {self.sensor!r}, not one of"
-                f" {list(sensors)}"
-            )
-
-    def feed(
-        self,
-        joint_names: Sequence[str],
-        q: np.ndarray,
-        qd: np.ndarray,
-        qdd: np.ndarray,
-        extra: Mapping[str, np.ndarray],
-        state: np.ndarray | None,
-    ) -> dict[str, np.ndarray]:
-        """The graph's inputs for ``N`` frames given in the estimator's joint order.
-
-        Args:
-            joint_names: the order of ``q``, ``qd``, ``qdd`` (``(N, nv)``).
-            q: ``(N, nv)`` positions; ``qd``, ``qdd`` likewise.
-            qd: ``(N, nv)``.
-            qdd: ``(N, nv)``.
-            extra: column name -> ``(N,)`` values.
-            state: ``(N, L, H)`` recurrent state (recurrent graphs).
-
-        Raises:
-            InputError: an extra column is missing.
-        """
-        missing = [c for c in self.extra if c not in extra]
-        if missing:
-            raise InputError(
-                f"the residual correction of {self.sensor!r} needs extra input"
-                f" {missing[0]!r} (got {sorted(extra)})"
-            )
-        n = q.shape[0]
-        cols = [np.asarray(extra[c], dtype=np.float64).reshape(n, 1) for c in self.extra]
-        src = np.concatenate([q, qd, qdd, *cols], axis=1)
-        position = fmt.JointColumns(joint_names, self.extra)
-        feed = {}
-        for name, columns in self.inputs:
-            if columns is None:
-                feed[name] = state.astype(self.dtype, copy=False)
-            else:
-                feed[name] = src[:, [position(*c) for c in columns]].astype(self.dtype)
-        return feed
-
-
 class EstimatorRuntime:
-    """An exported contact estimator, loaded for inference.
+    """An exported contact estimator, loaded for inference: an ONNX graph or a C step library.
 
     Args:
         path: the batched graph ``<name>.onnx`` (or the single-frame ``<name>.step.onnx``) written
-            by :func:`torchcontact.export.export_estimator`; the other one is found beside it.
+            by :func:`torchcontact.export.export_estimator`, the other one found beside it; or a
+            C step library ``NAME.so`` (``export estimator --format c``).
         robot: the robot the caller runs (a URDF path, ``"tcarm"``, or a ``RobotModel``): the
-            graph is refused unless it was exported for this URDF (sha256 of its text, and with a
-            model its joint names).
+            file is refused unless it was exported for this robot (the robot identity it
+            records, :mod:`torchcontact.identity`; files of earlier versions: the URDF text's
+            sha256), and with a model its joint names.
+        backend: ``"onnx"`` (onnxruntime) or ``"c"`` (the C library through ctypes; no
+            onnxruntime needed); default: ``"c"`` for a ``.so``/``.dylib``/``.dll`` file.
         residual: a residual-correction graph (:class:`ResidualGraph`) to chain before the
             estimator, or a list of them (one per sensor); not with a graph that already holds
-            its correction.
-        expect_robot_sha256: refuse the graph unless its URDF hash matches.
-        expect_joint_names: refuse the graph unless its joint order matches.
-        expect_sensors: refuse the graph unless its F/T sensor names (in order) match.
-        expect_slots: refuse the graph unless its ``(links, kinds)`` slot layout matches.
+            its correction. With a C step: its learned layer (the library holds the offset and
+            inertial layers).
+        expect_robot_sha256: refuse the file unless its URDF hash (or identity hash) matches.
+        expect_joint_names: refuse the file unless its joint order matches.
+        expect_sensors: refuse the file unless its F/T sensor names (in order) match.
+        expect_slots: refuse the file unless its ``(links, kinds)`` slot layout matches.
         intra_op_threads: onnxruntime threads (1: the lowest single-frame latency).
         step_graph: load the single-frame graph for :meth:`step` (False: :meth:`step` runs the
             batched graph with ``N = 1``).
+        track_bias: track each sensor's offset against the model on contact-free frames
+            (:mod:`torchcontact.online.bias`): True (with ``tracker_options``), a
+            :class:`~torchcontact.online.bias.BiasTracker`, or False (the offsets change only
+            by :meth:`tare` and :meth:`identify_payload`). Needs a step with online inputs: a C
+            step, or an ONNX graph exported with ``online`` (``--online``).
+        tracker_options: :class:`~torchcontact.online.bias.BiasTracker` keyword arguments
+            (``time_constant`` s, ``period`` s, ``ft_std``, ``gate``, ...).
+        prefix: the C library's symbol prefix (``--prefix`` at export).
 
     Attributes:
-        metadata: the graph's ``metadata_props`` (JSON values decoded).
+        metadata: the file's metadata (``metadata_props`` of the graphs, JSON values decoded;
+            the C library's JSON).
+        kind: ``"onnx"`` or ``"c"``.
+        backend: the single-frame step (:class:`~torchcontact.onnx.backends.OnnxStep` or
+            :class:`~torchcontact.onnx.backends.CStep`), None without one.
+        online: its :class:`~torchcontact.onnx.tracking.StepOnline` (offsets, payloads), None
+            when the step has no online inputs.
         nv, S, K: joints, sensors, contact slots.
         joint_names, sensor_names, slot_links, slot_kinds: the layout.
-        dtype: numpy dtype of the graphs' inputs and outputs.
+        dtype: numpy dtype of the inputs and outputs.
         extra: names of the extra input columns the chained corrections read.
 
     Raises:
-        InputError: no such file.
-        ModelMismatchError: the file is not an estimator graph of this format, or a check fails.
+        InputError: no such file, an unknown backend, ``track_bias`` on a step without online
+            inputs, bad tracker options.
+        ModelMismatchError: the file is not an estimator of this format, or a check fails.
+
+    Example:
+        >>> rt = EstimatorRuntime("arm.so", robot="tcarm", track_bias=True)  # doctest: +SKIP
+        >>> out = rt.step({"q": q, "qd": qd, "qdd": qdd, "ft": ft})  # doctest: +SKIP
+        >>> out["force"], out["bias"].offset  # (K, 3) N; (S, 6) tracked offsets  # doctest: +SKIP
     """
 
     def __init__(
@@ -458,6 +251,7 @@ class EstimatorRuntime:
         path: str | os.PathLike,
         robot: Any = None,
         *,
+        backend: str | None = None,
         residual: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
         expect_robot_sha256: str | None = None,
         expect_joint_names: Sequence[str] | None = None,
@@ -465,48 +259,28 @@ class EstimatorRuntime:
         expect_slots: tuple[Sequence[str], Sequence[str]] | None = None,
         intra_op_threads: int = 1,
         step_graph: bool = True,
+        track_bias: bool | BiasTracker = False,
+        tracker_options: Mapping[str, Any] | None = None,
+        prefix: str = "tc_estimator",
     ) -> None:
         path = Path(os.fspath(path))
         if not path.is_file():
             raise InputError(f"{path}: no such file")
-        self._so = session_options(intra_op_threads)
-        # open the small single-frame graph first when it lies beside the batched one: the
-        # batched graph (thousands of nodes, seconds to optimise) loads on the first run()
-        step_file = path.with_name(f"{path.name.removesuffix('.onnx')}.step.onnx")
-        if step_graph and not path.name.endswith(".step.onnx") and step_file.is_file():
-            first = ort.InferenceSession(
-                str(step_file), self._so, providers=["CPUExecutionProvider"]
-            )
-            if _metadata(first).get(Key.BATCHED_GRAPH) != path.name:
-                first = ort.InferenceSession(
-                    str(path), self._so, providers=["CPUExecutionProvider"]
-                )
+        kind = backend or ("c" if path.suffix in LIBRARY_SUFFIXES else "onnx")
+        if kind not in ("onnx", "c"):
+            raise InputError(f"backend must be 'onnx' or 'c', got {backend!r}")
+        self.kind, self.path = kind, str(path)
+        self._intra = intra_op_threads
+        self._batched: Any = None
+        self._batched_path: Path | None = None
+        self.step_session: Any = None
+        self.backend: OnnxStep | CStep | None = None
+        if kind == "c":
+            self.backend = CStep(path, prefix)
+            meta = self.backend.metadata
         else:
-            first = ort.InferenceSession(str(path), self._so, providers=["CPUExecutionProvider"])
-        meta = _metadata(first)
-        if meta.get(Key.FORMAT) != FORMAT:
-            raise ModelMismatchError(
-                f"{path} is not a torchcontact estimator graph of format {FORMAT!r} (found"
-                f" {meta.get('format')!r}): re-export it with python -m export estimator"
-            )
+            meta = self._open_onnx(path, step_graph)
         self.metadata = meta
-        self.path = str(path)
-        graph = meta.get(Key.GRAPH)
-        self._batched: ort.InferenceSession | None = first if graph == "batched" else None
-        self._batched_path = path.parent / str(meta.get(Key.BATCHED_GRAPH))
-        self.step_session: ort.InferenceSession | None = first if graph == "step" else None
-        other = path.parent / str(meta.get(Key.STEP_GRAPH))
-        if graph == "batched" and step_graph and meta.get(Key.STEP_GRAPH) and other.is_file():
-            self.step_session = ort.InferenceSession(
-                str(other), self._so, providers=["CPUExecutionProvider"]
-            )
-            smeta = _metadata(self.step_session)
-            if {k: v for k, v in smeta.items() if k != "graph"} != {
-                k: v for k, v in meta.items() if k != "graph"
-            }:
-                raise ModelMismatchError(
-                    f"{other} is not the single-frame graph of {path} (re-export both)"
-                )
         self.joint_names = tuple(meta[Key.JOINT_NAMES])
         self.sensor_names = tuple(s["name"] for s in meta[Key.SENSORS])
         self.slot_links, self.slot_kinds = tuple(meta[Key.SLOT_LINKS]), tuple(meta[Key.SLOT_KINDS])
@@ -516,7 +290,11 @@ class EstimatorRuntime:
             len(self.slot_links),
         )
         self.dtype = np.dtype(meta[Key.DTYPE])
-        self._check(robot, expect_robot_sha256, expect_joint_names, expect_sensors, expect_slots)
+        check_file(self.path, meta, robot, expect_robot_sha256, expect_joint_names,
+                   expect_sensors, expect_slots)  # fmt: skip
+        if kind == "onnx" and self.step_session is not None:
+            self.backend = OnnxStep(self.step_session, meta[Key.STEP_INPUTS],
+                                    meta[Key.STEP_OUTPUTS], self.dtype)  # fmt: skip
         # chained corrections: inside the graphs (export --residual) or run here
         self.residuals: list[ResidualGraph] = []
         inside = list(meta.get(Key.RESIDUALS, []))
@@ -538,62 +316,59 @@ class EstimatorRuntime:
         self._state: dict[str, np.ndarray] = {}
         self.reset()
         self._setup_step()
+        # offsets and payloads: every step with online inputs (C libraries, --online graphs)
+        self.online: StepOnline | None = None
+        if self.backend is not None and meta.get(Key.ONLINE) and "bias" in self._xv:
+            self.online = StepOnline(meta, self._xv, self.backend.outputs,
+                                     write_defaults=kind == "onnx", track_bias=track_bias,
+                                     tracker_options=tracker_options)  # fmt: skip
+        elif track_bias is not False:
+            raise InputError(
+                f"{path} has no online inputs (bias, theta): bias tracking needs a C step or a"
+                " graph exported with --online"
+            )
+
+    def _open_onnx(self, path: Path, step_graph: bool) -> dict[str, Any]:
+        """Open the ONNX graphs (the step graph first); returns their metadata."""
+        self._so = session_options(self._intra)
+        # open the small single-frame graph first when it lies beside the batched one: the
+        # batched graph (thousands of nodes, seconds to optimise) loads on the first run()
+        step_file = path.with_name(f"{path.name.removesuffix('.onnx')}.step.onnx")
+        if step_graph and not path.name.endswith(".step.onnx") and step_file.is_file():
+            first = open_session(step_file, self._so)
+            if metadata_of(first).get(Key.BATCHED_GRAPH) != path.name:
+                first = open_session(path, self._so)
+        else:
+            first = open_session(path, self._so)
+        meta = metadata_of(first)
+        if meta.get(Key.FORMAT) != FORMAT:
+            raise ModelMismatchError(
+                f"{path} is not a torchcontact estimator graph of format {FORMAT!r} (found"
+                f" {meta.get('format')!r}): re-export it with python -m export estimator"
+            )
+        graph = meta.get(Key.GRAPH)
+        self._batched = first if graph == "batched" else None
+        self._batched_path = path.parent / str(meta.get(Key.BATCHED_GRAPH))
+        self.step_session = first if graph == "step" else None
+        other = path.parent / str(meta.get(Key.STEP_GRAPH))
+        if graph == "batched" and step_graph and meta.get(Key.STEP_GRAPH) and other.is_file():
+            self.step_session = open_session(other, self._so)
+            smeta = metadata_of(self.step_session)
+            if {k: v for k, v in smeta.items() if k != "graph"} != {
+                k: v for k, v in meta.items() if k != "graph"
+            }:
+                raise ModelMismatchError(
+                    f"{other} is not the single-frame graph of {path} (re-export both)"
+                )
+        return meta
 
     # ------------------------------------------------------------------------------- checks
-
-    def _check(self, robot, sha256, joints, sensors, slots) -> None:
-        meta, path = self.metadata, self.path
-        name = meta.get(Key.ROBOT)
-        recorded = fmt.recorded_identity(meta)
-        if robot is not None:
-            h, names = robot_identity(robot)
-            if h != meta[Key.URDF_SHA256]:
-                # another text: the same robot when the parsed models agree (graphs that record
-                # the robot's identity; earlier graphs compare the text only)
-                why = f"URDF sha256 {h[:12]}..."
-                if recorded is not None:
-                    ident = identity_of(robot)
-                    why = recorded.difference(ident)
-                if why is not None:
-                    raise ModelMismatchError(
-                        f"{path} was exported for robot {name!r} (URDF sha256"
-                        f" {meta[Key.URDF_SHA256][:12]}...), not for this robot ({why}):"
-                        " re-export it for this robot"
-                    )
-            if names is not None and tuple(names) != self.joint_names:
-                raise ModelMismatchError(
-                    f"{path} expects joints {list(self.joint_names)} (robot {name!r}), the robot"
-                    f" has {list(names)}"
-                )
-        accepted = {meta[Key.URDF_SHA256], meta.get(Key.ROBOT_IDENTITY_SHA256)}
-        if sha256 is not None and sha256 not in accepted:
-            raise ModelMismatchError(
-                f"{path} was exported for robot {name!r} with URDF sha256 {meta['urdf_sha256']},"
-                f" not {sha256}: re-export it for this robot"
-            )
-        if joints is not None and tuple(joints) != self.joint_names:
-            raise ModelMismatchError(
-                f"{path} expects joints {list(self.joint_names)} (robot {name!r}), got"
-                f" {list(joints)}"
-            )
-        if sensors is not None and tuple(sensors) != self.sensor_names:
-            raise ModelMismatchError(
-                f"{path} expects sensors {list(self.sensor_names)}, got {list(sensors)}"
-            )
-        if slots is not None and (tuple(slots[0]), tuple(slots[1])) != (
-            self.slot_links,
-            self.slot_kinds,
-        ):
-            have = list(zip(self.slot_links, self.slot_kinds, strict=True))
-            raise ModelMismatchError(
-                f"{path} has contact slots {have}, got {list(zip(slots[0], slots[1], strict=True))}"
-            )
 
     def __repr__(self) -> str:
         return (
             f"EstimatorRuntime({self.path!r}, robot={self.metadata['robot']!r}, nv={self.nv},"
             f" sensors={list(self.sensor_names)}, slots={list(self.slot_kinds)},"
-            f" dtype={self.dtype})"
+            f" dtype={self.dtype}, backend={self.kind!r})"
         )
 
     def reset(self) -> None:
@@ -609,44 +384,42 @@ class EstimatorRuntime:
     # ---------------------------------------------------------------------------- single frame
 
     def _setup_step(self) -> None:
-        if self.step_session is None:
+        bk = self.backend
+        self._xv: dict[str, np.ndarray] = {}
+        self._accepts: frozenset[str] = frozenset()
+        if bk is None:
             self._x = None
             return
-        lay = {
-            k: (int(o), tuple(int(s) for s in sh))
-            for k, (o, sh) in self.metadata[Key.STEP_INPUTS].items()
-        }
-        out = {
-            k: (int(o), tuple(int(s) for s in sh))
-            for k, (o, sh) in self.metadata[Key.STEP_OUTPUTS].items()
-        }
-        size = max(o + int(np.prod(sh)) for o, sh in lay.values())
-        self._x = np.zeros((1, size), self.dtype)
-        self._xv = {
-            k: self._x[0, o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in lay.items()
-        }
-        self._lay = lay
-        self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in out.items()}
+        self._x = bk.x
+        self._xv = {k: bk.x[o : o + int(np.prod(sh))].reshape(sh) for k, (o, sh) in
+                    bk.inputs.items()}  # fmt: skip
         self._fresh: set[str] = set()
         # per field of the packed input: how step() fills it, and its default (None: required;
-        # ones for the activity flags; zeros for the rest)
+        # ones for the activity flags; zeros for the rest); the online inputs are the
+        # StepOnline's
         defaults = {k: None for k in fmt.REQUIRED} | {k: 1.0 for k in fmt.ONES}
         special = {"ft": _FT, "tau_mask": _MASK, fmt.EXTRA: _EXTRA}
         self._fill = [
-            (
-                k,
-                v,
-                _STATE if k.startswith("h_in.") else special.get(k, _PLAIN),
-                defaults.get(k, 0.0),
-            )
-            for k, v in self._xv.items()
-        ]
-        self._accepts = frozenset(self._xv) | _SLOT_DATA
-        self._in_name = self.step_session.get_inputs()[0].name
-        # the binding's own run (skips the Python wrapper's per-call checks)
-        self._run = self.step_session._sess.run
-        self._out_names = [o.name for o in self.step_session.get_outputs()]
-        self._ro = ort.RunOptions()
+            (k, v, _STATE if k.startswith("h_in.") else special.get(k, _PLAIN),
+             defaults.get(k, 0.0))
+            for k, v in self._xv.items() if k != "bias" and not k.startswith("theta.")
+        ]  # fmt: skip
+        # ft_residual is subtracted here when the step has no such input (C steps)
+        self._residual_in = "ft_residual" in self._xv
+        self._accepts = frozenset(k for k, *_ in self._fill) | _SLOT_DATA | {"ft_residual"}
+        # the output fields, as (start, stop, shape)
+        self._out = {k: (o, o + int(np.prod(sh)), sh) for k, (o, sh) in bk.outputs.items()}
+        self._reused = bk.kind == "c"  # the library writes into one buffer: copy what we return
+        tj = list(self.metadata.get(Key.TORQUE_JOINTS) or self.joint_names)
+        n_tau = self._out["joint_torques"][2][0]
+        self._tau_idx = (
+            None if n_tau == self.nv else np.array([self.joint_names.index(j) for j in tj])
+        )
+        # how _decode reads each output field
+        kinds = {"fm": _FM, "rank": _INT, "unknowns": _INT, "status": _STATUS,
+                 "joint_torques": _VIEW if self._tau_idx is None else _TAU}  # fmt: skip
+        self._plan = [(k, a, b, sh, kinds.get(k, _VIEW)) for k, (a, b, sh) in self._out.items()
+                      if k in _OUTPUTS or k == "fm"]  # fmt: skip
 
     def _put(self, name: str, view: np.ndarray, value: Any, default: float | None) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
@@ -674,8 +447,9 @@ class EstimatorRuntime:
         view[...] = arr
 
     def step(self, inputs: Inputs | Mapping[str, Any] | None = None, /, *args: Any,
+             contact_free: Any = None, t: float | None = None,
              **named: Any) -> dict[str, Any]:  # fmt: skip
-        """Estimate one frame from the raw readings.
+        """Estimate one frame from the raw readings (and update the offsets, on an online step).
 
         Args:
             inputs: an :class:`Inputs` or a mapping name -> value (one frame's shapes, see
@@ -683,23 +457,38 @@ class EstimatorRuntime:
                 are accepted). Earlier versions' form ``step(q, qd, qdd, ft, positions, active,
                 directions, wrenches, ft_residual, **keywords)`` is accepted too.
             *args: the positional values of that earlier form.
+            contact_free: the caller's contact-free signal for the bias tracker (bool, or
+                ``(S,)`` per sensor: a contact localizer, a user's switch); a sensor is updated
+                only when no active slot lies in its region and this does not say otherwise
+                (:meth:`~torchcontact.online.state.OnlineState.contact_free`).
+            t: the frame's time, s (the tracker's clock; None: one nominal period on).
             **named: inputs by name (added to ``inputs``).
 
         Returns:
             ``force``, ``moment`` ``(K, 3)`` (N, N m; link frames, moment about the point),
-            ``joint_torques (nv,)``, ``rank``, ``unknowns`` ``(S,)`` int64, ``residual (S,)``,
-            ``status`` (int, 0 ok; bits of :class:`torchcontact.Status`), ``covariance
+            ``joint_torques (nv,)`` (NaN for joints the file was exported without),
+            ``rank``, ``unknowns`` ``(S,)`` int64, ``residual (S,)``, ``status`` (int, 0 ok;
+            bits of :class:`torchcontact.Status`; the outputs are NaN otherwise), ``covariance
             (K, 6, 6)`` when exported with it, and a constrained graph's ``converged``,
-            ``iterations`` ``(S,)`` and ``cone_active (K,)``.
+            ``iterations`` ``(S,)`` and ``cone_active (K,)``. A step with online inputs adds
+            ``ft_model (S, 6)`` (the contact-free reading the model predicts, every correction
+            but the offset) and ``bias``, the
+            :class:`~torchcontact.online.bias.BiasState` after the frame (offsets, their
+            uncertainty, time since the last update).
 
         Raises:
             InputError: a wrong shape, an unknown input, a missing required input or extra
                 column.
         """
-        given = _given(inputs, args, named)
-        if self.step_session is None or not given.keys() <= self._accepts:
+        if type(inputs) is dict and not args and not named:
+            given = inputs  # the common case
+        else:
+            given = _given(inputs, args, named)
+        accepted = given.keys() <= self._accepts
+        if self._x is None or not accepted:
             given = _named(given)  # old spellings, None for absent
-        if self.step_session is None:  # the batched graph with N = 1
+            accepted = given.keys() <= self._accepts
+        if self._x is None:  # the batched graph with N = 1
             one = {k: (np.asarray(v)[None] if k not in ("extra", "h_in") else v)
                    for k, v in given.items()}  # fmt: skip
             if "ft" in given:
@@ -712,15 +501,21 @@ class EstimatorRuntime:
             return {k: (v[0] if k != "status" else int(v[0])) for k, v in out.items()}
         if "ft" not in given:
             raise InputError(f"ft is required by this graph, shape {self._xv['ft'].shape}")
-        ft = self._ft_array(given["ft"])
+        raw = ft = given["ft"]
+        if type(ft) is not np.ndarray:
+            raw = ft = self._ft_array(ft)
         extra = given.get("extra")
-        if self.residuals:
-            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
-                                    batch=False)  # fmt: skip
-        if not given.keys() <= self._accepts:
+        if not accepted:
             # a layout without force_dir (known) slots does not read directions (wrenches)
             bad = sorted(given.keys() - self._accepts)
             raise InputError(f"this graph has no input {bad[0]!r} (exported without it)")
+        if self.residuals:
+            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra,
+                                    batch=False)  # fmt: skip
+        fres = given.get("ft_residual")
+        if fres is not None and not self._residual_in:  # a step without the input: here
+            ft = ft - np.asarray(fres, np.float64).reshape(np.shape(ft))
+            fres = None
         put = self._put
         for name, view, kind, default in self._fill:  # the packed input's fields, in order
             if kind == _PLAIN:
@@ -740,27 +535,50 @@ class EstimatorRuntime:
                 view[...] = [vals[c] for c in self.extra]
             else:  # a recurrent correction's state, carried from the previous step
                 view[...] = self._state[name[5:]]
-        out = self._run(self._out_names, {self._in_name: self._x}, self._ro)[0][0]
-        lo = self._out
-        a, b, sh = lo["fm"]
-        fm = out[a:b].reshape(sh)
-        a, b, _ = lo["joint_torques"]
-        res = {"force": fm[:, 0:3], "moment": fm[:, 3:6], "joint_torques": out[a:b]}
-        a, b, _ = lo["rank"]
-        res["rank"] = out[a:b].astype(np.int64)
-        a, b, _ = lo["unknowns"]
-        res["unknowns"] = out[a:b].astype(np.int64)
-        a, b, _ = lo["residual"]
-        res["residual"] = out[a:b]
-        res["status"] = int(out[lo["status"][0]])
-        if "covariance" in lo:
-            res["covariance"] = self._view(out, "covariance")
-        for r in self._inside:
-            if r.get("state_shape"):
-                self._state[r["sensor"]] = self._view(out, fmt.state_out(r["sensor"])).copy()
+        onl = self.online
+        if onl is not None:
+            onl.before()
+        out = self.backend.call()  # type: ignore[union-attr]
+        if self._reused:
+            out = out.copy()
+        res = self._decode(out)
+        if onl is not None:  # the offsets learn from the reading the step was given
+            net = ft
+            if not (type(ft) is np.ndarray and ft.dtype == np.float64 and ft.shape == (self.S, 6)):
+                net = np.asarray(ft, np.float64).reshape(self.S, 6)
+            if fres is not None:
+                net = net - np.asarray(fres, np.float64).reshape(self.S, 6)
+            ft_model, res["bias"] = onl.after(out, net, res["status"], contact_free, t)
+            if self.residuals or given.get("ft_residual") is not None:
+                # corrections made outside the step's model are part of the model's reading
+                ft_model += np.asarray(raw, np.float64).reshape(self.S, 6) - net
+            res["ft_model"] = ft_model
         return res
 
-    def _view(self, out: np.ndarray, name: str) -> np.ndarray:
+    def _decode(self, out: np.ndarray) -> dict[str, Any]:
+        """The outputs of the packed output ``out`` (views into it; the plan of ``_setup_step``)."""
+        res: dict[str, Any] = {}
+        for name, a, b, sh, kind in self._plan:
+            v = out[a:b]
+            if kind == _VIEW:
+                res[name] = v.reshape(sh)
+            elif kind == _FM:  # the ONNX step: [force, moment, ...] per slot
+                fm = v.reshape(sh)
+                res["force"], res["moment"] = fm[:, 0:3], fm[:, 3:6]
+            elif kind == _INT:
+                res[name] = v.astype(np.int64)
+            elif kind == _STATUS:
+                res[name] = int(v[0])
+            else:  # only some joints' torques: the others are NaN
+                full = np.full(self.nv, np.nan, out.dtype)
+                full[self._tau_idx] = v
+                res[name] = full
+        for r in self._inside:
+            if r.get("state_shape"):
+                self._state[r["sensor"]] = self._field(out, fmt.state_out(r["sensor"])).copy()
+        return res
+
+    def _field(self, out: np.ndarray, name: str) -> np.ndarray:
         a, b, sh = self._out[name]
         return out[a:b].reshape(sh)
 
@@ -796,18 +614,16 @@ class EstimatorRuntime:
 
     # ----------------------------------------------------------------------------------- batch
 
-    def _batched_session(self) -> ort.InferenceSession:
+    def _batched_session(self) -> Any:
         if self._batched is None:
-            if not self._batched_path.is_file():
+            if self._batched_path is None or not self._batched_path.is_file():
                 raise ModelMismatchError(f"the batched graph {self._batched_path} is missing")
-            self._batched = ort.InferenceSession(
-                str(self._batched_path), self._so, providers=["CPUExecutionProvider"]
-            )
+            self._batched = open_session(self._batched_path, self._so)
         return self._batched
 
     def run(self, inputs: Inputs | Mapping[str, Any] | None = None, /, *args: Any,
             chunk_size: int = 16384, **named: Any) -> dict[str, np.ndarray]:  # fmt: skip
-        """Estimate ``N`` independent frames with the batched graph.
+        """Estimate ``N`` independent frames (the batched graph; a C step: its ``run``).
 
         Args:
             inputs: an :class:`Inputs` or a mapping name -> value, each with a leading ``N``
@@ -820,12 +636,16 @@ class EstimatorRuntime:
             **named: inputs by name (added to ``inputs``).
 
         Returns:
-            As :meth:`step` with a leading ``N``; ``status`` ``(N,)`` int64.
+            As :meth:`step` with a leading ``N``; ``status`` ``(N,)`` int64. No online state is
+            updated; a C step uses the current offsets and payloads, an ONNX batched graph the
+            correction stack's (``ft_model``, ``bias`` are not returned).
 
         Raises:
             InputError: a wrong shape, an unknown input or a missing required input.
         """
-        given = _given(inputs, args, named)
+        given = dict(_given(inputs, args, named))
+        if self.kind == "c":
+            return self._run_c(_named(given))
         sess = self._batched_session()
         if "q" not in given:
             raise InputError("q is required by this graph, shape (N, nv)")
@@ -882,3 +702,118 @@ class EstimatorRuntime:
             k: np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i]
             for i, k in enumerate(names)
         }
+
+    def _run_c(self, given: dict[str, Any]) -> dict[str, np.ndarray]:
+        """:meth:`run` on a C step: the frames packed as rows, one library call."""
+        bk = self.backend
+        assert isinstance(bk, CStep)
+        if "q" not in given:
+            raise InputError("q is required by this library, shape (N, nv)")
+        n = int(np.shape(given["q"])[0])
+        extra, fres = given.pop("extra", None), given.pop("ft_residual", None)
+        given.pop("h_in", None)
+        missing = [k for k in fmt.REQUIRED if k in bk.inputs and given.get(k) is None]
+        if missing:
+            raise InputError(f"{missing[0]} is required by this library")
+        unknown = [k for k in given if k not in bk.inputs or k == "bias" or k.startswith("theta")]
+        if unknown:
+            raise InputError(f"this library has no inputs {unknown} (exported without them)")
+        ft = np.asarray(self._ft_array(given["ft"]) if isinstance(given["ft"], Mapping)
+                        else given["ft"], dtype=np.float64).reshape(n, self.S, 6)  # fmt: skip
+        if self.residuals:
+            ft = ft - self._correct(given.get("q"), given.get("qd"), given.get("qdd"), extra, True)
+        if fres is not None:
+            ft = ft - np.asarray(fres, np.float64).reshape(n, self.S, 6)
+        given["ft"] = ft
+        if "tau_measured" in given and "tau_mask" not in given:
+            given["tau_mask"] = np.isfinite(np.asarray(given["tau_measured"], dtype=float))
+        if "active" in bk.inputs and "active" not in given:
+            given["active"] = np.ones((n, self.K))
+        if self.online is not None:
+            self.online.before()
+        base = bk.x0.copy()  # the library's defaults, with the current offsets and payloads
+        for k, (o, sh) in bk.inputs.items():
+            if k == "bias" or k.startswith("theta."):
+                base[o : o + int(np.prod(sh))] = bk.x[o : o + int(np.prod(sh))]
+        out = bk.run(bk.pack(n, base, **given))
+        res: dict[str, np.ndarray] = {}
+        for k, (a, b, sh) in self._out.items():
+            res[k] = out[:, a:b].reshape(n, *sh)
+        if self._tau_idx is not None:
+            tau = np.full((n, self.nv), np.nan, out.dtype)
+            tau[:, self._tau_idx] = res["joint_torques"]
+            res["joint_torques"] = tau
+        res["rank"], res["unknowns"] = (
+            res["rank"].astype(np.int64),
+            res["unknowns"].astype(np.int64),
+        )
+        res["status"] = res["status"].reshape(n).astype(np.int64)
+        for k in [k for k in res if k.startswith("regressor.")]:
+            del res[k]
+        return res
+
+    # ---------------------------------------------------------------------- offsets, payloads
+
+    def _online(self) -> StepOnline:
+        if self.online is None:
+            raise InputError(
+                f"{self.path} has no online inputs (bias, theta): offsets and payloads need a C"
+                " step or a graph exported with --online"
+            )
+        return self.online
+
+    def tare(self, frames: int = 1) -> BiasState:
+        """Re-zero the offsets now, at the current pose, from the model.
+
+        Each offset becomes the reading less the model's prediction (the mean of the last
+        ``frames`` frames), so the robot need not be in a zero pose.
+
+        Raises:
+            InputError: no frame yet, a contact active on a sensor, or a step without online
+                inputs.
+        """
+        return self._online().tare(frames)
+
+    def set_payload(
+        self,
+        mass: float | Payload | None,
+        com: Any = (0.0, 0.0, 0.0),
+        inertia: Any = None,
+        *,
+        link: str | None = None,
+        sensor: str | None = None,
+    ) -> Payload | None:
+        """A tool change: the payload a sensor carries from the next frame on.
+
+        Args:
+            mass: kg, or a :class:`~torchcontact.online.payload.Payload`, or None (no payload).
+            com: ``(3,)`` centre of mass in ``link``'s frame, m.
+            inertia: ``(3, 3)`` about the centre of mass, link axes, kg m^2 (default: a point).
+            link: the link it is attached to (default: the sensor's payload link, metadata
+                ``online``).
+            sensor: the sensor (None: the only one).
+
+        Raises:
+            InputError: a non-physical payload (mass not positive, inertia not symmetric
+                positive definite or violating the triangle inequality), a link the sensor does
+                not carry, a step without online inputs.
+        """
+        return self._online().set_payload(mass, com, inertia, link=link, sensor=sensor)
+
+    def start_identification(self, sensor: str | None = None, **kwargs: Any) -> None:
+        """Identify a sensor's payload from the next contact-free frames (a tool change).
+
+        Its payload is cleared and its offset fitted with it; see
+        :meth:`~torchcontact.online.state.OnlineState.start_identification` (``kwargs``:
+        :class:`~torchcontact.online.payload.PayloadIdentifier` options).
+        """
+        self._online().start_identification(sensor, **kwargs)
+
+    def identify_payload(self, sensor: str | None = None, apply: bool = True) -> Payload:
+        """The payload identified so far; with ``apply`` it replaces the current one.
+
+        Raises:
+            InputError: no identification running.
+            NotIdentifiableError: the data cannot identify it yet (keep moving, ask again).
+        """
+        return self._online().identify_payload(sensor, apply)

@@ -16,7 +16,9 @@ stages of :mod:`torchcontact.estimation.stages` (Del Prete et al., HRI 2012, Sec
 5. :mod:`~torchcontact.onnx.step.outputs`: contact wrenches, torques, the packed output
    (``contact_wrenches``, ``backward``, ``covariance``);
 
-with :mod:`~torchcontact.onnx.step.corrections` subtracting chained F/T corrections. The stages
+with :mod:`~torchcontact.onnx.step.corrections` subtracting chained F/T corrections and, in a
+graph exported with ``online``, :mod:`~torchcontact.onnx.step.online` taking the offsets and
+inertial changes as inputs and returning the model's reading and the payload regressors. The stages
 share one :class:`~torchcontact.onnx.step.context.StepContext`. Each bilinear stage is generated
 by tracing :mod:`torchcontact.spatial` code on symbols
 (:func:`torchcontact.onnx.builder.bilinear`); nothing here is written for a particular robot.
@@ -32,13 +34,14 @@ from torchcontact.estimation.layout import EstimationModel
 from torchcontact.onnx.builder import GraphBuilder
 from torchcontact.onnx.format import StepLayout
 from torchcontact.onnx.step import corrections, inputs, kinematics, outputs, regions, solve
+from torchcontact.onnx.step import online as online_stage
 from torchcontact.onnx.step.context import Flags, StepContext
 
 __all__ = ["Flags", "StepContext", "build_step_graph", "context", "stages"]
 
 
 def context(em: EstimationModel, flags: Flags, dtype, residuals: Sequence = (),
-            coords: Sequence[int] | None = None) -> StepContext:  # fmt: skip
+            coords: Sequence[int] | None = None, online: Sequence = ()) -> StepContext:  # fmt: skip
     """The :class:`StepContext` of a layout: pruned tree, packed input layout, graph builder.
 
     Args:
@@ -47,13 +50,18 @@ def context(em: EstimationModel, flags: Flags, dtype, residuals: Sequence = (),
         dtype: float32 or float64.
         residuals: ``[(ResidualGraph, onnx.ModelProto)]`` corrections to chain.
         coords: the joint coordinates whose torques to compute (None: all).
+        online: per sensor its :class:`~torchcontact.online.state.SensorLayout`: the online
+            inputs and outputs (:mod:`~torchcontact.onnx.step.online`); empty: none.
     """
     coords = tuple(range(em.tree.nv)) if coords is None else tuple(coords)
     extra = tuple(dict.fromkeys(c for rg, _ in residuals for c in rg.extra))
     ctx = StepContext(em.prune(coords), em, tuple(em.kept_bodies(coords)), coords, flags,
-                      GraphBuilder(dtype, "torchcontact_step"), StepLayout(), extra)  # fmt: skip
+                      GraphBuilder(dtype, "torchcontact_step"), StepLayout(), extra,
+                      tuple(online))  # fmt: skip
     states = [(rg.sensor, tuple(rg.state_shape)) for rg, _ in residuals if rg.state_shape]
     for name, shape in inputs.fields(ctx.em, flags, extra if residuals else (), states):
+        ctx.lay.add(name, shape)
+    for name, shape in online_stage.fields(ctx):
         ctx.lay.add(name, shape)
     return ctx
 
@@ -66,6 +74,7 @@ def build_step_graph(
     dtype=np.float64,
     residuals: Sequence = (),
     coords: Sequence[int] | None = None,
+    online: Sequence = (),
 ):
     """The single-frame graph of a layout.
 
@@ -80,16 +89,20 @@ def build_step_graph(
         coords: the joint coordinates whose torques to compute
             (:meth:`EstimationModel.torque_joints`; the others are NaN); the graph keeps only
             the bodies these and the regions need.
+        online: per sensor its :class:`~torchcontact.online.state.SensorLayout`: inputs
+            ``bias``, ``theta.<sensor>``, outputs ``ft_model``, ``regressor.<sensor>``
+            (:mod:`~torchcontact.onnx.step.online`).
 
     Returns:
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
-    ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords)
+    ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords,
+                  online)  # fmt: skip
     x = ctx.gb.input("x", [1, ctx.lay.size])
     v = stages(ctx, x, residuals)
     lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
-                           v["status"], v["e"], v["idx"], v["states"])  # fmt: skip
+                           v["status"], v["e"], v["idx"], v["states"], v["more"])  # fmt: skip
     return ctx.gb.model(), ctx.lay, lay_out
 
 
@@ -99,8 +112,9 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     Keys: ``status`` (the inputs' bits), ``T``, ``TP`` (poses), ``VA`` (motion), ``f0`` (body
     wrenches), ``W0`` (readings, root frame), ``Fb`` (transmitted wrenches), ``b``, ``G`` (per
     region), ``y``, ``rank``, ``resid`` (per region), ``fm`` (contact wrenches), ``tau``,
-    and what packing the output needs (``e``, ``idx``, ``actK``, ``states``). The stage tests
-    read them; :func:`build_step_graph` packs the output from them.
+    ``ft_model`` and ``regressors`` (online graphs, else None), and what packing the output
+    needs (``e``, ``idx``, ``actK``, ``states``, ``more``). The stage tests read them;
+    :func:`build_step_graph` packs the output from them.
     """
     from torchcontact.onnx.batched import chain_corrections
 
@@ -110,6 +124,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     native = {r: (rg, st) for r, (rg, model) in enumerate(residuals)
               if (st := corrections.native_stack(ctx, rg, model)) is not None}  # fmt: skip
     chained = chain_corrections(gb, residuals, wiring.select, wiring.state_in, skip=set(native))
+    total = None
     if chained:
         total = None
         for _r, rg, c, h in chained:
@@ -130,9 +145,28 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     VA = kinematics.motion(ctx, TP, e, idx, base)
     f0, VAb = kinematics.body_wrenches(ctx, TP, VA)
     W0 = kinematics.readings_root(ctx, TP, e, idx)
-    ws_corr = None
+    ws_corr, onl = None, None
+    if ctx.online:  # offsets and inertial changes as inputs: the model's reading, Y theta
+        onl = online_stage.model_terms(ctx, e, idx, TP, VAb, f0)
+        W0, ws_corr = gb.op("Sub", W0, onl.delta_root), onl.ws_corr
     if native:
-        W0, ws_corr = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, W0)
+        W0, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, W0)
+        if ws_n is not None:
+            ws_corr = ws_n if ws_corr is None else gb.op("Add", ws_corr, ws_n)
+    ft_model, more = None, []
+    if onl is not None:  # ft_model: every correction but the offset (learned, chained)
+        ft_model = onl.ft_model
+        if native and ws_n is not None:  # the learned layers, reading sense (sign ws)
+            signs = np.array([[reg.sign] for reg in em.regions])
+            ft_model = gb.op("Add", ft_model, gb.op("Mul", ws_n, gb.f(signs)))
+        if total is not None:  # inlined correction graphs: their part of ft
+            a, b, _ = ctx.lay.span("ft")
+            chain_ft = gb.op("Slice", total, gb.i([a]), gb.i([b]), gb.i([1]))
+            ft_model = gb.op("Add", ft_model, gb.op("Reshape", chain_ft, gb.i([ctx.S, 6])))
+        more = [
+            ([("ft_model", (ctx.S, 6))], gb.op("Reshape", ft_model, gb.i([1, 6 * ctx.S]))),
+            ([(f"regressor.{lay.name}", (6, 10)) for lay in ctx.online], onl.regressors),
+        ]
     # ---- 3. regions: transmitted wrenches, slot geometry, known contacts, b, Gram matrices
     Fb = regions.transmitted(ctx, f0, W0)
     Cg = regions.slot_geometry(ctx, TP, e, idx)
@@ -171,4 +205,5 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     tau = outputs.torques(ctx, S0, F_tot)
     return dict(status=chk.status, T=T, TP=TP, VA=VA, f0=f0, W0=W0, Fb=Fb, b=b_all, G=gr.G,
                 y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=chk.actK,
-                states=wiring.states)  # fmt: skip
+                states=wiring.states, ft_model=ft_model,
+                regressors=None if onl is None else onl.regressors, more=more)  # fmt: skip

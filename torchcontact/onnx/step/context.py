@@ -48,6 +48,9 @@ class StepContext:
         gb: the graph being built.
         lay: the packed input's layout.
         extra: the extra columns chained corrections read, in order.
+        online: per sensor its :class:`~torchcontact.online.state.SensorLayout` when the graph
+            has the online inputs and outputs (:mod:`~torchcontact.onnx.step.online`), else
+            empty.
     """
 
     em: EstimationModel
@@ -58,6 +61,7 @@ class StepContext:
     gb: GraphBuilder
     lay: StepLayout = field(default_factory=StepLayout)
     extra: tuple[str, ...] = ()
+    online: tuple = ()
 
     @property
     def nb(self) -> int:

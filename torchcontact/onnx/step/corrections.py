@@ -114,7 +114,13 @@ def native_stack(ctx: StepContext, rg, model) -> NativeStack | None:
 
     Native when the graph carries its layers (``stack`` metadata), its sensor is one of the
     graph's regions, every body of the sensor's subtree is in the pruned tree, and no feature
-    mixes prismatic angles into a sin/cos set.
+    mixes prismatic angles into a sin/cos set. In an online graph the offset and inertial layers
+    are the defaults of its ``bias`` and ``theta`` inputs
+    (:func:`torchcontact.onnx.step.online.stack_defaults`): only the learned layer is built.
+
+    Raises:
+        InputError: an online graph with a stack that cannot be built natively (its offset and
+            inertial layers would be applied twice).
     """
     import onnx
     from onnx import version_converter
@@ -130,7 +136,7 @@ def native_stack(ctx: StepContext, rg, model) -> NativeStack | None:
     keep = list(ctx.keep)
     sub = full.model.subtree(keep[em.regions[region].child])
     if not set(sub) <= set(keep):
-        return None
+        return _not_native(ctx, rg)
     new = {old: k for k, old in enumerate(keep)}
     body_names = list(full.model.body_names)
     delta = {}
@@ -144,15 +150,30 @@ def native_stack(ctx: StepContext, rg, model) -> NativeStack | None:
     if spec.learned is not None:
         cols = spec.columns(full.model)
         if cols is None:  # prismatic angles inside a sin/cos set
-            return None
+            return _not_native(ctx, rg)
         columns, n_angles, perm = cols
         sincos, nominal = n_angles > 0, spec.nominal
         learned = onnx.load_from_string(base64.b64decode(meta[Key.LEARNED_GRAPH]))
         version = next(o.version for o in learned.opset_import if o.domain in ("", "ai.onnx"))
         if version != OPSET:
             learned = version_converter.convert_version(learned, OPSET)
+    if ctx.online:  # the offset and inertial layers are the online inputs' defaults
+        return NativeStack(region, [new[i] for i in sub], None, {}, columns, sincos, n_angles,
+                           perm, nominal, learned)  # fmt: skip
     return NativeStack(region, [new[i] for i in sub], spec.offset_array(), delta, columns,
                        sincos, n_angles, perm, nominal, learned)  # fmt: skip
+
+
+def _not_native(ctx: StepContext, rg) -> None:
+    if ctx.online:
+        from torchcontact.errors import InputError
+
+        raise InputError(
+            f"online: the correction stack of {rg.sensor!r} ({rg.path}) cannot be built in the"
+            " step graph, so its offset and inertial layers cannot become the online inputs;"
+            " export without --online"
+        )
+    return None
 
 
 def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[str, str | None]:

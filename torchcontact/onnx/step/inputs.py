@@ -133,18 +133,23 @@ def plan(ctx: StepContext) -> tuple[Affine, dict]:
         v0 = [ea.zero] * 6
         a0 = [ea.entry({}, -float(g)) for g in tree.gravity] + [ea.zero] * 3
     idx["base"] = v0 + a0 + [ea.one]
-    # readings: corrected r = ft - ft_residual in the sensor frame; W = sign r (the wrench the
-    # parent side exerts on the region, sensor frame), W_c = W in the child body frame
+    # readings: corrected r = ft - ft_residual [- bias] in the sensor frame; W = sign r (the
+    # wrench the parent side exerts on the region, sensor frame), W_c = W in the child body frame
     W_s, W_c = [], []
+    online = "bias" in lay.fields  # the offsets are inputs too (online graphs)
     for s, reg in enumerate(em.regions):
         rows = [
             {lay.index("ft", s, i): reg.sign, lay.index("ft_residual", s, i): -reg.sign}
+            | ({lay.index("bias", s, i): -reg.sign} if online else {})
             for i in range(6)
         ]
         W_s.append([ea.entry(r) for r in rows])
         Ad = const_force_map(lambda f, T=reg.T_child_sensor: sp.force_to_parent(T, f))
         W_c.append([ea.entry(_combine(Ad[o], rows)) for o in range(6)] + [ea.one])
     idx.update(W_s=W_s, W_c=W_c)
+    # the inertial changes of online graphs, in theta's order
+    idx["theta"] = [ea.entry({o + j: 1.0}) for name, (o, shape) in lay.fields.items()
+                    if name.startswith("theta.") for j in range(shape[0])]  # fmt: skip
     # contact points in the slot body's internal frame, activity, directions, wrenches
     pos_b, acts, dirs, wr = [], [], [], []
     for k, slot in enumerate(em.slots):
@@ -230,9 +235,10 @@ def _status(ctx: StepContext, x: str, bad: str, act: str, e: str, idx: dict) -> 
     bits = [Status.FT_NONFINITE, Status.JOINT_NONFINITE, Status.CONTACT_NONFINITE,
             Status.TORQUE_NONFINITE]  # fmt: skip
     Mb = np.zeros((F, len(bits)))
-    for name in ("ft", "ft_residual"):
-        start, stop, _ = lay.span(name)
-        Mb[start:stop, 0] = 1.0
+    for name in lay.fields:  # the readings and what corrects them
+        if name in ("ft", "ft_residual", "bias") or name.startswith("theta."):
+            start, stop, _ = lay.span(name)
+            Mb[start:stop, 0] = 1.0
     for name in ("q", "qd", "qdd", *fmt.BASE_INPUTS):
         if name in lay.fields:
             start, stop, _ = lay.span(name)

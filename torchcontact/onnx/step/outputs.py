@@ -154,7 +154,7 @@ def _covariance(ctx: StepContext, fm: str, e: str, idx: dict) -> str:
     return gb.op("Reshape", cov, gb.i([1, 36 * K]))
 
 
-def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states) -> StepLayout:
+def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=()) -> StepLayout:
     """The packed output ``out (1, O)``: estimates, status; NaN where the status is not 0.
 
     Args:
@@ -169,6 +169,8 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states) -> StepLa
         idx: their indices.
         states: ``[(sensor, (L, H), (1, L H) value)]`` next states of chained recurrent
             corrections.
+        more: further outputs ``[([(field, shape)], (1, n) value)]``, NaN where the status is
+            not 0 (the online graph's ``ft_model`` and regressors).
 
     Returns:
         The output layout (the graph output ``out`` is declared).
@@ -186,6 +188,10 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states) -> StepLa
     if ctx.flags.covariance:
         out.add("covariance", (K, 6, 6))
         pieces.append(_covariance(ctx, fm, e, idx))
+    for fields, value in more:
+        for name, shape in fields:
+            out.add(name, shape)
+        pieces.append(value)
     n_mask = out.size
     # rank is 0 for a frame that is not estimated (the estimator computes it on zeros)
     okf = gb.cast(gb.op("Equal", status_in, gb.f(0.0)))
