@@ -35,7 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("torchcontact.logs.cli", "simulate -> estimate -> plot into a folder"),
     "plot": ("torchcontact.logs.cli", "PNG plots of an estimated log"),
     "convert": ("torchcontact.logs.cli", "ROS 1/2 bag (sqlite3, MCAP) or CSV -> log"),
-    "view": ("torchcontact.view.cli", "3D timeline of a log and its estimate (rerun recording)"),
+    "view": (
+        "torchcontact.view.cli",
+        "interactive 3D timeline of a log and its estimate (rerun .rrd, extra 'view')",
+    ),
     "sensor": ("torchcontact.drivers.cli", "F/T sensor drivers and simulator"),
     "run": ("torchcontact.drivers.cli", "live loop: sensor + joints -> estimator -> JSON"),
 }
