@@ -45,7 +45,10 @@ def metadata() -> str:
 
 def rate(fn: Callable[[], object], frames: int, min_run_time: float = 1.0) -> tuple[float, float]:
     """Frames per second of ``fn`` (median of ``torch.utils.benchmark``) and the IQR's share."""
-    m = tb.Timer(stmt="fn()", globals={"fn": fn}).blocked_autorange(min_run_time=min_run_time)
+    # num_threads: torch.utils.benchmark runs fn under ONE torch thread unless told otherwise,
+    # which would time every multi-threaded CPU path single-threaded
+    timer = tb.Timer(stmt="fn()", globals={"fn": fn}, num_threads=torch.get_num_threads())
+    m = timer.blocked_autorange(min_run_time=min_run_time)
     return frames / m.median, m.iqr / m.median
 
 

@@ -143,7 +143,7 @@ CONE_FIELDS = {"normal": "normals", "friction": "friction", "cone_angle": "cone_
 def _cone_types() -> list[tuple[str, Any]]:
     import pyarrow as pa
 
-    return [("normal", pa.list_(pa.float64(), 3)), ("friction", pa.float64()),
+    return [("normal", pa.list_(pa.float64())), ("friction", pa.float64()),
             ("cone_angle", pa.float64()), ("pushing", pa.bool_())]  # fmt: skip
 
 
@@ -165,8 +165,10 @@ def contact_struct_type(extra: Sequence[tuple[str, Any]] = (), cone: bool = Fals
             ("link", pa.string()),
             ("kind", pa.string()),
             ("position", pa.list_(pa.float64(), 3)),
-            ("direction", pa.list_(pa.float64(), 3)),
-            ("wrench", pa.list_(pa.float64(), 6)),
+            # fields that may be null (not given) are variable-length lists: pyarrow < 26
+            # cannot read a null entry of a fixed-size list back from Parquet (apache/arrow#35692)
+            ("direction", pa.list_(pa.float64())),
+            ("wrench", pa.list_(pa.float64())),
             *(_cone_types() if cone else []),
             *extra,
         ]
@@ -723,14 +725,14 @@ def contacts_column(
         raise InputError(f"contact records must be ordered by frame within [0, {frames})")
 
     def nullable(values: np.ndarray | None, width: int) -> Any:
+        # a variable-length list (see contact_struct_type): null where all NaN (not given)
         if values is None:
-            return pa.nulls(len(f), pa.list_(pa.float64(), width))
-        arr = fixed_list(np.nan_to_num(values, nan=0.0))
+            return pa.nulls(len(f), pa.list_(pa.float64()))
         missing = np.isnan(values).all(-1)
-        if missing.any():
-            mask = pa.array(missing)
-            arr = pa.FixedSizeListArray.from_arrays(arr.flatten(), width, mask=mask)
-        return arr
+        flat = pa.array(np.ascontiguousarray(values[~missing], np.float64).reshape(-1))
+        offsets = np.r_[0, np.cumsum(np.where(missing, 0, width))].astype(np.int32)
+        mask = pa.array(missing) if missing.any() else None
+        return pa.ListArray.from_arrays(pa.array(offsets), flat, mask=mask)
 
     def scalars(values: np.ndarray | None, typ: Any) -> Any:
         if values is None:
@@ -829,6 +831,15 @@ def _unreadable(pf: Any, source: object, row: int, exc: Exception) -> LogError:
     g = int(np.searchsorted(starts, row, side="right") - 1)
     g = min(max(g, 0), max(pf.num_row_groups - 1, 0))
     lo, hi = int(starts[g]), int(starts[min(g + 1, len(starts) - 1)]) - 1
+    import pyarrow as pa
+
+    if "Expected all lists to be of size" in str(exc) and int(pa.__version__.split(".")[0]) < 26:
+        return LogError(
+            f"{source}: row group {g} (rows {lo}-{hi}) has null entries in a fixed-size list"
+            f" column, which pyarrow {pa.__version__} cannot read back ({exc}; apache/arrow#35692,"
+            " fixed in pyarrow 26): pip install 'pyarrow>=26' (torchcontact now writes nullable"
+            " vectors as variable-length lists, which any pyarrow reads)"
+        )
     return LogError(
         f"{source}: corrupted data in row group {g} (rows {lo}-{hi}): {exc}; the file is damaged"
         " from there (a page checksum failed or a page did not decode)"
