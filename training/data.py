@@ -227,7 +227,7 @@ def load_parquet(
     sensor: str,
     extra: Sequence[str] = (),
 ) -> ResidualDataset:
-    """Load logs in the documented Parquet format (see the README, "Log format").
+    """Load logs in the documented Parquet format (docs/format.md).
 
     Joints are matched by name to ``model``'s order (:func:`read_log_columns`); missing
     ``qd``/``qdd`` are derived; frames with malformed or non-finite values are kept but marked

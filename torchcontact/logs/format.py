@@ -5,7 +5,7 @@ Every Parquet file torchcontact reads or writes goes through this module: the in
 the training data. Files are written with page checksums, through a temporary name and an atomic
 rename (a file with the final name is always complete); page checksums are verified when read.
 
-Input columns (see the README section "Processing logs"):
+Input columns (the public contract: docs/format.md):
 
 - ``t_ns``: int64 time stamp, ns.
 - ``q``, ``qd``, ``qdd``: fixed-size (or plain) lists of float64 joint positions (rad or m),
