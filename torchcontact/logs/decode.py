@@ -419,6 +419,7 @@ class Decoded:
         issues: the frames' problems found so far.
         starts: ``(n,)`` bool, a frame starts a time segment (None: not computed).
         short: ``(n,)`` bool, the frame cannot be differentiated (derived ``qd``/``qdd`` only).
+        row: the chunk's first row in the log.
     """
 
     n: int
@@ -438,6 +439,7 @@ class Decoded:
     issues: FrameIssues
     starts: np.ndarray | None = None
     short: np.ndarray | None = None
+    row: int = 0
 
 
 class ChunkDecoder:
@@ -562,7 +564,7 @@ class ChunkDecoder:
         slot = np.full(len(records), -1, np.int64)
         slot[~bad_record] = 0  # placed by slots()
         return Decoded(N, pa.array(t, pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
-                       fields, slot, None, issues)  # fmt: skip
+                       fields, slot, None, issues, row=first_row)  # fmt: skip
 
     def slots(self, d: Decoded, dtype: Any, device: Any) -> None:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""
