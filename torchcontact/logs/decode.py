@@ -586,8 +586,9 @@ class ChunkDecoder:
         """Set the segment starts and the derived ``qd``/``qdd`` of a chunk.
 
         Frames whose time segment has fewer than ``MIN_SEGMENT_FRAMES`` frames (``length``, from
-        :meth:`~torchcontact.logs.derive.DerivativeStream.derive`) get status
-        :data:`NOT_DIFFERENTIABLE` and a detail saying so; their derivatives stay NaN.
+        :meth:`~torchcontact.logs.derive.DerivativeStream.derive`; 0 for the first frames of a
+        segment that the causal filter cannot fit) get status :data:`NOT_DIFFERENTIABLE` and a
+        detail saying so; their derivatives stay NaN.
         """
         d.starts = starts
         if not self.derived:
@@ -606,6 +607,12 @@ class ChunkDecoder:
                    f" (t_ns is cut at repeated or backward stamps and at gaps over"
                    f" {GAP_FACTOR:g} x the median step)"),
             )  # fmt: skip
+        # the causal differentiator (length 0: fewer frames before it than its coefficients)
+        d.issues.add(
+            d.short & (length == 0), NOT_DIFFERENTIABLE,
+            "too few frames before it to derive qd/qdd causally (the first frames of"
+            f" {where}, up to the causal filter's polynomial order)",
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ record checks
     def _check_contacts(

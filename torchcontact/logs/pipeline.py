@@ -291,7 +291,7 @@ def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     out: dict[str, Any] = {"sensors": list(le.sensors), "derived": list(le.derived)}
     out["slots"] = len(le.layout.links) if le.layout is not None else None
     out["time_segments"] = scan.segments
-    if le.derived:
+    if le.derived and le.causal is None:  # causal: the first frames of segments, per chunk
         out["not_differentiable"] = scan.short_frames
     return out
 
