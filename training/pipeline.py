@@ -659,6 +659,9 @@ def train(
     final = fit_split(prep, split, cfg, device, label=f"{label} final")
     corr = final.corrections[final.chosen]
     _check_prediction(corr, ds, final.predictions[final.chosen], split.blocks["val"][:1])
+    # the range of each feature the learned layer saw (estimate --residual flags frames beyond)
+    sel = ds.targets
+    corr.record_ranges(ds.q[sel], ds.qd[sel], ds.qdd[sel], {k: v[sel] for k, v in ds.extra.items()})
     seconds = time.perf_counter() - t0
     corr.meta.update(
         urdf=_urdf_of(model, cfg.data.robot),
@@ -751,6 +754,7 @@ def report_markdown(trained: Trained) -> str:
             f" {list(corr.inertial_bodies)}); the other directions keep the URDF values.",
             "",
         ]
+    lines += workspace_markdown(corr, ds)
     if trained.report is not None:
         r = trained.report
         contacts = any("force_rmse" in row for row in r.metrics.values())
@@ -763,6 +767,69 @@ def report_markdown(trained: Trained) -> str:
             table_markdown({"held out": r.metrics}, contacts=contacts),
         ]
     return "\n".join(lines) + "\n"
+
+
+def workspace_markdown(corr: ResidualCorrection, ds: ResidualDataset) -> list[str]:
+    """The report's training-range section: what the learned layer saw, how to cover the rest.
+
+    Per joint of the learned layer's features the range of ``q`` over the contact-free frames
+    it was trained on, against the URDF limits; frames beyond the recorded feature ranges get
+    status bit ``OUTSIDE_TRAINING`` (1024) in ``estimate --residual``.
+    """
+    if corr.features is None or corr.meta.get("feature_ranges") is None:
+        return []
+    model = corr.model
+    sel = ds.targets
+    limits = model.joint_limits
+    rows, coverage = [], []
+    for j in corr.features.joints:
+        i = list(model.joint_names).index(j)
+        q = ds.q[sel, i]
+        q = q[np.isfinite(q)]
+        if not len(q):
+            continue
+        lo_l = float(limits["lower"][i]) if "lower" in limits else float("nan")
+        hi_l = float(limits["upper"][i]) if "upper" in limits else float("nan")
+        span = hi_l - lo_l
+        cov = (q.max() - q.min()) / span if np.isfinite(span) and span > 0 else float("nan")
+        coverage.append((cov, j, lo_l, hi_l))
+        share = "-" if not np.isfinite(cov) else f"{100 * cov:.0f} %"
+        rows.append(
+            f"| {j} | {q.min():.3f} .. {q.max():.3f} | {lo_l:.3f} .. {hi_l:.3f} | {share} |"
+        )
+    lines = [
+        "## Training range",
+        "",
+        "The learned layer saw these joint positions (contact-free training frames). Its checkpoint"
+        " records the range of every feature (`feature_ranges` in `checkpoint.json`);"
+        " `torchcontact estimate --residual` gives frames beyond them (with a 5 % margin) status"
+        " bit 1024 (`outside_training`, outputs kept) and counts them in its summary"
+        " (`outside_training`): there the network extrapolates.",
+        "",
+        "| joint | trained q (rad or m) | URDF limits | share of the limits |",
+        "|---|---|---|---|",
+        *rows,
+        "",
+    ]
+    narrow = sorted(c for c in coverage if np.isfinite(c[0]) and c[0] < 0.8)
+    if narrow:
+        names = ", ".join(f"`{j}` ({100 * c:.0f} %)" for c, j, _, _ in narrow[:4])
+        lines += [
+            f"To cover the workspace: record contact-free motion that sweeps {names} over their"
+            " limits (at the speeds and temperatures the robot meets), then fit again on all the"
+            " logs together (`torchcontact train fit --log old.parquet new.parquet ...`, or list"
+            " them in the config); `estimate --residual`'s"
+            " `outside_training` count tells which logs still leave the range.",
+            "",
+        ]
+    else:
+        lines += [
+            "The training frames span most of each joint's limits. Frames still flagged by"
+            " `estimate --residual` differ in velocity, load or an extra column: record"
+            " contact-free motion in those conditions and fit again on all the logs.",
+            "",
+        ]
+    return lines
 
 
 def write_outputs(trained: Trained, out: Path) -> None:

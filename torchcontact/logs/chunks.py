@@ -58,6 +58,7 @@ from torchcontact.logs.format import (
     struct_list,
 )
 from torchcontact.model import RobotModel
+from torchcontact.status import WARNINGS, Status
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
@@ -497,10 +498,12 @@ class LogEstimator:
             for v in d.base.values():
                 state_ok &= np.isfinite(v).all(1)
             code = np.where(d.short & state_ok, code & ~2, code)
+        self._outside_training(d)
         code = code | d.issues.code
         self._explain(code, d.qd, ft, d.issues)
-        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
-        bad = code != 0
+        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are),
+        # but for the warning bits (Status.OUTSIDE_TRAINING: the outputs are kept)
+        bad = (code & ~WARNINGS) != 0
         jt = np.where(bad[:, None], np.nan, res["tau"])
 
         # ---- output rows: input contacts with force and moment added, in record order
@@ -660,6 +663,24 @@ class LogEstimator:
                 beyond = (np.abs(ft[s]) > lim).any(1) & flagged
                 issues.add(beyond, 0, f"{ft_column(s)} beyond its range {lim.tolist()}")
         issues.add((code & 32) != 0, 0, "non-finite output from finite inputs")
+
+    def _outside_training(self, d: Decoded) -> None:
+        """Status bit ``OUTSIDE_TRAINING`` where the residual's learned layer extrapolates.
+
+        Where a feature lies outside its recorded training range (one detail per feature,
+        naming the range); nothing for checkpoints without ranges.
+        """
+        if self.residual is None:
+            return
+        out = self.residual.outside_range(d.q, d.qd, d.qdd, d.extra)
+        if out is None or not out.any():
+            return
+        names, lo, hi = self.residual.feature_ranges
+        for j in np.flatnonzero(out.any(0)):
+            d.issues.add(
+                out[:, j], int(Status.OUTSIDE_TRAINING),
+                f"{names[j]} outside the residual's training range [{lo[j]:.4g}, {hi[j]:.4g}]",
+            )  # fmt: skip
 
     def _corrected(self, d: Decoded, ft: np.ndarray) -> np.ndarray:
         """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
