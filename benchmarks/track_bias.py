@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -94,20 +93,22 @@ def accuracy(model: tc.RobotModel, frames: int, folder: Path) -> None:
 
 
 def child(log: Path, out: Path, track: bool) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MiB) of one ``torchcontact estimate`` child process."""
-    cli = "import sys; from torchcontact.cli import main; sys.exit(main(sys.argv[1:]))"
+    """Wall seconds and peak RSS (MiB, the child's own ``ru_maxrss``) of one ``estimate``."""
+    cli = (
+        "import resource, sys; from torchcontact.cli import main; rc = main(sys.argv[1:]);"
+        " print('MAXRSS', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr);"
+        " sys.exit(rc)"
+    )
     cmd = [sys.executable, "-c", cli, "estimate", str(log), "--robot", "tcarm",
            "--out", str(out), "--quiet", "--device", "cpu"]  # fmt: skip
     if track:
         cmd.append("--track-bias")
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    done = subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     dt = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     out.unlink()
-    # ru_maxrss of children is the largest child so far: run the smaller logs first
-    return dt, max(peak, before) / 1024
+    rss = [ln for ln in done.stderr.decode().splitlines() if ln.startswith("MAXRSS")]
+    return dt, int(rss[-1].split()[1]) / 1024
 
 
 def memory(model: tc.RobotModel, lengths: list[int], folder: Path) -> None:

@@ -345,14 +345,49 @@ class LogEstimator:
         free[unplaced] = False
         return free
 
-    def _model_terms(self, d: Decoded) -> tuple[np.ndarray, np.ndarray]:
-        """``ft_model``, ``explained`` ``(n, S, 6)`` of a chunk (the online estimator's)."""
-        dt = self.model.dtype
+    def _model_terms(self, d: Decoded, explained_only: bool = False) -> tuple[Any, np.ndarray]:
+        """``ft_model``, ``explained`` ``(n, S, 6)`` of a chunk (the online estimator's).
 
-        def t(x: np.ndarray | None) -> torch.Tensor:
-            return torch.tensor(np.asarray(x, np.float64), dtype=dt)
+        Without a residual stack ``ft_model`` is the estimator's contact-free prediction (with
+        the log's base motion) and ``explained`` zero; with one, the online estimator's
+        :meth:`~torchcontact.online.estimator.OnlineEstimator.model_terms`. Frames with a
+        non-finite joint state get NaN (they never measure the offset; their status says why).
+        ``explained_only``: pass 2, ``ft_model`` is not needed (None).
+        """
+        S, n = len(self.sensors), d.n
+        explained = np.zeros((n, S, 6))
+        if self.residual is None and explained_only:
+            return None, explained
+        ok = np.isfinite(d.q).all(1) & np.isfinite(d.qd).all(1) & np.isfinite(d.qdd).all(1)
+        for v in d.base.values():
+            ok &= np.isfinite(v).all(1)
+        ft_model = np.full((n, S, 6), np.nan)
+        rows = np.flatnonzero(ok)
+        if not len(rows):
+            return ft_model, explained
+        model = self.model
 
-        ft_model, explained, _ = self._online.model_terms(t(d.q), t(d.qd), t(d.qdd), d.extra)
+        def t(x: np.ndarray) -> torch.Tensor:
+            return torch.tensor(np.asarray(x, np.float64)[rows], dtype=model.dtype,
+                                device=model.device)  # fmt: skip
+
+        q, qd, qdd = t(d.q), t(d.qd), t(d.qdd)
+        if self.residual is None:
+            kw = {"base": _base_motion(d.base, t)} if d.base else {}
+            none = Contacts((), (), q.new_zeros(len(rows), 0, 3))
+            nominal = self.estimator.predict_ft(q, qd, qdd, none, backend="eager", **kw)
+            for i, s in enumerate(self.sensors):
+                ft_model[rows, i] = nominal[s].double().cpu().numpy()
+            return ft_model, explained
+        if d.base:
+            raise LogError(
+                f"{self.source}: --track-bias with --residual on a log with base motion columns"
+                " is not supported (the correction stack's model terms assume a fixed base)"
+            )
+        extra = {k: np.asarray(v)[rows] for k, v in d.extra.items()}
+        fm, ex, _ = self._online.model_terms(q, qd, qdd, extra)
+        ft_model[rows], explained[rows] = fm, ex
+        explained[~ok] = np.nan
         return ft_model, explained
 
     def bias_start(self, store: Any = None) -> None:
@@ -426,7 +461,7 @@ class LogEstimator:
                 f"{self.source}: the bias pass saw {self.smoother.frames} frames, fewer than"
                 f" row {d.row + d.n}; the log changed during the run"
             )
-        _, explained = self._model_terms(d)
+        _, explained = self._model_terms(d, explained_only=True)
         out = {s: ft[s] - off[:, i] - explained[:, i] for i, s in enumerate(self.sensors)}
         return out, off, self.smoother.std(scale)
 
