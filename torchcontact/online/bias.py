@@ -381,9 +381,10 @@ class BiasSmoother:
     :func:`smooth_bias` for logs too long to hold: :meth:`forward` takes consecutive chunks of
     residuals and appends each frame's filter state (``S * 6`` offsets and ``2 S`` variances,
     float64: ``64 S`` bytes a frame) to ``store``, a file (None: memory); :meth:`smooth` runs
-    the backward pass over it in blocks, in place; :meth:`offsets` reads any rows back. The
-    process holds a block of frames at a time whatever the log's length; the file holds
-    ``64 S`` bytes per frame (1M frames, one sensor: 64 MB) and is the caller's to delete.
+    the backward pass over it in blocks read and written back in place; :meth:`offsets` reads
+    any rows back. The process holds a block of frames at a time whatever the log's length (no
+    memory map: plain reads and writes); the file holds ``64 S`` bytes per frame (1M frames, one
+    sensor: 64 MB) and is the caller's to delete.
 
     The gains depend only on which frames are contact-free and on the time steps, as in
     :func:`smooth_bias`, which is this class run on one chunk in memory.
@@ -443,7 +444,8 @@ class BiasSmoother:
         self.path = None if store is None else str(store)
         self._file = None if store is None else open(self.path, "wb")  # noqa: SIM115
         self._parts: list[np.ndarray] = []
-        self.rows: np.ndarray | None = None  # (N, width) after smooth()
+        self._mem: np.ndarray | None = None  # (N, width) after smooth(), without a file
+        self._smoothed = False
 
     def forward(self, z: Any, free: Any, t: Any = None) -> None:
         """Filter the next frames (the tracker's update, without innovation gate).
@@ -456,7 +458,7 @@ class BiasSmoother:
         Raises:
             InputError: shapes, decreasing time stamps, or after :meth:`smooth`.
         """
-        if self.rows is not None:
+        if self._smoothed:
             raise InputError("BiasSmoother.forward after smooth()")
         S = self.S
         z = np.asarray(z, np.float64).reshape(-1, S, 6)
@@ -515,32 +517,29 @@ class BiasSmoother:
         Rauch, Tung and Striebel 1965 with the identity transition (``x_pred[k + 1] =
         x_filt[k]``): ``x_s[k] = x_f[k] + c_k (x_s[k + 1] - x_f[k])``, ``c_k = p_f[k] /
         p_pred[k + 1]``, ``p_s[k] = p_f[k] + c_k^2 (p_s[k + 1] - p_pred[k + 1])``, block by block
-        from the end (``block`` frames in memory at a time when the states are in a file).
+        from the end, each block read from the store, smoothed and written back in place
+        (``block`` frames in memory at a time when the states are in a file).
         """
-        if self.rows is not None:
+        if self._smoothed:
             return
-        S, N, W = self.S, self.frames, self.width
+        self._smoothed = True
+        S, N = self.S, self.frames
         if self._file is not None:
             self._file.close()
             self._file = None
-            if N == 0:
-                self.rows = np.zeros((0, W))
-            else:
-                self.rows = np.memmap(self.path, np.float64, "r+", shape=(N, W))
         else:
-            self.rows = np.concatenate(self._parts) if self._parts else np.zeros((0, W))
+            self._mem = np.concatenate(self._parts) if self._parts else np.zeros((0, self.width))
             self._parts = []
         if not smoother or N < 2:
             return
-        rows = self.rows
         # carried across blocks: frame k + 1's smoothed state and predicted variance
-        x_next = rows[N - 1, : 6 * S].reshape(S, 6).copy()
-        p_next = rows[N - 1, 6 * S : 7 * S].copy()
-        pp_next = rows[N - 1, 7 * S :].copy()
+        last = self._read(N - 1, N)[0]
+        x_next = last[: 6 * S].reshape(S, 6).copy()
+        p_next, pp_next = last[6 * S : 7 * S].copy(), last[7 * S :].copy()
         end = N - 1
         while end > 0:
             lo = max(0, end - block)
-            blk = np.array(rows[lo:end])  # frames lo .. end - 1
+            blk = self._read(lo, end)  # frames lo .. end - 1
             xb = blk[:, : 6 * S].reshape(-1, S, 6)
             pf, pp = blk[:, 6 * S : 7 * S], blk[:, 7 * S :]
             for k in range(end - lo - 1, -1, -1):
@@ -550,21 +549,38 @@ class BiasSmoother:
                 pp_next = pp[k].copy()
                 xb[k] = x_next
                 pf[k] = p_next
-            rows[lo:end] = blk
+            self._write(lo, blk)
             end = lo
-        if isinstance(rows, np.memmap):
-            rows.flush()
+
+    def _read(self, lo: int, hi: int) -> np.ndarray:
+        """``(hi - lo, width)`` stored states (a copy)."""
+        hi = min(hi, self.frames)
+        if hi <= lo:
+            return np.zeros((0, self.width))
+        if self._mem is not None:
+            return self._mem[lo:hi].copy()
+        count, offset = (hi - lo) * self.width, lo * self.width * 8
+        return np.fromfile(self.path, np.float64, count, offset=offset).reshape(-1, self.width)
+
+    def _write(self, lo: int, blk: np.ndarray) -> None:
+        if self._mem is not None:
+            self._mem[lo : lo + len(blk)] = blk
+            return
+        with open(self.path, "r+b") as f:  # type: ignore[arg-type]
+            f.seek(lo * self.width * 8)
+            f.write(np.ascontiguousarray(blk, np.float64).tobytes())
 
     def offsets(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
         """Frames ``lo .. hi - 1`` after :meth:`smooth`: ``offset (n, S, 6)``, ``scale (n, S)``.
 
         ``scale`` is the variance in units of ``R`` (the component standard deviations are
-        ``sqrt(scale * diag(R))``, :meth:`std`).
+        ``sqrt(scale * diag(R))``, :meth:`std`). Read from the store: memory stays ``hi - lo``
+        frames.
         """
-        if self.rows is None:
+        if not self._smoothed:
             raise InputError("BiasSmoother.offsets before smooth()")
         S = self.S
-        blk = np.array(self.rows[lo:hi])
+        blk = self._read(lo, hi)
         return blk[:, : 6 * S].reshape(-1, S, 6), blk[:, 6 * S : 7 * S]
 
     def std(self, scale: np.ndarray) -> np.ndarray:
@@ -576,9 +592,8 @@ class BiasSmoother:
         if self._file is not None:
             self._file.close()
             self._file = None
-        if isinstance(self.rows, np.memmap):
-            self.rows._mmap.close()  # type: ignore[attr-defined]
-        self.rows = None
+        self._mem = None
+        self._parts = []
 
 
 def smooth_bias(
