@@ -71,6 +71,9 @@ class DataConfig:
         folds: cross-validation folds of the report (0: no report).
         val_fraction: share of the non-test blocks that validate (early stopping, layer choice).
         effects: simulated unmodeled effects (:class:`~torchcontact.simulation.UnmodeledEffects`).
+        bias_time_constant: s; > 0 smooths each log's F/T offset drift out of the residuals
+            before any layer is fitted (:func:`smooth_drift`: the tracker and smoother of
+            ``estimate --track-bias``), so the stack does not learn a session's drift; 0: off.
     """
 
     source: str = "simulate"
@@ -86,6 +89,7 @@ class DataConfig:
     folds: int = 5
     val_fraction: float = 0.2
     effects: dict[str, Any] = field(default_factory=dict)
+    bias_time_constant: float = 0.0
 
 
 @dataclass
@@ -330,6 +334,8 @@ def prepare(model: tc.RobotModel, ds: ResidualDataset, cfg: Config) -> Prepared:
     blocks = time_blocks(ds.file_id, block_frames(ds, cfg.data.block_seconds))
     nominal = predict_free(model, ds.sensor, ds.q, ds.qd, ds.qdd, ds.usable)
     residual = ds.ft - nominal
+    if cfg.data.bias_time_constant > 0:  # the sessions' drift out, before any layer is fitted
+        residual = residual - smooth_drift(ds, residual, cfg.data.bias_time_constant)
     spec = cfg.features.spec(model, ds.sensor, list(ds.extra))
     features = feature_matrix(model, ds, spec)
     needs_inertial = any("inertial" in c for c in cfg.stack.candidates(cfg.train.kind))
@@ -337,6 +343,40 @@ def prepare(model: tc.RobotModel, ds: ResidualDataset, cfg: Config) -> Prepared:
     scale = residual[ds.targets].std(0)
     scale[scale < 1e-9] = 1.0
     return Prepared(model, ds, residual, features, spec, blocks, rb, scale)
+
+
+def smooth_drift(ds: ResidualDataset, residual: np.ndarray, time_constant: float) -> np.ndarray:
+    """Each log's slow F/T offset drift, about its mean (``train fit`` bias smoothing).
+
+    Per file, :func:`torchcontact.online.bias.smooth_bias` (the filter and RTS smoother of
+    ``estimate --track-bias``, the same code) over its contact-free usable frames measures the
+    offset of ``residual``; its mean over those frames is taken off, so the stack's offset
+    layer still holds the mean and only the drift about it leaves the targets. The time
+    constant should be long against the motion (tens of seconds): what changes faster, the
+    pose-dependent effects the inertial and learned layers model, stays in the residual.
+
+    Args:
+        ds: the frames (``file_id``, ``t_ns``, ``targets``).
+        residual: ``(N, 6)`` ``ft - nominal`` [N; N m].
+        time_constant: s (> 0).
+
+    Returns:
+        ``(N, 6)`` the drift to subtract (zero for a file without contact-free frames).
+    """
+    from torchcontact.online.bias import smooth_bias
+
+    drift = np.zeros_like(residual)
+    free = ds.targets
+    for f in np.unique(ds.file_id):
+        rows = np.flatnonzero(ds.file_id == f)
+        if not free[rows].any():
+            continue
+        # time stamps that go back (a log's glitch) are held: the filter needs them monotonic
+        t = np.maximum.accumulate(ds.t_ns[rows].astype(np.int64)) * 1e-9
+        track = smooth_bias(residual[rows], free[rows], t - t[0], time_constant=time_constant)
+        off = track.offset[:, 0]
+        drift[rows] = off - off[free[rows]].mean(0)
+    return drift
 
 
 def feature_matrix(
