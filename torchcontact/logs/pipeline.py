@@ -413,10 +413,9 @@ def estimate_file(
                 )
         ident = run_ident(path, model, le, engine="local", dtype=str(dtype),
                           half_window=half_window, batch_size=batch_size)  # fmt: skip
-        if causal is not None:
-            ident["derivatives"] = ["causal", *causal]
-        if bias is not None:
-            ident["track_bias"] = bias.describe()
+        # always present (None when off): a resume with or without them must match
+        ident["derivatives"] = None if causal is None else ["causal", *causal]
+        ident["track_bias"] = None if bias is None else bias.describe()
         units = [(a, min(a + batch_size, total)) for a in range(0, total, batch_size)]
         run.start(ident, units, resume, recurrent)
         extra: dict[str, Any] = {}
