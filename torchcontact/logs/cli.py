@@ -162,13 +162,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         )
     try:
         if args.engine == "ray":
-            for opt in ("track_bias", "derivatives"):
+            why = {
+                "track_bias": "--track-bias applies to --engine local only (its first pass reads"
+                " the whole log in one process)",
+                "derivatives": "--derivatives causal applies to --engine local only (Ray units"
+                " carry the centred filter's context)",
+            }
+            for opt, msg in why.items():
                 if opt in kwargs:
-                    raise InputError(
-                        f"--{opt.replace('_', '-')} applies to --engine local only (the bias"
-                        " pass reads the whole log in one process; the causal filter needs its"
-                        " context frames)"
-                    )
+                    raise InputError(msg)
             from torchcontact.logs.ray_engine import estimate_files_ray
 
             if robot.ft_sensors:
