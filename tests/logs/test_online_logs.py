@@ -140,3 +140,22 @@ def test_estimate_causal_metadata_and_first_frames(model, sim_log_q_only, tmp_pa
                       derivative_window=3)  # fmt: skip
     with pytest.raises(InputError, match="centred or causal"):
         estimate_file(sim_log_q_only, model, tmp_path / "x.parquet", derivatives="forward")
+
+
+def test_cli_refusals_name_the_option(sim_log, tmp_path, capsys):
+    from torchcontact.cli import main
+
+    base = ["estimate", str(sim_log), "--robot", "tcarm", "--out", str(tmp_path / "o.parquet")]
+    cases = [
+        (["--track-bias", "--engine", "ray"], "--track-bias applies to --engine local only"),
+        (["--derivatives", "causal", "--engine", "ray"], "--derivatives causal applies to"),
+        (["--no-smoother"], "apply with --track-bias"),
+        (["--track-bias", "--ft-std", "1,2"], "--ft-std: give 6 positive numbers"),
+        (["--track-bias", "--bias-time-constant", "0"], "--bias-time-constant must be > 0"),
+        (["--derivative-order", "2"], "apply with --derivatives causal"),
+    ]
+    for extra, message in cases:
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and err.count("\n") == 1
+    assert not (tmp_path / "o.parquet").exists()
