@@ -282,7 +282,7 @@ def streams(d: Path) -> None:
               f" {rec['contact_s']:.2f} | {secs:.2f} | {100 * err:.2f} % |")  # fmt: skip
 
 
-def new_session(epochs: int) -> None:
+def new_session(epochs: int, bias_tau: float = 0.0) -> None:
     """Section 3: the README's --new-session drift + cable case, with the bias tracked."""
     from dataclasses import replace
 
@@ -315,8 +315,18 @@ def new_session(epochs: int) -> None:
     preds["chosen stack alone (README: 2.362)"] = predict(
         trained.final.corrections[trained.final.chosen], test, span)  # fmt: skip
     chosen = trained.final.corrections[trained.final.chosen]
-    for label, corr in (("constant offset", trained.final.corrections["offset"]),
-                        (f"chosen stack ({trained.final.chosen})", chosen)):  # fmt: skip
+    stacks = [("constant offset", trained.final.corrections["offset"]),
+              (f"chosen stack ({trained.final.chosen})", chosen)]  # fmt: skip
+    if bias_tau > 0:  # train fit --bias-time-constant: the session's drift out of the targets
+        smooth_cfg = replace(cfg, data=replace(data, bias_time_constant=bias_tau))
+        torch.manual_seed(0)
+        st = train(model, make_dataset(model, data, sensor), smooth_cfg)
+        sc = st.final.corrections[st.final.chosen]
+        preds[f"stack fitted with bias smoothing {bias_tau:g} s ({st.final.chosen}) alone"] = (
+            predict(sc, test, span)
+        )
+        stacks.append((f"stack fitted with bias smoothing {bias_tau:g} s ({st.final.chosen})", sc))
+    for label, corr in stacks:
         online = OnlineEstimator(model, [sensor], correction=corr, backend="cpu",
                                  tracker_options=dict(ft_std=fx["noise_std"]))  # fmt: skip
         extra = {c: test.extra[c] for c in corr.extra_columns}
@@ -347,6 +357,12 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=20000)
     ap.add_argument("--epochs", type=int, default=150, help="learned layer (section 3)")
     ap.add_argument(
+        "--bias-smoothing",
+        type=float,
+        default=120.0,
+        help="section 3: also a stack fitted with train fit --bias-time-constant S (0: skip)",
+    )
+    ap.add_argument(
         "--before",
         default="ba76886",
         help="round 1's commit, for its CStepRuntime beside this tree (empty: skip)",
@@ -362,7 +378,7 @@ def main() -> None:
         if "streams" in args.sections:
             streams(d)
         if "session" in args.sections:
-            new_session(args.epochs)
+            new_session(args.epochs, args.bias_smoothing)
 
 
 if __name__ == "__main__":

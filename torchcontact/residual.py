@@ -66,6 +66,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "LAYERS",
     "PARAM_NAMES",
+    "RANGE_MARGIN",
     "CheckpointError",
     "CorrectionGraph",
     "CorrectionSpec",
@@ -89,6 +90,9 @@ LAYERS = ("offset", "inertial", "mlp", "gru")
 #: The ten inertial parameters of a body, about its origin in its axes (pinocchio's order).
 PARAM_NAMES = ("m", "mcx", "mcy", "mcz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
 _WRENCH_AXES = ("fx", "fy", "fz", "mx", "my", "mz")
+#: A frame is outside a learned layer's training range when a feature lies beyond
+#: ``[min - m span, max + m span]`` of the training frames, ``m`` this margin (span: max - min).
+RANGE_MARGIN = 0.05
 
 
 # ---------------------------------------------------------------------- the robot side
@@ -845,7 +849,7 @@ class ResidualCorrection:
         missing = [c for c in names if c not in extra]
         if missing:
             raise KeyError(f"the residual correction needs columns {missing}")
-        cols = [torch.as_tensor(np.asarray(extra[c], np.float64)).to(like) for c in names]
+        cols = [torch.tensor(np.asarray(extra[c], np.float64)).to(like) for c in names]
         for c, x in zip(names, cols, strict=True):
             if x.shape != (n,):
                 raise ValueError(f"column {c!r}: expected ({n},), got {tuple(x.shape)}")
@@ -904,6 +908,115 @@ class ResidualCorrection:
             else:
                 out[sel] = g(*args)[0]
         return out.reshape(*batch, 6)
+
+    @torch.no_grad()
+    def feature_values(
+        self,
+        q: Any,
+        qd: Any,
+        qdd: Any,
+        extra: Mapping[str, Any] | None = None,
+        chunk: int = 8192,
+    ) -> np.ndarray | None:
+        """The learned layer's features ``(N, F)`` (:meth:`FeatureSpec.names` order), float64.
+
+        Args:
+            q: ``(N, nv)`` in ``model.joint_names`` order; ``qd``, ``qdd`` likewise.
+            qd: ``(N, nv)``.
+            qdd: ``(N, nv)``.
+            extra: column name -> ``(N,)`` for every :attr:`extra_columns`.
+            chunk: frames evaluated at once.
+
+        Returns:
+            The features (NaN rows where an input is not finite), or None without a learned
+            layer.
+        """
+        if self.learned is None or self.features is None:
+            return None
+        m, g = self.model, self.graph
+        qs = [torch.as_tensor(np.asarray(x, np.float64)).to(m.dtype).reshape(-1, m.nv)
+              for x in (q, qd, qdd)]  # fmt: skip
+        n = qs[0].shape[0]
+        ex = self._extra(
+            None if extra is None else {k: np.asarray(v).reshape(-1) for k, v in extra.items()},
+            n,
+            qs[0],
+        )
+        out = np.full((n, len(self.features.names(m))), np.nan)
+        for a in range(0, n, chunk):
+            args = [x[a : a + chunk] for x in qs]
+            e = None if ex is None else ex[a : a + chunk]
+            _, nominal = g.physics(*args)
+            out[a : a + chunk] = g.feature_matrix(*args, e, nominal).double().cpu().numpy()
+        return out
+
+    def record_ranges(
+        self, q: Any, qd: Any, qdd: Any, extra: Mapping[str, Any] | None = None
+    ) -> dict[str, Any] | None:
+        """Record the training range of each feature of the learned layer in :attr:`meta`.
+
+        Saved with the checkpoint (``feature_ranges`` in ``checkpoint.json``: ``names``,
+        ``min``, ``max``, ``frames``, ``margin``); :meth:`outside_range` then flags frames a
+        network would extrapolate on (``estimate --residual``: status bit
+        :attr:`~torchcontact.status.Status.OUTSIDE_TRAINING`).
+
+        Args:
+            q: ``(N, nv)`` the training frames' joint positions (model order).
+            qd: ``(N, nv)``.
+            qdd: ``(N, nv)``.
+            extra: their extra columns.
+
+        Returns:
+            The recorded entry, or None (no learned layer, or no finite frame).
+        """
+        f = self.feature_values(q, qd, qdd, extra)
+        if f is None:
+            return None
+        f = f[np.isfinite(f).all(1)]
+        if not len(f):
+            return None
+        entry = {
+            "names": self.features.names(self.model),  # type: ignore[union-attr]
+            "min": f.min(0).tolist(),
+            "max": f.max(0).tolist(),
+            "frames": len(f),
+            "margin": RANGE_MARGIN,
+        }
+        self.meta["feature_ranges"] = entry
+        return entry
+
+    @property
+    def feature_ranges(self) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+        """``(names, lo, hi)``: each feature's allowed interval (training range and margin).
+
+        None without a learned layer, or for a checkpoint written before ranges were recorded.
+        """
+        r = self.meta.get("feature_ranges")
+        if not isinstance(r, Mapping) or self.features is None:
+            return None
+        names = list(r.get("names", []))
+        if names != self.features.names(self.model):
+            return None
+        lo, hi = np.asarray(r["min"], np.float64), np.asarray(r["max"], np.float64)
+        pad = float(r.get("margin", RANGE_MARGIN)) * (hi - lo)
+        return names, lo - pad, hi + pad
+
+    def outside_range(
+        self, q: Any, qd: Any, qdd: Any, extra: Mapping[str, Any] | None = None
+    ) -> np.ndarray | None:
+        """``(N, F)`` bool: features outside the training range (:attr:`feature_ranges`).
+
+        Returns:
+            None without recorded ranges (old checkpoints: nothing is flagged). Frames with a
+            non-finite input are not flagged here (their status says so).
+        """
+        rng = self.feature_ranges
+        if rng is None:
+            return None
+        f = self.feature_values(q, qd, qdd, extra)
+        assert f is not None
+        with np.errstate(invalid="ignore"):
+            return (f < rng[1]) | (f > rng[2])
 
     def correct(
         self, ft: Tensor, q: Tensor, qd: Tensor, qdd: Tensor, extra: Mapping[str, Any] | None = None

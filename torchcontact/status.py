@@ -8,7 +8,10 @@ status have NaN outputs, the rest of a batch is unaffected, except for
 :attr:`Status.NOT_CONVERGED`, a warning: the friction-cone constrained solve did not converge
 within its iteration budget (after restarting from the pseudo-inverse when it was warm-started),
 and the outputs are its last iterate, inside the cones but not at the optimum; such a frame is not
-ok. :attr:`Status.INVALID_CONTACT` and :attr:`Status.NOT_DIFFERENTIABLE` are set by the log pipeline
+ok. :attr:`Status.OUTSIDE_TRAINING` is the other warning (:data:`WARNINGS`): ``estimate
+--residual`` sets it where a feature of the checkpoint's learned layer lies outside the range it
+was trained on (the network extrapolates), and keeps the outputs.
+:attr:`Status.INVALID_CONTACT` and :attr:`Status.NOT_DIFFERENTIABLE` are set by the log pipeline
 only: in Python and ONNX a contact on an unknown link is an error when the estimate is called, and
 derivatives are inputs.
 
@@ -25,6 +28,7 @@ __all__ = [
     "LocalizeStatus",
     "STATUS_NAMES",
     "Status",
+    "WARNINGS",
     "localize_messages",
     "status_bits",
     "status_messages",
@@ -59,6 +63,8 @@ class Status(enum.IntFlag):
     NOT_CONVERGED = 256
     #: qd/qdd derived from a time segment too short to differentiate (logs only)
     NOT_DIFFERENTIABLE = 512
+    #: a learned correction's feature outside its training range (outputs kept; logs only)
+    OUTSIDE_TRAINING = 1024
 
 
 _TEXT = {
@@ -77,7 +83,12 @@ _TEXT = {
     " last iterate)",
     Status.NOT_DIFFERENTIABLE: "too few frames to differentiate q (qd/qdd derived from a t_ns"
     " segment of < 3 frames)",
+    Status.OUTSIDE_TRAINING: "the learned correction extrapolates (a feature outside its training"
+    " range; outputs kept)",
 }
+
+#: The warning bits: the frame's outputs are kept (not NaN), but the frame is not ok.
+WARNINGS = int(Status.NOT_CONVERGED | Status.OUTSIDE_TRAINING)
 
 #: Per-frame status bits of :attr:`ContactEstimate.status` (0 means ok): bit -> text.
 STATUS: dict[int, str] = {int(bit): text for bit, text in _TEXT.items()}

@@ -141,6 +141,10 @@ def _train(args) -> int:
         data = replace(data, extra=list(args.extra))
     if args.folds is not None:
         data = replace(data, folds=args.folds)
+    if args.bias_time_constant is not None:
+        if not args.bias_time_constant >= 0:
+            raise InputError(f"--bias-time-constant must be >= 0 s, got {args.bias_time_constant}")
+        data = replace(data, bias_time_constant=args.bias_time_constant)
     cfg = replace(cfg, data=data)
     if args.layers:
         cfg = replace(cfg, stack=replace(cfg.stack, layers=args.layers.split(",")))
@@ -461,6 +465,15 @@ def main(argv=None, prog: str = "python -m training") -> int:
         type=int,
         default=None,
         help="cross-validation folds, 0: none (default: the config's, 5)",
+    )
+    t.add_argument(
+        "--bias-time-constant",
+        type=float,
+        default=None,
+        metavar="S",
+        help="smooth each log's F/T offset drift out of the residuals before fitting, with the"
+        " tracker and smoother of estimate --track-bias at this time constant (tens of seconds:"
+        " slower than the motion) (default: the config's data.bias_time_constant, 0: off)",
     )
     t.add_argument("--out", required=True, help="checkpoint directory")
     for name, fn in (("benchmark", cmd_benchmark), ("heldout", cmd_heldout)):

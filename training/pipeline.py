@@ -71,6 +71,9 @@ class DataConfig:
         folds: cross-validation folds of the report (0: no report).
         val_fraction: share of the non-test blocks that validate (early stopping, layer choice).
         effects: simulated unmodeled effects (:class:`~torchcontact.simulation.UnmodeledEffects`).
+        bias_time_constant: s; > 0 smooths each log's F/T offset drift out of the residuals
+            before any layer is fitted (:func:`smooth_drift`: the tracker and smoother of
+            ``estimate --track-bias``), so the stack does not learn a session's drift; 0: off.
     """
 
     source: str = "simulate"
@@ -86,6 +89,7 @@ class DataConfig:
     folds: int = 5
     val_fraction: float = 0.2
     effects: dict[str, Any] = field(default_factory=dict)
+    bias_time_constant: float = 0.0
 
 
 @dataclass
@@ -330,6 +334,8 @@ def prepare(model: tc.RobotModel, ds: ResidualDataset, cfg: Config) -> Prepared:
     blocks = time_blocks(ds.file_id, block_frames(ds, cfg.data.block_seconds))
     nominal = predict_free(model, ds.sensor, ds.q, ds.qd, ds.qdd, ds.usable)
     residual = ds.ft - nominal
+    if cfg.data.bias_time_constant > 0:  # the sessions' drift out, before any layer is fitted
+        residual = residual - smooth_drift(ds, residual, cfg.data.bias_time_constant)
     spec = cfg.features.spec(model, ds.sensor, list(ds.extra))
     features = feature_matrix(model, ds, spec)
     needs_inertial = any("inertial" in c for c in cfg.stack.candidates(cfg.train.kind))
@@ -337,6 +343,40 @@ def prepare(model: tc.RobotModel, ds: ResidualDataset, cfg: Config) -> Prepared:
     scale = residual[ds.targets].std(0)
     scale[scale < 1e-9] = 1.0
     return Prepared(model, ds, residual, features, spec, blocks, rb, scale)
+
+
+def smooth_drift(ds: ResidualDataset, residual: np.ndarray, time_constant: float) -> np.ndarray:
+    """Each log's slow F/T offset drift, about its mean (``train fit`` bias smoothing).
+
+    Per file, :func:`torchcontact.online.bias.smooth_bias` (the filter and RTS smoother of
+    ``estimate --track-bias``, the same code) over its contact-free usable frames measures the
+    offset of ``residual``; its mean over those frames is taken off, so the stack's offset
+    layer still holds the mean and only the drift about it leaves the targets. The time
+    constant should be long against the motion (tens of seconds): what changes faster, the
+    pose-dependent effects the inertial and learned layers model, stays in the residual.
+
+    Args:
+        ds: the frames (``file_id``, ``t_ns``, ``targets``).
+        residual: ``(N, 6)`` ``ft - nominal`` [N; N m].
+        time_constant: s (> 0).
+
+    Returns:
+        ``(N, 6)`` the drift to subtract (zero for a file without contact-free frames).
+    """
+    from torchcontact.online.bias import smooth_bias
+
+    drift = np.zeros_like(residual)
+    free = ds.targets
+    for f in np.unique(ds.file_id):
+        rows = np.flatnonzero(ds.file_id == f)
+        if not free[rows].any():
+            continue
+        # time stamps that go back (a log's glitch) are held: the filter needs them monotonic
+        t = np.maximum.accumulate(ds.t_ns[rows].astype(np.int64)) * 1e-9
+        track = smooth_bias(residual[rows], free[rows], t - t[0], time_constant=time_constant)
+        off = track.offset[:, 0]
+        drift[rows] = off - off[free[rows]].mean(0)
+    return drift
 
 
 def feature_matrix(
@@ -659,6 +699,9 @@ def train(
     final = fit_split(prep, split, cfg, device, label=f"{label} final")
     corr = final.corrections[final.chosen]
     _check_prediction(corr, ds, final.predictions[final.chosen], split.blocks["val"][:1])
+    # the range of each feature the learned layer saw (estimate --residual flags frames beyond)
+    sel = ds.targets
+    corr.record_ranges(ds.q[sel], ds.qd[sel], ds.qdd[sel], {k: v[sel] for k, v in ds.extra.items()})
     seconds = time.perf_counter() - t0
     corr.meta.update(
         urdf=_urdf_of(model, cfg.data.robot),
@@ -751,6 +794,7 @@ def report_markdown(trained: Trained) -> str:
             f" {list(corr.inertial_bodies)}); the other directions keep the URDF values.",
             "",
         ]
+    lines += workspace_markdown(corr, ds)
     if trained.report is not None:
         r = trained.report
         contacts = any("force_rmse" in row for row in r.metrics.values())
@@ -763,6 +807,69 @@ def report_markdown(trained: Trained) -> str:
             table_markdown({"held out": r.metrics}, contacts=contacts),
         ]
     return "\n".join(lines) + "\n"
+
+
+def workspace_markdown(corr: ResidualCorrection, ds: ResidualDataset) -> list[str]:
+    """The report's training-range section: what the learned layer saw, how to cover the rest.
+
+    Per joint of the learned layer's features the range of ``q`` over the contact-free frames
+    it was trained on, against the URDF limits; frames beyond the recorded feature ranges get
+    status bit ``OUTSIDE_TRAINING`` (1024) in ``estimate --residual``.
+    """
+    if corr.features is None or corr.meta.get("feature_ranges") is None:
+        return []
+    model = corr.model
+    sel = ds.targets
+    limits = model.joint_limits
+    rows, coverage = [], []
+    for j in corr.features.joints:
+        i = list(model.joint_names).index(j)
+        q = ds.q[sel, i]
+        q = q[np.isfinite(q)]
+        if not len(q):
+            continue
+        lo_l = float(limits["lower"][i]) if "lower" in limits else float("nan")
+        hi_l = float(limits["upper"][i]) if "upper" in limits else float("nan")
+        span = hi_l - lo_l
+        cov = (q.max() - q.min()) / span if np.isfinite(span) and span > 0 else float("nan")
+        coverage.append((cov, j, lo_l, hi_l))
+        share = "-" if not np.isfinite(cov) else f"{100 * cov:.0f} %"
+        rows.append(
+            f"| {j} | {q.min():.3f} .. {q.max():.3f} | {lo_l:.3f} .. {hi_l:.3f} | {share} |"
+        )
+    lines = [
+        "## Training range",
+        "",
+        "The learned layer saw these joint positions (contact-free training frames). Its checkpoint"
+        " records the range of every feature (`feature_ranges` in `checkpoint.json`);"
+        " `torchcontact estimate --residual` gives frames beyond them (with a 5 % margin) status"
+        " bit 1024 (`outside_training`, outputs kept) and counts them in its summary"
+        " (`outside_training`): there the network extrapolates.",
+        "",
+        "| joint | trained q (rad or m) | URDF limits | share of the limits |",
+        "|---|---|---|---|",
+        *rows,
+        "",
+    ]
+    narrow = sorted(c for c in coverage if np.isfinite(c[0]) and c[0] < 0.8)
+    if narrow:
+        names = ", ".join(f"`{j}` ({100 * c:.0f} %)" for c, j, _, _ in narrow[:4])
+        lines += [
+            f"To cover the workspace: record contact-free motion that sweeps {names} over their"
+            " limits (at the speeds and temperatures the robot meets), then fit again on all the"
+            " logs together (`torchcontact train fit --log old.parquet new.parquet ...`, or list"
+            " them in the config); `estimate --residual`'s"
+            " `outside_training` count tells which logs still leave the range.",
+            "",
+        ]
+    else:
+        lines += [
+            "The training frames span most of each joint's limits. Frames still flagged by"
+            " `estimate --residual` differ in velocity, load or an extra column: record"
+            " contact-free motion in those conditions and fit again on all the logs.",
+            "",
+        ]
+    return lines
 
 
 def write_outputs(trained: Trained, out: Path) -> None:

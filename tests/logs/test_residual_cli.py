@@ -155,3 +155,55 @@ def test_frames_the_correction_cannot_use_are_flagged_and_the_rest_processed(mod
     assert res["frames"] == 120
     bad = [i for i, s in enumerate(status) if s != "ok"]
     assert bad == [7, 40] and "F/T" in status[7]
+
+
+def test_frames_outside_the_training_range_get_a_bit_and_a_count(model, offset_log, tmp_path):
+    """Issue 20: a learned layer's checkpoint records its features' training range; estimate
+    flags the frames beyond it (outputs kept) and counts them; old checkpoints load unflagged."""
+    from torchcontact.residual import RANGE_MARGIN, ResidualMLP
+    from torchcontact.status import Status
+    from training.pipeline import workspace_markdown
+
+    spec = FeatureSpec.default(model, "base_ft", extra=("temperature",))
+    torch.manual_seed(0)
+    net = ResidualMLP(len(spec.names(model)), hidden=8)
+    corr = ResidualCorrection(model, "base_ft", torch.tensor(OFFSET, dtype=torch.float64),
+                              learned=net, features=spec)  # fmt: skip
+    t = pq.read_table(offset_log)
+    q, qd, qdd = (np.stack(t.column(c).to_numpy(zero_copy_only=False)) for c in ("q", "qd", "qdd"))
+    temp = t.column("temperature").to_numpy()
+    first = slice(0, 200)  # "trained" on the first half of the log only
+    entry = corr.record_ranges(q[first], qd[first], qdd[first], {"temperature": temp[first]})
+    assert entry["names"] == spec.names(model) and entry["frames"] == 200
+    assert entry["margin"] == RANGE_MARGIN
+    ckpt = corr.save(tmp_path / "mlp")
+    loaded = ResidualCorrection.load(ckpt, model)
+    expected = loaded.outside_range(q, qd, qdd, {"temperature": temp}).any(1)
+    assert not expected[first].any() and 20 < expected.sum() < 200  # the other half leaves it
+    res = estimate_file(offset_log, model, tmp_path / "o.parquet", residual=ckpt)
+    assert res["outside_training"] == int(expected.sum()) and res["bad_frames"] == 0
+    assert "training range" in res["outside_training_details"][0][0]
+    out = pq.read_table(res["output"])
+    code = out.column("status_code").to_numpy()
+    np.testing.assert_array_equal((code & int(Status.OUTSIDE_TRAINING)) != 0, expected)
+    forces = [c["force"] for r in out.column("contacts").to_pylist() for c in r]
+    assert np.isfinite(forces).all()  # a warning: the outputs are kept
+    assert "training range" in out.column("status_detail")[int(np.argmax(expected))].as_py()
+    # a checkpoint written before ranges were recorded: loads, nothing flagged
+    meta = json.loads((ckpt / "checkpoint.json").read_text())
+    del meta["feature_ranges"]
+    (ckpt / "checkpoint.json").write_text(json.dumps(meta))
+    old = estimate_file(offset_log, model, tmp_path / "old.parquet", residual=ckpt)
+    assert "outside_training" not in old and old["bad_frames"] == 0
+    # train fit's report: the joints' trained ranges against the limits, how to cover them
+    from training.data import ResidualDataset
+
+    ds = ResidualDataset(
+        t.column("t_ns").to_numpy()[first], q[first], qd[first], qdd[first],
+        np.zeros((200, 6)), np.ones(200, bool), {"temperature": temp[first]},
+        np.zeros(200, np.int64), tuple(model.joint_names), "base_ft",
+    )  # fmt: skip
+    text = "\n".join(workspace_markdown(corr, ds))
+    assert "## Training range" in text and "outside_training" in text
+    assert all(f"| {j} |" in text for j in spec.joints)
+    assert "To cover the workspace" in text or "span most" in text

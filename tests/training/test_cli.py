@@ -61,6 +61,10 @@ def test_train_on_a_log_in_the_documented_format(tmp_path, arm, capsys):
     m = rep["metrics"]
     assert m["stack"]["residual_force_rms"] < 0.5 * m["offset"]["residual_force_rms"]
     assert "| held out | chosen stack |" in (out / "report.md").read_text() and "chosen" in printed
+    # a learned layer records its features' training range, and the report says how to cover it
+    learned = meta["layers"][-1] in ("mlp", "gru")
+    assert ("feature_ranges" in meta) == learned
+    assert ("## Training range" in (out / "report.md").read_text()) == learned
     assert (out / "loss.png").stat().st_size > 0 and (out / "residual.png").stat().st_size > 0
     c = ResidualCorrection.load(out, arm)
     assert c.layers == meta["layers"]

@@ -20,19 +20,6 @@ from typing import Any
 
 import numpy as np
 
-#: The bias columns: prefix -> (field of the bias record, pyarrow type name, width).
-BIAS_COLUMNS = {
-    "bias": ("offset", "list", 6),
-    "bias_std": ("std", "list", 6),
-    "bias_since_update": ("since_update", "float64", 1),
-    "bias_updated": ("updated", "bool", 1),
-}
-
-
-def bias_column(prefix: str, sensor: str) -> str:
-    """The column of a bias quantity of a sensor, e.g. ``bias.base_ft``."""
-    return f"{prefix}.{sensor}"
-
 
 class FTLogWriter:
     """Append F/T frames to a Parquet file, writing a row group every ``batch`` rows.
@@ -58,7 +45,7 @@ class FTLogWriter:
     ) -> None:
         import pyarrow as pa
 
-        from torchcontact.logs.format import ft_column, ft_log_schema
+        from torchcontact.logs.format import BIAS_COLUMNS, bias_column, ft_column, ft_log_schema
 
         self.path = Path(path)
         self.sensors = [sensor] if isinstance(sensor, str) else list(sensor)
@@ -102,7 +89,7 @@ class FTLogWriter:
         """Write buffered rows."""
         import pyarrow as pa
 
-        from torchcontact.logs.format import LogWriter, fixed_list
+        from torchcontact.logs.format import BIAS_COLUMNS, LogWriter, bias_column, fixed_list
 
         if self._writer is None:
             self._writer = LogWriter(self.path, self.schema)

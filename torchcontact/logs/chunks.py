@@ -43,11 +43,14 @@ from torchcontact.estimation import ContactEstimator
 from torchcontact.logs.decode import ChunkDecoder, Decoded, FrameIssues, status_text
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, DerivativeStream, time_segments
 from torchcontact.logs.format import (
+    ESTIMATE_BIAS_COLUMNS,
+    META_BIAS,
     META_DERIVED,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
     META_VERSION,
+    bias_column,
     fixed_list,
     ft_column,
     joint_permutation,
@@ -55,9 +58,11 @@ from torchcontact.logs.format import (
     struct_list,
 )
 from torchcontact.model import RobotModel
+from torchcontact.status import WARNINGS, Status
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
+    "LogBias",
     "LogConstraints",
     "LogEstimator",
     "decoded_chunks",
@@ -121,6 +126,54 @@ class LogConstraints:
             raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
 
 
+@dataclass(frozen=True)
+class LogBias:
+    """F/T offsets tracked over a whole log from the model (``estimate --track-bias``).
+
+    Two passes. Pass 1 reads the log once: per frame and sensor the residual ``z = ft -
+    ft_model`` (``ft_model``: the model's contact-free reading, ``predict_ft``, plus the
+    correction stack's inertial and learned layers:
+    :meth:`torchcontact.online.estimator.OnlineEstimator.model_terms`) and whether the frame may
+    measure the offset (no contact record in a slot of the sensor's region, the rule of
+    :meth:`torchcontact.online.state.OnlineState.contact_free`; a record the layout cannot place
+    blocks every sensor; a frame with a status or a non-finite residual never measures) go into
+    the online tracker's filter (:class:`torchcontact.online.bias.BiasSmoother`, whose per-frame
+    states go to a file in the run's ``OUT.partial/``: the process holds one chunk at a time),
+    then the Rauch-Tung-Striebel pass runs backward over that file. Pass 2 is the estimate, with
+    each reading less its frame's offset (which replaces the stack's constant offset, the prior)
+    and the stack's other layers.
+
+    Attributes:
+        time_constant: s, the tracker's (:class:`~torchcontact.online.bias.BiasTracker`).
+        ft_std: ``(6,)`` F/T noise standard deviations [N; N m] (None: the tracker's default):
+            the reported uncertainty only.
+        smoother: forward-backward (True) or the causal filter alone, as the robot sees it.
+
+    Raises:
+        InputError: a time constant that is not > 0, ``ft_std`` not 6 positive numbers.
+    """
+
+    time_constant: float = 0.5
+    ft_std: tuple[float, ...] | None = None
+    smoother: bool = True
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.time_constant, (int, float)) and self.time_constant > 0):
+            raise InputError(f"--bias-time-constant must be > 0 s, got {self.time_constant!r}")
+        if self.ft_std is not None:
+            std = np.asarray(self.ft_std, np.float64)
+            if std.shape != (6,) or not (np.isfinite(std).all() and (std > 0).all()):
+                raise InputError(f"--ft-std: give 6 positive numbers [N; N m], got {self.ft_std}")
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready settings (the output's :data:`~torchcontact.logs.format.META_BIAS`)."""
+        return {
+            "method": "Kalman filter + RTS smoother" if self.smoother else "Kalman filter",
+            "time_constant": self.time_constant,
+            "ft_std": None if self.ft_std is None else list(self.ft_std),
+        }
+
+
 # ---------------------------------------------------------------------- one chunk
 @dataclass
 class LogEstimator:
@@ -144,6 +197,10 @@ class LogEstimator:
         layout: the log's slot layout (:meth:`LogScan.layout`): every chunk runs the same
             program; None: each chunk gets the layout covering its own records.
         step_ns: the log's median time step (segments: :mod:`torchcontact.logs.derive`).
+        causal: ``(window, order)``: derive ``qd``/``qdd`` with the live loop's causal
+            differentiator (``--derivatives causal``); None: the centred Savitzky-Golay.
+        bias: track the F/T offsets over the log (:class:`LogBias`); the first pass is
+            :meth:`bias_pass` over every chunk, then :meth:`bias_done`.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -163,6 +220,8 @@ class LogEstimator:
     constraints: LogConstraints | None = None
     layout: SlotLayout | None = None
     step_ns: float = 0.0
+    causal: tuple[int, int] | None = None
+    bias: LogBias | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
     decoder: ChunkDecoder = field(init=False)
@@ -193,6 +252,20 @@ class LogEstimator:
             cons is not None, self.residual_columns(), self.source,
         )  # fmt: skip
         self._schema = None
+        self.smoother: Any = None  # the bias pass's BiasSmoother
+        self._bias_stats: dict[str, Any] = {}
+        if self.bias is not None:
+            if self.residual is not None and self.residual.recurrent:
+                raise LogError(
+                    f"{self.source}: --track-bias with a recurrent (GRU) residual is not"
+                    " supported (its state would need both passes); use a stack without GRU"
+                )
+            from torchcontact.online.estimator import OnlineEstimator
+
+            self._online = OnlineEstimator(
+                self.model, list(self.sensors), correction=self.residual, backend="eager"
+            )
+            self._slot_regions: dict[tuple, np.ndarray] = {}
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
@@ -205,12 +278,7 @@ class LogEstimator:
             return self._schema
         from torchcontact import __version__
 
-        derived = {
-            "columns": list(self.derived),
-            "method": f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1} frames"
-            if self.derived
-            else "",
-        }
+        derived = {"columns": list(self.derived), "method": self.derivative_method()}
         meta = {
             META_URDF_SHA256: self.model.urdf_sha256,
             META_VERSION: __version__,
@@ -226,14 +294,176 @@ class LogEstimator:
                     "kind": "+".join(self.residual.layers),
                 }
             )
+        if self.bias is not None:
+            meta[META_BIAS] = json.dumps({**self.bias.describe(), "sensors": list(self.sensors)})
         self._schema = output_schema(
             self.model.joint_names,
             self.sensors,
             self.contact_fields,
             meta,
             constraints=self.constraints is not None,
+            bias=self.bias is not None,
         )
         return self._schema
+
+    def derivative_method(self) -> str:
+        """How derived ``qd``/``qdd`` are computed (the output's metadata; "" when logged)."""
+        if not self.derived:
+            return ""
+        if self.causal is None:
+            return f"Savitzky-Golay order 2 over t_ns, {2 * DEFAULT_HALF_WINDOW + 1} frames"
+        from torchcontact.online.derivatives import CausalDerivatives
+
+        w, o = self.causal
+        period = self.step_ns * 1e-9 if self.step_ns > 0 else 0.01
+        d = CausalDerivatives(self.model.nv, w, o).delay(period)
+        return (
+            f"causal Savitzky-Golay order {o} over t_ns, {w} frames (the live loop's);"
+            f" low-frequency delay qd {d[1] * 1e3:.2f} ms, qdd {d[2] * 1e3:.2f} ms"
+        )
+
+    # ------------------------------------------------------------------ --track-bias
+    def _contact_free(self, d: Decoded) -> np.ndarray:
+        """``(n, S)``: frames that may measure each sensor's offset (see :class:`LogBias`)."""
+        if d.contacts is None:
+            self.decoder.slots(d, self.model.dtype, self.model.device)
+        c = d.contacts
+        assert c is not None
+        S = len(self.sensors)
+        free = np.broadcast_to((d.issues.code == 0)[:, None], (d.n, S)).copy()
+        key = (tuple(c.links), tuple(c.kinds))
+        if key not in self._slot_regions:
+            em = self.estimator.layout(list(c.links), list(c.kinds))
+            self._slot_regions[key] = np.array([sl.region for sl in em.slots], np.int64)
+        regions = self._slot_regions[key]
+        if c.K:
+            active = c.active.cpu().numpy().reshape(d.n, c.K)
+            for k, r in enumerate(regions.tolist()):
+                if 0 <= r < S:
+                    free[:, r] &= ~active[:, k]
+        unplaced = d.records.frame[d.slot < 0] if len(d.slot) else np.zeros(0, np.int64)
+        free[unplaced] = False
+        return free
+
+    def _model_terms(self, d: Decoded, explained_only: bool = False) -> tuple[Any, np.ndarray]:
+        """``ft_model``, ``explained`` ``(n, S, 6)`` of a chunk (the online estimator's).
+
+        Without a residual stack ``ft_model`` is the estimator's contact-free prediction (with
+        the log's base motion) and ``explained`` zero; with one, the online estimator's
+        :meth:`~torchcontact.online.estimator.OnlineEstimator.model_terms`. Frames with a
+        non-finite joint state get NaN (they never measure the offset; their status says why).
+        ``explained_only``: pass 2, ``ft_model`` is not needed (None).
+        """
+        S, n = len(self.sensors), d.n
+        explained = np.zeros((n, S, 6))
+        if self.residual is None and explained_only:
+            return None, explained
+        ok = np.isfinite(d.q).all(1) & np.isfinite(d.qd).all(1) & np.isfinite(d.qdd).all(1)
+        for v in d.base.values():
+            ok &= np.isfinite(v).all(1)
+        ft_model = np.full((n, S, 6), np.nan)
+        rows = np.flatnonzero(ok)
+        if not len(rows):
+            return ft_model, explained
+        model = self.model
+
+        def t(x: np.ndarray) -> torch.Tensor:
+            return torch.tensor(np.asarray(x, np.float64)[rows], dtype=model.dtype,
+                                device=model.device)  # fmt: skip
+
+        q, qd, qdd = t(d.q), t(d.qd), t(d.qdd)
+        if self.residual is None:
+            kw = {"base": _base_motion(d.base, t)} if d.base else {}
+            none = Contacts((), (), q.new_zeros(len(rows), 0, 3))
+            nominal = self.estimator.predict_ft(q, qd, qdd, none, backend="eager", **kw)
+            for i, s in enumerate(self.sensors):
+                ft_model[rows, i] = nominal[s].double().cpu().numpy()
+            return ft_model, explained
+        if d.base:
+            raise LogError(
+                f"{self.source}: --track-bias with --residual on a log with base motion columns"
+                " is not supported (the correction stack's model terms assume a fixed base)"
+            )
+        extra = {k: np.asarray(v)[rows] for k, v in d.extra.items()}
+        fm, ex, _ = self._online.model_terms(q, qd, qdd, extra)
+        ft_model[rows], explained[rows] = fm, ex
+        explained[~ok] = np.nan
+        return ft_model, explained
+
+    def bias_start(self, store: Any = None) -> None:
+        """Begin the first pass (``store``: the file for the per-frame filter states)."""
+        from torchcontact.online.bias import BiasSmoother
+
+        assert self.bias is not None
+        period = self.step_ns * 1e-9 if self.step_ns > 0 else 0.01
+        opts: dict[str, Any] = {"time_constant": self.bias.time_constant, "period": period}
+        if self.bias.ft_std is not None:
+            opts["ft_std"] = list(self.bias.ft_std)
+        if self.smoother is not None:
+            self.smoother.close()
+        self.smoother = BiasSmoother(
+            len(self.sensors), offset=self._online.state.bias(), store=store, **opts
+        )
+        self._bias_stats = {"free": np.zeros(len(self.sensors), np.int64)}
+
+    def bias_pass(self, d: Decoded) -> None:
+        """First pass over one decoded chunk (in log order, derivatives set)."""
+        ft = np.stack([d.ft[s] for s in self.sensors], 1)
+        ft_model, _ = self._model_terms(d)
+        free = self._contact_free(d)
+        z = ft - ft_model
+        free &= np.isfinite(z).all(-1)
+        self._bias_stats["free"] += free.sum(0)
+        self.smoother.forward(z, free, d.t * 1e-9)
+
+    def bias_done(self) -> dict[str, Any]:
+        """End the first pass (the backward pass); the summary's ``bias`` entry.
+
+        Returns:
+            Per sensor: ``contact_free_frames`` (that measured the offset), ``first``, ``last``,
+            ``mean``, ``min``, ``max`` offset ``[N; N m]`` (6 each, over the log's frames),
+            ``std_last`` (6), and the settings (``time_constant``, ``method``).
+        """
+        assert self.bias is not None
+        sm = self.smoother
+        sm.smooth(self.bias.smoother)
+        N, S = sm.frames, len(self.sensors)
+        out: dict[str, Any] = {**self.bias.describe(), "sensors": {}}
+        if N == 0:
+            return out
+        total, lo_, hi_ = np.zeros((S, 6)), np.full((S, 6), np.inf), np.full((S, 6), -np.inf)
+        for a in range(0, N, 65536):
+            x, _ = sm.offsets(a, min(N, a + 65536))
+            total += x.sum(0)
+            lo_, hi_ = np.minimum(lo_, x.min(0)), np.maximum(hi_, x.max(0))
+        first, _ = sm.offsets(0, 1)
+        last, scale = sm.offsets(N - 1, N)
+        std = sm.std(scale)
+        for i, s in enumerate(self.sensors):
+            out["sensors"][s] = {
+                "contact_free_frames": int(self._bias_stats["free"][i]),
+                "first": first[0, i].tolist(),
+                "last": last[0, i].tolist(),
+                "mean": (total[i] / N).tolist(),
+                "min": lo_[i].tolist(),
+                "max": hi_[i].tolist(),
+                "std_last": std[0, i].tolist(),
+            }
+        return out
+
+    def _bias_corrected(
+        self, d: Decoded, ft: dict[str, np.ndarray]
+    ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+        """Readings less the tracked offset and the stack's other layers; offsets and stds."""
+        off, scale = self.smoother.offsets(d.row, d.row + d.n)
+        if off.shape[0] != d.n:
+            raise LogError(
+                f"{self.source}: the bias pass saw {self.smoother.frames} frames, fewer than"
+                f" row {d.row + d.n}; the log changed during the run"
+            )
+        _, explained = self._model_terms(d, explained_only=True)
+        out = {s: ft[s] - off[:, i] - explained[:, i] for i, s in enumerate(self.sensors)}
+        return out, off, self.smoother.std(scale)
 
     # ------------------------------------------------------------------ one chunk
     def process(
@@ -288,7 +518,10 @@ class LogEstimator:
         if d.qd is None or d.qdd is None:
             raise LogError(f"{self.source}: qd/qdd of a chunk were not derived")
         ft = dict(d.ft)
-        if self.residual is not None:
+        bias = None
+        if self.bias is not None:  # pass 2: the tracked offsets replace the stack's offset
+            ft, *bias = self._bias_corrected(d, ft)
+        elif self.residual is not None:
             ft[self.residual.sensor] = self._corrected(d, ft[self.residual.sensor])
         res = self._solve(d, ft, contacts, previous, backend)
 
@@ -300,10 +533,12 @@ class LogEstimator:
             for v in d.base.values():
                 state_ok &= np.isfinite(v).all(1)
             code = np.where(d.short & state_ok, code & ~2, code)
+        self._outside_training(d)
         code = code | d.issues.code
         self._explain(code, d.qd, ft, d.issues)
-        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
-        bad = code != 0
+        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are),
+        # but for the warning bits (Status.OUTSIDE_TRAINING: the outputs are kept)
+        bad = (code & ~WARNINGS) != 0
         jt = np.where(bad[:, None], np.nan, res["tau"])
 
         # ---- output rows: input contacts with force and moment added, in record order
@@ -334,6 +569,10 @@ class LogEstimator:
             if cons is not None:  # the solver's status; null on frames with a non-zero status
                 out[f"converged.{s}"] = pa.array(res[f"converged.{s}"], mask=bad)
                 out[f"iterations.{s}"] = pa.array(res[f"iterations.{s}"], mask=bad)
+            if bias is not None:  # the tracked offset and its std, per frame
+                i = list(self.sensors).index(s)
+                for prefix, v in zip(ESTIMATE_BIAS_COLUMNS, bias, strict=True):
+                    out[bias_column(prefix, s)] = fixed_list(v[:, i])
         out["status_code"] = pa.array(code)
         out["status"] = status_text(code)
         out["status_detail"] = d.issues.details()
@@ -460,6 +699,24 @@ class LogEstimator:
                 issues.add(beyond, 0, f"{ft_column(s)} beyond its range {lim.tolist()}")
         issues.add((code & 32) != 0, 0, "non-finite output from finite inputs")
 
+    def _outside_training(self, d: Decoded) -> None:
+        """Status bit ``OUTSIDE_TRAINING`` where the residual's learned layer extrapolates.
+
+        Where a feature lies outside its recorded training range (one detail per feature,
+        naming the range); nothing for checkpoints without ranges.
+        """
+        if self.residual is None:
+            return
+        out = self.residual.outside_range(d.q, d.qd, d.qdd, d.extra)
+        if out is None or not out.any():
+            return
+        names, lo, hi = self.residual.feature_ranges
+        for j in np.flatnonzero(out.any(0)):
+            d.issues.add(
+                out[:, j], int(Status.OUTSIDE_TRAINING),
+                f"{names[j]} outside the residual's training range [{lo[j]:.4g}, {hi[j]:.4g}]",
+            )  # fmt: skip
+
     def _corrected(self, d: Decoded, ft: np.ndarray) -> np.ndarray:
         """``ft (N, 6) - correction`` [N; N m]; joints ``(N, nv)`` in the model's order."""
         joints = (torch.as_tensor(v) for v in (d.q, d.qd, d.qdd))
@@ -565,8 +822,8 @@ def decoded_chunks(
         :class:`~torchcontact.logs.decode.Decoded`, ready for :meth:`LogEstimator.estimate`.
     """
     dec = le.decoder
-    c = 2 * half_window
-    stream = DerivativeStream(half_window, le.step_ns, before) if le.derived else None
+    stream = DerivativeStream(half_window, le.step_ns, before, le.causal) if le.derived else None
+    c = stream.context[1] if stream is not None else 2 * half_window  # frames needed ahead
     # the last two stamps before a chunk (time segments of a log without derived qd/qdd)
     last_t = np.zeros(0, np.int64) if before is None else np.asarray(before[0][-2:], np.int64)
     ahead: deque[Decoded] = deque()
@@ -574,7 +831,7 @@ def decoded_chunks(
     for tab in tables:
         ahead.append(dec.decode(tab, row))
         row += tab.num_rows
-        while len(ahead) > 1 and sum(x.n for x in list(ahead)[1:]) >= c:
+        while ahead and sum(x.n for x in list(ahead)[1:]) >= c and (len(ahead) > 1 or not c):
             yield _finish_chunk(le, ahead, stream, after, c, last_t)
             last_t = np.r_[last_t, ahead.popleft().t][-2:]
     while ahead:

@@ -105,6 +105,21 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _log_bias(args: argparse.Namespace) -> Any:
+    """``--track-bias`` and its options as a :class:`~torchcontact.logs.chunks.LogBias`."""
+    from torchcontact.logs.chunks import LogBias
+
+    std = None
+    if args.ft_std:
+        try:
+            std = tuple(float(v) for v in args.ft_std.split(","))
+        except ValueError:
+            raise InputError(
+                f"--ft-std takes 6 numbers separated by commas, got {args.ft_std!r}"
+            ) from None
+    return LogBias(args.bias_time_constant, std, smoother=not args.no_smoother)
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs.
 
@@ -134,8 +149,28 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     )
     if args.residual:
         kwargs["residual"] = args.residual
+    if args.derivatives != "centred":
+        kwargs.update(derivatives=args.derivatives, derivative_window=args.derivative_window,
+                      derivative_order=args.derivative_order)  # fmt: skip
+    if args.track_bias:
+        kwargs["track_bias"] = _log_bias(args)
+    elif args.ft_std or args.no_smoother or args.bias_time_constant != 0.5:
+        raise InputError("--bias-time-constant, --ft-std and --no-smoother apply with --track-bias")
+    if args.derivatives != "causal" and (args.derivative_window, args.derivative_order) != (15, 3):
+        raise InputError(
+            "--derivative-window and --derivative-order apply with --derivatives causal"
+        )
     try:
         if args.engine == "ray":
+            why = {
+                "track_bias": "--track-bias applies to --engine local only (its first pass reads"
+                " the whole log in one process)",
+                "derivatives": "--derivatives causal applies to --engine local only (Ray units"
+                " carry the centred filter's context)",
+            }
+            for opt, msg in why.items():
+                if opt in kwargs:
+                    raise InputError(msg)
             from torchcontact.logs.ray_engine import estimate_files_ray
 
             if robot.ft_sensors:
@@ -460,6 +495,55 @@ def add_parser(subparsers: Any) -> None:
         "--no-warm-start",
         action="store_true",
         help="start every frame from the pseudo-inverse, not its predecessor (--constraints)",
+    )
+    est.add_argument(
+        "--track-bias",
+        action="store_true",
+        help="track each F/T sensor's offset over the log against the model on contact-free"
+        " frames (two passes: the online tracker's filter and a forward-backward smoother) and"
+        " subtract it; adds bias.<sensor>, bias_std.<sensor> columns and the summary's bias;"
+        " with --residual the tracked offset replaces the checkpoint's offset layer",
+    )
+    est.add_argument(
+        "--bias-time-constant",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="--track-bias: time constant of the offset tracker, s (default: 0.5)",
+    )
+    est.add_argument(
+        "--ft-std",
+        metavar="FX,FY,FZ,MX,MY,MZ",
+        help="--track-bias: F/T noise standard deviations, N and N m: the offset's reported"
+        " uncertainty (default: 0.05 N and 0.005 N m)",
+    )
+    est.add_argument(
+        "--no-smoother",
+        action="store_true",
+        help="--track-bias: the causal filter alone (what the robot tracks online), no backward"
+        " pass (default: forward-backward)",
+    )
+    est.add_argument(
+        "--derivatives",
+        choices=["centred", "causal"],
+        default="centred",
+        help="derived qd, qdd (logs without them): centred Savitzky-Golay, or the live loop's"
+        " causal filter so that the estimate matches what the robot computes online"
+        " (default: centred)",
+    )
+    est.add_argument(
+        "--derivative-window",
+        type=int,
+        default=15,
+        metavar="N",
+        help="--derivatives causal: frames of the fit (default: 15)",
+    )
+    est.add_argument(
+        "--derivative-order",
+        type=int,
+        default=3,
+        metavar="P",
+        help="--derivatives causal: polynomial degree, 3 for no low-frequency delay (default: 3)",
     )
     est.add_argument(
         "--max-bad",

@@ -419,6 +419,7 @@ class Decoded:
         issues: the frames' problems found so far.
         starts: ``(n,)`` bool, a frame starts a time segment (None: not computed).
         short: ``(n,)`` bool, the frame cannot be differentiated (derived ``qd``/``qdd`` only).
+        row: the chunk's first row in the log.
     """
 
     n: int
@@ -438,6 +439,7 @@ class Decoded:
     issues: FrameIssues
     starts: np.ndarray | None = None
     short: np.ndarray | None = None
+    row: int = 0
 
 
 class ChunkDecoder:
@@ -562,7 +564,7 @@ class ChunkDecoder:
         slot = np.full(len(records), -1, np.int64)
         slot[~bad_record] = 0  # placed by slots()
         return Decoded(N, pa.array(t, pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
-                       fields, slot, None, issues)  # fmt: skip
+                       fields, slot, None, issues, row=first_row)  # fmt: skip
 
     def slots(self, d: Decoded, dtype: Any, device: Any) -> None:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""
@@ -584,8 +586,9 @@ class ChunkDecoder:
         """Set the segment starts and the derived ``qd``/``qdd`` of a chunk.
 
         Frames whose time segment has fewer than ``MIN_SEGMENT_FRAMES`` frames (``length``, from
-        :meth:`~torchcontact.logs.derive.DerivativeStream.derive`) get status
-        :data:`NOT_DIFFERENTIABLE` and a detail saying so; their derivatives stay NaN.
+        :meth:`~torchcontact.logs.derive.DerivativeStream.derive`; 0 for the first frames of a
+        segment that the causal filter cannot fit) get status :data:`NOT_DIFFERENTIABLE` and a
+        detail saying so; their derivatives stay NaN.
         """
         d.starts = starts
         if not self.derived:
@@ -604,6 +607,12 @@ class ChunkDecoder:
                    f" (t_ns is cut at repeated or backward stamps and at gaps over"
                    f" {GAP_FACTOR:g} x the median step)"),
             )  # fmt: skip
+        # the causal differentiator (length 0: fewer frames before it than its coefficients)
+        d.issues.add(
+            d.short & (length == 0), NOT_DIFFERENTIABLE,
+            "too few frames before it to derive qd/qdd causally (the first frames of"
+            f" {where}, up to the causal filter's polynomial order)",
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ record checks
     def _check_contacts(

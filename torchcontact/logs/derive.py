@@ -12,6 +12,11 @@ median step (:func:`median_step`); windows never cross a segment boundary (they 
 at segment ends as at the log's ends), and a segment of fewer than :data:`MIN_SEGMENT_FRAMES`
 frames cannot be differentiated (NaN).
 
+Causal (``estimate --derivatives causal``): :class:`DerivativeStream` with ``causal=(window,
+order)`` runs the live loop's one-sided differentiator
+(:func:`torchcontact.online.derivatives.causal_derivatives`) within each time segment instead, so
+an offline estimate sees the derivatives the robot computes online (with their delay).
+
 Streaming (:class:`DerivativeStream`): a frame's window lies within ``2 h`` frames of it (``h``
 each side, shifted by up to ``h`` at a segment end), so the pipeline carries ``2 h`` frames of
 context before and after each chunk; results do not depend on the chunking.
@@ -204,10 +209,19 @@ class DerivativeStream:
         half_window: int,
         step_ns: float,
         before: tuple[np.ndarray, np.ndarray] | None = None,
+        causal: tuple[int, int] | None = None,
     ) -> None:
         self.h = half_window
         self.step_ns = step_ns
+        self.causal = causal
         self._t, self._q = before if before is not None else (np.zeros(0, np.int64), None)
+
+    @property
+    def context(self) -> tuple[int, int]:
+        """Context frames ``(before, after)``: ``(2 h, 2 h)``; causal ``(window - 1, 0)``."""
+        if self.causal is not None:
+            return self.causal[0] - 1, 0
+        return 2 * self.h, 2 * self.h
 
     def derive(
         self, t_ns: np.ndarray, q: np.ndarray, t_next: np.ndarray, q_next: np.ndarray
@@ -225,16 +239,51 @@ class DerivativeStream:
             segment; the log's first frame does) and ``length`` ``(N,)`` int64, the frames of
             each frame's segment as far as the context shows (exact below ``2 h + 1``).
         """
-        c = 2 * self.h
+        c, c_after = self.context
         prev_t = self._t
         prev_q = self._q if self._q is not None else np.zeros((0, q.shape[1]))
-        t_all = np.concatenate([prev_t, t_ns, t_next[:c]])
-        q_all = np.concatenate([prev_q, q, q_next[:c]])
+        t_all = np.concatenate([prev_t, t_ns, t_next[:c_after]])
+        q_all = np.concatenate([prev_q, q, q_next[:c_after]])
         starts = time_segments(t_all, self.step_ns)
         lo, hi = len(prev_t), len(prev_t) + len(t_ns)
-        qd, qdd = savgol_derivatives(t_all, q_all, self.h, lo, hi, starts)
         seg = np.cumsum(starts) - 1
-        length = np.bincount(seg)[seg]
-        self._t = np.concatenate([prev_t, t_ns])[-c:]
-        self._q = np.concatenate([prev_q, q])[-c:]
+        if self.causal is None:
+            qd, qdd = savgol_derivatives(t_all, q_all, self.h, lo, hi, starts)
+            length = np.bincount(seg)[seg]
+        else:
+            qd, qdd, length = _causal(t_all, q_all, starts, seg, lo, hi, *self.causal)
+        self._t = np.concatenate([prev_t, t_ns])[-c:] if c else prev_t[:0]
+        self._q = np.concatenate([prev_q, q])[-c:] if c else prev_q[:0]
         return qd, qdd, starts[lo:hi], length[lo:hi]
+
+
+def _causal(
+    t: np.ndarray,
+    q: np.ndarray,
+    starts: np.ndarray,
+    seg: np.ndarray,
+    lo: int,
+    hi: int,
+    window: int,
+    order: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The online causal differentiator on frames ``lo .. hi - 1``, restarted at each segment.
+
+    :func:`torchcontact.online.derivatives.causal_derivatives` (the one the live loop runs) on
+    each time segment's frames; ``length`` per frame of ``t`` is the frames of its segment up to
+    it, 0 where they are too few for the fit (``<= order``: its derivatives are NaN).
+    """
+    from torchcontact.online.derivatives import causal_derivatives
+
+    nv = q.shape[1]
+    qd, qdd = np.full((hi - lo, nv), np.nan), np.full((hi - lo, nv), np.nan)
+    first = np.flatnonzero(starts)
+    pos = np.arange(len(t)) - first[seg]  # index of each frame in its segment
+    length = np.where(pos >= order, pos + 1, 0)
+    for a, b in zip(first, [*first[1:], len(t)], strict=True):
+        a0, b0 = max(a, lo), min(b, hi)
+        if a0 >= b0:
+            continue
+        _, d1, d2 = causal_derivatives(t[a:b0], q[a:b0], window, order, a0 - a, b0 - a)
+        qd[a0 - lo : b0 - lo], qdd[a0 - lo : b0 - lo] = d1, d2
+    return qd, qdd, length

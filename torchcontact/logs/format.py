@@ -51,9 +51,11 @@ from torchcontact.errors import InputError, LogError
 
 __all__ = [
     "BASE_COLUMNS",
+    "BIAS_COLUMNS",
     "CONE_FIELDS",
     "LOCALIZATION_COLUMNS",
     "NUMBERS",
+    "META_BIAS",
     "META_DERIVED",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
@@ -63,6 +65,7 @@ __all__ = [
     "META_URDF_SHA256",
     "META_VERSION",
     "LogWriter",
+    "bias_column",
     "check_number_type",
     "check_outputs",
     "check_schema",
@@ -106,6 +109,9 @@ META_SOURCE = b"torchcontact.source"
 #: Output logs estimated with a learned F/T correction: JSON ``{"checkpoint", "weights_sha256",
 #: "sensor", "kind"}`` (``torchcontact estimate --residual``).
 META_RESIDUAL = b"torchcontact.residual"
+#: Output logs estimated with ``--track-bias``: JSON ``{"method", "time_constant", "ft_std",
+#: "sensors"}`` (the F/T offsets tracked over the whole log, columns :data:`ESTIMATE_BIAS_COLUMNS`).
+META_BIAS = b"torchcontact.bias"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 #: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.
@@ -123,6 +129,27 @@ WRITE_OPTIONS: dict[str, Any] = {
 def ft_column(sensor: str) -> str:
     """Column name of a sensor's readings, ``ft.<sensor>``."""
     return f"ft.{sensor}"
+
+
+#: The F/T bias columns, per sensor ``<prefix>.<sensor>``: prefix -> (field of the bias record
+#: :meth:`torchcontact.online.bias.BiasState.as_dict`, pyarrow type name, width). ``bias``: the
+#: offset subtracted from the reading [N; N m]; ``bias_std``: its standard deviation;
+#: ``bias_since_update``: s since the last update (null before the first); ``bias_updated``:
+#: this frame updated it. ``torchcontact run --track-bias --out`` writes all four;
+#: ``estimate --track-bias`` (the smoothed offset of the whole log) the first two.
+BIAS_COLUMNS = {
+    "bias": ("offset", "list", 6),
+    "bias_std": ("std", "list", 6),
+    "bias_since_update": ("since_update", "float64", 1),
+    "bias_updated": ("updated", "bool", 1),
+}
+#: The bias columns of an estimated log (``estimate --track-bias``).
+ESTIMATE_BIAS_COLUMNS = ("bias", "bias_std")
+
+
+def bias_column(prefix: str, sensor: str) -> str:
+    """The column of a bias quantity of a sensor, e.g. ``bias.base_ft`` (:data:`BIAS_COLUMNS`)."""
+    return f"{prefix}.{sensor}"
 
 
 def fixed_list(values: np.ndarray) -> Any:
@@ -231,6 +258,7 @@ def output_schema(
     metadata: Mapping[bytes, bytes | str],
     constraints: bool = False,
     localize: Sequence[str] = (),
+    bias: bool = False,
 ) -> Any:
     """Schema of an estimated log.
 
@@ -244,11 +272,13 @@ def output_schema(
             sensor ``converged.<s>`` and ``iterations.<s>``.
         localize: the sensors whose contact is localized (``estimate --localize``): their
             :func:`localization_fields` come after ``status_detail``.
+        bias: the F/T offsets were tracked (``estimate --track-bias``): per sensor
+            ``bias.<s>`` and ``bias_std.<s>`` (6 float64, :data:`ESTIMATE_BIAS_COLUMNS`).
 
     Returns:
         ``t_ns, contacts, joint_torques, rank.<s>, unknowns.<s>, nullity.<s>, residual.<s>
-        [, converged.<s>, iterations.<s>], status_code, status, status_detail
-        [, localize_*.<s>]``.
+        [, converged.<s>, iterations.<s>] [, bias.<s>, bias_std.<s>], status_code, status,
+        status_detail [, localize_*.<s>]``.
     """
     import pyarrow as pa
 
@@ -268,6 +298,10 @@ def output_schema(
         fields += [(f"nullity.{s}", pa.int64()), (f"residual.{s}", pa.float64())]
         if constraints:
             fields += [(f"converged.{s}", pa.bool_()), (f"iterations.{s}", pa.int64())]
+        if bias:
+            fields += [
+                (bias_column(p, s), pa.list_(pa.float64(), 6)) for p in ESTIMATE_BIAS_COLUMNS
+            ]
     fields += [("status_code", pa.int64()), ("status", pa.string())]
     fields.append(("status_detail", pa.string()))
     fields += localization_fields(localize)

@@ -42,6 +42,7 @@ import torch
 from torchcontact.errors import InputError, LogError
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
+    LogBias,
     LogConstraints,
     LogEstimator,
     decoded_chunks,
@@ -56,6 +57,7 @@ from torchcontact.model import RobotModel
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
     "WAIT_FOR_KERNEL_FRAMES",
+    "LogBias",
     "LogConstraints",
     "LogError",
     "LogEstimator",
@@ -205,6 +207,8 @@ def prepare(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
+    causal: tuple[int, int] | None = None,
+    bias: LogBias | None = None,
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
     """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
 
@@ -220,6 +224,8 @@ def prepare(
         velocity_margin: see :class:`LogEstimator`.
         ft_range: see :class:`LogEstimator`.
         constraints: see :class:`LogEstimator`.
+        causal: see :class:`LogEstimator` (``--derivatives causal``).
+        bias: see :class:`LogEstimator` (``--track-bias``).
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
@@ -250,6 +256,8 @@ def prepare(
         ft_range=ft_range,
         constraints=constraints,
         step_ns=scan.step_ns,
+        causal=causal,
+        bias=bias,
     )
     le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
     le.decoder.whole_log_segment = scan.segments == 1
@@ -283,7 +291,7 @@ def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     out: dict[str, Any] = {"sensors": list(le.sensors), "derived": list(le.derived)}
     out["slots"] = len(le.layout.links) if le.layout is not None else None
     out["time_segments"] = scan.segments
-    if le.derived:
+    if le.derived and le.causal is None:  # causal: the first frames of segments, per chunk
         out["not_differentiable"] = scan.short_frames
     return out
 
@@ -305,6 +313,10 @@ def estimate_file(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
+    derivatives: str = "centred",
+    derivative_window: int = 15,
+    derivative_order: int = 3,
+    track_bias: LogBias | bool | None = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -329,6 +341,16 @@ def estimate_file(
             status bit 64 (None: no check).
         ft_range: ``{sensor: (6,) or scalar}`` [N; N m]; readings beyond it get status bit 64.
         constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
+        derivatives: ``"centred"`` (the Savitzky-Golay of :mod:`torchcontact.logs.derive`,
+            ``half_window``) or ``"causal"`` (the live loop's one-sided filter,
+            :mod:`torchcontact.online.derivatives`, ``derivative_window`` frames, polynomial
+            ``derivative_order``) for derived ``qd``/``qdd``; the output metadata says which,
+            with the causal filter's delay.
+        derivative_window: frames of the causal fit.
+        derivative_order: its polynomial degree (>= 2).
+        track_bias: track the F/T offsets over the log from the model (:class:`LogBias`, True:
+            its defaults): two passes, the output gets ``bias.<s>``/``bias_std.<s>`` columns
+            and the summary ``bias``.
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
@@ -336,10 +358,12 @@ def estimate_file(
         derived ``qd``/``qdd`` not_differentiable), resumed_chunks, chunks, engine, bad_frames
         (frames of the output with a non-zero status), bad_details (the most frequent details
         of those, with counts); with constraints also ``cones``: ``converged`` share,
-        ``iterations_mean`` and ``iterations_max`` over the frames estimated now.
+        ``iterations_mean`` and ``iterations_max`` over the frames estimated now; with
+        ``track_bias`` also ``bias`` (:meth:`LogEstimator.bias_done`).
 
     Raises:
-        InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
+        InputError: ``batch_size`` or ``half_window`` < 1, an unknown ``derivatives``, a bad
+            causal window or order, an unusable device, an output that is
             or contains an input, a missing URDF.
         OutputBusyError: another live process is writing ``out`` (nothing was written).
         LogError: the input cannot be processed at all (message names the file), or is
@@ -354,6 +378,8 @@ def estimate_file(
 
     t0 = time.perf_counter()
     _check_positive(batch_size=batch_size, half_window=half_window)
+    causal = derivative_options(derivatives, derivative_window, derivative_order)
+    bias = LogBias() if track_bias is True else (track_bias or None)
     out = Path(out)
     robot_file = None if isinstance(robot, RobotModel) else robot
     check_outputs([out, *side_paths(out)], [path, robot_file, _path_or_none(residual)])
@@ -370,7 +396,7 @@ def estimate_file(
                 " its state depends on every earlier frame; rerun from the start"
             )
         pf, le, columns, scan = prepare(
-            path, model, sensors, residual, velocity_margin, ft_range, constraints
+            path, model, sensors, residual, velocity_margin, ft_range, constraints, causal, bias
         )
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
@@ -387,8 +413,14 @@ def estimate_file(
                 )
         ident = run_ident(path, model, le, engine="local", dtype=str(dtype),
                           half_window=half_window, batch_size=batch_size)  # fmt: skip
+        # always present (None when off): a resume with or without them must match
+        ident["derivatives"] = None if causal is None else ["causal", *causal]
+        ident["track_bias"] = None if bias is None else bias.describe()
         units = [(a, min(a + batch_size, total)) for a in range(0, total, batch_size)]
         run.start(ident, units, resume, recurrent)
+        extra: dict[str, Any] = {}
+        if bias is not None:  # pass 1: the whole log, whatever a resume skips
+            extra["bias"] = bias_pass(pf, le, columns, batch_size, half_window, run.partial)
         done = len(run.done)
         if run.done != set(range(done)):
             raise LogError(
@@ -396,6 +428,8 @@ def estimate_file(
             )
         first = done * batch_size
         before = _context(pf, le, first, half_window, str(path))
+        if derivatives == "causal":
+            extra["derivatives"] = le.derivative_method()
         previous = read_journal(run.part(done - 1)) if done and constraints else None
         backend = kernel_backend(total - first, str(model.device))
 
@@ -406,15 +440,59 @@ def estimate_file(
                 for k, tab in enumerate(estimate_stream(le, iter(chunks), previous, backend)):
                     yield Done(done + k, tab.num_rows, tab)
 
-        return run.execute(
-            produce(),
-            le.output_schema(),
-            progress=show,
-            cone_sensors=list(le.sensors) if constraints is not None else [],
-            t0=t0,
-            **log_summary(le, scan),
-            engine="local",
-        )
+        try:
+            return run.execute(
+                produce(),
+                le.output_schema(),
+                progress=show,
+                cone_sensors=list(le.sensors) if constraints is not None else [],
+                t0=t0,
+                **log_summary(le, scan),
+                **extra,
+                engine="local",
+            )
+        finally:
+            if le.smoother is not None:
+                le.smoother.close()
+
+
+def derivative_options(method: str, window: int, order: int) -> tuple[int, int] | None:
+    """``--derivatives``: None for ``centred``, ``(window, order)`` for ``causal``.
+
+    Raises:
+        InputError: another method, a window or order the causal fit cannot use.
+    """
+    if method == "centred":
+        return None
+    if method != "causal":
+        raise InputError(f"--derivatives {method}: expected centred or causal")
+    from torchcontact.online.derivatives import _check
+
+    _check(window, order)
+    return int(window), int(order)
+
+
+def bias_pass(
+    pf: Any,
+    le: LogEstimator,
+    columns: Sequence[str],
+    batch_size: int,
+    half_window: int,
+    folder: Path,
+) -> dict:
+    """Pass 1 of ``--track-bias``: the tracker's filter and smoother over the whole log.
+
+    The per-frame filter states go to ``folder/bias.states`` (``64 S`` bytes a frame; the run's
+    ``OUT.partial/``, removed with it), so memory stays one chunk whatever the log's length.
+
+    Returns:
+        The summary's ``bias`` entry (:meth:`LogEstimator.bias_done`).
+    """
+    le.bias_start(Path(folder) / "bias.states")
+    tables = read_chunks(pf, columns, batch_size, le.source, 0)
+    for d in decoded_chunks(le, tables, half_window, 0, None):
+        le.bias_pass(d)
+    return le.bias_done()
 
 
 def _context(
@@ -426,7 +504,8 @@ def _context(
     """
     if not first:
         return None
-    lo = max(0, first - (2 * half_window if le.derived else 2))
+    need = (le.causal[0] - 1 if le.causal else 2 * half_window) if le.derived else 2
+    lo = max(0, first - need)
     tab = next(read_chunks(pf, ["t_ns", "q"], first - lo, source, lo))
     return stamps_and_positions(tab, le.perm, len(le.input_joint_names), source, lo)
 

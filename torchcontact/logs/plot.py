@@ -372,14 +372,15 @@ def _forces(t: np.ndarray, fc: dict, deficient: np.ndarray, constrained: bool, p
 
 def _status_marks(ax: Any, t: np.ndarray, codes: np.ndarray) -> None:
     """One marker row per status bit present, labelled with its name (:data:`STATUS_NAMES`)."""
-    from torchcontact.status import STATUS, STATUS_NAMES
+    from torchcontact.status import STATUS, STATUS_NAMES, WARNINGS
 
     present = [bit for bit in STATUS if (codes & bit).any()]
     for j, bit in enumerate(present):
         hit = (codes & bit) != 0
         ax.plot(t[hit], np.full(hit.sum(), -0.3 * (j + 1)), "x", color=_mpl(BAD_STATUS_RGB),
                 ms=4, alpha=1 - 0.6 * j / max(len(present), 1),
-                label=f"status {STATUS_NAMES.get(bit, bit)} ({bit}): NaN outputs")  # fmt: skip
+                label=f"status {STATUS_NAMES.get(bit, bit)} ({bit}):"
+                      f" {'outputs kept' if bit & WARNINGS else 'NaN outputs'}")  # fmt: skip
 
 
 def _quality(

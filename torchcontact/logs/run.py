@@ -40,6 +40,9 @@ import numpy as np
 from torchcontact._lock import OutputLock, lock_path
 from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.format import LogWriter, read_journal, write_journal
+from torchcontact.status import WARNINGS, Status
+
+OUTSIDE = int(Status.OUTSIDE_TRAINING)
 
 __all__ = ["Done", "Run", "background", "side_paths", "unusable"]
 
@@ -198,12 +201,24 @@ class _Tally:
     converged: int = 0
     it_sum: int = 0
     it_max: int = 0
+    outside: int = 0
+    outside_details: dict[str, int] = field(default_factory=dict)
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
 
         code = table.column("status_code")
-        bad = pc.not_equal(code, 0)
+        # frames with NaN outputs: a status bit other than the warnings (outputs kept)
+        bad = pc.not_equal(pc.bit_wise_and(code, ~WARNINGS), 0)
+        outside = pc.not_equal(pc.bit_wise_and(code, OUTSIDE), 0)
+        n_out = int(pc.sum(outside).as_py() or 0)
+        self.outside += n_out
+        if n_out:  # which features, counted (the details of those frames)
+            why = pc.filter(table.column("status_detail"), outside).to_pylist()
+            for text in why:
+                for part in (text or "").split("; "):
+                    if "training range" in part:
+                        self.outside_details[part] = self.outside_details.get(part, 0) + 1
         n_bad = int(pc.sum(bad).as_py() or 0)
         self.rows += table.num_rows
         self.bad += n_bad
@@ -230,6 +245,10 @@ class _Tally:
     def summary(self) -> dict:
         top = sorted(self.details.items(), key=lambda kv: (-kv[1], kv[0]))[:3]
         out: dict[str, Any] = {"bad_frames": self.bad, "bad_details": [list(t) for t in top]}
+        if self.outside:  # frames where the learned correction extrapolates (outputs kept)
+            out["outside_training"] = self.outside
+            top = sorted(self.outside_details.items(), key=lambda kv: (-kv[1], kv[0]))[:5]
+            out["outside_training_details"] = [list(t) for t in top]
         if self.cone_sensors:
             n = max(self.solved, 1)
             out["cones"] = {
@@ -425,7 +444,9 @@ class Run:
 
         Returns:
             The summary: input, output, frames, processed_now, ok_now, bad_now, seconds,
-            frames_per_s, resumed_chunks, chunks, bad_frames, bad_details, the given keys, and
+            frames_per_s, resumed_chunks, chunks, bad_frames (NaN outputs: a status other than
+            the warning bits), bad_details, outside_training and outside_training_details
+            (frames whose learned correction extrapolates, when any), the given keys, and
             with cones ``cones``.
 
         Raises:

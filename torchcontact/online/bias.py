@@ -51,6 +51,7 @@ from torchcontact.errors import InputError
 
 __all__ = [
     "DEFAULT_FT_STD",
+    "BiasSmoother",
     "BiasState",
     "BiasTrack",
     "BiasTracker",
@@ -374,6 +375,227 @@ class BiasTrack(NamedTuple):
         return np.sqrt(self.scale[..., None] * np.diagonal(self.R, axis1=-2, axis2=-1))
 
 
+class BiasSmoother:
+    """The forward filter and the RTS smoother over a log fed chunk by chunk (bounded memory).
+
+    :func:`smooth_bias` for logs too long to hold: :meth:`forward` takes consecutive chunks of
+    residuals and appends each frame's filter state (``S * 6`` offsets and ``2 S`` variances,
+    float64: ``64 S`` bytes a frame) to ``store``, a file (None: memory); :meth:`smooth` runs
+    the backward pass over it in blocks read and written back in place; :meth:`offsets` reads
+    any rows back. The process holds a block of frames at a time whatever the log's length (no
+    memory map: plain reads and writes); the file holds ``64 S`` bytes per frame (1M frames, one
+    sensor: 64 MB) and is the caller's to delete.
+
+    The gains depend only on which frames are contact-free and on the time steps, as in
+    :func:`smooth_bias`, which is this class run on one chunk in memory.
+
+    Args:
+        sensors: ``S``, the number of sensors.
+        time_constant: s, as :class:`BiasTracker`.
+        period: nominal period, s (the log's median step).
+        ft_std: as :class:`BiasTracker`.
+        ft_cov: as :class:`BiasTracker`.
+        offset: ``(S, 6)`` prior offset before the first frame (default zeros).
+        prior_scale: its covariance in units of ``R``.
+        store: file for the per-frame states (created, truncated), or None (memory).
+
+    Raises:
+        InputError: a non-positive time constant or period, a bad covariance or offset.
+
+    Example:
+        >>> import numpy as np
+        >>> z = np.zeros((300, 1, 6)); z[:, 0, 0] = np.linspace(0.0, 3.0, 300)
+        >>> free = np.ones((300, 1), bool); free[100:200] = False
+        >>> sm = BiasSmoother(1, time_constant=0.2, period=0.01)
+        >>> for a in range(0, 300, 64):  # chunk by chunk
+        ...     sm.forward(z[a:a + 64], free[a:a + 64], np.arange(a, min(a + 64, 300)) * 0.01)
+        >>> sm.smooth()
+        >>> off, scale = sm.offsets(150, 151)
+        >>> bool(np.allclose(off, smooth_bias(z, free, time_constant=0.2).offset[150]))
+        True
+    """
+
+    def __init__(
+        self,
+        sensors: int,
+        *,
+        time_constant: float = DEFAULT_TIME_CONSTANT,
+        period: float = 0.01,
+        ft_std: Any = None,
+        ft_cov: Any = None,
+        offset: Any = None,
+        prior_scale: float = 1e4,
+        store: str | Any | None = None,
+    ) -> None:
+        S = self.S = int(sensors)
+        self.R = _noise_cov(S, ft_std, ft_cov)
+        self.period = float(period)
+        self.q_rate = process_noise(time_constant, self.period) / self.period  # per s
+        if not prior_scale > 0:
+            raise InputError(f"prior_scale must be > 0, got {prior_scale!r}")
+        x0 = np.zeros((S, 6)) if offset is None else np.asarray(offset, np.float64)
+        if x0.size != S * 6 or not np.isfinite(x0).all():
+            raise InputError(f"offset must be ({S}, 6) finite [N; N m], got {np.shape(offset)}")
+        self._x = x0.reshape(S, 6).copy()
+        self._p = np.full(S, float(prior_scale))
+        self._t: float | None = None
+        self.frames = 0
+        self.width = 6 * S + 2 * S  # per frame: x_filt (S, 6), p_filt (S,), p_pred (S,)
+        self.path = None if store is None else str(store)
+        self._file = None if store is None else open(self.path, "wb")  # noqa: SIM115
+        self._parts: list[np.ndarray] = []
+        self._mem: np.ndarray | None = None  # (N, width) after smooth(), without a file
+        self._smoothed = False
+
+    def forward(self, z: Any, free: Any, t: Any = None) -> None:
+        """Filter the next frames (the tracker's update, without innovation gate).
+
+        Args:
+            z: ``(n, S, 6)`` residuals ``ft - ft_model`` [N; N m] (non-finite: not measured).
+            free: ``(n, S)`` or ``(n,)`` bool, the frames that may measure each offset.
+            t: ``(n,)`` time stamps, s, not decreasing across chunks (None: ``period`` apart).
+
+        Raises:
+            InputError: shapes, decreasing time stamps, or after :meth:`smooth`.
+        """
+        if self._smoothed:
+            raise InputError("BiasSmoother.forward after smooth()")
+        S = self.S
+        z = np.asarray(z, np.float64).reshape(-1, S, 6)
+        n = z.shape[0]
+        free = np.asarray(free, bool)
+        if free.shape == (n,):
+            free = np.broadcast_to(free[:, None], (n, S))
+        if free.shape != (n, S):
+            raise InputError(f"contact_free must be ({n},) or ({n}, {S}), got {free.shape}")
+        free = free & np.isfinite(z).all(-1)
+        if t is None:
+            ts = (0.0 if self._t is None else self._t) + self.period * np.arange(
+                0 if self._t is None else 1, n + (0 if self._t is None else 1)
+            )
+        else:
+            ts = np.asarray(t, np.float64).reshape(-1)
+            if ts.shape != (n,) or not np.isfinite(ts).all():
+                raise InputError(f"t must be ({n},) finite time stamps in s")
+        dt = np.diff(ts, prepend=ts[:1] if self._t is None else self._t)
+        if (dt < 0).any():
+            raise InputError("time stamps must not decrease")
+        if n:
+            self._t = float(ts[-1])
+        q = self.q_rate * dt
+        out = np.empty((n, self.width))
+        xs = out[:, : 6 * S].reshape(n, S, 6)
+        p_filt, p_pred = out[:, 6 * S : 7 * S], out[:, 7 * S :]
+        # the variances and gains: they depend only on the gating and the steps
+        p, gain = self._p, np.zeros((n, S))
+        for k in range(n):
+            p = p + q[k]
+            p_pred[k] = p
+            g = np.where(free[k], p / (p + 1.0), 0.0)
+            gain[k] = g
+            p = p * (1.0 - g)
+            p_filt[k] = p
+        self._p = p
+        # the offsets: x += g (z - x) on the frames that measure them
+        x = self._x
+        zf = np.where(free[..., None], z, 0.0)
+        active = free.any(1)
+        for k in range(n):
+            if active[k]:
+                x = x + gain[k][:, None] * (zf[k] - x)
+            xs[k] = x
+        self._x = x
+        self.frames += n
+        if self._file is not None:
+            self._file.write(out.tobytes())
+        else:
+            self._parts.append(out)
+
+    def smooth(self, smoother: bool = True, block: int = 65536) -> None:
+        """End the forward pass; with ``smoother`` run the Rauch-Tung-Striebel pass backward.
+
+        Rauch, Tung and Striebel 1965 with the identity transition (``x_pred[k + 1] =
+        x_filt[k]``): ``x_s[k] = x_f[k] + c_k (x_s[k + 1] - x_f[k])``, ``c_k = p_f[k] /
+        p_pred[k + 1]``, ``p_s[k] = p_f[k] + c_k^2 (p_s[k + 1] - p_pred[k + 1])``, block by block
+        from the end, each block read from the store, smoothed and written back in place
+        (``block`` frames in memory at a time when the states are in a file).
+        """
+        if self._smoothed:
+            return
+        self._smoothed = True
+        S, N = self.S, self.frames
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        else:
+            self._mem = np.concatenate(self._parts) if self._parts else np.zeros((0, self.width))
+            self._parts = []
+        if not smoother or N < 2:
+            return
+        # carried across blocks: frame k + 1's smoothed state and predicted variance
+        last = self._read(N - 1, N)[0]
+        x_next = last[: 6 * S].reshape(S, 6).copy()
+        p_next, pp_next = last[6 * S : 7 * S].copy(), last[7 * S :].copy()
+        end = N - 1
+        while end > 0:
+            lo = max(0, end - block)
+            blk = self._read(lo, end)  # frames lo .. end - 1
+            xb = blk[:, : 6 * S].reshape(-1, S, 6)
+            pf, pp = blk[:, 6 * S : 7 * S], blk[:, 7 * S :]
+            for k in range(end - lo - 1, -1, -1):
+                c = pf[k] / pp_next
+                x_next = xb[k] + c[:, None] * (x_next - xb[k])
+                p_next = pf[k] + c * c * (p_next - pp_next)
+                pp_next = pp[k].copy()
+                xb[k] = x_next
+                pf[k] = p_next
+            self._write(lo, blk)
+            end = lo
+
+    def _read(self, lo: int, hi: int) -> np.ndarray:
+        """``(hi - lo, width)`` stored states (a copy)."""
+        hi = min(hi, self.frames)
+        if hi <= lo:
+            return np.zeros((0, self.width))
+        if self._mem is not None:
+            return self._mem[lo:hi].copy()
+        count, offset = (hi - lo) * self.width, lo * self.width * 8
+        return np.fromfile(self.path, np.float64, count, offset=offset).reshape(-1, self.width)
+
+    def _write(self, lo: int, blk: np.ndarray) -> None:
+        if self._mem is not None:
+            self._mem[lo : lo + len(blk)] = blk
+            return
+        with open(self.path, "r+b") as f:  # type: ignore[arg-type]
+            f.seek(lo * self.width * 8)
+            f.write(np.ascontiguousarray(blk, np.float64).tobytes())
+
+    def offsets(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frames ``lo .. hi - 1`` after :meth:`smooth`: ``offset (n, S, 6)``, ``scale (n, S)``.
+
+        ``scale`` is the variance in units of ``R`` (the component standard deviations are
+        ``sqrt(scale * diag(R))``, :meth:`std`). Read from the store: memory stays ``hi - lo``
+        frames.
+        """
+        if not self._smoothed:
+            raise InputError("BiasSmoother.offsets before smooth()")
+        S = self.S
+        blk = self._read(lo, hi)
+        return blk[:, : 6 * S].reshape(-1, S, 6), blk[:, 6 * S : 7 * S]
+
+    def std(self, scale: np.ndarray) -> np.ndarray:
+        """``(n, S, 6)`` standard deviations [N; N m] from :meth:`offsets`' ``scale``."""
+        return np.sqrt(scale[..., None] * np.diagonal(self.R, axis1=-2, axis2=-1))
+
+    def close(self) -> None:
+        """Release the store (the file itself is the caller's to delete)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self._mem = None
+        self._parts = []
+
+
 def smooth_bias(
     residual: Any,
     contact_free: Any,
@@ -392,7 +614,8 @@ def smooth_bias(
     With ``smoother=False`` this is exactly :class:`BiasTracker` run frame by frame (without
     innovation gate): each frame's offset from the frames up to it. With the smoother each frame
     gets the estimate from the whole log, so the frames of a contact get the offset interpolated
-    between the contact-free frames before and after it.
+    between the contact-free frames before and after it. In memory; :class:`BiasSmoother` (which
+    this runs) takes a log chunk by chunk.
 
     Args:
         residual: ``(N, S, 6)`` or ``(N, 6)`` ``ft - ft_model`` ``[N; N m]`` per frame.
@@ -434,6 +657,7 @@ def smooth_bias(
     free = free & np.isfinite(z).all(-1)
     if t is None:
         period = 0.01 if period is None else float(period)
+        ts = None
         dt = np.full(N, period)
     else:
         ts = np.asarray(t, dtype=np.float64).reshape(-1)
@@ -444,42 +668,16 @@ def smooth_bias(
             raise InputError("time stamps must not decrease")
         if period is None:
             period = float(np.median(dt[1:])) if N > 1 and np.median(dt[1:]) > 0 else 0.01
-    dt[0] = 0.0
-    R = _noise_cov(S, ft_std, ft_cov)
-    q = process_noise(time_constant, float(period)) / float(period) * dt  # (N,) per frame
-    x0 = np.zeros((S, 6)) if offset is None else np.asarray(offset, float).reshape(S, 6)
-    # forward filter; the gains depend only on the gating, not on the data
-    p_pred = np.empty((N, S))
-    p_filt = np.empty((N, S))
-    gain = np.zeros((N, S))
-    p = np.full(S, float(prior_scale))
-    for k in range(N):
-        p = p + q[k]
-        p_pred[k] = p
-        g = np.where(free[k], p / (p + 1.0), 0.0)
-        gain[k] = g
-        p = p * (1.0 - g)
-        p_filt[k] = p
-    x_filt = np.empty((N, S, 6))
-    x = x0.copy()
-    zf = np.where(free[..., None], z, 0.0)
-    active = free.any(1)
-    for k in range(N):
-        if active[k]:
-            x = x + gain[k][:, None] * (zf[k] - x)
-        x_filt[k] = x
+    if N:
+        dt[0] = 0.0
+    sm = BiasSmoother(S, time_constant=time_constant, period=float(period), ft_std=ft_std,
+                      ft_cov=ft_cov, offset=offset, prior_scale=prior_scale)  # fmt: skip
+    sm.forward(z, free, ts)
+    sm.smooth(smoother)
+    x, p = sm.offsets(0, N)
     since = np.empty((N, S))
     last = np.full(S, np.inf)
     for k in range(N):
         last = np.where(free[k], 0.0, last + dt[k])
         since[k] = last
-    if not smoother or N == 0:
-        return BiasTrack(x_filt, p_filt, R, free, since)
-    # Rauch-Tung-Striebel backward pass (identity transition: x_pred[k + 1] = x_filt[k])
-    x_s = x_filt.copy()
-    p_s = p_filt.copy()
-    for k in range(N - 2, -1, -1):
-        c = p_filt[k] / p_pred[k + 1]
-        x_s[k] = x_filt[k] + c[:, None] * (x_s[k + 1] - x_filt[k])
-        p_s[k] = p_filt[k] + c * c * (p_s[k + 1] - p_pred[k + 1])
-    return BiasTrack(x_s, p_s, R, free, since)
+    return BiasTrack(x, p, sm.R, free, since)
