@@ -20,9 +20,13 @@ is kept inside the friction cone of its ``normal`` (contact field) and friction 
 warm-started from their predecessor's estimate (:class:`~torchcontact.PreviousFrame`), across
 chunks too (a chunk's first frame starts from the previous chunk's last estimates, matched by
 link, kind and order), but never across a time-segment boundary (a repeated, backward or gapped
-``t_ns``): a segment's first frame starts cold. Non-convergence is not a status bit (status bits
-mean NaN outputs; a frame that did not converge keeps its last interior-point iterate, inside
-the cones): it is ``converged.<sensor> = false``.
+``t_ns``): a segment's first frame starts cold. A frame that does not converge (after the
+estimator's restart from the pseudo-inverse) gets status bit 256 (``NOT_CONVERGED``) and
+``converged.<sensor> = false``, and keeps its last interior-point iterate, inside the cones: the
+one status bit whose frames keep their outputs (never ``ok``, counted in the summary).
+
+Noise (:attr:`LogEstimator.noise`, :mod:`torchcontact.logs.noise`): with a weighted noise every
+chunk's solve is whitened by each sensor's covariance (fixed, or the frame's ``ft_cov.<sensor>``).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ from torchcontact.logs.decode import ChunkDecoder, Decoded, FrameIssues, status_
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, DerivativeStream, time_segments
 from torchcontact.logs.format import (
     META_DERIVED,
+    META_FT_NOISE,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
@@ -54,7 +59,9 @@ from torchcontact.logs.format import (
     output_schema,
     struct_list,
 )
+from torchcontact.logs.noise import FTNoise
 from torchcontact.model import RobotModel
+from torchcontact.status import Status
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
@@ -63,6 +70,8 @@ __all__ = [
     "decoded_chunks",
     "estimate_stream",
 ]
+
+NOT_CONVERGED = int(Status.NOT_CONVERGED)
 
 #: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
 DEFAULT_VELOCITY_MARGIN = 2.0
@@ -144,6 +153,8 @@ class LogEstimator:
         layout: the log's slot layout (:meth:`LogScan.layout`): every chunk runs the same
             program; None: each chunk gets the layout covering its own records.
         step_ns: the log's median time step (segments: :mod:`torchcontact.logs.derive`).
+        noise: the F/T noise weighing the solve (:class:`~torchcontact.logs.noise.FTNoise`; set
+            it with :meth:`set_noise` before the first chunk); None: the unweighted solve.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -163,6 +174,7 @@ class LogEstimator:
     constraints: LogConstraints | None = None
     layout: SlotLayout | None = None
     step_ns: float = 0.0
+    noise: FTNoise | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
     decoder: ChunkDecoder = field(init=False)
@@ -193,6 +205,13 @@ class LogEstimator:
             cons is not None, self.residual_columns(), self.source,
         )  # fmt: skip
         self._schema = None
+        self.set_noise(self.noise)
+
+    def set_noise(self, noise: FTNoise | None) -> None:
+        """Weigh the solve by ``noise`` (its column sensors' ``ft_cov`` are then decoded)."""
+        self.noise = noise
+        self.decoder.cov_sensors = [] if noise is None else noise.column_sensors()
+        self._schema = None
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
@@ -217,6 +236,8 @@ class LogEstimator:
             META_SENSORS: json.dumps(list(self.sensors)),
             META_DERIVED: json.dumps(derived),
         }
+        if self.noise is not None:
+            meta[META_FT_NOISE] = self.noise.metadata()
         if self.residual is not None:
             meta[META_RESIDUAL] = json.dumps(
                 {
@@ -302,8 +323,9 @@ class LogEstimator:
             code = np.where(d.short & state_ok, code & ~2, code)
         code = code | d.issues.code
         self._explain(code, d.qd, ft, d.issues)
-        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are)
-        bad = code != 0
+        # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are),
+        # but for NOT_CONVERGED alone: its outputs are the solver's last iterate
+        bad = (code & ~NOT_CONVERGED) != 0
         jt = np.where(bad[:, None], np.nan, res["tau"])
 
         # ---- output rows: input contacts with force and moment added, in record order
@@ -366,6 +388,9 @@ class LogEstimator:
             kw["base"] = _base_motion(d.base, t)
         if d.tau is not None:
             kw["tau_measured"] = t(d.tau)
+        cov = None if self.noise is None else self.noise.covariances(d.ft_cov)
+        if cov is not None:
+            kw["ft_covariance"] = {s: t(c) for s, c in cov.items()}
         if cons is None:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
         kw["constraints"] = cons.cones
@@ -423,6 +448,10 @@ class LogEstimator:
                 skw["base"] = type(kw["base"])(*(x[idx] for x in kw["base"]))
             if "tau_measured" in kw:
                 skw["tau_measured"] = kw["tau_measured"][idx]
+            if "ft_covariance" in kw:  # per-frame covariances of the log's column
+                skw["ft_covariance"] = {
+                    s: c[idx] if c.dim() == 3 else c for s, c in kw["ft_covariance"].items()
+                }
             r = _arrays(
                 self.estimator.estimate(
                     **sub, contacts=_take(contacts, idx),

@@ -13,6 +13,9 @@ Input columns (see the README section "Processing logs"):
   ``torchcontact.joint_names``. ``qd``/``qdd`` may be missing (derived from ``q``).
 - ``ft.<sensor>``: 6 float64 ``[force (N); moment (N m)]`` in the sensor's declared frame and
   measure direction.
+- ``ft_cov.<sensor>`` (optional): 36 float64, the ``6 x 6`` covariance of that frame's
+  ``ft.<sensor>`` noise, row-major, ``[N; N m]`` squared units, symmetric positive definite:
+  ``estimate`` weighs each frame's solve by it (:func:`ft_cov_column`; ``docs/accuracy.md``).
 - ``tau_measured`` (optional): nv float64, NaN where a joint has no torque sensor.
 - ``base.omega``, ``base.domega``, ``base.acc`` (optional): 3 float64 each, IMU on the base, base
   frame (rad/s, rad/s^2, proper acceleration m/s^2).
@@ -55,6 +58,8 @@ __all__ = [
     "LOCALIZATION_COLUMNS",
     "NUMBERS",
     "META_DERIVED",
+    "META_FT_NOISE",
+    "META_FT_PROFILES",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
     "META_SENSORS",
@@ -71,6 +76,7 @@ __all__ = [
     "contacts_column",
     "fixed_list",
     "ft_column",
+    "ft_cov_column",
     "ft_log_schema",
     "input_schema",
     "iter_chunks",
@@ -106,6 +112,14 @@ META_SOURCE = b"torchcontact.source"
 #: Output logs estimated with a learned F/T correction: JSON ``{"checkpoint", "weights_sha256",
 #: "sensor", "kind"}`` (``torchcontact estimate --residual``).
 META_RESIDUAL = b"torchcontact.residual"
+#: The F/T sensor profiles of a log (:mod:`torchcontact.drivers.profiles`): JSON ``{sensor:
+#: profile name or TOML path}``; ``estimate`` takes a sensor's noise from its profile's datasheet
+#: ``[noise]`` when neither ``--ft-noise`` nor an ``ft_cov.<sensor>`` column gives it.
+META_FT_PROFILES = b"torchcontact.ft_profiles"
+#: Output logs: the F/T noise each sensor's solve was weighted by, JSON ``{"weighted": bool,
+#: "sensors": {sensor: {"source": text, "std": 6 floats or null}}}`` (``estimate``'s summary
+#: ``noise``).
+META_FT_NOISE = b"torchcontact.ft_noise"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 #: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.
@@ -123,6 +137,16 @@ WRITE_OPTIONS: dict[str, Any] = {
 def ft_column(sensor: str) -> str:
     """Column name of a sensor's readings, ``ft.<sensor>``."""
     return f"ft.{sensor}"
+
+
+def ft_cov_column(sensor: str) -> str:
+    """The per-frame F/T noise covariance column of a sensor (36 float64, row-major ``6 x 6``).
+
+    Example:
+        >>> ft_cov_column("base_ft")
+        'ft_cov.base_ft'
+    """
+    return f"ft_cov.{sensor}"
 
 
 def fixed_list(values: np.ndarray) -> Any:

@@ -275,12 +275,53 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
         ident["residual_weights_sha256"] = le.residual.meta.get("weights_sha256")
     if le.constraints is not None:  # a resume must estimate with the same cones
         ident["constraints"] = repr(le.constraints)
+    if le.noise is not None:  # ... and the same noise
+        ident["noise"] = le.noise.summary()
     return ident
+
+
+def log_noise(
+    pf: Any,
+    le: LogEstimator,
+    columns: list[str],
+    half_window: int,
+    ft_noise: Mapping[str, Any] | None,
+    unweighted: bool,
+    source: str,
+) -> None:
+    """Resolve the run's F/T noise (:mod:`torchcontact.logs.noise`) and set it on ``le``.
+
+    Each sensor's noise comes from ``ft_noise``, the log's ``ft_cov.<sensor>`` column, its
+    profile in the log's metadata, or its contact-free frames (read from the log's start in
+    chunks of a fixed size, so that a resume with another ``batch_size`` finds the same noise);
+    ``columns`` gains the covariance columns to read.
+
+    Raises:
+        InputError: an ``ft_noise`` sensor the robot lacks or the run does not use, a bad
+            standard deviation or profile, ``ft_noise`` with ``unweighted``.
+    """
+    from torchcontact.logs.format import ft_cov_column
+    from torchcontact.logs.noise import contact_free_noise, parse_ft_noise, resolve
+
+    given = ft_noise if isinstance(ft_noise, Mapping) else parse_ft_noise(ft_noise)
+
+    def estimate(sensors: list[str]) -> dict:
+        tables = read_chunks(pf, columns, 8192, source)
+        return contact_free_noise(le, decoded_chunks(le, tables, half_window), sensors)
+
+    schema = pf.schema_arrow
+    noise = resolve(le.sensors, list(le.model.ft_sensors), given, schema.names, schema.metadata,
+                    estimate, unweighted=unweighted, torques="tau_measured" in columns,
+                    source=source)  # fmt: skip
+    le.set_noise(noise)
+    columns += [ft_cov_column(s) for s in noise.column_sensors()]
 
 
 def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     """Summary keys that describe the log itself (the same for both engines)."""
     out: dict[str, Any] = {"sensors": list(le.sensors), "derived": list(le.derived)}
+    if le.noise is not None:
+        out["noise"] = le.noise.summary()
     out["slots"] = len(le.layout.links) if le.layout is not None else None
     out["time_segments"] = scan.segments
     if le.derived:
@@ -305,6 +346,8 @@ def estimate_file(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
+    ft_noise: Mapping[str, Any] | Sequence[str] | None = None,
+    unweighted: bool = False,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -329,14 +372,22 @@ def estimate_file(
             status bit 64 (None: no check).
         ft_range: ``{sensor: (6,) or scalar}`` [N; N m]; readings beyond it get status bit 64.
         constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
+        ft_noise: ``{sensor: (6,) standard deviations [N; N m] or a profile name}`` or the
+            ``--ft-noise`` strings (:func:`torchcontact.logs.noise.parse_ft_noise`): the noise
+            weighing the solve; sensors not given take theirs from the log
+            (:mod:`torchcontact.logs.noise`).
+        unweighted: the paper's unweighted ``pinv(A) b`` (no ``ft_noise`` then).
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
         frames_per_s, sensors, derived, slots (of the log's layout), time_segments (and with
         derived ``qd``/``qdd`` not_differentiable), resumed_chunks, chunks, engine, bad_frames
         (frames of the output with a non-zero status), bad_details (the most frequent details
-        of those, with counts); with constraints also ``cones``: ``converged`` share,
-        ``iterations_mean`` and ``iterations_max`` over the frames estimated now.
+        of those, with counts), noise (:meth:`~torchcontact.logs.noise.FTNoise.summary`: which
+        source weighed each sensor, or why the solve is unweighted); with constraints also
+        ``cones`` (:func:`~torchcontact.logs.run.unusable`'s tally: solves, frames converged
+        and not, frames with an active cone, well-posed frames whose unconstrained estimate
+        lies outside a cone) over the frames estimated now.
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
@@ -372,6 +423,7 @@ def estimate_file(
         pf, le, columns, scan = prepare(
             path, model, sensors, residual, velocity_margin, ft_range, constraints
         )
+        log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         # an interrupted run keeps its chunk size: read it before the ident is compared
