@@ -377,7 +377,9 @@ def parse_profile(data: dict[str, Any], origin: str = "<profile>") -> Profile:
         nz = _need(data, "noise", dict, "the top level", origin)
         _check_keys("[noise]", nz, {"std", "source"}, origin)
         std = _need(nz, "std", list, "[noise]", origin)
-        ok = len(std) == 6 and all(isinstance(v, (int, float)) and 0 < v < float("inf") for v in std)
+        ok = len(std) == 6 and all(
+            isinstance(v, (int, float)) and 0 < v < float("inf") for v in std
+        )
         if not ok:
             raise ProfileError(
                 f"{origin}: [noise].std must be 6 numbers > 0 [N; N m] (fx fy fz mx my mz), got"

@@ -585,14 +585,20 @@ class ChunkDecoder:
         vals = self._vectors(table, name, 36, 1, issues).reshape(-1, 6, 6)
         bad = ~np.isfinite(vals).all((1, 2))
         issues.add(bad, 1, f"{name} is not 36 finite floats")
-        vals[bad] = np.eye(6)
+        if bad.any():  # Arrow's memory is read-only
+            vals = vals.copy()
+            vals[bad] = np.eye(6)
         scale = np.abs(vals).max((1, 2))
         asym = np.abs(vals - vals.transpose(0, 2, 1)).max((1, 2)) > 1e-9 * scale
         lam = np.linalg.eigvalsh(0.5 * (vals + vals.transpose(0, 2, 1))).min(1)
         wrong = asym | ~(lam > 1e-12 * scale)
         if wrong.any():
             i = int(np.flatnonzero(wrong)[0])
-            what = "not symmetric" if asym[i] else f"not positive definite (smallest eigenvalue {lam[i]:.3g})"
+            what = (
+                "not symmetric"
+                if asym[i]
+                else f"not positive definite (smallest eigenvalue {lam[i]:.3g})"
+            )
             raise InputError(
                 f"{self.source}: {name} of row {first_row + i} is {what}; a covariance must be"
                 " symmetric positive definite"

@@ -12,9 +12,10 @@ sensor's noise from the first of these that gives it:
    (:data:`torchcontact.logs.format.META_FT_PROFILES`);
 4. an estimate from the log's contact-free frames (:func:`contact_free_noise`).
 
-When a sensor gets none (too few contact-free frames), or the log has ``tau_measured`` (the
-torque rows' noise is not known), the run keeps the paper's unweighted ``pinv(A) b`` and says why;
-``--unweighted`` asks for it. The summary's ``noise`` says which source each sensor used.
+When a sensor gets none (too few contact-free frames, or no measurable noise in them), or the
+log has ``tau_measured`` (the torque rows' noise is not known), the run keeps the paper's
+unweighted ``pinv(A) b`` and says why; ``--unweighted`` asks for it. The summary's ``noise``
+says which source each sensor used.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ __all__ = [
 MIN_NOISE_PAIRS = 50
 #: Contact-free frame pairs the estimate reads at most (the first ones of the log).
 NOISE_PAIRS = 20_000
-#: Smallest standard deviation an estimate returns, N or N m (a noise-free simulated log gets
-#: equal weights, the unweighted solve, instead of whitening by rounding errors).
+#: Smallest standard deviation an estimate returns, N or N m; a sensor whose estimate has an axis
+#: at this floor (a noise-free simulated log, a quantised reading that repeats) is not weighted by
+#: it: the run is unweighted and says why, instead of whitening by rounding errors.
 STD_FLOOR = 1e-6
 #: MAD -> standard deviation of a Gaussian.
 _MAD_SCALE = 1.482602218505602
@@ -256,7 +258,9 @@ def resolve(
         if s in given:
             g = given[s]
             if isinstance(g, str):
-                out[s] = SensorNoise(f"profile {g} (--ft-noise)", _profile_std(g, f"--ft-noise {s}"))
+                out[s] = SensorNoise(
+                    f"profile {g} (--ft-noise)", _profile_std(g, f"--ft-noise {s}")
+                )
             else:
                 out[s] = SensorNoise("--ft-noise", tuple(g))
         elif ft_cov_column(s) in columns:
@@ -275,6 +279,12 @@ def resolve(
                     out,
                     f"{s}: {pairs} consecutive contact-free frame pairs, fewer than the"
                     f" {MIN_NOISE_PAIRS} a noise estimate needs; give --ft-noise",
+                )
+            if (np.asarray(std) <= STD_FLOOR).any():
+                return FTNoise(
+                    out,
+                    f"{s}: its contact-free frames show no noise (std <= {STD_FLOOR:g} on an"
+                    " axis: a noise-free or quantised log); give --ft-noise",
                 )
             out[s] = SensorNoise(f"contact-free frames ({pairs} pairs)", tuple(std))
     return FTNoise(out)
@@ -335,6 +345,8 @@ def contact_free_noise(
         r[rows] = np.concatenate(
             [d.ft[s][rows] - pred[s].detach().cpu().numpy() for s in sensors], 1
         )
+        fin = np.isfinite(r).all(1)  # a state that overflows the dynamics is no sample
+        nxt &= fin[1:] & fin[:-1]
         diffs.append((r[1:] - r[:-1])[nxt])
         have += int(nxt.sum())
         if have >= pairs:

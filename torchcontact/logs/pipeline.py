@@ -305,9 +305,14 @@ def log_noise(
 
     given = ft_noise if isinstance(ft_noise, Mapping) else parse_ft_noise(ft_noise)
 
+    def chunks() -> Iterator[Any]:
+        try:
+            yield from decoded_chunks(le, read_chunks(pf, columns, 8192, source), half_window)
+        except LogError:  # damaged data: the noise is estimated from the frames before it, and
+            return  # the run meets the damage after estimating those (kept for --resume)
+
     def estimate(sensors: list[str]) -> dict:
-        tables = read_chunks(pf, columns, 8192, source)
-        return contact_free_noise(le, decoded_chunks(le, tables, half_window), sensors)
+        return contact_free_noise(le, chunks(), sensors)
 
     schema = pf.schema_arrow
     noise = resolve(le.sensors, list(le.model.ft_sensors), given, schema.names, schema.metadata,
