@@ -345,6 +345,14 @@ class LogEstimator:
             ca = np.zeros(M, bool)
             ca[ok_c] = res["active"][records.frame[ok_c], slot[ok_c]]
             children["cone_active"] = pa.array(ca, mask=~ok_c)
+            # the unconstrained estimate outside the cone: on well-posed frames only
+            well = ~bad
+            for sname in self.sensors:
+                well &= res[f"rank.{sname}"] == res[f"unknowns.{sname}"]
+            ok_w = ok_c & well[records.frame] if M else ok_c
+            oc = np.zeros(M, bool)
+            oc[ok_w] = res["outside"][records.frame[ok_w], slot[ok_w]]
+            children["outside_cone"] = pa.array(oc, mask=~ok_w)
         out: dict[str, Any] = {"t_ns": d.t_ns}
         out["contacts"] = struct_list(children, records.frame, N, ctype)
         out["joint_torques"] = fixed_list(jt)
@@ -393,7 +401,27 @@ class LogEstimator:
             kw["ft_covariance"] = {s: t(c) for s, c in cov.items()}
         if cons is None:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
-        kw["constraints"] = cons.cones
+        # the unconstrained estimate (same weighting): is it outside a cone? (friction that
+        # contradicts the data shows on the well-posed frames)
+        free = est.estimate(**args, contacts=contacts, **kw)
+        outside = est.outside_cones(contacts, free.force).cpu().numpy()
+        out = self._constrained(d, args, contacts, previous, kw, t)
+        out["outside"] = outside
+        return out
+
+    def _constrained(
+        self,
+        d: Decoded,
+        args: dict[str, Any],
+        contacts: Contacts,
+        previous: Any,
+        kw: dict[str, Any],
+        t: Any,
+    ) -> dict[str, np.ndarray]:
+        """The constrained estimate of a chunk, warm-started as :class:`LogConstraints` says."""
+        est, cons = self.estimator, self.constraints
+        assert cons is not None
+        kw = {**kw, "constraints": cons.cones}
         if not cons.warm_start:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
         starts = d.starts if d.starts is not None else np.zeros(d.n, bool)

@@ -95,6 +95,18 @@ def _constraints(args: argparse.Namespace) -> Any:
     return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
 
 
+def _describe_cones(c: dict) -> str:
+    """The summary's ``cones`` in one line."""
+    return (
+        f"{c['converged']:.2%} of {c['solved']} solves converged,"
+        f" {c['iterations_mean']:.1f} iterations on average; {c['converged_frames']} frames"
+        f" converged, {c['not_converged_frames']} not (status bit 256);"
+        f" {c['cone_active_frames']} with an active cone; {c['outside_cone_frames']} of"
+        f" {c['well_posed_frames']} well-posed frames with the unconstrained estimate outside"
+        " a cone"
+    )
+
+
 def _describe_noise(noise: dict) -> str:
     """The summary's ``noise`` in one line: the source of each sensor's, or why none."""
     if not noise["weighted"]:
@@ -178,13 +190,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 f"{s['input']} -> {s['output']}: {s['frames']} frames"
                 f" ({s['frames_per_s']:.0f} frames/s, {s['bad_now']} with a non-zero status)"
                 + (f", derived {'/'.join(s['derived'])} from q" if s["derived"] else "")
-                + (
-                    f"; cones: {s['cones']['converged']:.2%} of {s['cones']['solved']} solves"
-                    f" converged, {s['cones']['iterations_mean']:.1f} iterations on average"
-                    if "cones" in s
-                    else ""
-                )
             )
+            if "cones" in s:
+                print(f"  cones: {_describe_cones(s['cones'])}")
             if "noise" in s:
                 print(f"  noise: {_describe_noise(s['noise'])}")
     failed = [m for m in (unusable(s, args.max_bad) for s in summaries) if m]

@@ -33,8 +33,10 @@ every contact and has ``joint_torques``, ``rank.<sensor>``, ``unknowns.<sensor>`
 cannot see), ``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcontact.STATUS`),
 ``status`` (its text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log
 pipeline found, or null). A friction-cone constrained estimate also has ``converged.<sensor>``
-(bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and ``cone_active``
-(bool) on every contact. A localizing estimate (``--localize``) adds the columns of
+(bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and, on every contact,
+``cone_active`` (bool: the cone binds) and ``outside_cone`` (bool: the unconstrained estimate of
+the contact lies outside its cone; null unless the frame is well posed, ``rank == unknowns``).
+A localizing estimate (``--localize``) adds the columns of
 :func:`localization_fields` per localizing sensor (:data:`LOCALIZATION_COLUMNS`).
 """
 
@@ -262,7 +264,8 @@ def output_schema(
         contact_fields: ``(name, type)`` fields of the input contact struct (empty: no
             ``contacts`` column in the input); ``force`` and ``moment`` are appended.
         metadata: schema metadata (joint names are added).
-        constraints: a friction-cone constrained estimate: contacts get ``cone_active``, each
+        constraints: a friction-cone constrained estimate: contacts get ``cone_active`` and
+            ``outside_cone``, each
             sensor ``converged.<s>`` and ``iterations.<s>``.
         localize: the sensors whose contact is localized (``estimate --localize``): their
             :func:`localization_fields` come after ``status_detail``.
@@ -280,7 +283,11 @@ def output_schema(
             *[pa.field(n, t) for n, t in contact_fields],
             pa.field("force", pa.list_(pa.float64(), 3)),
             pa.field("moment", pa.list_(pa.float64(), 3)),
-            *([pa.field("cone_active", pa.bool_())] if constraints else []),
+            *(
+                [pa.field("cone_active", pa.bool_()), pa.field("outside_cone", pa.bool_())]
+                if constraints
+                else []
+            ),
         ]
     )
     fields = [("t_ns", pa.int64()), ("contacts", pa.list_(contact))]
