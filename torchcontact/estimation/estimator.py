@@ -188,6 +188,7 @@ class ContactEstimator:
         constraints: FrictionCones | None = None,
         warm_start: tuple[Tensor, Tensor] | PreviousFrame | None = None,
         nullspace: bool = False,
+        covariance: bool = True,
     ) -> ContactEstimate:
         """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
 
@@ -236,6 +237,8 @@ class ContactEstimator:
                 :class:`~torchcontact.constrained.PreviousFrame`: the batch is a time series and
                 each frame starts from its predecessor's estimate (computed in waves).
             nullspace: also return each region's null-space basis (``nullspace`` of the result).
+            covariance: with ``ft_covariance`` and no constraints, also return the estimate's
+                ``covariance`` (False: only weigh the solve by the noise, a cheaper program).
 
         Returns:
             :class:`ContactEstimate`.
@@ -350,7 +353,7 @@ class ContactEstimator:
         elif warm_start is not None:
             raise InputError("warm_start needs constraints (it starts the constrained solver)")
         waves = warm_start if isinstance(warm_start, PreviousFrame) else None
-        with_cov = ft_covariance is not None and cone_flags is None
+        with_cov = ft_covariance is not None and cone_flags is None and bool(covariance)
         if not with_cov and not weighted:
             tensors.pop("ft_cov", None)
             tensors.pop("tau_var", None)

@@ -397,8 +397,9 @@ class LogEstimator:
         if d.tau is not None:
             kw["tau_measured"] = t(d.tau)
         cov = None if self.noise is None else self.noise.covariances(d.ft_cov)
-        if cov is not None:
+        if cov is not None:  # the weights; the estimate's covariance is not written
             kw["ft_covariance"] = {s: t(c) for s, c in cov.items()}
+            kw["covariance"] = False
         if cons is None:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
         # the unconstrained estimate (same weighting): is it outside a cone? (friction that
