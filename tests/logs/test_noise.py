@@ -103,3 +103,15 @@ def test_noise_sources_in_order_and_the_weighting_helps(model, noisy_log, tmp_pa
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
         assert not out.exists()
+
+
+def test_driver_logs_name_their_profile_and_the_profile_gives_the_datasheet_noise(tmp_path):
+    from torchcontact.drivers.log import FTLogWriter
+    from torchcontact.drivers.profiles import load_profile
+
+    with FTLogWriter(tmp_path / "ft.parquet", "ft300", profile="robotiq-ft300") as log:
+        log.append(1, np.zeros(6))
+    meta = pq.read_schema(tmp_path / "ft.parquet").metadata
+    assert json.loads(meta[META_FT_PROFILES]) == {"ft300": "robotiq-ft300"}
+    assert load_profile("robotiq-ft300").noise_std == tuple(STD)
+    assert load_profile("generic-float32").noise_std is None  # no datasheet: no noise
