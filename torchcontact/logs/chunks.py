@@ -11,7 +11,8 @@ threads (:mod:`torchcontact.logs.pipeline`), the Ray engine inside each task
 Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
 (its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
 joint beyond its velocity limit, a frame too short to differentiate, ...). Frames with a non-zero
-code have NaN outputs; the rest of the log is processed.
+code have NaN outputs, but for ``NOT_CONVERGED`` (256) alone (see below); the rest of the log is
+processed.
 
 Friction cones (:class:`LogConstraints`, ``estimate --constraints``): every pushing contact's force
 is kept inside the friction cone of its ``normal`` (contact field) and friction coefficient
