@@ -66,14 +66,24 @@ def test_noise_sources_in_order_and_the_weighting_helps(model, noisy_log, tmp_pa
 
     # a per-frame ft_cov column (the datasheet's covariance) ...
     cov = np.tile(np.diag(STD**2).reshape(1, 36), (600, 1))
-    col = pa.FixedSizeListArray.from_arrays(pa.array(cov.reshape(-1)), 36)
+    rows = [list(r) for r in cov]
+    rows[5], rows[6] = None, [np.nan] * 36  # malformed values: that frame's status, not the run
+    col = pa.array(rows, pa.list_(pa.float64(), 36))
     log_c = _with(noisy_log, tmp_path / "c.parquet", {ft_cov_column("base_ft"): col})
     c = estimate_file(log_c, model, tmp_path / "ec.parquet")
     assert c["noise"]["sensors"]["base_ft"] == {"source": "column ft_cov.base_ft", "std": None}
+    est_c = pq.read_table(c["output"])
+    assert np.flatnonzero(est_c["status_code"].to_numpy()).tolist() == [5, 6]
+    assert est_c["status_detail"].to_pylist()[5:7] == [
+        "ft_cov.base_ft is not 36 floats", "ft_cov.base_ft is not finite"
+    ]  # fmt: skip
     # ... equals the same noise given on the command line, which comes first
     g = estimate_file(log_c, model, tmp_path / "eg.parquet", ft_noise=["base_ft=0.1,0.005"])
     assert g["noise"]["sensors"]["base_ft"]["source"] == "--ft-noise"
-    np.testing.assert_allclose(_forces(tmp_path / "ec.parquet"), _forces(g["output"]), atol=1e-9)
+    fc, fg = _forces(c["output"]), _forces(g["output"])
+    ok = np.isfinite(fc).all(1)
+    assert (~ok).sum() == sum(len(r) for r in est_c["contacts"].to_pylist()[5:7])
+    np.testing.assert_allclose(fc[ok], fg[ok], atol=1e-9)
     assert not np.allclose(_forces(g["output"]), _forces(u["output"]), atol=1e-3)
 
     # the profile named in the log's metadata: its datasheet noise, the same estimate again
@@ -85,6 +95,12 @@ def test_noise_sources_in_order_and_the_weighting_helps(model, noisy_log, tmp_pa
         "std": STD.tolist(),
     }
     np.testing.assert_allclose(_forces(p["output"]), _forces(g["output"]), atol=1e-9)
+
+    # measured joint torques (no noise known for their rows): unweighted, saying why
+    tau = pa.array([[np.nan] * model.nv] * 600, pa.list_(pa.float64(), model.nv))
+    log_t = _with(noisy_log, tmp_path / "t.parquet", {"tau_measured": tau})
+    t = estimate_file(log_t, model, tmp_path / "et.parquet")["noise"]
+    assert not t["weighted"] and "tau_measured" in t["reason"]
 
     # a covariance that is not symmetric positive definite, an unknown sensor: one error line
     bad = cov.copy()

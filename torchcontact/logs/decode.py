@@ -582,9 +582,11 @@ class ChunkDecoder:
                 file, the row and the smallest eigenvalue).
         """
         name = ft_cov_column(sensor)
-        vals = self._vectors(table, name, 36, 1, issues).reshape(-1, 6, 6)
+        vals, malformed = vectors(table.column(name), 36)
+        issues.add(malformed, 1, f"{name} is not 36 floats")
+        vals = vals.reshape(-1, 6, 6)
         bad = ~np.isfinite(vals).all((1, 2))
-        issues.add(bad, 1, f"{name} is not 36 finite floats")
+        issues.add(bad & ~malformed, 1, f"{name} is not finite")
         if bad.any():  # Arrow's memory is read-only
             vals = vals.copy()
             vals[bad] = np.eye(6)
