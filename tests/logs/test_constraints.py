@@ -2,12 +2,15 @@
 ``cone_active``/``nullity`` out, the warm start across chunks, bad cone fields as per-frame
 status, option errors."""
 
+import json
+
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from torchcontact.cli import main
+from torchcontact.constrained import FrictionCones
 from torchcontact.logs import LogConstraints, estimate_file, write_simulated_log
 
 MU = 0.5
@@ -32,9 +35,23 @@ def _forces(path):
 def test_cli_keeps_pushing_forces_inside_their_cones(cone_log, tmp_path, capsys):
     out = tmp_path / "e.parquet"
     args = ["estimate", str(cone_log), "--out", str(out), "--quiet", "--batch-size", "512"]
-    assert main([*args, "--constraints", "--friction", str(MU)]) == 0
-    assert "cones: 100.00% of" in capsys.readouterr().out
+    assert main([*args, "--constraints", "--friction", str(MU), "--json"]) == 0
+    cap = capsys.readouterr()
+    cones = json.loads(cap.out)["cones"]
+    assert cones["converged"] == 1.0 and cones["not_converged_frames"] == 0
     est, inp = pq.read_table(out), pq.read_table(cone_log)
+    # friction that contradicts the data (issue 20): a quarter of the true forces lie outside
+    # mu = 0.5; the well-posed frames whose unconstrained estimate does are counted and warned of
+    oc = [[c["outside_cone"] for c in r] for r in est["contacts"].to_pylist()]
+    well = est["rank.base_ft"].to_numpy() == est["unknowns.base_ft"].to_numpy()
+    assert all(v is None for r, w in zip(oc, well, strict=True) if not w for v in r)
+    outside = sum(any(r) for r, w in zip(oc, well, strict=True) if w and r)
+    assert cones["well_posed_frames"] == sum(bool(r) for r, w in zip(oc, well, strict=True) if w)
+    assert cones["outside_cone_frames"] == outside > 0.1 * cones["well_posed_frames"]
+    warn = [ln for ln in cap.err.splitlines() if ln.startswith("warning:")]
+    assert len(warn) == 1 and f"{outside} of {cones['well_posed_frames']} well-posed" in warn[0]
+    active = sum(any(c["cone_active"] for c in r) for r in est["contacts"].to_pylist())
+    assert cones["cone_active_frames"] == active
     assert (est["status_code"].to_numpy() == 0).all()
     assert est["converged.base_ft"].to_numpy(zero_copy_only=False).all()
     its = est["iterations.base_ft"].to_numpy(zero_copy_only=False)
@@ -53,10 +70,12 @@ def test_cli_keeps_pushing_forces_inside_their_cones(cone_log, tmp_path, capsys)
             active += bool(c_out["cone_active"])
     assert active > 0
     # same answers warm-started in other chunks, and started cold, to the solver's accuracy
-    cold = estimate_file(cone_log, model_path(), tmp_path / "c.parquet",
-                         constraints=LogConstraints(friction=MU, warm_start=False))  # fmt: skip
-    one = estimate_file(cone_log, model_path(), tmp_path / "o.parquet", batch_size=4096,
-                        constraints=LogConstraints(friction=MU))  # fmt: skip
+    with pytest.warns(UserWarning, match="well-posed frames"):
+        cold = estimate_file(cone_log, model_path(), tmp_path / "c.parquet",
+                             constraints=LogConstraints(friction=MU, warm_start=False))  # fmt: skip
+    with pytest.warns(UserWarning, match="well-posed frames"):
+        one = estimate_file(cone_log, model_path(), tmp_path / "o.parquet", batch_size=4096,
+                            constraints=LogConstraints(friction=MU))  # fmt: skip
     for other in (cold, one):
         np.testing.assert_allclose(_forces(other["output"]), _forces(out), atol=SOLVER_ATOL)
 
@@ -81,8 +100,9 @@ def test_bad_cone_fields_get_a_status_and_the_rest_is_processed(cone_log, tmp_pa
     )  # fmt: skip
     log = tmp_path / "bad.parquet"
     pq.write_table(bad, log)
-    out = estimate_file(log, model_path(), tmp_path / "e.parquet",
-                        constraints=LogConstraints(friction=MU))["output"]  # fmt: skip
+    with pytest.warns(UserWarning, match="well-posed frames"):
+        out = estimate_file(log, model_path(), tmp_path / "e.parquet",
+                            constraints=LogConstraints(friction=MU))["output"]  # fmt: skip
     est = pq.read_table(out)
     code = est["status_code"].to_numpy()
     assert code[zero] & 8 and code[negative] & 4 and code[none] & 4
@@ -91,6 +111,35 @@ def test_bad_cone_fields_get_a_status_and_the_rest_is_processed(cone_log, tmp_pa
     assert "friction" in detail[negative] and "normal" in detail[none]
     rest = np.setdiff1d(np.arange(len(code)), [zero, negative, none])
     assert (code[rest] == 0).all()
+
+
+def test_unconverged_frames_keep_their_iterate_and_are_never_ok(model, sim_log, tmp_path):
+    # a budget of 2 interior-point iterations: many frames stop before converging (mu = 0.3: the
+    # log's one contact episode pushes 22.7 deg off its normal, outside the cone)
+    mu = 0.3
+    cones = FrictionCones(iterations=2, objective="min_norm")
+    with pytest.warns(UserWarning, match="well-posed frames"):
+        s = estimate_file(sim_log, model, tmp_path / "e.parquet",
+                          constraints=LogConstraints(cones, friction=mu))  # fmt: skip
+    est = pq.read_table(s["output"])
+    code = est["status_code"].to_numpy()
+    failed = (code & 256) != 0
+    conv = est["converged.base_ft"].to_numpy(zero_copy_only=False)
+    assert failed.any() and (conv[failed] == False).all()  # noqa: E712 - object array
+    assert (code[failed] == 256).all() and "ok" not in est["status"].to_numpy(False)[failed]
+    assert s["cones"]["not_converged_frames"] == int(failed.sum()) == s["bad_frames"]
+    assert s["cones"]["converged_frames"] + int(failed.sum()) == s["cones"]["frames"]
+    # the outputs are the last iterate: finite, and every force inside its cone
+    for i in np.flatnonzero(failed):
+        for c in est["contacts"][int(i)].as_py():
+            f, n = np.array(c["force"]), np.array(c["normal"]) / np.linalg.norm(c["normal"])
+            push = -(f @ n)
+            assert np.isfinite(f).all() and np.linalg.norm(f + push * n) <= mu * push + 1e-6
+    # the objective option reaches the solver (float64 default: map)
+    args = ["estimate", str(sim_log), "--robot", "tcarm", "--quiet", "--constraints"]
+    assert main([*args, "--friction", str(mu), "--out", str(tmp_path / "m.parquet"),
+                 "--cone-objective", "min_norm", "--cone-iterations", "2"]) == 0  # fmt: skip
+    np.testing.assert_array_equal(pq.read_table(tmp_path / "m.parquet")["status_code"], code)
 
 
 @pytest.mark.parametrize(

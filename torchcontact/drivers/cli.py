@@ -148,7 +148,7 @@ def cmd_read(args: argparse.Namespace) -> int:
 
     with _user_errors():
         src = _make_source(args)
-        log = FTLogWriter(args.out, src.name) if args.out else None
+        log = FTLogWriter(args.out, src.name, profile=args.profile) if args.out else None
         src.open()
     if getattr(src, "identity", None):
         ident = {k: v for k, v in src.identity.items() if k != "raw"}
@@ -375,7 +375,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         runtime = getattr(estimator, "runtime", None)
         sensors = list(runtime.sensor_names) if exported else [src.name]
         online = runtime is not None and runtime.online is not None
-        log = FTLogWriter(args.out, sensors, bias=online)
+        log = FTLogWriter(args.out, sensors, bias=online, profile=getattr(args, "profile", None))
     loop = LiveLoop(src, joints, estimator, publishers, log=log, require_joints=args.require_joints,
                     on_frame=view)  # fmt: skip
     try:

@@ -30,6 +30,9 @@ class FTLogWriter:
             :class:`~torchcontact.drivers.live.SensorGroup`); the columns are ``ft.<sensor>``.
         batch: Rows per row group.
         bias: Add the bias columns (see the module).
+        profile: The driver profile of the sensors (name or TOML path), recorded in the schema
+            metadata ``torchcontact.ft_profiles`` (:mod:`torchcontact.logs.noise` takes the
+            readings' noise from its datasheet ``[noise]``), or None.
 
     Example:
         >>> import tempfile, os
@@ -41,11 +44,24 @@ class FTLogWriter:
     """
 
     def __init__(
-        self, path: str | Path, sensor: str | Sequence[str], batch: int = 1000, bias: bool = False
+        self,
+        path: str | Path,
+        sensor: str | Sequence[str],
+        batch: int = 1000,
+        bias: bool = False,
+        profile: str | Path | None = None,
     ) -> None:
+        import json
+
         import pyarrow as pa
 
-        from torchcontact.logs.format import BIAS_COLUMNS, bias_column, ft_column, ft_log_schema
+        from torchcontact.logs.format import (
+            BIAS_COLUMNS,
+            META_FT_PROFILES,
+            bias_column,
+            ft_column,
+            ft_log_schema,
+        )
 
         self.path = Path(path)
         self.sensors = [sensor] if isinstance(sensor, str) else list(sensor)
@@ -59,7 +75,11 @@ class FTLogWriter:
             for s in self.sensors:
                 for prefix, (_, kind, _) in BIAS_COLUMNS.items():
                     fields.append(pa.field(bias_column(prefix, s), types[kind]))
-        self.schema = pa.schema(fields)
+        meta = None
+        if profile is not None:  # estimate weighs the readings by the profile's datasheet noise
+            name = str(Path(profile).resolve()) if str(profile).endswith(".toml") else str(profile)
+            meta = {META_FT_PROFILES: json.dumps({s: name for s in self.sensors})}
+        self.schema = pa.schema(fields, metadata=meta)
         self.batch = batch
         self._t: list[int] = []
         self._w: list[np.ndarray] = []

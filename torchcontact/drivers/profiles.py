@@ -93,6 +93,9 @@ class Profile:
         stream: Optional stream mode.
         identity: Name -> (address, count) of identity registers.
         extra: Name -> Channel of additional scaled registers (e.g. acceleration).
+        noise_std: Datasheet noise standard deviation of the six channels ``[N; N m]``
+            (``[noise].std``), or None when the datasheet gives none: the weighted solve of
+            ``torchcontact estimate --ft-noise SENSOR=PROFILE`` uses it.
     """
 
     name: str
@@ -113,6 +116,7 @@ class Profile:
     stream: StreamSpec | None = None
     identity: dict[str, tuple[int, int]] = field(default_factory=dict)
     extra: dict[str, Channel] = field(default_factory=dict)
+    noise_std: tuple[float, ...] | None = None
 
     @property
     def span(self) -> tuple[int, int]:
@@ -237,7 +241,7 @@ def encode_value(value: float, type_: str, word_order: Order, byte_order: Order)
 
 _TOP_KEYS = {
     "name", "description", "source", "verified", "note",
-    "device", "map", "channels", "zero", "stream", "identity", "extra",
+    "device", "map", "channels", "zero", "stream", "identity", "extra", "noise",
 }  # fmt: skip
 _DEVICE_KEYS = {"device_id", "baudrate", "parity", "bytesize", "stopbits"}
 _MAP_KEYS = {"function", "word_order", "byte_order"}
@@ -368,6 +372,20 @@ def parse_profile(data: dict[str, Any], origin: str = "<profile>") -> Profile:
         key: _channel({"name": key, **t}, f"[extra.{key}]", origin)
         for key, t in data.get("extra", {}).items()
     }
+    noise_std = None
+    if "noise" in data:
+        nz = _need(data, "noise", dict, "the top level", origin)
+        _check_keys("[noise]", nz, {"std", "source"}, origin)
+        std = _need(nz, "std", list, "[noise]", origin)
+        ok = len(std) == 6 and all(
+            isinstance(v, (int, float)) and 0 < v < float("inf") for v in std
+        )
+        if not ok:
+            raise ProfileError(
+                f"{origin}: [noise].std must be 6 numbers > 0 [N; N m] (fx fy fz mx my mz), got"
+                f" {std}"
+            )
+        noise_std = tuple(float(v) for v in std)
     return Profile(
         name=_need(data, "name", str, "the top level", origin),
         description=data.get("description", ""),
@@ -387,6 +405,7 @@ def parse_profile(data: dict[str, Any], origin: str = "<profile>") -> Profile:
         stream=stream,
         identity=identity,
         extra=extra,
+        noise_std=noise_std,
     )
 
 

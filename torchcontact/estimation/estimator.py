@@ -188,6 +188,7 @@ class ContactEstimator:
         constraints: FrictionCones | None = None,
         warm_start: tuple[Tensor, Tensor] | PreviousFrame | None = None,
         nullspace: bool = False,
+        covariance: bool = True,
     ) -> ContactEstimate:
         """Estimate the contacts of every frame (Del Prete et al. 2012, Sec. 2).
 
@@ -236,6 +237,8 @@ class ContactEstimator:
                 :class:`~torchcontact.constrained.PreviousFrame`: the batch is a time series and
                 each frame starts from its predecessor's estimate (computed in waves).
             nullspace: also return each region's null-space basis (``nullspace`` of the result).
+            covariance: with ``ft_covariance`` and no constraints, also return the estimate's
+                ``covariance`` (False: only weigh the solve by the noise, a cheaper program).
 
         Returns:
             :class:`ContactEstimate`.
@@ -350,7 +353,7 @@ class ContactEstimator:
         elif warm_start is not None:
             raise InputError("warm_start needs constraints (it starts the constrained solver)")
         waves = warm_start if isinstance(warm_start, PreviousFrame) else None
-        with_cov = ft_covariance is not None and cone_flags is None
+        with_cov = ft_covariance is not None and cone_flags is None and bool(covariance)
         if not with_cov and not weighted:
             tensors.pop("ft_cov", None)
             tensors.pop("tau_var", None)
@@ -402,6 +405,58 @@ class ContactEstimator:
             s: [f"{k}:{em.slots[k].link}.{c}" for k in reg.slots for c in names[em.slots[k].kind]]
             for s, reg in zip(self.sensor_names, em.regions, strict=True)
         }
+
+    def outside_cones(self, contacts: Contacts, force: Tensor, rtol: float = 1e-6) -> Tensor:
+        """Which forces lie outside their friction cones (e.g. an unconstrained estimate's).
+
+        The cone of a slot is that of :class:`~torchcontact.constrained.FrictionCones`: active,
+        pushing ``force``/``wrench`` slots with ``contacts.normals`` (outward) and
+        ``contacts.friction`` or ``cone_angle``; ``f`` is inside when ``|f_t| <= mu f_n`` with
+        ``f_n = -n . f``, to ``rtol |f|``.
+
+        Args:
+            contacts: the slots, ``(*B, K, ...)`` data.
+            force: ``(*B, K, 3)`` forces, link frame, N.
+            rtol: tolerance relative to ``|f|``.
+
+        Returns:
+            ``(*B, K)`` bool: the slot has a cone and its force lies outside it (False where
+            it has none, and on non-finite values).
+
+        Raises:
+            InputError: as :meth:`estimate` with ``constraints``: missing normals or friction,
+                a zero normal, a friction that is not finite and > 0 on an active pushing slot.
+
+        Example:
+            >>> import torchcontact as tc
+            >>> est = tc.ContactEstimator(tc.RobotModel.from_urdf(tc.robots.tcarm_path()))
+            >>> z = torch.zeros(2, 1, 3, dtype=torch.float64)
+            >>> n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(2, 1, 3)
+            >>> c = tc.Contacts(["hand_skin"], ["force"], z, normals=n, friction=0.5)
+            >>> f = torch.tensor([[[0.4, 0, -1.0]], [[0.6, 0, -1.0]]], dtype=torch.float64)
+            >>> est.outside_cones(c, f).tolist()
+            [[False], [True]]
+        """
+        model, K = self.model, contacts.K
+        em = self.layout(contacts.links, contacts.kinds)
+        check_input("force", force, (K, 3), model, f"(*B, {K}, 3)", finite=False)
+        batch = force.shape[:-2]
+        n = math.prod(batch)
+        if contacts.active is None:
+            active = torch.ones(n, K, dtype=model.dtype, device=model.device)
+        else:
+            active = contacts.active.reshape(n, K).to(model.dtype)
+        cone = _cone_inputs(contacts, em.kinds, batch, active, model)
+        coned = torch.tensor([k in ("force", "wrench") for k in em.kinds], dtype=torch.bool,
+                             device=model.device)  # fmt: skip
+        has = (cone["pushing"] > 0.5) & (active > 0.5) & coned
+        nrm = cone["normals"].reshape(n, K, 3)
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(model.dtype).tiny)
+        f = force.reshape(n, K, 3).to(model.dtype)
+        fn = -(f * nrm).sum(-1)
+        ft = (f + fn[..., None] * nrm).norm(dim=-1)
+        out = has & (ft - cone["friction"] * fn > rtol * f.norm(dim=-1))
+        return out.reshape(*batch, K)
 
     def predict_ft(
         self,

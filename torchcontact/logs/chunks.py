@@ -11,7 +11,9 @@ threads (:mod:`torchcontact.logs.pipeline`), the Ray engine inside each task
 Status: every output row has ``status_code`` (the bits of :data:`torchcontact.STATUS`), ``status``
 (its text) and ``status_detail`` (what the pipeline found: a malformed vector, an unknown link, a
 joint beyond its velocity limit, a frame too short to differentiate, ...). Frames with a non-zero
-code have NaN outputs; the rest of the log is processed.
+code have NaN outputs, but for the warning bits alone (``NOT_CONVERGED`` 256: the last iterate, see
+below; ``OUTSIDE_TRAINING`` 1024: a correction outside its training range); the rest of the log is
+processed.
 
 Friction cones (:class:`LogConstraints`, ``estimate --constraints``): every pushing contact's force
 is kept inside the friction cone of its ``normal`` (contact field) and friction coefficient
@@ -20,9 +22,13 @@ is kept inside the friction cone of its ``normal`` (contact field) and friction 
 warm-started from their predecessor's estimate (:class:`~torchcontact.PreviousFrame`), across
 chunks too (a chunk's first frame starts from the previous chunk's last estimates, matched by
 link, kind and order), but never across a time-segment boundary (a repeated, backward or gapped
-``t_ns``): a segment's first frame starts cold. Non-convergence is not a status bit (status bits
-mean NaN outputs; a frame that did not converge keeps its last interior-point iterate, inside
-the cones): it is ``converged.<sensor> = false``.
+``t_ns``): a segment's first frame starts cold. A frame that does not converge (after the
+estimator's restart from the pseudo-inverse) gets status bit 256 (``NOT_CONVERGED``) and
+``converged.<sensor> = false``, and keeps its last interior-point iterate, inside the cones: the
+one status bit whose frames keep their outputs (never ``ok``, counted in the summary).
+
+Noise (:attr:`LogEstimator.noise`, :mod:`torchcontact.logs.noise`): with a weighted noise every
+chunk's solve is whitened by each sensor's covariance (fixed, or the frame's ``ft_cov.<sensor>``).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ from torchcontact.logs.format import (
     ESTIMATE_BIAS_COLUMNS,
     META_BIAS,
     META_DERIVED,
+    META_FT_NOISE,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
@@ -57,6 +64,7 @@ from torchcontact.logs.format import (
     output_schema,
     struct_list,
 )
+from torchcontact.logs.noise import FTNoise
 from torchcontact.model import RobotModel
 from torchcontact.status import WARNINGS, Status
 
@@ -68,6 +76,8 @@ __all__ = [
     "decoded_chunks",
     "estimate_stream",
 ]
+
+NOT_CONVERGED = int(Status.NOT_CONVERGED)
 
 #: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
 DEFAULT_VELOCITY_MARGIN = 2.0
@@ -201,6 +211,8 @@ class LogEstimator:
             differentiator (``--derivatives causal``); None: the centred Savitzky-Golay.
         bias: track the F/T offsets over the log (:class:`LogBias`); the first pass is
             :meth:`bias_pass` over every chunk, then :meth:`bias_done`.
+        noise: the F/T noise weighing the solve (:class:`~torchcontact.logs.noise.FTNoise`; set
+            it with :meth:`set_noise` before the first chunk); None: the unweighted solve.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -222,6 +234,7 @@ class LogEstimator:
     step_ns: float = 0.0
     causal: tuple[int, int] | None = None
     bias: LogBias | None = None
+    noise: FTNoise | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
     decoder: ChunkDecoder = field(init=False)
@@ -266,6 +279,13 @@ class LogEstimator:
                 self.model, list(self.sensors), correction=self.residual, backend="eager"
             )
             self._slot_regions: dict[tuple, np.ndarray] = {}
+        self.set_noise(self.noise)
+
+    def set_noise(self, noise: FTNoise | None) -> None:
+        """Weigh the solve by ``noise`` (its column sensors' ``ft_cov`` are then decoded)."""
+        self.noise = noise
+        self.decoder.cov_sensors = [] if noise is None else noise.column_sensors()
+        self._schema = None
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
@@ -285,6 +305,8 @@ class LogEstimator:
             META_SENSORS: json.dumps(list(self.sensors)),
             META_DERIVED: json.dumps(derived),
         }
+        if self.noise is not None:
+            meta[META_FT_NOISE] = self.noise.metadata()
         if self.residual is not None:
             meta[META_RESIDUAL] = json.dumps(
                 {
@@ -558,6 +580,14 @@ class LogEstimator:
             ca = np.zeros(M, bool)
             ca[ok_c] = res["active"][records.frame[ok_c], slot[ok_c]]
             children["cone_active"] = pa.array(ca, mask=~ok_c)
+            # the unconstrained estimate outside the cone: on well-posed frames only
+            well = ~bad
+            for sname in self.sensors:
+                well &= res[f"rank.{sname}"] == res[f"unknowns.{sname}"]
+            ok_w = ok_c & well[records.frame] if M else ok_c
+            oc = np.zeros(M, bool)
+            oc[ok_w] = res["outside"][records.frame[ok_w], slot[ok_w]]
+            children["outside_cone"] = pa.array(oc, mask=~ok_w)
         out: dict[str, Any] = {"t_ns": d.t_ns}
         out["contacts"] = struct_list(children, records.frame, N, ctype)
         out["joint_torques"] = fixed_list(jt)
@@ -605,9 +635,33 @@ class LogEstimator:
             kw["base"] = _base_motion(d.base, t)
         if d.tau is not None:
             kw["tau_measured"] = t(d.tau)
+        cov = None if self.noise is None else self.noise.covariances(d.ft_cov)
+        if cov is not None:  # the weights; the estimate's covariance is not written
+            kw["ft_covariance"] = {s: t(c) for s, c in cov.items()}
+            kw["covariance"] = False
         if cons is None:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
-        kw["constraints"] = cons.cones
+        # the unconstrained estimate (same weighting): is it outside a cone? (friction that
+        # contradicts the data shows on the well-posed frames)
+        free = est.estimate(**args, contacts=contacts, **kw)
+        outside = est.outside_cones(contacts, free.force).cpu().numpy()
+        out = self._constrained(d, args, contacts, previous, kw, t)
+        out["outside"] = outside
+        return out
+
+    def _constrained(
+        self,
+        d: Decoded,
+        args: dict[str, Any],
+        contacts: Contacts,
+        previous: Any,
+        kw: dict[str, Any],
+        t: Any,
+    ) -> dict[str, np.ndarray]:
+        """The constrained estimate of a chunk, warm-started as :class:`LogConstraints` says."""
+        est, cons = self.estimator, self.constraints
+        assert cons is not None
+        kw = {**kw, "constraints": cons.cones}
         if not cons.warm_start:
             return _arrays(est.estimate(**args, contacts=contacts, **kw), self.sensors)
         starts = d.starts if d.starts is not None else np.zeros(d.n, bool)
@@ -662,6 +716,10 @@ class LogEstimator:
                 skw["base"] = type(kw["base"])(*(x[idx] for x in kw["base"]))
             if "tau_measured" in kw:
                 skw["tau_measured"] = kw["tau_measured"][idx]
+            if "ft_covariance" in kw:  # per-frame covariances of the log's column
+                skw["ft_covariance"] = {
+                    s: c[idx] if c.dim() == 3 else c for s, c in kw["ft_covariance"].items()
+                }
             r = _arrays(
                 self.estimator.estimate(
                     **sub, contacts=_take(contacts, idx),

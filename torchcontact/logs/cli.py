@@ -76,7 +76,7 @@ def _constraints(args: argparse.Namespace) -> Any:
     from torchcontact.constrained import FrictionCones
     from torchcontact.logs.pipeline import LogConstraints
 
-    names = ("friction", "cone_angle", "cone_iterations")
+    names = ("friction", "cone_angle", "cone_iterations", "cone_objective")
     given = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) is not None]
     given += ["--no-warm-start"] if args.no_warm_start else []
     if not args.constraints:
@@ -90,8 +90,33 @@ def _constraints(args: argparse.Namespace) -> Any:
         if not 0 < args.cone_angle < math.pi / 2:
             raise InputError(f"--cone-angle must be in (0, pi/2) rad, got {args.cone_angle}")
         friction = math.tan(args.cone_angle)
-    cones = FrictionCones() if args.cone_iterations is None else FrictionCones(args.cone_iterations)
+    its = {} if args.cone_iterations is None else {"iterations": args.cone_iterations}
+    cones = FrictionCones(**its, objective=args.cone_objective)
     return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
+
+
+def _describe_cones(c: dict) -> str:
+    """The summary's ``cones`` in one line."""
+    return (
+        f"{c['converged']:.2%} of {c['solved']} solves converged,"
+        f" {c['iterations_mean']:.1f} iterations on average; {c['converged_frames']} frames"
+        f" converged, {c['not_converged_frames']} not (status bit 256);"
+        f" {c['cone_active_frames']} with an active cone; {c['outside_cone_frames']} of"
+        f" {c['well_posed_frames']} well-posed frames with the unconstrained estimate outside"
+        " a cone"
+    )
+
+
+def _describe_noise(noise: dict) -> str:
+    """The summary's ``noise`` in one line: the source of each sensor's, or why none."""
+    if not noise["weighted"]:
+        return f"unweighted solve ({noise['reason']})"
+    parts = []
+    for name, n in noise["sensors"].items():
+        std = n["std"]
+        val = "" if std is None else f" (std {std[0]:.3g} N, {std[3]:.3g} N m)"
+        parts.append(f"{name} from {n['source']}{val}")
+    return "weighted solve: " + "; ".join(parts)
 
 
 def _fraction(text: str) -> float:
@@ -128,6 +153,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     and for data errors; 2 for usage errors; 130 when interrupted.
     """
     from torchcontact.errors import LogError
+    from torchcontact.logs.noise import parse_ft_noise
     from torchcontact.logs.pipeline import estimate_files, expand_inputs
     from torchcontact.logs.run import unusable
 
@@ -146,7 +172,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         velocity_margin=args.velocity_margin or None,
         ft_range=_ft_range(args.ft_range),
         constraints=_constraints(args),
+        ft_noise=parse_ft_noise(args.ft_noise),
+        unweighted=args.unweighted,
     )
+    if args.ft_noise and args.unweighted:
+        raise InputError("give --ft-noise or --unweighted, not both")
     if args.residual:
         kwargs["residual"] = args.residual
     if args.derivatives != "centred":
@@ -195,13 +225,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 f"{s['input']} -> {s['output']}: {s['frames']} frames"
                 f" ({s['frames_per_s']:.0f} frames/s, {s['bad_now']} with a non-zero status)"
                 + (f", derived {'/'.join(s['derived'])} from q" if s["derived"] else "")
-                + (
-                    f"; cones: {s['cones']['converged']:.2%} of {s['cones']['solved']} solves"
-                    f" converged, {s['cones']['iterations_mean']:.1f} iterations on average"
-                    if "cones" in s
-                    else ""
-                )
             )
+            if "cones" in s:
+                print(f"  cones: {_describe_cones(s['cones'])}")
+            if "noise" in s:
+                print(f"  noise: {_describe_noise(s['noise'])}")
     failed = [m for m in (unusable(s, args.max_bad) for s in summaries) if m]
     if failed:
         raise LogError("; ".join(failed) + " (the outputs are written, with each frame's status)")
@@ -466,6 +494,20 @@ def add_parser(subparsers: Any) -> None:
         " (repeatable; default: no range check)",
     )
     est.add_argument(
+        "--ft-noise",
+        action="append",
+        metavar="SENSOR=SIGMA_F,SIGMA_M",
+        help="reading noise std of a sensor, N and N m (or 6 numbers FX,..,MZ, or a driver profile"
+        " with datasheet noise, e.g. robotiq-ft300), weighing the solve (repeatable; default: the"
+        " log's ft_cov.<sensor> column, else the profile in its metadata, else an estimate from"
+        " its contact-free frames; docs/accuracy.md)",
+    )
+    est.add_argument(
+        "--unweighted",
+        action="store_true",
+        help="the paper's unweighted pinv(A) b: ignore the reading noise (default: weighted)",
+    )
+    est.add_argument(
         "--constraints",
         action="store_true",
         help="friction-cone constrained estimate: pushing contacts stay inside the cone of their"
@@ -490,6 +532,13 @@ def add_parser(subparsers: Any) -> None:
         type=int,
         metavar="N",
         help="interior-point iteration budget (--constraints; default 25)",
+    )
+    est.add_argument(
+        "--cone-objective",
+        choices=["map", "min_norm"],
+        help="the estimate inside the cones: map (maximum a posteriori under a stated prior) or"
+        " min_norm (--constraints; default: map in float64, min_norm in float32;"
+        " docs/accuracy.md)",
     )
     est.add_argument(
         "--no-warm-start",

@@ -35,6 +35,7 @@ from torchcontact.logs.derive import (
 from torchcontact.logs.format import (
     BASE_COLUMNS,
     ft_column,
+    ft_cov_column,
     iter_chunks,
     joint_names_of,
     read_contacts,
@@ -420,6 +421,9 @@ class Decoded:
         starts: ``(n,)`` bool, a frame starts a time segment (None: not computed).
         short: ``(n,)`` bool, the frame cannot be differentiated (derived ``qd``/``qdd`` only).
         row: the chunk's first row in the log.
+        ft_cov: sensor -> ``(n, 6, 6)`` reading noise covariances of the log's ``ft_cov.<s>``
+            column (:attr:`ChunkDecoder.cov_sensors`; identity on frames whose value is
+            malformed, which get status bit 1).
     """
 
     n: int
@@ -440,6 +444,7 @@ class Decoded:
     starts: np.ndarray | None = None
     short: np.ndarray | None = None
     row: int = 0
+    ft_cov: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class ChunkDecoder:
@@ -490,6 +495,8 @@ class ChunkDecoder:
         self._link_ok: dict[str | None, str | None] = {}
         #: the log is one time segment (a short one is the whole log)
         self.whole_log_segment = False
+        #: sensors whose per-frame ``ft_cov.<s>`` column weighs the solve (read by decode)
+        self.cov_sensors: list[str] = []
 
     # ------------------------------------------------------------------ links
     def link_problem(self, link: str | None) -> str | None:
@@ -563,8 +570,44 @@ class ChunkDecoder:
             records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
         slot = np.full(len(records), -1, np.int64)
         slot[~bad_record] = 0  # placed by slots()
+        ft_cov = {s: self._covariances(table, s, issues, first_row) for s in self.cov_sensors}
         return Decoded(N, pa.array(t, pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
-                       fields, slot, None, issues, row=first_row)  # fmt: skip
+                       fields, slot, None, issues, row=first_row, ft_cov=ft_cov)  # fmt: skip
+
+    def _covariances(
+        self, table: Any, sensor: str, issues: FrameIssues, first_row: int
+    ) -> np.ndarray:
+        """``(n, 6, 6)`` of a sensor's ``ft_cov`` column, each checked symmetric positive definite.
+
+        Raises:
+            InputError: a finite covariance that is not symmetric positive definite (names the
+                file, the row and the smallest eigenvalue).
+        """
+        name = ft_cov_column(sensor)
+        vals, malformed = vectors(table.column(name), 36)
+        issues.add(malformed, 1, f"{name} is not 36 floats")
+        vals = vals.reshape(-1, 6, 6)
+        bad = ~np.isfinite(vals).all((1, 2))
+        issues.add(bad & ~malformed, 1, f"{name} is not finite")
+        if bad.any():  # Arrow's memory is read-only
+            vals = vals.copy()
+            vals[bad] = np.eye(6)
+        scale = np.abs(vals).max((1, 2))
+        asym = np.abs(vals - vals.transpose(0, 2, 1)).max((1, 2)) > 1e-9 * scale
+        lam = np.linalg.eigvalsh(0.5 * (vals + vals.transpose(0, 2, 1))).min(1)
+        wrong = asym | ~(lam > 1e-12 * scale)
+        if wrong.any():
+            i = int(np.flatnonzero(wrong)[0])
+            what = (
+                "not symmetric"
+                if asym[i]
+                else f"not positive definite (smallest eigenvalue {lam[i]:.3g})"
+            )
+            raise InputError(
+                f"{self.source}: {name} of row {first_row + i} is {what}; a covariance must be"
+                " symmetric positive definite"
+            )
+        return vals
 
     def slots(self, d: Decoded, dtype: Any, device: Any) -> None:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""

@@ -13,6 +13,9 @@ Input columns (the public contract: docs/format.md):
   ``torchcontact.joint_names``. ``qd``/``qdd`` may be missing (derived from ``q``).
 - ``ft.<sensor>``: 6 float64 ``[force (N); moment (N m)]`` in the sensor's declared frame and
   measure direction.
+- ``ft_cov.<sensor>`` (optional): 36 float64, the ``6 x 6`` covariance of that frame's
+  ``ft.<sensor>`` noise, row-major, ``[N; N m]`` squared units, symmetric positive definite:
+  ``estimate`` weighs each frame's solve by it (:func:`ft_cov_column`; ``docs/accuracy.md``).
 - ``tau_measured`` (optional): nv float64, NaN where a joint has no torque sensor.
 - ``base.omega``, ``base.domega``, ``base.acc`` (optional): 3 float64 each, IMU on the base, base
   frame (rad/s, rad/s^2, proper acceleration m/s^2).
@@ -30,8 +33,10 @@ every contact and has ``joint_torques``, ``rank.<sensor>``, ``unknowns.<sensor>`
 cannot see), ``residual.<sensor>``, ``status_code`` (the bits of :data:`torchcontact.STATUS`),
 ``status`` (its text, :func:`torchcontact.status_messages`) and ``status_detail`` (what the log
 pipeline found, or null). A friction-cone constrained estimate also has ``converged.<sensor>``
-(bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and ``cone_active``
-(bool) on every contact. A localizing estimate (``--localize``) adds the columns of
+(bool) and ``iterations.<sensor>`` (int64) of the interior-point solver and, on every contact,
+``cone_active`` (bool: the cone binds) and ``outside_cone`` (bool: the unconstrained estimate of
+the contact lies outside its cone; null unless the frame is well posed, ``rank == unknowns``).
+A localizing estimate (``--localize``) adds the columns of
 :func:`localization_fields` per localizing sensor (:data:`LOCALIZATION_COLUMNS`).
 """
 
@@ -57,6 +62,8 @@ __all__ = [
     "NUMBERS",
     "META_BIAS",
     "META_DERIVED",
+    "META_FT_NOISE",
+    "META_FT_PROFILES",
     "META_JOINT_NAMES",
     "META_RESIDUAL",
     "META_SENSORS",
@@ -74,6 +81,7 @@ __all__ = [
     "contacts_column",
     "fixed_list",
     "ft_column",
+    "ft_cov_column",
     "ft_log_schema",
     "input_schema",
     "iter_chunks",
@@ -112,6 +120,14 @@ META_RESIDUAL = b"torchcontact.residual"
 #: Output logs estimated with ``--track-bias``: JSON ``{"method", "time_constant", "ft_std",
 #: "sensors"}`` (the F/T offsets tracked over the whole log, columns :data:`ESTIMATE_BIAS_COLUMNS`).
 META_BIAS = b"torchcontact.bias"
+#: The F/T sensor profiles of a log (:mod:`torchcontact.drivers.profiles`): JSON ``{sensor:
+#: profile name or TOML path}``; ``estimate`` takes a sensor's noise from its profile's datasheet
+#: ``[noise]`` when neither ``--ft-noise`` nor an ``ft_cov.<sensor>`` column gives it.
+META_FT_PROFILES = b"torchcontact.ft_profiles"
+#: Output logs: the F/T noise each sensor's solve was weighted by, JSON ``{"weighted": bool,
+#: "sensors": {sensor: {"source": text, "std": 6 floats or null}}}`` (``estimate``'s summary
+#: ``noise``).
+META_FT_NOISE = b"torchcontact.ft_noise"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 #: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.
@@ -150,6 +166,16 @@ ESTIMATE_BIAS_COLUMNS = ("bias", "bias_std")
 def bias_column(prefix: str, sensor: str) -> str:
     """The column of a bias quantity of a sensor, e.g. ``bias.base_ft`` (:data:`BIAS_COLUMNS`)."""
     return f"{prefix}.{sensor}"
+
+
+def ft_cov_column(sensor: str) -> str:
+    """The per-frame F/T noise covariance column of a sensor (36 float64, row-major ``6 x 6``).
+
+    Example:
+        >>> ft_cov_column("base_ft")
+        'ft_cov.base_ft'
+    """
+    return f"ft_cov.{sensor}"
 
 
 def fixed_list(values: np.ndarray) -> Any:
@@ -268,7 +294,8 @@ def output_schema(
         contact_fields: ``(name, type)`` fields of the input contact struct (empty: no
             ``contacts`` column in the input); ``force`` and ``moment`` are appended.
         metadata: schema metadata (joint names are added).
-        constraints: a friction-cone constrained estimate: contacts get ``cone_active``, each
+        constraints: a friction-cone constrained estimate: contacts get ``cone_active`` and
+            ``outside_cone``, each
             sensor ``converged.<s>`` and ``iterations.<s>``.
         localize: the sensors whose contact is localized (``estimate --localize``): their
             :func:`localization_fields` come after ``status_detail``.
@@ -288,7 +315,11 @@ def output_schema(
             *[pa.field(n, t) for n, t in contact_fields],
             pa.field("force", pa.list_(pa.float64(), 3)),
             pa.field("moment", pa.list_(pa.float64(), 3)),
-            *([pa.field("cone_active", pa.bool_())] if constraints else []),
+            *(
+                [pa.field("cone_active", pa.bool_()), pa.field("outside_cone", pa.bool_())]
+                if constraints
+                else []
+            ),
         ]
     )
     fields = [("t_ns", pa.int64()), ("contacts", pa.list_(contact))]

@@ -283,12 +283,58 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
         ident["residual_weights_sha256"] = le.residual.meta.get("weights_sha256")
     if le.constraints is not None:  # a resume must estimate with the same cones
         ident["constraints"] = repr(le.constraints)
+    if le.noise is not None:  # ... and the same noise
+        ident["noise"] = le.noise.summary()
     return ident
+
+
+def log_noise(
+    pf: Any,
+    le: LogEstimator,
+    columns: list[str],
+    half_window: int,
+    ft_noise: Mapping[str, Any] | None,
+    unweighted: bool,
+    source: str,
+) -> None:
+    """Resolve the run's F/T noise (:mod:`torchcontact.logs.noise`) and set it on ``le``.
+
+    Each sensor's noise comes from ``ft_noise``, the log's ``ft_cov.<sensor>`` column, its
+    profile in the log's metadata, or its contact-free frames (read from the log's start in
+    chunks of a fixed size, so that a resume with another ``batch_size`` finds the same noise);
+    ``columns`` gains the covariance columns to read.
+
+    Raises:
+        InputError: an ``ft_noise`` sensor the robot lacks or the run does not use, a bad
+            standard deviation or profile, ``ft_noise`` with ``unweighted``.
+    """
+    from torchcontact.logs.format import ft_cov_column
+    from torchcontact.logs.noise import contact_free_noise, parse_ft_noise, resolve
+
+    given = ft_noise if isinstance(ft_noise, Mapping) else parse_ft_noise(ft_noise)
+
+    def chunks() -> Iterator[Any]:
+        try:
+            yield from decoded_chunks(le, read_chunks(pf, columns, 8192, source), half_window)
+        except LogError:  # damaged data: the noise is estimated from the frames before it, and
+            return  # the run meets the damage after estimating those (kept for --resume)
+
+    def estimate(sensors: list[str]) -> dict:
+        return contact_free_noise(le, chunks(), sensors)
+
+    schema = pf.schema_arrow
+    noise = resolve(le.sensors, list(le.model.ft_sensors), given, schema.names, schema.metadata,
+                    estimate, unweighted=unweighted, torques="tau_measured" in columns,
+                    source=source)  # fmt: skip
+    le.set_noise(noise)
+    columns += [ft_cov_column(s) for s in noise.column_sensors()]
 
 
 def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     """Summary keys that describe the log itself (the same for both engines)."""
     out: dict[str, Any] = {"sensors": list(le.sensors), "derived": list(le.derived)}
+    if le.noise is not None:
+        out["noise"] = le.noise.summary()
     out["slots"] = len(le.layout.links) if le.layout is not None else None
     out["time_segments"] = scan.segments
     if le.derived and le.causal is None:  # causal: the first frames of segments, per chunk
@@ -317,6 +363,8 @@ def estimate_file(
     derivative_window: int = 15,
     derivative_order: int = 3,
     track_bias: LogBias | bool | None = None,
+    ft_noise: Mapping[str, Any] | Sequence[str] | None = None,
+    unweighted: bool = False,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -351,15 +399,23 @@ def estimate_file(
         track_bias: track the F/T offsets over the log from the model (:class:`LogBias`, True:
             its defaults): two passes, the output gets ``bias.<s>``/``bias_std.<s>`` columns
             and the summary ``bias``.
+        ft_noise: ``{sensor: (6,) standard deviations [N; N m] or a profile name}`` or the
+            ``--ft-noise`` strings (:func:`torchcontact.logs.noise.parse_ft_noise`): the noise
+            weighing the solve; sensors not given take theirs from the log
+            (:mod:`torchcontact.logs.noise`).
+        unweighted: the paper's unweighted ``pinv(A) b`` (no ``ft_noise`` then).
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
         frames_per_s, sensors, derived, slots (of the log's layout), time_segments (and with
         derived ``qd``/``qdd`` not_differentiable), resumed_chunks, chunks, engine, bad_frames
         (frames of the output with a non-zero status), bad_details (the most frequent details
-        of those, with counts); with constraints also ``cones``: ``converged`` share,
-        ``iterations_mean`` and ``iterations_max`` over the frames estimated now; with
-        ``track_bias`` also ``bias`` (:meth:`LogEstimator.bias_done`).
+        of those, with counts), noise (:meth:`~torchcontact.logs.noise.FTNoise.summary`: which
+        source weighed each sensor, or why the solve is unweighted); with constraints also
+        ``cones`` (:func:`~torchcontact.logs.run.unusable`'s tally: solves, frames converged
+        and not, frames with an active cone, well-posed frames whose unconstrained estimate
+        lies outside a cone) over the frames estimated now; with ``track_bias`` also ``bias``
+        (:meth:`LogEstimator.bias_done`).
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unknown ``derivatives``, a bad
@@ -398,6 +454,7 @@ def estimate_file(
         pf, le, columns, scan = prepare(
             path, model, sensors, residual, velocity_margin, ft_range, constraints, causal, bias
         )
+        log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         # an interrupted run keeps its chunk size: read it before the ident is compared

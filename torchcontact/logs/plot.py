@@ -379,8 +379,9 @@ def _status_marks(ax: Any, t: np.ndarray, codes: np.ndarray) -> None:
         hit = (codes & bit) != 0
         ax.plot(t[hit], np.full(hit.sum(), -0.3 * (j + 1)), "x", color=_mpl(BAD_STATUS_RGB),
                 ms=4, alpha=1 - 0.6 * j / max(len(present), 1),
-                label=f"status {STATUS_NAMES.get(bit, bit)} ({bit}):"
-                      f" {'outputs kept' if bit & WARNINGS else 'NaN outputs'}")  # fmt: skip
+                label=f"status {STATUS_NAMES.get(bit, bit)} ({bit}): "
+                      + ("last iterate" if bit == 256
+                         else "outputs kept" if bit & WARNINGS else "NaN outputs"))  # fmt: skip
 
 
 def _quality(

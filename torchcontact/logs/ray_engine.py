@@ -50,6 +50,7 @@ from torchcontact.logs.pipeline import (
     kernel_backend,
     load_residual,
     load_robot,
+    log_noise,
     log_summary,
     output_paths,
     prepare,
@@ -226,6 +227,7 @@ def _unit_dataset(
         "velocity_margin": le.velocity_margin,
         "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
         "constraints": le.constraints,
+        "noise": le.noise,
         "step_ns": le.step_ns,
         "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
     }
@@ -264,6 +266,8 @@ def estimate_file_ray(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: Any = None,
+    ft_noise: Any = None,
+    unweighted: bool = False,
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
@@ -293,6 +297,8 @@ def estimate_file_ray(
         constraints: as :func:`estimate_file` (warm starts run within a unit; a unit's first
             frame starts cold, so its rows may differ from the local engine's within the
             solver's tolerance).
+        ft_noise: as :func:`estimate_file` (resolved once here, before the units run).
+        unweighted: as :func:`estimate_file`.
 
     Returns:
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
@@ -321,6 +327,7 @@ def estimate_file_ray(
             )
         pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
                                         constraints)  # fmt: skip
+        log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),

@@ -48,6 +48,11 @@ __all__ = ["Done", "Run", "background", "side_paths", "unusable"]
 
 #: Items waiting between two pipeline stages (chunks in flight stay bounded: memory is flat).
 QUEUE_DEPTH = 2
+NOT_CONVERGED = int(Status.NOT_CONVERGED)
+#: Share of the well-posed frames whose unconstrained estimate lies outside a friction cone above
+#: which ``estimate --constraints`` warns that the friction contradicts the data (with the right
+#: friction only noise takes a force near a cone's rim outside it).
+OUTSIDE_CONE_WARN = 0.10
 
 
 def side_paths(out: Path) -> list[Path]:
@@ -203,6 +208,12 @@ class _Tally:
     it_max: int = 0
     outside: int = 0
     outside_details: dict[str, int] = field(default_factory=dict)
+    cone_frames: int = 0
+    converged_frames: int = 0
+    not_converged_frames: int = 0
+    active_frames: int = 0
+    well_posed_frames: int = 0
+    outside_frames: int = 0
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
@@ -241,6 +252,36 @@ class _Tally:
                 if ran.any():
                     self.it_sum += int(its[ran].sum())
                     self.it_max = max(self.it_max, int(its[ran].max()))
+            if self.cone_sensors:
+                self._cone_frames(table)
+
+    def _cone_frames(self, table: Any) -> None:
+        """Per-frame cone counts: solved, converged or not, cone active, outside the cone."""
+        import pyarrow.compute as pc
+
+        n = table.num_rows
+        ran = np.zeros(n, bool)
+        for s in self.cone_sensors:
+            its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False).astype(float)
+            ran |= ~np.isnan(its) & (its > 0)
+        code = table.column("status_code").to_numpy()
+        failed = (code & NOT_CONVERGED) != 0
+        self.cone_frames += int(ran.sum())
+        self.not_converged_frames += int(failed.sum())
+        self.converged_frames += int((ran & ~failed).sum())
+        contacts = table.column("contacts")
+        frame = pc.list_parent_indices(contacts).to_numpy()
+        flat = pc.list_flatten(contacts)
+        for name, attr in (("cone_active", "active_frames"), ("outside_cone", "outside_frames")):
+            v = pc.fill_null(pc.struct_field(flat, name), False).to_numpy(zero_copy_only=False)
+            hit = np.zeros(n, bool)
+            hit[frame[v.astype(bool)]] = True
+            setattr(self, attr, getattr(self, attr) + int(hit.sum()))
+        # well posed: the outside_cone test ran (non-null) on a frame's contacts
+        tested = pc.is_valid(pc.struct_field(flat, "outside_cone")).to_numpy(zero_copy_only=False)
+        well = np.zeros(n, bool)
+        well[frame[tested]] = True
+        self.well_posed_frames += int(well.sum())
 
     def summary(self) -> dict:
         top = sorted(self.details.items(), key=lambda kv: (-kv[1], kv[0]))[:3]
@@ -256,8 +297,35 @@ class _Tally:
                 "converged": round(self.converged / n, 4),
                 "iterations_mean": round(self.it_sum / n, 2),
                 "iterations_max": self.it_max,
+                "frames": self.cone_frames,
+                "converged_frames": self.converged_frames,
+                "not_converged_frames": self.not_converged_frames,
+                "cone_active_frames": self.active_frames,
+                "well_posed_frames": self.well_posed_frames,
+                "outside_cone_frames": self.outside_frames,
             }
         return out
+
+
+def cone_warning(source: str, tally: _Tally) -> None:
+    """Warn once when too many well-posed frames contradict their friction cones.
+
+    A well-posed frame (``rank == unknowns``) whose unconstrained estimate has a force outside
+    its cone says that the data want a force the friction forbids: above
+    :data:`OUTSIDE_CONE_WARN` of those frames, the friction coefficient is likely too small.
+    """
+    import warnings
+
+    well, out = tally.well_posed_frames, tally.outside_frames
+    if well and out > OUTSIDE_CONE_WARN * well:
+        warnings.warn(
+            f"{source}: {out} of {well} well-posed frames ({out / well:.0%}) have their"
+            " unconstrained estimate outside the friction cone: the friction (--friction,"
+            " --cone-angle or the contacts' own) contradicts the data, and the cones clip those"
+            " frames' estimates; check it",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 def unusable(summary: dict, max_bad: float = 1.0) -> str | None:
@@ -488,6 +556,7 @@ class Run:
         self.sidecar.unlink()
         seconds = time.perf_counter() - t0
         now = tally.ok_now + tally.bad_now
+        cone_warning(str(self.source), tally)
         return {
             "input": str(self.source),
             "output": str(self.out),

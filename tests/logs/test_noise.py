@@ -1,0 +1,133 @@
+"""``estimate``'s noise-weighted solve on logs: where the noise comes from (``--ft-noise``, the
+``ft_cov.<sensor>`` column, the profile in the log's metadata, the contact-free frames), that the
+weighting helps, ``--unweighted``, and bad noise input as one ``error:`` line."""
+
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from torchcontact.cli import main
+from torchcontact.logs import estimate_file, write_simulated_log
+from torchcontact.logs.format import META_FT_NOISE, META_FT_PROFILES, ft_cov_column
+from torchcontact.simulation import UnmodeledEffects
+
+#: FT 300 datasheet noise, N and N m (the profile robotiq-ft300)
+STD = np.array([0.1, 0.1, 0.1, 0.005, 0.005, 0.005])
+
+
+@pytest.fixture(scope="module")
+def noisy_log(model, tmp_path_factory):
+    """600 frames of the tcarm with the FT 300's noise on the readings."""
+    path = tmp_path_factory.mktemp("noise") / "log.parquet"
+    fx = UnmodeledEffects(noise_std=tuple(STD))
+    return write_simulated_log(model, 600, path, seed=3, effects=fx)
+
+
+def _one_contact_errors(out):
+    tab = pq.read_table(out)
+    ok = tab["rank.base_ft"].to_numpy() == tab["unknowns.base_ft"].to_numpy()
+    rows = tab["contacts"].to_pylist()
+    return np.array([
+        np.linalg.norm(np.subtract(r[0]["force"], r[0]["true_force"]))
+        for r, good in zip(rows, ok, strict=True) if good and len(r) == 1
+    ])  # fmt: skip
+
+
+def _forces(out):
+    rows = pq.read_table(out)["contacts"].to_pylist()
+    return np.array([c["force"] for r in rows for c in r])
+
+
+def _with(log, path, columns=None, meta=None):
+    tab = pq.read_table(log)
+    for name, col in (columns or {}).items():
+        tab = tab.append_column(name, col)
+    tab = tab.replace_schema_metadata({**tab.schema.metadata, **(meta or {})})
+    pq.write_table(tab, path)
+    return path
+
+
+def test_noise_sources_in_order_and_the_weighting_helps(model, noisy_log, tmp_path, capsys):
+    # nothing given: estimated from the contact-free frames, within 15 % of the truth
+    s = estimate_file(noisy_log, model, tmp_path / "cf.parquet")
+    n = s["noise"]["sensors"]["base_ft"]
+    assert s["noise"]["weighted"] and n["source"].startswith("contact-free frames (")
+    assert np.allclose(n["std"], STD, rtol=0.15)
+    meta = json.loads(pq.read_schema(tmp_path / "cf.parquet").metadata[META_FT_NOISE])
+    assert meta == s["noise"]
+    u = estimate_file(noisy_log, model, tmp_path / "u.parquet", unweighted=True)
+    assert u["noise"] == {"weighted": False, "reason": "--unweighted", "sensors": {}}
+    e_w, e_u = _one_contact_errors(tmp_path / "cf.parquet"), _one_contact_errors(u["output"])
+    assert len(e_w) > 200
+    assert np.median(e_w) < 0.8 * np.median(e_u)  # measured: 0.073 against 0.101 N
+
+    # a per-frame ft_cov column (the datasheet's covariance) ...
+    cov = np.tile(np.diag(STD**2).reshape(1, 36), (600, 1))
+    rows = [list(r) for r in cov]
+    rows[5], rows[6] = None, [np.nan] * 36  # malformed values: that frame's status, not the run
+    col = pa.array(rows, pa.list_(pa.float64(), 36))
+    log_c = _with(noisy_log, tmp_path / "c.parquet", {ft_cov_column("base_ft"): col})
+    c = estimate_file(log_c, model, tmp_path / "ec.parquet")
+    assert c["noise"]["sensors"]["base_ft"] == {"source": "column ft_cov.base_ft", "std": None}
+    est_c = pq.read_table(c["output"])
+    assert np.flatnonzero(est_c["status_code"].to_numpy()).tolist() == [5, 6]
+    assert est_c["status_detail"].to_pylist()[5:7] == [
+        "ft_cov.base_ft is not 36 floats", "ft_cov.base_ft is not finite"
+    ]  # fmt: skip
+    # ... equals the same noise given on the command line, which comes first
+    g = estimate_file(log_c, model, tmp_path / "eg.parquet", ft_noise=["base_ft=0.1,0.005"])
+    assert g["noise"]["sensors"]["base_ft"]["source"] == "--ft-noise"
+    fc, fg = _forces(c["output"]), _forces(g["output"])
+    ok = np.isfinite(fc).all(1)
+    assert (~ok).sum() == sum(len(r) for r in est_c["contacts"].to_pylist()[5:7])
+    np.testing.assert_allclose(fc[ok], fg[ok], atol=1e-9)
+    assert not np.allclose(_forces(g["output"]), _forces(u["output"]), atol=1e-3)
+
+    # the profile named in the log's metadata: its datasheet noise, the same estimate again
+    log_p = _with(noisy_log, tmp_path / "p.parquet",
+                  meta={META_FT_PROFILES: json.dumps({"base_ft": "robotiq-ft300"})})  # fmt: skip
+    p = estimate_file(log_p, model, tmp_path / "ep.parquet")
+    assert p["noise"]["sensors"]["base_ft"] == {
+        "source": "profile robotiq-ft300 (log metadata)",
+        "std": STD.tolist(),
+    }
+    np.testing.assert_allclose(_forces(p["output"]), _forces(g["output"]), atol=1e-9)
+
+    # measured joint torques (no noise known for their rows): unweighted, saying why
+    tau = pa.array([[np.nan] * model.nv] * 600, pa.list_(pa.float64(), model.nv))
+    log_t = _with(noisy_log, tmp_path / "t.parquet", {"tau_measured": tau})
+    t = estimate_file(log_t, model, tmp_path / "et.parquet")["noise"]
+    assert not t["weighted"] and "tau_measured" in t["reason"]
+
+    # a covariance that is not symmetric positive definite, an unknown sensor: one error line
+    bad = cov.copy()
+    bad[7, 0] = -1.0  # row 7: fx variance < 0
+    log_b = _with(noisy_log, tmp_path / "b.parquet", {ft_cov_column("base_ft"):
+                  pa.FixedSizeListArray.from_arrays(pa.array(bad.reshape(-1)), 36)})  # fmt: skip
+    for args, says in (
+        ([str(log_b)], "ft_cov.base_ft of row 7 is not positive definite"),
+        ([str(noisy_log), "--ft-noise", "wrist_ft=0.1,0.005"], "has no F/T sensor 'wrist_ft'"),
+        ([str(noisy_log), "--ft-noise", "base_ft=0.1,-1"], "must be a finite number > 0"),
+        ([str(noisy_log), "--ft-noise", "base_ft=0.1,0.2,0.3"], "give 2 (SIGMA_F,SIGMA_M) or 6"),
+        ([str(noisy_log), "--ft-noise", "base_ft=0.1,0.005", "--unweighted"], "not both"),
+    ):
+        out = tmp_path / "x.parquet"
+        assert main(["estimate", *args, "--robot", "tcarm", "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
+        assert not out.exists()
+
+
+def test_driver_logs_name_their_profile_and_the_profile_gives_the_datasheet_noise(tmp_path):
+    from torchcontact.drivers.log import FTLogWriter
+    from torchcontact.drivers.profiles import load_profile
+
+    with FTLogWriter(tmp_path / "ft.parquet", "ft300", profile="robotiq-ft300") as log:
+        log.append(1, np.zeros(6))
+    meta = pq.read_schema(tmp_path / "ft.parquet").metadata
+    assert json.loads(meta[META_FT_PROFILES]) == {"ft300": "robotiq-ft300"}
+    assert load_profile("robotiq-ft300").noise_std == tuple(STD)
+    assert load_profile("generic-float32").noise_std is None  # no datasheet: no noise
