@@ -197,3 +197,24 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     assert "--workers must be an integer >= 1" in capsys.readouterr().err
     with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
         estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts
+
+
+def test_a_declared_ft_sensor_reaches_the_workers(cluster, tmp_path, capsys):
+    """``--ft-sensor`` with ``--engine ray``: every worker builds the robot with the declared
+    sensor (and checks its identity against the driver's); the rows equal the local engine's."""
+    from torchcontact.cli import main
+    from torchcontact.logs import estimate_file, write_simulated_log
+    from torchcontact.robots import RobotSpec
+
+    decl = ["wrist_ft:hand_skin"]  # tcarm declares base_ft only
+    spec = RobotSpec.of("tcarm", decl)
+    log = write_simulated_log(spec.load(), 300, tmp_path / "w.parquet", seed=5, robot="tcarm",
+                              ft_sensors=decl, sensor="wrist_ft", links=["hand_skin"])  # fmt: skip
+    local = estimate_file(log, spec, tmp_path / "local.parquet", batch_size=16)
+    out = tmp_path / "ray.parquet"
+    argv = ["estimate", str(log), "--out", str(out), "--robot", "tcarm", "--ft-sensor", decl[0],
+            "--engine", "ray", "--workers", "2", "--batch-size", "16", "--quiet", "--json"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    r = json.loads(capsys.readouterr().out)
+    assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 3 and r["ok_now"] == 300
+    _same_rows(pq.read_table(out), pq.read_table(local["output"]))
