@@ -37,7 +37,9 @@ Every error is one `error: ...` line on stderr (`--debug` adds the traceback); w
 output that cannot be written (a full disk) is `error: standard output: ...` and exit 1. The
 `torchcontact` command ends its process as soon as its output is published and its streams are
 flushed, without the interpreter's shutdown (docs/pipeline.md, "Exit"); `python -m torchcontact`
-takes the normal way.
+takes the normal way. Progress bars go to stderr only when it is a terminal (`estimate` and
+`simulate` also take `--quiet`); `export residual` prints a few lines on the graph it wrote
+(`--json`: its whole metadata, with the learned layer as base64).
 
 ## The robot argument
 
