@@ -21,7 +21,6 @@ import contextlib
 import importlib
 import os
 import sys
-import traceback
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -132,6 +131,8 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
 
     def show(msg: str) -> None:
         if debug:
+            import traceback
+
             traceback.print_exc()
         print(f"error: {_one_line(msg)}", file=sys.stderr)
 
@@ -319,12 +320,12 @@ def _finish_process() -> None:
     handler would (its head processes and workers end with it). Kernel builds this command
     started are detached processes: they go on (:func:`_background_note` said so).
     """
-    import logging
-
     ray = sys.modules.get("ray")
     if ray is not None and getattr(ray, "is_initialized", lambda: False)():
         ray.shutdown()
-    logging.shutdown()
+    logging = sys.modules.get("logging")  # imported by a command, or nothing to flush
+    if logging is not None:
+        logging.shutdown()
 
 
 def _stream_error(exc: OSError, rc: int) -> int:

@@ -73,3 +73,18 @@ def test_replay_refusals(graph, sim_log, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: --joints: not with --log")
+
+
+def test_records_without_a_slot_are_counted_and_named(model, sim_log, tmp_path, capsys):
+    """A file without a slot for some records: those records get null, the summary names them."""
+    from torchcontact.export import export_estimator
+    from torchcontact.logs.pipeline import prepare
+
+    layout = prepare(sim_log, model)[1].layout
+    assert len(layout.links) == 2
+    path = tmp_path / "one_slot.onnx"
+    export_estimator(model, ["base_ft"], [layout.links[0]], [layout.kinds[0]], path)
+    recs, summary = _replay(["run", "--onnx", str(path), "--log", str(sim_log)], capsys)
+    left = sum(r["record_slots"].count(None) for r in recs)
+    assert left > 0 and summary["records_without_slot"] == {f"{layout.links[1]}:force": left}
+    assert all(k in (0, None) for r in recs for k in r["record_slots"])

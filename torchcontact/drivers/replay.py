@@ -48,7 +48,6 @@ def replay_log(
     *,
     log: Any = None,
     batch_size: int = 8192,
-    max_frames: int | None = None,
     on_record: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Replay a recorded log through an exported estimator, frame by frame.
@@ -61,7 +60,6 @@ def replay_log(
         publishers: objects with ``publish(record)`` (JSON lines on stdout, UDP).
         log: an :class:`~torchcontact.drivers.log.FTLogWriter` (``--out``) or None.
         batch_size: frames read and decoded at once.
-        max_frames: stop after this many frames (None: the whole log).
         on_record: called with each published record.
 
     Returns:
@@ -105,14 +103,14 @@ def replay_log(
     tables = read_chunks(pf, columns, batch_size, src)
     row = 0
     for d in decoded_chunks(le, tables, DEFAULT_HALF_WINDOW):
-        n = d.n if max_frames is None else min(d.n, max_frames - row)
+        n = d.n
         good = np.flatnonzero(d.slot >= 0)  # records the decoder accepts
         arrays, slot_good = layout.fill(d.records.select(good), d.n)
         slot = np.full(len(d.records), -1, np.int64)
         slot[good] = slot_good
         # per frame: its records (the records are in frame order)
         bounds = np.searchsorted(d.records.frame, np.arange(d.n + 1))
-        for i in good[(slot_good < 0) & (good < bounds[n])]:  # accepted, but no free slot
+        for i in good[slot_good < 0]:  # records the decoder accepts, with no free slot
             key = f"{d.records.links[i]}:{d.records.kinds[i]}"
             unplaced[key] = unplaced.get(key, 0) + 1
         details = d.issues.details().to_pylist()
@@ -154,8 +152,6 @@ def replay_log(
             summary["published"] += 1
         summary["records"] += int(bounds[n])
         row += n
-        if max_frames is not None and row >= max_frames:
-            break
     summary["frames"] = row
     summary["records_without_slot"] = unplaced
     summary["sensors"] = list(rt.sensor_names)
