@@ -218,3 +218,18 @@ def test_a_declared_ft_sensor_reaches_the_workers(cluster, tmp_path, capsys):
     r = json.loads(capsys.readouterr().out)
     assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 3 and r["ok_now"] == 300
     _same_rows(pq.read_table(out), pq.read_table(local["output"]))
+
+
+def test_a_worker_whose_robot_differs_from_the_drivers_stops_the_run():
+    """The identity check of ``_worker_state`` (in-process): a worker building tcarm without the
+    driver's declared sensor (another URDF on its node, say) names the difference."""
+    from torchcontact.logs import LogError
+    from torchcontact.logs.ray_engine import _worker_state
+    from torchcontact.robots import RobotSpec
+
+    driver = RobotSpec.of("tcarm", ["wrist_ft:hand_skin"]).load().identity
+    robot = {"robot": "tcarm", "ft_sensors": [], "identity": driver.sha256,
+             "identity_entries": driver.to_json()}  # fmt: skip
+    job = {"threads": 0, "dtype": "float64", "device": "cpu"}
+    with pytest.raises(LogError, match=r"Ray worker on .* built robot tcarm unlike the driver's: "):
+        _worker_state("unused.parquet", robot, {}, job)
