@@ -21,6 +21,7 @@ busy processes meanwhile (a loaded machine; the figures move with the load, the 
 from __future__ import annotations
 
 import argparse
+import shutil
 import statistics
 import subprocess
 import sys
@@ -106,6 +107,14 @@ def main() -> None:
     ap.add_argument("--load", type=int, default=0, help="busy processes meanwhile (default: 0)")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="tc-exit-"))
+    try:
+        run(a, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run(a: argparse.Namespace, tmp: Path) -> None:
+    """The measurements of ``main``'s arguments ``a``, files under ``tmp``."""
     log = a.log
     if log is None:
         log = tmp / "sim.parquet"

@@ -345,10 +345,11 @@ def console_main() -> None:
     """The ``torchcontact`` console script: :func:`main`, then end the process at once.
 
     The interpreter's shutdown (joining idle pool threads, tearing down torch, pyarrow and every
-    module) costs about a second on a quiet machine and 5-9 s on a loaded one, all after the
-    output is published. Once the command has returned, the streams are flushed and logging
-    is shut down, the process ends with :func:`os._exit`. In-process callers (tests, scripts,
-    ``python -m torchcontact``) use :func:`main`, which returns the exit code.
+    module) cost 2.5-10 s after the output was published on a loaded 2-core machine
+    (``benchmarks/exit_delay.py``, docs/pipeline.md). Once the command has returned, the
+    streams are flushed and logging is shut down, the process ends with :func:`os._exit`.
+    In-process callers (tests, scripts, ``python -m torchcontact``) use :func:`main`, which
+    returns the exit code.
     """
     try:
         rc = main()
