@@ -30,6 +30,7 @@ sender that has none.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import math
@@ -276,6 +277,10 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
+        if x and type(x[0]) is float:  # numbers (an array's tolist()): one C-level check
+            with contextlib.suppress(TypeError):
+                if math.isfinite(sum(x)):  # every value finite (an overflow takes the long way)
+                    return list(x)
         return [_jsonable(v) for v in x]
     if hasattr(x, "detach"):  # torch tensor, without importing torch
         x = x.detach().cpu().numpy()
