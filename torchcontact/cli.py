@@ -316,13 +316,17 @@ def _finish_process() -> None:
 
     Outputs are published (atomically) before a command returns, its threads joined and its
     files closed; what is left is buffered in this process: the standard streams and the
-    ``logging`` handlers. A Ray instance this process started is shut down as Ray's own exit
-    handler would (its head processes and workers end with it). Kernel builds this command
+    ``logging`` handlers, and rerun's recordings (its own exit handler sends what they still
+    buffer). A Ray instance this process started is shut down as Ray's own exit handler would
+    (its head processes and workers end with it). Kernel builds this command
     started are detached processes: they go on (:func:`_background_note` said so).
     """
     ray = sys.modules.get("ray")
     if ray is not None and getattr(ray, "is_initialized", lambda: False)():
         ray.shutdown()
+    rerun = sys.modules.get("rerun")  # its exit handler sends what recordings still buffer
+    if rerun is not None and hasattr(rerun, "rerun_shutdown"):
+        rerun.rerun_shutdown()
     logging = sys.modules.get("logging")  # imported by a command, or nothing to flush
     if logging is not None:
         logging.shutdown()
