@@ -183,17 +183,58 @@ def _residual(args: argparse.Namespace) -> int:
             )
     except AssertionError as e:
         raise ModelMismatchError(f"{args.checkpoint}: ONNX parity check failed: {e}") from None
-    print(json.dumps({"path": str(args.out), **meta}, indent=1))
+    if args.json:
+        print(json.dumps({"path": str(args.out), **meta}, indent=1))
+    else:
+        print(residual_summary(args.out, meta, checked=not args.no_check))
     return 0
+
+
+def residual_summary(path: str, meta: dict[str, str], checked: bool) -> str:
+    """A few lines on an exported correction graph (``--json`` prints all of ``meta``).
+
+    ``meta``: the graph's ``metadata_props`` (strings, JSON values encoded).
+
+    The metadata holds the learned layer again as a base64 ONNX model (``learned_graph``, tens of
+    kB, for the estimator's step graph): a terminal gets its size only.
+    """
+    import os
+
+    from torchcontact.onnx.format import Key, decode
+
+    meta = decode(meta)  # the metadata_props strings
+    ins = [f"{i} {'x'.join(map(str, meta['input_shapes'][i]))}" for i in meta["inputs"]]
+    extra = meta.get("extra_columns") or []
+    if extra:
+        ins = [f"{x} ({', '.join(extra)})" if x.startswith("extra") else x for x in ins]
+    learned = meta.get(Key.LEARNED_GRAPH)
+    parts = ", ".join(meta.get("layers") or []) or "none"
+    lines = [
+        f"wrote {path} ({os.path.getsize(path) / 1e3:.1f} kB): the correction of sensor"
+        f" {meta['sensor']} of {meta['robot']}, layers {parts}"
+        + (", recurrent" if meta.get("recurrent") in (True, "true") else ""),
+        f"  inputs {'; '.join(ins)}; output correction Nx6 [N; N m] in the sensor frame,"
+        " subtracted from the reading",
+        f"  {meta['dtype']}, opset {meta['opset']}, "
+        + ("checked against torch with onnxruntime" if checked else "not checked (--no-check)")
+        + ("" if learned is None else f"; learned layer also inside ({len(learned) / 1e3:.1f} kB"
+           " base64, for the estimator's step graph)"),
+        "  all metadata: --json",
+    ]  # fmt: skip
+    return "\n".join(lines)
 
 
 @contextlib.contextmanager
 def _stage(what: str) -> Iterator[None]:
-    """A progress line on stderr: the stage, then its duration."""
+    """A progress line on stderr, when it is a terminal: the stage, then its duration."""
     from tqdm import tqdm
 
     with tqdm(
-        total=1, desc=f"export {what}", file=sys.stderr, bar_format="{desc}: {elapsed}"
+        total=1,
+        desc=f"export {what}",
+        file=sys.stderr,
+        bar_format="{desc}: {elapsed}",
+        disable=not sys.stderr.isatty(),  # a log file or a pipe gets no progress
     ) as bar:
         yield
         bar.update(1)
@@ -299,6 +340,12 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
     r.add_argument("--out", required=True, help="output .onnx path")
     r.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the library's)")
     r.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
+    r.add_argument(
+        "--json",
+        action="store_true",
+        help="print the graph's whole metadata as JSON (with the learned layer as base64)"
+        " instead of a summary",
+    )
 
     def run() -> int:
         args = p.parse_args(argv)

@@ -386,3 +386,34 @@ def test_a_missing_optional_dependency_names_its_extra(tmp_path, monkeypatch, ca
     line = _error_line(capsys)
     assert "needs tqdm, which is not installed: pip install 'torchcontact[logs]'" in line
     assert "unexpected" not in line and not (tmp_path / "s.parquet").exists()
+
+
+def test_the_console_script_ends_at_once_and_loses_nothing(small_log, tmp_path):
+    """``console_main`` skips the interpreter's shutdown (no atexit handler runs) once stdout is
+    flushed; a stdout it cannot write is an error, not exit 0; ``python -m torchcontact`` keeps
+    the normal shutdown. (An estimate through this entry: tests/logs/test_startup.py.)"""
+    import subprocess
+
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    scripts = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["torchcontact"] == "torchcontact.cli:console_main"
+    hook = "import atexit; atexit.register(lambda: print('shutdown ran', flush=True))\n"
+    entry = hook + "from torchcontact.cli import console_main; console_main()"
+
+    def console(*args, stdout=subprocess.PIPE):
+        return subprocess.run([sys.executable, "-c", entry, *args], stdout=stdout,
+                              stderr=subprocess.PIPE, text=True, cwd=tmp_path)  # fmt: skip
+
+    r = console("--version")
+    assert (r.returncode, r.stdout.strip()) == (0, __version__)  # no 'shutdown ran'
+    r = console("estimate", str(small_log))  # --out missing: a usage error
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and r.stdout == ""
+    with open("/dev/full", "w") as full:  # a full disk under stdout
+        r = console("--version", stdout=full)
+    assert r.returncode == 1 and "error: standard output: No space left" in r.stderr
+    r = subprocess.run([sys.executable, "-c", hook + "import runpy; runpy.run_module("
+                        "'torchcontact', run_name='__main__')", "--version"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 0 and r.stdout.splitlines() == [__version__, "shutdown ran"]

@@ -17,16 +17,17 @@ Warnings are ``warning:`` lines. Help texts show the defaults.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
-import traceback
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from torchcontact.errors import TorchContactError
 
-__all__ = ["COMMANDS", "Parser", "build_parser", "guarded", "main"]
+__all__ = ["COMMANDS", "Parser", "build_parser", "console_main", "guarded", "main"]
 
 #: Sub-commands: the module whose ``add_parser`` registers them, and their line in the help.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -130,6 +131,8 @@ def guarded(run: Callable[[], int | None], debug: bool = False) -> int:
 
     def show(msg: str) -> None:
         if debug:
+            import traceback
+
             traceback.print_exc()
         print(f"error: {_one_line(msg)}", file=sys.stderr)
 
@@ -296,6 +299,81 @@ def main(argv: Sequence[str] | None = None) -> int:
     rc = guarded(lambda: args.func(args), debug)
     _background_note()
     return rc
+
+
+def _exit_code(exc: SystemExit) -> int:
+    """The process exit code of a ``SystemExit`` (as the interpreter computes it)."""
+    if exc.code is None:
+        return 0
+    if isinstance(exc.code, int):
+        return exc.code
+    print(exc.code, file=sys.stderr)
+    return 1
+
+
+def _finish_process() -> None:
+    """What the interpreter's shutdown would do that a command's result still needs.
+
+    Outputs are published (atomically) before a command returns, its threads joined and its
+    files closed; what is left is buffered in this process: the standard streams and the
+    ``logging`` handlers, and rerun's recordings (its own exit handler sends what they still
+    buffer). A Ray instance this process started is shut down as Ray's own exit handler would
+    (its head processes and workers end with it). Kernel builds this command
+    started are detached processes: they go on (:func:`_background_note` said so).
+    """
+    ray = sys.modules.get("ray")
+    if ray is not None and getattr(ray, "is_initialized", lambda: False)():
+        ray.shutdown()
+    rerun = sys.modules.get("rerun")  # its exit handler sends what recordings still buffer
+    if rerun is not None and hasattr(rerun, "rerun_shutdown"):
+        rerun.rerun_shutdown()
+    logging = sys.modules.get("logging")  # imported by a command, or nothing to flush
+    if logging is not None:
+        logging.shutdown()
+
+
+def _stream_error(exc: OSError, rc: int) -> int:
+    """The exit code after standard output failed.
+
+    A closed pipe (``| head``) keeps ``rc``; anything else (a full disk) is one ``error:`` line
+    and exit 1, never a silent 0.
+    """
+    if isinstance(exc, BrokenPipeError):
+        return rc
+    with contextlib.suppress(OSError):
+        print(f"error: standard output: {exc.strerror or exc}", file=sys.stderr, flush=True)
+    return rc or 1
+
+
+def console_main() -> None:
+    """The ``torchcontact`` console script: :func:`main`, then end the process at once.
+
+    The interpreter's shutdown (joining idle pool threads, tearing down torch, pyarrow and every
+    module) cost 2.5-10 s after the output was published on a loaded 2-core machine
+    (``benchmarks/exit_delay.py``, docs/pipeline.md). Once the command has returned, the
+    streams are flushed and logging is shut down, the process ends with :func:`os._exit`.
+    In-process callers (tests, scripts, ``python -m torchcontact``) use :func:`main`, which
+    returns the exit code.
+    """
+    try:
+        rc = main()
+    except SystemExit as exc:  # --help, --version, a usage error
+        rc = _exit_code(exc)
+    except KeyboardInterrupt:  # outside guarded(): while parsing or importing
+        print("interrupted", file=sys.stderr)
+        rc = 130
+    except OSError as exc:  # outside guarded(): writing --help or --version
+        rc = _stream_error(exc, 0)
+    try:
+        _finish_process()
+    except Exception as exc:  # never lose the exit code to a teardown hook
+        print(f"warning: at exit: {type(exc).__name__}: {_one_line(exc)}", file=sys.stderr)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except OSError as exc:
+            rc = _stream_error(exc, rc) if stream is sys.stdout else rc or 1
+    os._exit(rc)
 
 
 if __name__ == "__main__":

@@ -110,10 +110,12 @@ def _icub_path():
     return icub_path()
 
 
-def test_gru_stack_stepped_in_onnx_equals_the_sequence(tmp_path):
+def test_gru_stack_stepped_in_onnx_equals_the_sequence(tmp_path, capsys):
     ckpt, corr = _checkpoint(tmp_path, "tcarm", ("offset", "gru"))
     path = tmp_path / "gru.onnx"
-    assert main(["residual", str(ckpt), "--robot", "tcarm", "--out", str(path)]) == 0
+    assert main(["residual", str(ckpt), "--robot", "tcarm", "--out", str(path), "--json"]) == 0
+    meta = json.loads(capsys.readouterr().out)  # --json: all the metadata
+    assert meta["path"] == str(path) and len(meta["learned_graph"]) > 1000
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == ["q", "qd", "qdd", "extra", "h_in"]
     props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
@@ -137,7 +139,12 @@ def test_export_cli_uses_the_recorded_urdf_and_refuses_tampering(tmp_path, capsy
     meta = json.loads((ckpt / "checkpoint.json").read_text())
     (ckpt / "checkpoint.json").write_text(json.dumps({**meta, "urdf": str(tc.robots.tcarm_path())}))
     assert main(["residual", str(ckpt), "--out", str(path)]) == 0
-    assert json.loads(capsys.readouterr().out)["path"] == str(path)
+    out, err = capsys.readouterr()
+    # a summary, not the metadata with its base64 graph; no progress on a stderr that is no tty
+    lines = out.splitlines()
+    assert lines[0].startswith(f"wrote {path} (") and "sensor base_ft of tcarm" in lines[0]
+    assert lines[-1] == "  all metadata: --json" and len(out) < 600, out
+    assert "checked against torch" in out and "export residual" not in err
     # another robot's URDF is refused
     assert main(["residual", str(ckpt), "--urdf", str(_icub_path()), "--out", str(path)]) == 1
     assert "trained for robot" in capsys.readouterr().err

@@ -197,3 +197,39 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     assert "--workers must be an integer >= 1" in capsys.readouterr().err
     with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
         estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts
+
+
+def test_a_declared_ft_sensor_reaches_the_workers(cluster, tmp_path, capsys):
+    """``--ft-sensor`` with ``--engine ray``: every worker builds the robot with the declared
+    sensor (and checks its identity against the driver's); the rows equal the local engine's."""
+    from torchcontact.cli import main
+    from torchcontact.logs import estimate_file, write_simulated_log
+    from torchcontact.robots import RobotSpec
+
+    decl = ["wrist_ft:hand_skin"]  # tcarm declares base_ft only
+    spec = RobotSpec.of("tcarm", decl)
+    log = write_simulated_log(spec.load(), 300, tmp_path / "w.parquet", seed=5, robot="tcarm",
+                              ft_sensors=decl, sensor="wrist_ft", links=["hand_skin"])  # fmt: skip
+    local = estimate_file(log, spec, tmp_path / "local.parquet", batch_size=16)
+    out = tmp_path / "ray.parquet"
+    argv = ["estimate", str(log), "--out", str(out), "--robot", "tcarm", "--ft-sensor", decl[0],
+            "--engine", "ray", "--workers", "2", "--batch-size", "16", "--quiet", "--json"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    r = json.loads(capsys.readouterr().out)
+    assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 3 and r["ok_now"] == 300
+    _same_rows(pq.read_table(out), pq.read_table(local["output"]))
+
+
+def test_a_worker_whose_robot_differs_from_the_drivers_stops_the_run():
+    """The identity check of ``_worker_state`` (in-process): a worker building tcarm without the
+    driver's declared sensor (another URDF on its node, say) names the difference."""
+    from torchcontact.logs import LogError
+    from torchcontact.logs.ray_engine import _worker_state
+    from torchcontact.robots import RobotSpec
+
+    driver = RobotSpec.of("tcarm", ["wrist_ft:hand_skin"]).load().identity
+    robot = {"robot": "tcarm", "ft_sensors": [], "identity": driver.sha256,
+             "identity_entries": driver.to_json()}  # fmt: skip
+    job = {"threads": 0, "dtype": "float64", "device": "cpu"}
+    with pytest.raises(LogError, match=r"Ray worker on .* built robot tcarm unlike the driver's: "):
+        _worker_state("unused.parquet", robot, {}, job)

@@ -59,15 +59,26 @@ def _user_errors() -> Iterator[None]:
         raise InputError(str(exc)) from exc
 
 
-def _add_source_args(p: argparse.ArgumentParser) -> None:
+def _add_source_args(p: argparse.ArgumentParser, log: bool = False) -> None:
     p.add_argument("--profile", default="robotiq-ft300", help=f"one of {available_profiles()}")
     where = p.add_mutually_exclusive_group(required=True)
+    other = "--tcp or --log" if log else "--tcp"
     where.add_argument(
-        "--port", help="serial port (Modbus RTU), e.g. /dev/ttyUSB0 (default: none; or --tcp)"
+        "--port", help=f"serial port (Modbus RTU), e.g. /dev/ttyUSB0 (default: none; or {other})"
     )
     where.add_argument(
-        "--tcp", metavar="HOST:PORT", help="Modbus TCP server (default: none; or --port)"
+        "--tcp",
+        metavar="HOST:PORT",
+        help=f"Modbus TCP server (default: none; or {other.replace('--tcp', '--port')})",
     )
+    if log:
+        where.add_argument(
+            "--log",
+            metavar="LOG.parquet",
+            help="replay a recorded log (torchcontact log format) through --onnx or --c-step"
+            " instead of reading sensors: its F/T readings, joint states (qd/qdd derived as"
+            " estimate does when absent) and contact records, frame by frame (default: none)",
+        )
     p.add_argument("--stream", action="store_true", help="FT 300 stream mode (100 Hz)")
     p.add_argument(
         "--sensor",
@@ -319,6 +330,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from torchcontact.drivers.modbus import parse_hostport
     from torchcontact.errors import ModelMismatchError
 
+    if args.log:
+        with _user_errors():
+            return _cmd_replay(args)
     with _user_errors():
         exported = args.onnx or args.c_step
         if args.derivatives == "causal":
@@ -399,6 +413,64 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    """``run --onnx GRAPH --log LOG``: the log's frames through the exported estimator."""
+    from torchcontact.drivers.live import (
+        JsonLinesPublisher,
+        RuntimeEstimator,
+        UdpPublisher,
+        json_line,
+    )
+    from torchcontact.drivers.log import FTLogWriter
+    from torchcontact.drivers.modbus import parse_hostport
+    from torchcontact.drivers.replay import replay_log
+
+    path = args.onnx or args.c_step
+    if not path:
+        raise InputError("--log replays a log through an exported estimator: give --onnx or"
+                         " --c-step")  # fmt: skip
+    given = {"--joints": args.joints, "--source": args.source, "--contacts": args.contacts,
+             "--view": args.view, "--stream": args.stream, "--extra": args.extra,
+             "--derivatives causal": args.derivatives == "causal",
+             "--duration": args.duration is not None}  # fmt: skip
+    bad = [k for k, v in given.items() if v]
+    if bad:
+        raise InputError(
+            f"{', '.join(bad)}: not with --log (the log gives the readings, joint states,"
+            " contacts and extra columns)"
+        )
+    spec = resolve_robot_argument(args, logs=[args.log])
+    model = spec.load()
+    est = RuntimeEstimator(
+        path,
+        None,
+        robot=model,
+        residual=args.residual or None,
+        backend="c" if args.c_step else "onnx",
+        **_online_options(args),
+    )
+    rt = est.runtime
+    if args.publish == "stdout":
+        publishers: list[Any] = [JsonLinesPublisher(sys.stdout)]
+    else:
+        at = parse_hostport(args.publish.removeprefix("udp://"))
+        publishers = [UdpPublisher(*at, allow_remote=args.allow_remote)]
+    log = None
+    if args.out:
+        log = FTLogWriter(args.out, list(rt.sensor_names), bias=rt.online is not None)
+    try:
+        summary = replay_log(args.log, est, model, publishers, log=log)
+    finally:
+        if log is not None:
+            log.close()
+    summary["online"] = est.summary()
+    print(json_line({"summary": summary}), file=sys.stderr, flush=True)
+    if summary["frames"] and summary["log_errors"] == summary["frames"]:
+        print(f"error: {args.log}: no frame had a usable joint state and reading", file=sys.stderr)
+        return 1
+    return 0
+
+
 def add_parser(subparsers: Any) -> None:
     """Register ``sensor simulate``, ``sensor read`` and ``run`` on the top-level subparsers."""
     sensor = subparsers.add_parser("sensor", help="F/T sensor drivers and simulator")
@@ -443,7 +515,7 @@ def add_parser(subparsers: Any) -> None:
     read.set_defaults(func=cmd_read)
 
     run = subparsers.add_parser("run", help="live loop: sensor + joints -> estimator -> JSON")
-    _add_source_args(run)
+    _add_source_args(run, log=True)
     which = run.add_mutually_exclusive_group()
     which.add_argument(
         "--estimator",

@@ -30,6 +30,7 @@ sender that has none.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import math
@@ -276,6 +277,10 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
+        if x and type(x[0]) is float:  # numbers (an array's tolist()): one C-level check
+            with contextlib.suppress(TypeError):
+                if math.isfinite(sum(x)):  # every value finite (an overflow takes the long way)
+                    return list(x)
         return [_jsonable(v) for v in x]
     if hasattr(x, "detach"):  # torch tensor, without importing torch
         x = x.detach().cpu().numpy()
@@ -652,7 +657,34 @@ class RuntimeEstimator:
         busy = js is not None and bool(js.flags & JOINT_CONTACT)
         return self._estimate(q, qd, qdd, sample.wrench, sample.t_ns, False if busy else None, js)
 
-    def _estimate(self, q, qd, qdd, ft, t_ns, contact_free, js) -> dict[str, Any]:
+    def estimate(
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        ft: np.ndarray,
+        inputs: dict[str, Any],
+        t_ns: int | None = None,
+    ) -> dict[str, Any]:
+        """Estimate one frame with its own inputs instead of the contact spec (a replayed log).
+
+        Args:
+            q: ``(nv,)`` joint positions in the file's joint order, rad or m.
+            qd: ``(nv,)`` joint velocities.
+            qdd: ``(nv,)`` joint accelerations.
+            ft: ``(S, 6)`` raw readings ``[N; N m]``, sensors in the file's order.
+            inputs: this frame's other inputs by name (``positions (K, 3)``, ``active (K,)``,
+                ``directions``, ``wrenches``, ``tau_measured``, ``omega``, ``extra``, ...),
+                names the file takes only (:attr:`~torchcontact.runtime.EstimatorRuntime.
+                input_names`); the caller checks their shapes.
+            t_ns: the frame's time stamp, ns (the bias tracker's clock).
+
+        Returns:
+            As :meth:`__call__`.
+        """
+        return self._estimate(q, qd, qdd, ft, t_ns, None, None, inputs)
+
+    def _estimate(self, q, qd, qdd, ft, t_ns, contact_free, js, inputs=None) -> dict[str, Any]:
         from torchcontact.runtime import ModelMismatchError
 
         rt = self.runtime
@@ -667,7 +699,12 @@ class RuntimeEstimator:
                 f"reading has {ft.size} values, the graph reads {rt.S} sensors"
                 f" {list(rt.sensor_names)} (6 each)"
             )
-        spec = self._fixed if self._fixed is not None else self._check(self.contacts(q))  # type: ignore[misc]
+        if inputs is not None:
+            spec = inputs
+        elif self._fixed is not None:
+            spec = self._fixed
+        else:
+            spec = self._check(self.contacts(q))  # type: ignore[misc]
         inputs = {**spec, "q": q, "qd": qd, "qdd": qdd, "ft": ft.reshape(rt.S, 6)}
         if rt.online is None:
             return rt.step(inputs)

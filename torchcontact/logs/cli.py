@@ -203,11 +203,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     raise InputError(msg)
             from torchcontact.logs.ray_engine import estimate_files_ray
 
-            if robot.ft_sensors:
-                raise InputError(
-                    "--ft-sensor applies to --engine local only (Ray workers load the robot from"
-                    " its URDF)"
-                )
             kwargs.update(workers=args.workers, threads=args.threads)
             summaries = estimate_files_ray(files, robot, args.out, **kwargs)
         else:

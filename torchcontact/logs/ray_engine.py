@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from torchcontact.errors import LogError, TorchContactError
+from torchcontact.identity import RobotIdentity
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
@@ -58,6 +59,7 @@ from torchcontact.logs.pipeline import (
     run_ident,
 )
 from torchcontact.logs.run import Done, Run, side_paths
+from torchcontact.robots import RobotSpec, ft_sensor_specs
 
 __all__ = ["estimate_file_ray", "estimate_files_ray", "plan_units"]
 
@@ -91,12 +93,19 @@ def _read_unit(pf: Any, columns: list[str], lo: int, hi: int, source: str) -> An
 _WORKER_CACHE: dict[str, tuple[LogEstimator, Any]] = {}
 
 
-def _worker_state(path: str, robot: str, le_args: dict, job: dict) -> tuple:
+def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
     key = json.dumps([path, robot, le_args, job], sort_keys=True, default=str)
     if key not in _WORKER_CACHE:
         if job["threads"]:
             torch.set_num_threads(job["threads"])
-        model = load_robot(robot, getattr(torch, job["dtype"]), job["device"])
+        spec = RobotSpec(robot["robot"], ft_sensor_specs(robot["ft_sensors"]))
+        model = load_robot(spec, getattr(torch, job["dtype"]), job["device"])
+        if model.identity.sha256 != robot["identity"]:  # another URDF on this node
+            driver = RobotIdentity.from_json(robot["identity_entries"])
+            raise LogError(
+                f"the Ray worker on {os.uname().nodename} built robot {spec} unlike the"
+                f" driver's: {driver.difference(model.identity) or 'another identity'}"
+            )
         res = None if job["residual"] is None else load_residual(job["residual"], model)
         args = dict(le_args)
         layout = args.pop("layout")
@@ -200,7 +209,8 @@ def _unit_dataset(
     ray: Any,
     todo: list[int],
     path: str | Path,
-    robot: str | Path,
+    robot: RobotSpec,
+    model: Any,
     le: LogEstimator,
     run: Run,
     columns: list[str],
@@ -232,7 +242,15 @@ def _unit_dataset(
         "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
     }
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
-    config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
+    # the robot as the driver has it: the URDF with the declared --ft-sensor sensors, and the
+    # model's identity, which each worker's model must have
+    robot_arg = {
+        "robot": robot.robot,
+        "ft_sensors": [str(s) for s in robot.ft_sensors],
+        "identity": model.identity.sha256,
+        "identity_entries": model.identity.to_json(),
+    }
+    config = (str(Path(path).resolve()), robot_arg, le_args, job)
     return ds.map_batches(
         _estimate_units,
         fn_kwargs={"config": config},
@@ -247,7 +265,7 @@ def _unit_dataset(
 
 def estimate_file_ray(
     path: str | Path,
-    robot: str | Path,
+    robot: str | Path | RobotSpec,
     out: str | Path,
     *,
     sensors: Sequence[str] | None = None,
@@ -276,7 +294,9 @@ def estimate_file_ray(
 
     Args:
         path: input log.
-        robot: URDF path.
+        robot: ``tcarm``, ``icub``, a URDF path, or a :class:`~torchcontact.robots.RobotSpec`
+            with declared F/T sensors (``--ft-sensor``): every worker builds the same model
+            and checks its identity against the driver's.
         out: output Parquet file.
         sensors: sensors to use (default: those with a column).
         batch_size: frames per estimator call inside a unit.
@@ -317,8 +337,9 @@ def estimate_file_ray(
     out = Path(out)
     check_outputs([out, *side_paths(out)], [path, robot, residual])
     device = resolve_device(device)
+    spec = robot if isinstance(robot, RobotSpec) else RobotSpec.of(robot)
     with Run(out, path) as run:  # the lock first: a second run stops before any work
-        model = load_robot(robot, dtype)
+        model = load_robot(spec, dtype)
         res = None if residual is None else load_residual(residual, model)
         if res is not None and res.recurrent:
             raise LogError(
@@ -345,8 +366,8 @@ def estimate_file_ray(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
                 ray = _ensure_ray(num_cpus)
-                ds = _unit_dataset(ray, todo, path, robot, le, run, columns, res, workers,
-                                   worker_cpus, options)  # fmt: skip
+                ds = _unit_dataset(ray, todo, path, spec, model, le, run, columns, res,
+                                   workers, worker_cpus, options)  # fmt: skip
                 try:
                     batches = ds.iter_batches(
                         batch_size=1, batch_format="numpy", prefetch_batches=0
@@ -376,7 +397,7 @@ def estimate_file_ray(
 
 
 def estimate_files_ray(
-    inputs: Sequence[str | Path], robot: str | Path, out: str | Path, **kwargs: Any
+    inputs: Sequence[str | Path], robot: str | Path | RobotSpec, out: str | Path, **kwargs: Any
 ) -> list[dict]:
     """:func:`estimate_file_ray` over files, folders or globs (``out`` a folder for several)."""
     files = expand_inputs(inputs)

@@ -364,6 +364,11 @@ class EstimatorRuntime:
 
     # ------------------------------------------------------------------------------- checks
 
+    @property
+    def input_names(self) -> frozenset[str]:
+        """The input names :meth:`step` takes (the file's inputs and those it may leave unused)."""
+        return self._accepts
+
     def __repr__(self) -> str:
         return (
             f"EstimatorRuntime({self.path!r}, robot={self.metadata['robot']!r}, nv={self.nv},"
