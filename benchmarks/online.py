@@ -27,10 +27,10 @@
    added mid-stream (seconds of motion until ``identify_payload()`` answers, and its mass error),
    on the bundled arm and on iCub ``l_arm_ft``.
 
-3. **New session** (the README's ``train heldout --new-session`` drift + cable case: iCub
+3. **New session** (benchmarks/README.md's ``train heldout --new-session`` drift + cable case: iCub
    ``l_arm_ft``, noise x2.6, a stack trained on 36,000 frames of one session, scored on 12,000
    frames of another): contact-force RMSE on one-contact frames with the chosen stack alone (the
-   README's 2.362 N), and with the bias tracked from the model over the test log
+   benchmarks/README.md's 2.362 N), and with the bias tracked from the model over the test log
    (``track_log``: the causal filter, and the forward-backward smoother) on top of the constant
    offset and of the chosen stack.
 
@@ -283,7 +283,7 @@ def streams(d: Path) -> None:
 
 
 def new_session(epochs: int, bias_tau: float = 0.0) -> None:
-    """Section 3: the README's --new-session drift + cable case, with the bias tracked."""
+    """Section 3: benchmarks/README.md's --new-session drift + cable case, with the bias tracked."""
     from dataclasses import replace
 
     from torchcontact.online.estimator import OnlineEstimator, track_log

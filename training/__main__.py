@@ -176,7 +176,7 @@ def _conditions(args) -> dict[str, dict]:
 
 
 def _goals(metrics: dict[str, dict[str, dict[str, float]]], key: str) -> list[str]:
-    """The issue's goals checked on one metric (contact-force RMSE 1c or free force RMS)."""
+    """The targets checked on one metric (contact-force RMSE 1c or free force RMS)."""
     lines = []
     for cond, rows in metrics.items():
         stack = rows["stack"][key]
@@ -311,7 +311,7 @@ def heldout(
 
 
 def cmd_heldout(args) -> int:
-    """The issue's held-out scoring: train on one log, estimate contacts on another."""
+    """Held-out scoring: train on one log, estimate contacts on another."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     spec = resolve_robot_argument(args)
@@ -370,7 +370,7 @@ FEATURE_SETS = {
 
 
 def cmd_study(args) -> int:
-    """Held-out contact-force error of the learned layer per input set (README table)."""
+    """Held-out contact-force error of the learned layer per input set (benchmarks/README.md)."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
