@@ -23,6 +23,14 @@ link, kind and order), but never across a time-segment boundary (a repeated, bac
 ``t_ns``): a segment's first frame starts cold. Non-convergence is not a status bit (status bits
 mean NaN outputs; a frame that did not converge keeps its last interior-point iterate, inside
 the cones): it is ``converged.<sensor> = false``.
+
+Localization (:class:`LogLocalize`, ``estimate --localize``): in each sensor region that holds
+candidate links, a frame without a skin contact there gets the contact localized from the F/T
+wrench and the collision meshes (:func:`torchcontact.localize.localize_chunk`) as a ``force``
+record at the point, with its outward normal; the estimator then runs on the records as usual.
+The output's contacts include these records (the input's other fields null) and each localizing
+sensor's :func:`~torchcontact.logs.format.localization_fields`. The log's slot layout gets one
+``force`` slot per candidate link, so every chunk still runs one program.
 """
 
 from __future__ import annotations
@@ -37,13 +45,14 @@ import numpy as np
 import torch
 
 from torchcontact.constrained import FrictionCones, PreviousFrame
-from torchcontact.contacts import Contacts, SlotLayout
-from torchcontact.errors import InputError, KernelBuildError, LogError
+from torchcontact.contacts import ContactRecords, Contacts, SlotLayout
+from torchcontact.errors import InputError, KernelBuildError, LogError, MissingExtraError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.logs.decode import ChunkDecoder, Decoded, FrameIssues, status_text
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, DerivativeStream, time_segments
 from torchcontact.logs.format import (
     META_DERIVED,
+    META_LOCALIZE,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
@@ -59,6 +68,7 @@ from torchcontact.model import RobotModel
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
     "LogConstraints",
+    "LogLocalize",
     "LogEstimator",
     "decoded_chunks",
     "estimate_stream",
@@ -121,6 +131,144 @@ class LogConstraints:
             raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
 
 
+#: Fields a localized contact record fills in the output's contact struct (added when missing).
+LOCALIZED_FIELDS = ("link", "kind", "position", "normal")
+
+
+class LogLocalize:
+    """Contact localization in a log estimate (``estimate --localize``): meshes loaded once.
+
+    The collision meshes are loaded and the ray-casting trees built once per run; each set of
+    sensors in use gets one :class:`~torchcontact.localize.Localizer` (built on first use and
+    kept), shared by every chunk and every log of the run.
+
+    Args:
+        meshes: the robot's collision meshes (:func:`torchcontact.meshes.load_meshes`).
+        links: candidate links, or ``"subtree"``: every meshed link in a sensor's region.
+        force_threshold: below this force a frame has no contact, N.
+        accept_ambiguous: also use the first candidate of ambiguous frames (status bit 16).
+        ft_std: ``(6,)`` F/T noise standard deviations ``[N; N m]`` of every localizing sensor
+            (fills ``localize_position_std``), or None (NaN).
+        ray: the localizer's ray-casting backend (:data:`torchcontact.localize.RAY_BACKENDS`).
+
+    Raises:
+        InputError: a threshold < 0, an ``ft_std`` that is not 6 numbers >= 0.
+    """
+
+    def __init__(
+        self,
+        meshes: Any,
+        links: Sequence[str] | str = "subtree",
+        *,
+        force_threshold: float = 1.0,
+        accept_ambiguous: bool = False,
+        ft_std: Sequence[float] | None = None,
+        ray: str = "auto",
+    ) -> None:
+        if not force_threshold >= 0:
+            raise InputError(f"--localize-threshold must be >= 0 N, got {force_threshold}")
+        if ft_std is not None:
+            std = np.asarray(ft_std, np.float64).reshape(-1)
+            if std.shape != (6,) or not (std >= 0).all():
+                raise InputError(f"--localize-ft-std takes 6 numbers >= 0 [N; N m], got {ft_std}")
+            ft_std = std.tolist()
+        self.meshes = meshes
+        self.links = links if isinstance(links, str) else tuple(links)
+        self.force_threshold = float(force_threshold)
+        self.accept_ambiguous = bool(accept_ambiguous)
+        self.ft_std = ft_std
+        self.ray = ray
+        self._localizers: dict[tuple, Any] = {}
+
+    @classmethod
+    def load(
+        cls, model: RobotModel, urdf: Any, links: Sequence[str] | str = "subtree", **options: Any
+    ) -> LogLocalize:
+        """Load the collision meshes of ``urdf`` (the file ``model`` was built from).
+
+        Args:
+            model: the robot.
+            urdf: its URDF path (or a :class:`~torchcontact.robots.RobotSpec`).
+            links: as the constructor.
+            **options: the constructor's keyword options.
+
+        Raises:
+            InputError: the robot has no collision geometry, or a named link has none (with the
+                files that failed to load), or is not a link of the robot.
+            MissingExtraError: trimesh (or pycollada for ``.dae`` files) is not installed.
+        """
+        import os
+
+        from torchcontact.meshes import load_meshes
+
+        named = None if isinstance(links, str) else list(links)
+        if isinstance(links, str) and links != "subtree":
+            raise InputError(f"--localize takes link names or 'subtree', got {links!r}")
+        meshes = load_meshes(model, os.fspath(urdf), "collision", links=named)
+        for _, _, why in meshes.missing:  # a missing extra is the one thing to say
+            if "pip install" in why and not meshes.links:
+                raise MissingExtraError(why.split("'")[1], "meshes")
+        if not meshes.links:
+            why = "; ".join(f"{link}: {f}: {w}" for link, f, w in meshes.missing[:3])
+            raise InputError(
+                f"--localize: {model.name} ({os.fspath(urdf)}) has no collision mesh"
+                + (f" that loads ({why})" if why else " (no <collision> element in the URDF)")
+            )
+        return cls(meshes, links, **options)
+
+    def localizer(self, model: RobotModel, sensors: Sequence[str]) -> Any:
+        """The :class:`~torchcontact.localize.Localizer` of a set of sensors (built once).
+
+        Raises:
+            InputError: a candidate link outside the regions of ``sensors`` or without geometry.
+        """
+        from torchcontact.localize import Localizer
+
+        key = (id(model), tuple(sensors))
+        if key not in self._localizers:
+            self._localizers[key] = Localizer(
+                model, self.meshes, self.links, list(sensors),
+                force_threshold=self.force_threshold, ray=self.ray,
+            )  # fmt: skip
+        return self._localizers[key]
+
+    def covariance(self, sensors: Sequence[str]) -> dict[str, np.ndarray] | None:
+        """``{sensor: (6, 6)}`` reading covariances from ``ft_std`` (None without it)."""
+        if self.ft_std is None:
+            return None
+        return {s: np.diag(np.square(self.ft_std)) for s in sensors}
+
+    def options(self) -> dict[str, Any]:
+        """What the localization is (a resume must match; Ray workers rebuild it from this)."""
+        return {
+            "links": self.links if isinstance(self.links, str) else list(self.links),
+            "force_threshold": self.force_threshold,
+            "accept_ambiguous": self.accept_ambiguous,
+            "ft_std": self.ft_std,
+            "ray": self.ray,
+        }
+
+
+def localized_layout(layout: SlotLayout | None, links: Sequence[str]) -> SlotLayout:
+    """``layout`` with at least one ``force`` slot on each candidate link (sorted pairs).
+
+    A localized contact is added only to frames without skin contacts in its region, so one
+    ``force`` slot per candidate link is enough on top of the skin's own slots.
+    """
+    pairs: dict[tuple[str, str], int] = {}
+    if layout is not None:
+        for link, kind in zip(layout.links, layout.kinds, strict=True):
+            pairs[(link, kind)] = pairs.get((link, kind), 0) + 1
+    for link in links:
+        pairs[(link, "force")] = max(pairs.get((link, "force"), 0), 1)
+    out_links: list[str] = []
+    out_kinds: list[str] = []
+    for (link, kind), m in sorted(pairs.items()):
+        out_links += [link] * m
+        out_kinds += [kind] * m
+    return SlotLayout(tuple(out_links), tuple(out_kinds))
+
+
 # ---------------------------------------------------------------------- one chunk
 @dataclass
 class LogEstimator:
@@ -144,6 +292,7 @@ class LogEstimator:
         layout: the log's slot layout (:meth:`LogScan.layout`): every chunk runs the same
             program; None: each chunk gets the layout covering its own records.
         step_ns: the log's median time step (segments: :mod:`torchcontact.logs.derive`).
+        localize: contact localization (:class:`LogLocalize`), or None.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -163,6 +312,7 @@ class LogEstimator:
     constraints: LogConstraints | None = None
     layout: SlotLayout | None = None
     step_ns: float = 0.0
+    localize: LogLocalize | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
     decoder: ChunkDecoder = field(init=False)
@@ -193,6 +343,22 @@ class LogEstimator:
             cons is not None, self.residual_columns(), self.source,
         )  # fmt: skip
         self._schema = None
+        #: the localizer of the sensors in use (``localize``), or None
+        self.localizer = None
+        #: the output's contact struct fields besides force and moment
+        self.output_fields = list(self.contact_fields)
+        if self.localize is not None:
+            self.localizer = self.localize.localizer(self.model, self.sensors)
+            have = {n for n, _ in self.contact_fields}
+            import pyarrow as pa
+
+            types = {
+                "link": pa.string(),
+                "kind": pa.string(),
+                "position": pa.list_(pa.float64(), 3),
+                "normal": pa.list_(pa.float64(), 3),
+            }
+            self.output_fields += [(n, types[n]) for n in LOCALIZED_FIELDS if n not in have]
 
     def residual_columns(self) -> list[str]:
         """Log columns the residual model reads besides ``q``/``qd``/``qdd`` (e.g. temperature)."""
@@ -226,12 +392,17 @@ class LogEstimator:
                     "kind": "+".join(self.residual.layers),
                 }
             )
+        if self.localize is not None:
+            meta[META_LOCALIZE] = json.dumps(
+                {**self.localize.options(), "candidates": list(self.localizer.links)}
+            )
         self._schema = output_schema(
             self.model.joint_names,
             self.sensors,
-            self.contact_fields,
+            self.output_fields,
             meta,
             constraints=self.constraints is not None,
+            localize=self.localizer.sensor_names if self.localizer is not None else (),
         )
         return self._schema
 
@@ -281,15 +452,22 @@ class LogEstimator:
         import pyarrow as pa
 
         model, N = self.model, d.n
-        if d.contacts is None:
-            self.decoder.slots(d, model.dtype, model.device)
-        contacts, records, slot = d.contacts, d.records, d.slot
-        assert contacts is not None
         if d.qd is None or d.qdd is None:
             raise LogError(f"{self.source}: qd/qdd of a chunk were not derived")
         ft = dict(d.ft)
         if self.residual is not None:
             ft[self.residual.sensor] = self._corrected(d, ft[self.residual.sensor])
+        schema = self.output_schema()
+        ctype = schema.field("contacts").type.value_type
+        located: dict[str, Any] = {}
+        if self.localizer is not None:
+            contacts, records, slot, children, located = self._localized(d, ft, ctype)
+        else:
+            if d.contacts is None:
+                self.decoder.slots(d, model.dtype, model.device)
+            contacts, records, slot = d.contacts, d.records, d.slot
+            children = {n: d.fields[n] for n, _ in self.contact_fields}
+        assert contacts is not None
         res = self._solve(d, ft, contacts, previous, backend)
 
         code = res["status"]
@@ -314,9 +492,6 @@ class LogEstimator:
         if ok_c.any():
             cf[ok_c] = res["force"][records.frame[ok_c], slot[ok_c]]
             cm[ok_c] = res["moment"][records.frame[ok_c], slot[ok_c]]
-        schema = self.output_schema()
-        ctype = schema.field("contacts").type.value_type
-        children = {n: d.fields[n] for n, _ in self.contact_fields}
         children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
         cons = self.constraints
         if cons is not None:  # the cone binds; null where the contact was not estimated
@@ -337,7 +512,70 @@ class LogEstimator:
         out["status_code"] = pa.array(code)
         out["status"] = status_text(code)
         out["status_detail"] = d.issues.details()
+        out.update(located)
         return pa.table(out, schema=schema)
+
+    def _localized(
+        self, d: Decoded, ft: dict[str, np.ndarray], ctype: Any
+    ) -> tuple[Contacts, ContactRecords, np.ndarray, dict[str, Any], dict[str, Any]]:
+        """Localize a chunk's contacts and slot the records with them added.
+
+        Returns:
+            ``(contacts, records, slot, children, columns)``: the slots; every input record and
+            the localized ``force`` records, by frame; each one's slot (-1: not estimated); the
+            output struct's child arrays but force and moment (an added record's input fields
+            are null); the localization columns.
+        """
+        import pyarrow as pa
+
+        from torchcontact.localize import localize_chunk
+
+        model, loc, opts = self.model, self.localizer, self.localize
+        assert loc is not None and opts is not None
+        good = d.slot >= 0
+        lc = localize_chunk(
+            loc, d.q, d.qd, d.qdd, ft, d.records.select(np.flatnonzero(good)),
+            base=d.base or None, ft_covariance=opts.covariance(loc.sensor_names),
+            accept_ambiguous=opts.accept_ambiguous,
+        )  # fmt: skip
+        added = lc.records.select(np.flatnonzero(lc.source < 0))
+        M, A = len(d.records), len(added)
+        merged = ContactRecords.concat([d.records, added]) if M else added
+        order = np.argsort(merged.frame, kind="stable")
+        records = merged.select(order)
+        usable = np.r_[good, np.ones(A, bool)][order]
+        idx = np.flatnonzero(usable)
+        layout = self.layout
+        sub = records.select(idx)
+        if layout is not None and len(idx) and (layout.assign(sub) < 0).any():
+            layout = None  # a pair beyond the log's layout: this chunk gets its own
+        contacts, slot_good = Contacts.from_records(
+            sub, d.n, layout, dtype=model.dtype, device=model.device,
+            friction=self.decoder.friction if self.decoder.friction is not None else
+            (loc.friction if self.constraints is not None else None),
+        )  # fmt: skip
+        slot = np.full(M + A, -1, np.int64)
+        slot[idx] = slot_good
+        # the output struct's fields: the input's values, the localized records' own
+        have = {n for n, _ in self.contact_fields}
+        fill = {
+            "link": lambda: pa.array(added.links.tolist(), pa.string()),
+            "kind": lambda: pa.array(["force"] * A, pa.string()),
+            "position": lambda: fixed_list(added.positions),
+            "normal": lambda: fixed_list(
+                np.full((A, 3), np.nan) if added.normals is None else added.normals
+            ),
+        }
+        take = pa.array(order)
+        children: dict[str, Any] = {}
+        for fld in ctype:
+            n = fld.name
+            if n in ("force", "moment", "cone_active"):
+                continue
+            mine = fill[n]().cast(fld.type) if n in fill else pa.nulls(A, fld.type)
+            theirs = d.fields[n].cast(fld.type) if n in have else pa.nulls(M, fld.type)
+            children[n] = pa.concat_arrays([theirs, mine]).take(take)
+        return contacts, records, slot, children, lc.columns
 
     def _solve(
         self,

@@ -94,6 +94,41 @@ def _constraints(args: argparse.Namespace) -> Any:
     return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
 
 
+def _localize(args: argparse.Namespace) -> dict[str, Any] | None:
+    """``--localize`` and its options -> the options of a run's LogLocalize, or None."""
+    given = [n for n in ("localize_ft_std",) if getattr(args, n) is not None]
+    given += ["localize_ambiguous"] if args.localize_ambiguous else []
+    given += ["localize_threshold"] if args.localize_threshold != 1.0 else []
+    if args.localize is None:
+        if given:
+            names = ", ".join(f"--{n.replace('_', '-')}" for n in given)
+            raise InputError(f"{names} apply with --localize only")
+        return None
+    links: Any = _names([args.localize])
+    if not links:
+        raise InputError("--localize: name the candidate links, or 'subtree'")
+    if links == ["subtree"]:
+        links = "subtree"
+    elif "subtree" in links:
+        raise InputError("--localize: give link names or 'subtree', not both")
+    std = None
+    if args.localize_ft_std is not None:
+        try:
+            std = [float(x) for x in args.localize_ft_std.split(",")]
+        except ValueError:
+            std = []
+        if len(std) != 6:
+            raise InputError(
+                f"--localize-ft-std takes 6 numbers FX,FY,FZ,MX,MY,MZ, got {args.localize_ft_std!r}"
+            )
+    return {
+        "links": links,
+        "force_threshold": args.localize_threshold,
+        "accept_ambiguous": args.localize_ambiguous,
+        "ft_std": std,
+    }
+
+
 def _fraction(text: str) -> float:
     """``--max-bad``: a number in [0, 1]."""
     try:
@@ -131,6 +166,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         velocity_margin=args.velocity_margin or None,
         ft_range=_ft_range(args.ft_range),
         constraints=_constraints(args),
+        localize=_localize(args),
     )
     if args.residual:
         kwargs["residual"] = args.residual
@@ -165,6 +201,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     f" converged, {s['cones']['iterations_mean']:.1f} iterations on average"
                     if "cones" in s
                     else ""
+                )
+                + "".join(
+                    f"; {r}: {v['localized']} frames localized"
+                    + "".join(f", {n} {k.lower()}" for k, n in v["status"].items() if n)
+                    for r, v in s.get("localize", {}).items()
                 )
             )
     failed = [m for m in (unusable(s, args.max_bad) for s in summaries) if m]
@@ -460,6 +501,34 @@ def add_parser(subparsers: Any) -> None:
         "--no-warm-start",
         action="store_true",
         help="start every frame from the pseudo-inverse, not its predecessor (--constraints)",
+    )
+    est.add_argument(
+        "--localize",
+        metavar="LINK[,LINK...]|subtree",
+        help="in frames without a skin contact in a sensor's region, localize one contact from"
+        " the F/T wrench and the candidate links' collision meshes and estimate it as a force"
+        " contact there; 'subtree': every link with a collision mesh in a sensor's subtree"
+        " (needs the meshes extra; default: none, no localization)",
+    )
+    est.add_argument(
+        "--localize-threshold",
+        type=float,
+        default=1.0,
+        metavar="N",
+        help="no contact below this force, N (--localize)",
+    )
+    est.add_argument(
+        "--localize-ambiguous",
+        action="store_true",
+        help="also estimate the first candidate where the line of action enters the links at"
+        " several points (status bit 16; default: those frames are estimated contact-free)"
+        " (--localize)",
+    )
+    est.add_argument(
+        "--localize-ft-std",
+        metavar="FX,FY,FZ,MX,MY,MZ",
+        help="F/T noise standard deviations, N and N m, for the localized point's"
+        " localize_position_std (--localize; default: none, the column is NaN)",
     )
     est.add_argument(
         "--max-bad",

@@ -56,6 +56,7 @@ __all__ = [
     "NUMBERS",
     "META_DERIVED",
     "META_JOINT_NAMES",
+    "META_LOCALIZE",
     "META_RESIDUAL",
     "META_SENSORS",
     "META_SOURCE",
@@ -106,6 +107,10 @@ META_SOURCE = b"torchcontact.source"
 #: Output logs estimated with a learned F/T correction: JSON ``{"checkpoint", "weights_sha256",
 #: "sensor", "kind"}`` (``torchcontact estimate --residual``).
 META_RESIDUAL = b"torchcontact.residual"
+#: Output logs with localized contacts (``torchcontact estimate --localize``): JSON of the
+#: options (``links``, ``force_threshold``, ``accept_ambiguous``, ``ft_std``, ``ray``) and the
+#: ``candidates`` links.
+META_LOCALIZE = b"torchcontact.localize"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 #: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.

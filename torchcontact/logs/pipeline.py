@@ -44,8 +44,10 @@ from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogConstraints,
     LogEstimator,
+    LogLocalize,
     decoded_chunks,
     estimate_stream,
+    localized_layout,
 )
 from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
@@ -59,6 +61,7 @@ __all__ = [
     "LogConstraints",
     "LogError",
     "LogEstimator",
+    "LogLocalize",
     "estimate_file",
     "estimate_files",
     "expand_inputs",
@@ -205,6 +208,7 @@ def prepare(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
+    localize: LogLocalize | None = None,
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
     """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
 
@@ -220,6 +224,7 @@ def prepare(
         velocity_margin: see :class:`LogEstimator`.
         ft_range: see :class:`LogEstimator`.
         constraints: see :class:`LogEstimator`.
+        localize: see :class:`LogEstimator` (the layout gets a ``force`` slot per candidate).
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
@@ -250,8 +255,11 @@ def prepare(
         ft_range=ft_range,
         constraints=constraints,
         step_ns=scan.step_ns,
+        localize=localize,
     )
     le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
+    if le.localizer is not None:
+        le.layout = le.decoder.layout = localized_layout(le.layout, le.localizer.links)
     le.decoder.whole_log_segment = scan.segments == 1
     if cols.derived and scan.segments > 1:
         warnings.warn(f"{src}: {scan.describe_time()}", UserWarning, stacklevel=3)
@@ -275,6 +283,8 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
         ident["residual_weights_sha256"] = le.residual.meta.get("weights_sha256")
     if le.constraints is not None:  # a resume must estimate with the same cones
         ident["constraints"] = repr(le.constraints)
+    if le.localize is not None:
+        ident["localize"] = le.localize.options()
     return ident
 
 
@@ -285,7 +295,33 @@ def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     out["time_segments"] = scan.segments
     if le.derived:
         out["not_differentiable"] = scan.short_frames
+    if le.localizer is not None:
+        out["localize_links"] = list(le.localizer.links)
     return out
+
+
+def run_localize(
+    localize: LogLocalize | Mapping[str, Any] | None, model: RobotModel, robot: Any
+) -> LogLocalize | None:
+    """A run's :class:`LogLocalize`: as given, or loaded from ``robot``'s URDF with options.
+
+    Args:
+        localize: a :class:`LogLocalize`, its options (``links`` and the keyword options of
+            :class:`LogLocalize`), or None.
+        model: the robot.
+        robot: its URDF path or :class:`~torchcontact.robots.RobotSpec` (options only).
+
+    Raises:
+        InputError: options with a robot given as a model (pass a :class:`LogLocalize`), or as
+            :meth:`LogLocalize.load`.
+        MissingExtraError: the ``meshes`` extra is missing.
+    """
+    if localize is None or isinstance(localize, LogLocalize):
+        return localize
+    if isinstance(robot, RobotModel):
+        raise InputError("localize options need the robot's URDF path: pass a LogLocalize")
+    opts = dict(localize)
+    return LogLocalize.load(model, robot, opts.pop("links", "subtree"), **opts)
 
 
 # ---------------------------------------------------------------------- the local engine
@@ -305,6 +341,7 @@ def estimate_file(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: LogConstraints | None = None,
+    localize: LogLocalize | Mapping[str, Any] | None = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -329,6 +366,9 @@ def estimate_file(
             status bit 64 (None: no check).
         ft_range: ``{sensor: (6,) or scalar}`` [N; N m]; readings beyond it get status bit 64.
         constraints: friction-cone constrained estimation (:class:`LogConstraints`), or None.
+        localize: contact localization from the F/T wrench and the collision meshes in frames
+            without skin contact (:class:`LogLocalize`, or its options with ``robot`` a URDF
+            path), or None.
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
@@ -336,7 +376,11 @@ def estimate_file(
         derived ``qd``/``qdd`` not_differentiable), resumed_chunks, chunks, engine, bad_frames
         (frames of the output with a non-zero status), bad_details (the most frequent details
         of those, with counts); with constraints also ``cones``: ``converged`` share,
-        ``iterations_mean`` and ``iterations_max`` over the frames estimated now.
+        ``iterations_mean`` and ``iterations_max`` over the frames estimated now; with
+        ``localize`` also ``localize_links`` (the candidates) and ``localize``: per localizing
+        sensor, ``localized`` (frames whose localized contact was estimated) and ``status``
+        (frames with each :class:`~torchcontact.status.LocalizeStatus` bit, by name) over the
+        output's frames.
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unusable device, an output that is
@@ -369,8 +413,9 @@ def estimate_file(
                 f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
                 " its state depends on every earlier frame; rerun from the start"
             )
+        localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(
-            path, model, sensors, residual, velocity_margin, ft_range, constraints
+            path, model, sensors, residual, velocity_margin, ft_range, constraints, localize
         )
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
@@ -411,10 +456,18 @@ def estimate_file(
             le.output_schema(),
             progress=show,
             cone_sensors=list(le.sensors) if constraints is not None else [],
+            localize=localize_tally(le),
             t0=t0,
             **log_summary(le, scan),
             engine="local",
         )
+
+
+def localize_tally(le: LogEstimator) -> tuple[list[str], bool] | None:
+    """``(localizing sensors, accept_ambiguous)`` for the run's summary, None without."""
+    if le.localizer is None or le.localize is None:
+        return None
+    return list(le.localizer.sensor_names), le.localize.accept_ambiguous
 
 
 def _context(
@@ -483,6 +536,10 @@ def estimate_files(
     model = load_robot(robot, kwargs.get("dtype", torch.float64), kwargs.pop("device", "cpu"))
     if kwargs.get("residual") is not None:  # load and verify once for all files
         kwargs["residual"] = load_residual(kwargs["residual"], model)
+    if kwargs.get("localize") is not None:  # the meshes loaded once for all files
+        kwargs["localize"] = loc = run_localize(kwargs["localize"], model, robot)
+        sensors = kwargs.get("sensors") or list(model.ft_sensors)
+        loc.localizer(model, sensors)  # bad links are refused before any file is read
     return [
         estimate_file(f, model, o, device=str(model.device), **kwargs)
         for f, o in zip(files, outs, strict=True)

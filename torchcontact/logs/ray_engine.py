@@ -38,6 +38,7 @@ from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
+    LogLocalize,
     decoded_chunks,
     estimate_stream,
 )
@@ -50,11 +51,13 @@ from torchcontact.logs.pipeline import (
     kernel_backend,
     load_residual,
     load_robot,
+    localize_tally,
     log_summary,
     output_paths,
     prepare,
     resolve_device,
     run_ident,
+    run_localize,
 )
 from torchcontact.logs.run import Done, Run, side_paths
 
@@ -99,6 +102,10 @@ def _worker_state(path: str, robot: str, le_args: dict, job: dict) -> tuple:
         res = None if job["residual"] is None else load_residual(job["residual"], model)
         args = dict(le_args)
         layout = args.pop("layout")
+        opts = args.pop("localize")
+        if opts is not None:  # the meshes loaded once per worker process and config
+            opts = dict(opts)
+            args["localize"] = LogLocalize.load(model, robot, opts.pop("links"), **opts)
         le = LogEstimator(model, residual=res, **args)
         if layout is not None:
             from torchcontact.contacts import SlotLayout
@@ -228,6 +235,7 @@ def _unit_dataset(
         "constraints": le.constraints,
         "step_ns": le.step_ns,
         "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
+        "localize": None if le.localize is None else le.localize.options(),
     }
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
     config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
@@ -264,6 +272,7 @@ def estimate_file_ray(
     velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
     ft_range: Mapping[str, Any] | None = None,
     constraints: Any = None,
+    localize: Any = None,
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
@@ -293,6 +302,8 @@ def estimate_file_ray(
         constraints: as :func:`estimate_file` (warm starts run within a unit; a unit's first
             frame starts cold, so its rows may differ from the local engine's within the
             solver's tolerance).
+        localize: as :func:`estimate_file` (options or a :class:`LogLocalize`); each worker
+            process loads the meshes once from ``robot``'s URDF.
 
     Returns:
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
@@ -319,8 +330,9 @@ def estimate_file_ray(
                 f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
                 " order); use --engine local"
             )
+        localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                        constraints)  # fmt: skip
+                                        constraints, localize)  # fmt: skip
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
@@ -360,6 +372,7 @@ def estimate_file_ray(
             le.output_schema(),
             progress=show,
             cone_sensors=list(le.sensors) if constraints is not None else [],
+            localize=localize_tally(le),
             t0=t0,
             **log_summary(le, scan),
             engine="ray",
