@@ -124,3 +124,103 @@ def test_simulate_cli_no_skin_on_collision_mesh(tmp_path):
            str(tmp_path / "x.parquet")]  # fmt: skip
     assert main(bad) == 2
     assert not (tmp_path / "x.parquet").exists()
+
+
+# ---------------------------------------------------------------------- estimate --localize
+@pytest.fixture(scope="module")
+def noskin_log(panda, tmp_path_factory):
+    """300 frames on the panda's collision meshes, no skin (truth in ``true_contacts``)."""
+    from torchcontact.logs import write_simulated_log
+
+    model, meshes = panda
+    path = tmp_path_factory.mktemp("noskin") / "log.parquet"
+    return write_simulated_log(model, 300, path, seed=2, sensor="wrist_ft", links=LINKS,
+                               max_contacts=1, surface=meshes.links, contact_fraction=0.7,
+                               skin=False, temperature=False)  # fmt: skip
+
+
+def test_estimate_localize_against_truth_chunks_and_resume(panda, noskin_log, tmp_path,
+                                                           monkeypatch):  # fmt: skip
+    """``estimate_file(localize=...)``: the localized records are the simulated truth (point,
+    link, force), the columns and summary agree, and chunks or a resumed run give the same
+    rows."""
+    from torchcontact.logs import format as fmt
+    from torchcontact.logs.pipeline import LogLocalize, estimate_file
+
+    model, meshes = panda
+    loc = LogLocalize(meshes, LINKS, force_threshold=0.5, ft_std=[0.1] * 3 + [0.005] * 3)
+    ref = tmp_path / "ref.parquet"
+    s = estimate_file(noskin_log, model, ref, localize=loc, batch_size=300)
+    out = pq.read_table(ref)
+    log = pq.read_table(noskin_log)
+    code = out.column("localize_status_code.wrist_ft").to_numpy()
+    truth, tfields, _ = read_contacts(log.column("true_contacts"))
+    got, gfields, _ = read_contacts(out.column("contacts"))
+    # one record per localized frame (the log has no skin), at the truth where unambiguous
+    used = (code & ~(64 | 128)) == 0
+    assert sorted(got.frame) == sorted(np.flatnonzero(used)) and used.sum() > 40
+    assert s["localize"]["wrist_ft"]["localized"] == used.sum()
+    st = s["localize"]["wrist_ft"]["status"]
+    assert st["NO_CONTACT"] == (code & 2 != 0).sum() > 10 and st["SKIN_CONTACT"] == 0
+    assert s["localize_links"] == LINKS and s["bad_frames"] == 0
+    t_at = dict(zip(truth.frame.tolist(), range(len(truth)), strict=True))
+    exact = [i for i, f in enumerate(got.frame) if code[f] == 0]
+    assert len(exact) > 30
+    ti = [t_at[int(got.frame[i])] for i in exact]
+    assert (got.links[exact] == truth.links[ti]).all() and set(got.kinds) == {"force"}
+    np.testing.assert_allclose(got.positions[exact], truth.positions[ti], atol=1e-7)
+    np.testing.assert_allclose(got.normals[exact], truth.normals[ti], atol=1e-6)
+    f_got = vectors(gfields["force"], 3)[0][exact]
+    np.testing.assert_allclose(f_got, vectors(tfields["true_force"], 3)[0][ti], atol=1e-6)
+    pos = vectors(out.column("localize_position.wrist_ft"), 3)[0]
+    np.testing.assert_allclose(pos[got.frame[exact]], got.positions[exact])
+    std = out.column("localize_position_std.wrist_ft").to_numpy()
+    assert np.isfinite(std[got.frame]).all() and (std[got.frame] > 0).all()
+    assert b"torchcontact.localize" in out.schema.metadata
+    # ---- chunks of 64 frames: the same rows; an interrupted run resumed: the same bytes
+    small = tmp_path / "small.parquet"
+    estimate_file(noskin_log, model, small, localize=loc, batch_size=64)
+    again = pq.read_table(small)
+    for name in out.column_names:  # (repr: NaN equals NaN, floats to the last bit)
+        assert repr(again.column(name).to_pylist()) == repr(out.column(name).to_pylist()), name
+    part = tmp_path / "part.parquet"
+    real, calls = fmt.LogWriter.write, []
+
+    def interrupted(self, table, *a, **k):
+        calls.append(1)
+        if len(calls) > 2:
+            raise KeyboardInterrupt
+        return real(self, table, *a, **k)
+
+    monkeypatch.setattr(fmt.LogWriter, "write", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        estimate_file(noskin_log, model, part, localize=loc, batch_size=64)
+    monkeypatch.undo()
+    other = LogLocalize(meshes, LINKS, force_threshold=0.6)
+    with pytest.raises(tc.errors.LogError, match="other inputs or options"):
+        estimate_file(noskin_log, model, part, localize=other, batch_size=64, resume=True)
+    r = estimate_file(noskin_log, model, part, localize=loc, batch_size=64, resume=True)
+    assert r["resumed_chunks"] >= 2 and r["localize"] == s["localize"]
+    assert part.read_bytes() == small.read_bytes()
+
+
+def test_estimate_localize_cli_errors(tmp_path, capsys, monkeypatch):
+    """--localize without collision meshes, with the meshes extra missing, or with its options
+    alone: one ``error:`` line naming what is missing, nothing written."""
+    from torchcontact.logs import write_simulated_log
+
+    arm = tc.RobotModel.from_urdf(tc.robots.tcarm_path())
+    log = write_simulated_log(arm, 5, tmp_path / "arm.parquet", robot="tcarm")
+    base = ["estimate", str(log), "--quiet", "--out", str(tmp_path / "o.parquet")]
+    assert main([*base, "--localize", "subtree"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --localize:") and "has no collision mesh" in err
+    assert err.count("\n") == 1
+    assert main([*base, "--localize-threshold", "2"]) == 2
+    assert "--localize-threshold apply with --localize only" in capsys.readouterr().err
+    icub = str(ROBOTS["icub"]())
+    monkeypatch.setitem(__import__("sys").modules, "trimesh", None)  # the extra is missing
+    assert main([*base, "--robot", icub, "--localize", "l_hand"]) != 0
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "pip install 'torchcontact[meshes]'" in err
+    assert not list(tmp_path.glob("o.parquet*"))

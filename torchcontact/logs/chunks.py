@@ -226,10 +226,13 @@ class LogLocalize:
 
         key = (id(model), tuple(sensors))
         if key not in self._localizers:
-            self._localizers[key] = Localizer(
-                model, self.meshes, self.links, list(sensors),
-                force_threshold=self.force_threshold, ray=self.ray,
-            )  # fmt: skip
+            try:
+                self._localizers[key] = Localizer(
+                    model, self.meshes, self.links, list(sensors),
+                    force_threshold=self.force_threshold, ray=self.ray,
+                )  # fmt: skip
+            except InputError as exc:
+                raise InputError(f"--localize: {exc}") from None
         return self._localizers[key]
 
     def covariance(self, sensors: Sequence[str]) -> dict[str, np.ndarray] | None:
