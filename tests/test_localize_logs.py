@@ -107,13 +107,20 @@ def test_simulated_log_without_skin_localized_chunk_and_estimate(panda):
     assert r.status.numpy()[exact].max() == 0
 
 
-def test_simulate_cli_no_skin_on_collision_mesh(tmp_path):
-    out = tmp_path / "noskin.parquet"
+@pytest.fixture(scope="module")
+def icub_noskin(tmp_path_factory):
+    """``simulate --no-skin --on-collision-mesh``: 400 frames on the iCub forearm and hand."""
+    out = tmp_path_factory.mktemp("icub") / "noskin.parquet"
     icub = str(ROBOTS["icub"]())
     args = ["simulate", "--robot", icub, "--sensor", "l_arm_ft", "--contact-links",
             "l_forearm,l_hand", "--frames", "400", "--max-contacts", "1", "--no-skin",
             "--on-collision-mesh", "--quiet", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
+    return out
+
+
+def test_simulate_cli_no_skin_on_collision_mesh(icub_noskin, tmp_path):
+    out, icub = icub_noskin, str(ROBOTS["icub"]())
     skin = read_log_columns(out, ["contacts"])["contacts"]
     truth = read_contacts(pq.read_table(out, columns=["true_contacts"]).column(0))[0]
     assert len(skin) == 0 and len(truth) > 0
@@ -224,3 +231,33 @@ def test_estimate_localize_cli_errors(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "pip install 'torchcontact[meshes]'" in err
     assert not list(tmp_path.glob("o.parquet*"))
+
+
+def test_ray_worker_rebuilds_the_localization(icub_noskin):
+    """The Ray engine's workers rebuild the log's estimator from picklable arguments: the
+    localization's options travel, the meshes are loaded again from the URDF, and a worker's
+    rows equal the driver-side estimator's (the local engine's per-chunk code)."""
+    from torchcontact.logs.chunks import decoded_chunks, estimate_stream
+    from torchcontact.logs.format import iter_chunks
+    from torchcontact.logs.pipeline import load_robot, prepare, run_localize
+    from torchcontact.logs.ray_engine import _worker_state, worker_args
+
+    urdf = str(ROBOTS["icub"]())
+    model = load_robot(urdf)
+    opts = {"links": ["l_forearm", "l_hand"], "accept_ambiguous": True, "force_threshold": 0.5}
+    loc = run_localize(opts, model, urdf)
+    pf, le, columns, _ = prepare(icub_noskin, model, ["l_arm_ft"], localize=loc)
+    job = {"threads": 0, "dtype": "float64", "device": "cpu", "residual": None,
+           "whole_log_segment": le.decoder.whole_log_segment}  # fmt: skip
+    le2, _ = _worker_state(str(icub_noskin), urdf, worker_args(le, icub_noskin), job)
+    assert le2.localize is not loc and le2.localize.options() == loc.options()
+    assert le2.localizer.links == le.localizer.links and le2.layout == le.layout
+    assert ("l_hand", "force") in zip(le.layout.links, le.layout.kinds, strict=True)
+    assert le2.output_schema().equals(le.output_schema(), check_metadata=True)
+    tables = list(iter_chunks(pf, columns, 400, str(icub_noskin)))
+    a, b = (next(estimate_stream(x, decoded_chunks(x, iter(tables), 5), None, "eager"))
+            for x in (le, le2))  # fmt: skip
+    for name in a.column_names:
+        assert repr(a.column(name).to_pylist()) == repr(b.column(name).to_pylist()), name
+    code = a.column("localize_status_code.l_arm_ft").to_numpy()
+    assert ((code == 0) | (code == 16)).sum() > 100  # localized frames (a few ambiguous)

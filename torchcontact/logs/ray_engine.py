@@ -202,6 +202,27 @@ def _user_error(exc: BaseException) -> BaseException:
 TASK_RETRIES = 3
 
 
+def worker_args(le: LogEstimator, path: str | Path) -> dict[str, Any]:
+    """The :class:`LogEstimator` arguments a worker process rebuilds it from (picklable).
+
+    The layout is the driver's (the log's scan); a localization travels as its options, and each
+    worker process loads the meshes from the robot's URDF once (:func:`_worker_state`).
+    """
+    return {
+        "input_joint_names": list(le.input_joint_names),
+        "sensors": list(le.sensors),
+        "contact_fields": list(le.contact_fields),
+        "source": str(path),
+        "derived": list(le.derived),
+        "velocity_margin": le.velocity_margin,
+        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
+        "constraints": le.constraints,
+        "step_ns": le.step_ns,
+        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
+        "localize": None if le.localize is None else le.localize.options(),
+    }
+
+
 def _unit_dataset(
     ray: Any,
     todo: list[int],
@@ -224,19 +245,7 @@ def _unit_dataset(
         "whole_log_segment": le.decoder.whole_log_segment,
         **options,
     }
-    le_args = {
-        "input_joint_names": list(le.input_joint_names),
-        "sensors": list(le.sensors),
-        "contact_fields": list(le.contact_fields),
-        "source": str(path),
-        "derived": list(le.derived),
-        "velocity_margin": le.velocity_margin,
-        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
-        "constraints": le.constraints,
-        "step_ns": le.step_ns,
-        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
-        "localize": None if le.localize is None else le.localize.options(),
-    }
+    le_args = worker_args(le, path)
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
     config = (str(Path(path).resolve()), str(Path(robot).resolve()), le_args, job)
     return ds.map_batches(
