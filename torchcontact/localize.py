@@ -1141,8 +1141,9 @@ def localize_chunk(
         qd: ``(N, nv)``.
         qdd: ``(N, nv)``.
         ft: sensor -> ``(N, 6)`` readings (every sensor of ``localizer.estimator_sensors``).
-        records: the chunk's valid skin contact records
-            (:class:`~torchcontact.contacts.ContactRecords`, frames ``0 .. N-1``).
+        records: the chunk's skin contact records
+            (:class:`~torchcontact.contacts.ContactRecords`, frames ``0 .. N-1``): a frame with
+            a record on a link of a region is not localized there.
         base: ``omega``, ``domega``, ``proper_acc`` -> ``(N, 3)`` IMU of a moving base, or None.
         ft_covariance: sensor -> ``(6, 6)`` reading noise covariance (fills the position std).
         accept_ambiguous: also add the first candidate of ambiguous frames (status 16); frames

@@ -536,29 +536,32 @@ class LogEstimator:
         model, loc, opts = self.model, self.localizer, self.localize
         assert loc is not None and opts is not None
         good = d.slot >= 0
+        # every skin record (a malformed one in a region also keeps the frame from localizing)
         lc = localize_chunk(
-            loc, d.q, d.qd, d.qdd, ft, d.records.select(np.flatnonzero(good)),
+            loc, d.q, d.qd, d.qdd, ft, d.records,
             base=d.base or None, ft_covariance=opts.covariance(loc.sensor_names),
             accept_ambiguous=opts.accept_ambiguous,
         )  # fmt: skip
-        added = lc.records.select(np.flatnonzero(lc.source < 0))
+        records, source = lc.records, lc.source  # by frame; source -1: a localized record
+        mine_rows = source < 0
+        added = records.select(np.flatnonzero(mine_rows))
         M, A = len(d.records), len(added)
-        merged = ContactRecords.concat([d.records, added]) if M else added
-        order = np.argsort(merged.frame, kind="stable")
-        records = merged.select(order)
-        usable = np.r_[good, np.ones(A, bool)][order]
+        usable = mine_rows.copy()
+        usable[~mine_rows] = good[source[~mine_rows]]
         idx = np.flatnonzero(usable)
-        layout = self.layout
         sub = records.select(idx)
-        if layout is not None and len(idx) and (layout.assign(sub) < 0).any():
-            layout = None  # a pair beyond the log's layout: this chunk gets its own
-        contacts, slot_good = Contacts.from_records(
-            sub, d.n, layout, dtype=model.dtype, device=model.device,
-            friction=self.decoder.friction if self.decoder.friction is not None else
-            (loc.friction if self.constraints is not None else None),
-        )  # fmt: skip
+        friction = self.decoder.friction
+        if friction is None and self.constraints is not None:
+            friction = loc.friction  # the cone the localizer accepted the point in
+        kw = dict(dtype=model.dtype, device=model.device, friction=friction)
+        contacts, slot_good = Contacts.from_records(sub, d.n, self.layout, **kw)
+        if self.layout is not None and (slot_good < 0).any():
+            # a pair beyond the log's layout (the scan saw other data): this chunk gets its own
+            contacts, slot_good = Contacts.from_records(sub, d.n, None, **kw)
         slot = np.full(M + A, -1, np.int64)
         slot[idx] = slot_good
+        # each output record's row in [input records, localized records]
+        take = pa.array(np.where(mine_rows, M + np.cumsum(mine_rows) - 1, source))
         # the output struct's fields: the input's values, the localized records' own
         have = {n for n, _ in self.contact_fields}
         fill = {
@@ -569,7 +572,6 @@ class LogEstimator:
                 np.full((A, 3), np.nan) if added.normals is None else added.normals
             ),
         }
-        take = pa.array(order)
         children: dict[str, Any] = {}
         for fld in ctype:
             n = fld.name

@@ -504,11 +504,11 @@ def add_parser(subparsers: Any) -> None:
     )
     est.add_argument(
         "--localize",
-        metavar="LINK[,LINK...]|subtree",
+        metavar="LINK[,LINK...]",
         help="in frames without a skin contact in a sensor's region, localize one contact from"
-        " the F/T wrench and the candidate links' collision meshes and estimate it as a force"
-        " contact there; 'subtree': every link with a collision mesh in a sensor's subtree"
-        " (needs the meshes extra; default: none, no localization)",
+        " the F/T wrench and these candidate links' collision meshes, or every link with a"
+        " collision mesh in a sensor's subtree with 'subtree', and estimate it as a force"
+        " contact there (needs the meshes extra; default: none, no localization)",
     )
     est.add_argument(
         "--localize-threshold",
