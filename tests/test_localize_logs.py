@@ -10,6 +10,8 @@ estimator has run on the filled-in records, the true force.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -184,6 +186,18 @@ def test_estimate_localize_against_truth_chunks_and_resume(panda, noskin_log, tm
     std = out.column("localize_position_std.wrist_ft").to_numpy()
     assert np.isfinite(std[got.frame]).all() and (std[got.frame] > 0).all()
     assert b"torchcontact.localize" in out.schema.metadata
+    # ---- a log without a contacts column: the same estimate, and no contact-free warning
+    bare = tmp_path / "bare.parquet"
+    pq.write_table(log.drop_columns(["contacts", "true_contacts"]), bare)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        estimate_file(bare, model, tmp_path / "b.parquet", localize=loc, batch_size=300)
+    b = pq.read_table(tmp_path / "b.parquet")
+    assert [f.name for f in b.schema.field("contacts").type.value_type] == [
+        "link", "kind", "position", "normal", "force", "moment"]  # fmt: skip
+    for name in ("joint_torques", "localize_status_code.wrist_ft"):
+        assert b.column(name).equals(out.column(name))
+    np.testing.assert_array_equal(read_contacts(b.column("contacts"))[0].positions, got.positions)
     # ---- chunks of 64 frames: the same rows; an interrupted run resumed: the same bytes
     small = tmp_path / "small.parquet"
     estimate_file(noskin_log, model, small, localize=loc, batch_size=64)

@@ -106,10 +106,12 @@ def log_columns(
     sensors: Sequence[str] | None = None,
     constraints: Any = None,
     extra_columns: Sequence[str] = (),
+    localize: bool = False,
 ) -> LogColumns:
     """Check a log's schema and list what an estimate reads from it.
 
-    A log without a ``contacts`` column is estimated as contact-free, with one warning.
+    A log without a ``contacts`` column is estimated as contact-free, with one warning (none when
+    its contacts are localized: ``localize``).
 
     Args:
         schema: the log's Arrow schema.
@@ -118,6 +120,7 @@ def log_columns(
         sensors: sensors to use (default: those with a column).
         constraints: a :class:`~torchcontact.logs.LogConstraints` or None.
         extra_columns: further columns needed (a residual's features, e.g. ``temperature``).
+        localize: the contacts are localized from the F/T readings (``estimate --localize``).
 
     Raises:
         LogError: no ``t_ns`` or ``q``, no joint names, no sensor column, a contacts column that
@@ -146,7 +149,7 @@ def log_columns(
         for need in ("link", "kind", "position"):
             if need not in names:
                 raise LogError(f"{src}: contact struct lacks field {need!r} (has {names})")
-    else:
+    elif not localize:
         warnings.warn(
             f"{src}: no 'contacts' column: every frame is estimated as contact-free (any contact"
             " load shows in residual.<sensor>)",

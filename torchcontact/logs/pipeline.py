@@ -212,7 +212,8 @@ def prepare(
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
     """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
 
-    A log without a ``contacts`` column is estimated as contact-free, with one warning; a log
+    A log without a ``contacts`` column is estimated as contact-free, with one warning (unless
+    its contacts are localized); a log
     whose ``qd``/``qdd`` are derived and whose ``t_ns`` splits into several time segments gets
     one warning that counts them.
 
@@ -241,7 +242,7 @@ def prepare(
     src = str(path)
     pf = open_log(path)
     extra = [] if residual is None else residual.extra_columns
-    cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra)
+    cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
     scan = scan_log(pf, src, bool(cols.contact_fields))
     le = LogEstimator(
         model,
