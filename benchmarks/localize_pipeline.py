@@ -51,7 +51,7 @@ def timers(ray: str):
         setattr(owner, name, timed)
         totals[label] = 0.0  # (rows in this order)
 
-    wrap(chunks.LogEstimator, "_localized", "localization in the pipeline (all of it)")
+    wrap(chunks.LogEstimator, "localized", "localization in the pipeline (all of it)")
     wrap(L, "localize_chunk", "  localize_chunk")
     wrap(L, "run_program", "    line program (b and link poses)")
     wrap(L.Localizer, "localize_wrench", "    localize_wrench (stages 2-5)")
@@ -97,15 +97,21 @@ def main() -> None:
         )  # fmt: skip
     std = [0.1] * 3 + [0.005] * 3 if args.ft_std else None
     rays = ["torch"] + (["embree"] if embree_available() else [])
-    configs = {"estimate, skin contacts (reference)": (logs[True], None)}
+    configs = {"estimate, skin contacts (reference)": (logs[True], None, True)}
     for ray in rays:
         loc = LogLocalize(meshes, LINKS, ray=ray, ft_std=std)
-        configs[f"estimate --localize, no skin, ray={ray}"] = (logs[False], loc)
+        configs[f"estimate --localize, no skin, ray={ray}"] = (logs[False], loc, True)
+        configs[f"estimate --localize, no skin, ray={ray}, on the estimating thread"] = (
+            logs[False], loc, False
+        )  # fmt: skip
     kw = dict(sensors=["l_arm_ft"], batch_size=args.batch_size)
 
+    from torchcontact.logs import chunks
+
     def run(name, k):
-        log, loc = configs[name]
+        log, loc, on_reader = configs[name]
         out = tmp / f"out-{k}.parquet"
+        chunks.LOCALIZE_ON_READER = on_reader  # localize on the reader thread (the default)
         s = estimate_file(log, model, out, localize=loc, **kw)
         out.unlink()
         return s

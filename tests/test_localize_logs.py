@@ -153,6 +153,7 @@ def test_estimate_localize_against_truth_chunks_and_resume(panda, noskin_log, tm
     """``estimate_file(localize=...)``: the localized records are the simulated truth (point,
     link, force), the columns and summary agree, and chunks or a resumed run give the same
     rows."""
+    from torchcontact.logs import chunks
     from torchcontact.logs import format as fmt
     from torchcontact.logs.pipeline import LogLocalize, estimate_file
 
@@ -201,9 +202,13 @@ def test_estimate_localize_against_truth_chunks_and_resume(panda, noskin_log, tm
     # ---- chunks of 64 frames: the same rows; an interrupted run resumed: the same bytes
     small = tmp_path / "small.parquet"
     estimate_file(noskin_log, model, small, localize=loc, batch_size=64)
-    again = pq.read_table(small)
-    for name in out.column_names:  # (repr: NaN equals NaN, floats to the last bit)
-        assert repr(again.column(name).to_pylist()) == repr(out.column(name).to_pylist()), name
+    reader = tmp_path / "reader.parquet"  # localized on the reader thread: the same rows too
+    monkeypatch.setattr(chunks, "LOCALIZE_ON_READER", True)
+    estimate_file(noskin_log, model, reader, localize=loc, batch_size=64)
+    monkeypatch.undo()
+    for again in (pq.read_table(small), pq.read_table(reader)):
+        for name in out.column_names:  # (repr: NaN equals NaN, floats to the last bit)
+            assert repr(again[name].to_pylist()) == repr(out[name].to_pylist()), name
     part = tmp_path / "part.parquet"
     real, calls = fmt.LogWriter.write, []
 

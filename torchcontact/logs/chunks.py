@@ -131,6 +131,12 @@ class LogConstraints:
             raise InputError(f"the warm-start wave must be an integer >= 1, got {self.wave!r}")
 
 
+#: Localize a chunk on the reader thread (overlapping the estimate of the chunk before; only
+#: when no residual corrects the readings first) rather than on the estimating thread. Off:
+#: measured on the loaded 2-vCPU machine (benchmarks/localize_pipeline.py), it was no faster
+#: (Embree 13.7 k vs 16.1 k frames/s, torch 10.9 k vs 11.1 k); rerun on a quiet machine.
+LOCALIZE_ON_READER = False
+
 #: Fields a localized contact record fills in the output's contact struct (added when missing).
 LOCALIZED_FIELDS = ("link", "kind", "position", "normal")
 
@@ -464,7 +470,9 @@ class LogEstimator:
         ctype = schema.field("contacts").type.value_type
         located: dict[str, Any] = {}
         if self.localizer is not None:
-            contacts, records, slot, children, located = self._localized(d, ft, ctype)
+            if d.located is None:
+                d.located = self.localized(d, ft)
+            contacts, records, slot, children, located = d.located
         else:
             if d.contacts is None:
                 self.decoder.slots(d, model.dtype, model.device)
@@ -518,10 +526,14 @@ class LogEstimator:
         out.update(located)
         return pa.table(out, schema=schema)
 
-    def _localized(
-        self, d: Decoded, ft: dict[str, np.ndarray], ctype: Any
+    def localized(
+        self, d: Decoded, ft: dict[str, np.ndarray] | None = None
     ) -> tuple[Contacts, ContactRecords, np.ndarray, dict[str, Any], dict[str, Any]]:
         """Localize a chunk's contacts and slot the records with them added.
+
+        Args:
+            d: the chunk (derivatives set).
+            ft: its readings (default ``d.ft``; with a residual, the corrected ones).
 
         Returns:
             ``(contacts, records, slot, children, columns)``: the slots; every input record and
@@ -535,6 +547,8 @@ class LogEstimator:
 
         model, loc, opts = self.model, self.localizer, self.localize
         assert loc is not None and opts is not None
+        ft = d.ft if ft is None else ft
+        ctype = self.output_schema().field("contacts").type.value_type
         good = d.slot >= 0
         # every skin record (a malformed one in a region also keeps the frame from localizing)
         lc = localize_chunk(
@@ -845,6 +859,8 @@ def _finish_chunk(
         le.decoder.derive(d, qd, qdd, starts, length)
     else:
         d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
+    if le.localizer is not None and le.residual is None and LOCALIZE_ON_READER:
+        d.located = le.localized(d)  # overlaps the estimate of the chunk before
     return d  # its slots are filled by the estimate (the reader thread has enough to do)
 
 

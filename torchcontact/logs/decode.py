@@ -422,6 +422,8 @@ class Decoded:
         issues: the frames' problems found so far.
         starts: ``(n,)`` bool, a frame starts a time segment (None: not computed).
         short: ``(n,)`` bool, the frame cannot be differentiated (derived ``qd``/``qdd`` only).
+        located: the chunk's localization, when the reader computed it
+            (:meth:`~torchcontact.logs.chunks.LogEstimator.localized`), else None.
     """
 
     n: int
@@ -441,6 +443,7 @@ class Decoded:
     issues: FrameIssues
     starts: np.ndarray | None = None
     short: np.ndarray | None = None
+    located: Any = None
 
 
 class ChunkDecoder:
