@@ -294,7 +294,7 @@ def validate(setup, frames, rng):
 
 def loc_poses(loc, q, qd, qdd, ft):
     """``R_sensor_link (N, L, 3, 3)``, ``p_sensor_link (N, L, 3)`` from the line program."""
-    from torchcontact.dynamics import _run
+    from torchcontact.kernels.runner import run_program as _run
     from torchcontact.localize import line_program
 
     prog = line_program(loc.em, list(range(len(loc.links))), False)
@@ -480,7 +480,7 @@ def kernels_wait():
 
 def stage_times(loc, ins, fts, sensor, dtype):
     """Seconds per 1e5 frames of the line program, the casting and the selection."""
-    from torchcontact.dynamics import _run
+    from torchcontact.kernels.runner import run_program as _run
     from torchcontact.localize import cast_bvh, line_program, select_entries
 
     n = ins[0].shape[0]

@@ -63,6 +63,7 @@ __all__ = [
     "Localizer",
     "TriangleSet",
     "localize_chunk",
+    "localized_frames",
 ]
 
 #: Ray-casting backends of :class:`Localizer`.
@@ -1089,6 +1090,31 @@ class LocalizedChunk(NamedTuple):
     results: dict[str, Localization]
 
 
+def localized_frames(
+    code: np.ndarray, has_point: np.ndarray, accept_ambiguous: bool = False
+) -> np.ndarray:
+    """The frames whose localized contact is added to the estimate (``estimate --localize``).
+
+    A frame's contact is used when it has a point and no status bit but the caveats
+    ``OUTSIDE_CONE`` (64) and ``NEAR_MISS`` (128), and ``AMBIGUOUS`` (16) with
+    ``accept_ambiguous``.
+
+    Args:
+        code: ``(N,)`` int localization status codes (:data:`LOCALIZE_STATUS` bits).
+        has_point: ``(N,)`` bool, the frame has a contact point (a link).
+        accept_ambiguous: also use ambiguous frames' first candidate.
+
+    Returns:
+        ``(N,)`` bool.
+
+    Example:
+        >>> localized_frames(np.array([0, 16, 64, 2]), np.array([True, True, True, False]))
+        array([ True, False,  True, False])
+    """
+    soft = SOFT_BITS if accept_ambiguous else SOFT_BITS & ~_AMBIGUOUS
+    return ((np.asarray(code) & ~soft) == 0) & np.asarray(has_point, bool)
+
+
 def localize_chunk(
     localizer: Localizer,
     q: np.ndarray,
@@ -1115,8 +1141,9 @@ def localize_chunk(
         qd: ``(N, nv)``.
         qdd: ``(N, nv)``.
         ft: sensor -> ``(N, 6)`` readings (every sensor of ``localizer.estimator_sensors``).
-        records: the chunk's valid skin contact records
-            (:class:`~torchcontact.contacts.ContactRecords`, frames ``0 .. N-1``).
+        records: the chunk's skin contact records
+            (:class:`~torchcontact.contacts.ContactRecords`, frames ``0 .. N-1``): a frame with
+            a record on a link of a region is not localized there.
         base: ``omega``, ``domega``, ``proper_acc`` -> ``(N, 3)`` IMU of a moving base, or None.
         ft_covariance: sensor -> ``(6, 6)`` reading noise covariance (fills the position std).
         accept_ambiguous: also add the first candidate of ambiguous frames (status 16); frames
@@ -1162,10 +1189,7 @@ def localize_chunk(
         link = r.link.cpu().numpy()
         pos = r.position.detach().cpu().double().numpy()
         nrm = r.normal.detach().cpu().double().numpy()
-        soft = SOFT_BITS if accept_ambiguous else SOFT_BITS & ~_AMBIGUOUS
-        usable = (code & ~soft) == 0
-        usable &= link >= 0
-        idx = np.flatnonzero(usable)
+        idx = np.flatnonzero(localized_frames(code, link >= 0, accept_ambiguous))
         add_frame.append(idx)
         add_link.append(link_names[link[idx]])
         add_pos.append(pos[idx])

@@ -15,6 +15,7 @@ _LAZY = {
     "LogConstraints": "torchcontact.logs.chunks",
     "LogError": "torchcontact.errors",
     "LogEstimator": "torchcontact.logs.chunks",
+    "LogLocalize": "torchcontact.logs.chunks",
     "estimate_file": "torchcontact.logs.pipeline",
     "estimate_files": "torchcontact.logs.pipeline",
     "expand_inputs": "torchcontact.logs.pipeline",
@@ -29,6 +30,7 @@ __all__ = [
     "LogConstraints",
     "LogError",
     "LogEstimator",
+    "LogLocalize",
     "estimate_file",
     "estimate_files",
     "expand_inputs",
@@ -41,7 +43,7 @@ __all__ = [
 
 if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact.errors import LogError
-    from torchcontact.logs.chunks import LogConstraints, LogEstimator
+    from torchcontact.logs.chunks import LogConstraints, LogEstimator, LogLocalize
     from torchcontact.logs.derive import savgol_derivatives
     from torchcontact.logs.format import input_schema, joint_names_of
     from torchcontact.logs.pipeline import estimate_file, estimate_files, expand_inputs

@@ -25,10 +25,18 @@ link, kind and order), but never across a time-segment boundary (a repeated, bac
 ``t_ns``): a segment's first frame starts cold. A frame that does not converge (after the
 estimator's restart from the pseudo-inverse) gets status bit 256 (``NOT_CONVERGED``) and
 ``converged.<sensor> = false``, and keeps its last interior-point iterate, inside the cones: the
-one status bit whose frames keep their outputs (never ``ok``, counted in the summary).
+a warning bit: its frames keep their outputs (never ``ok``, counted in the summary).
 
 Noise (:attr:`LogEstimator.noise`, :mod:`torchcontact.logs.noise`): with a weighted noise every
 chunk's solve is whitened by each sensor's covariance (fixed, or the frame's ``ft_cov.<sensor>``).
+
+Localization (:class:`LogLocalize`, ``estimate --localize``): in each sensor region that holds
+candidate links, a frame without a skin contact there gets the contact localized from the F/T
+wrench and the collision meshes (:func:`torchcontact.localize.localize_chunk`) as a ``force``
+record at the point, with its outward normal; the estimator then runs on the records as usual.
+The output's contacts include these records (the input's other fields null) and each localizing
+sensor's :func:`~torchcontact.logs.format.localization_fields`. The log's slot layout gets one
+``force`` slot per candidate link, so every chunk still runs one program.
 """
 
 from __future__ import annotations
@@ -43,8 +51,8 @@ import numpy as np
 import torch
 
 from torchcontact.constrained import FrictionCones, PreviousFrame
-from torchcontact.contacts import Contacts, SlotLayout
-from torchcontact.errors import InputError, KernelBuildError, LogError
+from torchcontact.contacts import ContactRecords, Contacts, SlotLayout
+from torchcontact.errors import InputError, KernelBuildError, LogError, MissingExtraError
 from torchcontact.estimation import ContactEstimator
 from torchcontact.logs.decode import ChunkDecoder, Decoded, FrameIssues, status_text
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW, DerivativeStream, time_segments
@@ -53,6 +61,7 @@ from torchcontact.logs.format import (
     META_BIAS,
     META_DERIVED,
     META_FT_NOISE,
+    META_LOCALIZE,
     META_RESIDUAL,
     META_SENSORS,
     META_URDF_SHA256,
@@ -72,6 +81,7 @@ __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
     "LogBias",
     "LogConstraints",
+    "LogLocalize",
     "LogEstimator",
     "decoded_chunks",
     "estimate_stream",
@@ -184,6 +194,153 @@ class LogBias:
         }
 
 
+#: Localize a chunk on the reader thread (overlapping the estimate of the chunk before; only
+#: when no residual corrects the readings first) rather than on the estimating thread. Off:
+#: measured on the loaded 2-vCPU machine (benchmarks/localize_pipeline.py), it was no faster
+#: (Embree 13.7 k vs 16.1 k frames/s, torch 10.9 k vs 11.1 k); rerun on a quiet machine.
+LOCALIZE_ON_READER = False
+
+#: Fields a localized contact record fills in the output's contact struct (added when missing).
+LOCALIZED_FIELDS = ("link", "kind", "position", "normal")
+
+
+class LogLocalize:
+    """Contact localization in a log estimate (``estimate --localize``): meshes loaded once.
+
+    The collision meshes are loaded and the ray-casting trees built once per run; each set of
+    sensors in use gets one :class:`~torchcontact.localize.Localizer` (built on first use and
+    kept), shared by every chunk and every log of the run.
+
+    Args:
+        meshes: the robot's collision meshes (:func:`torchcontact.meshes.load_meshes`).
+        links: candidate links, or ``"subtree"``: every meshed link in a sensor's region.
+        force_threshold: below this force a frame has no contact, N.
+        accept_ambiguous: also use the first candidate of ambiguous frames (status bit 16).
+        ft_std: ``(6,)`` F/T noise standard deviations ``[N; N m]`` of every localizing sensor
+            (fills ``localize_position_std``), or None (NaN).
+        ray: the localizer's ray-casting backend (:data:`torchcontact.localize.RAY_BACKENDS`).
+
+    Raises:
+        InputError: a threshold < 0, an ``ft_std`` that is not 6 numbers >= 0.
+    """
+
+    def __init__(
+        self,
+        meshes: Any,
+        links: Sequence[str] | str = "subtree",
+        *,
+        force_threshold: float = 1.0,
+        accept_ambiguous: bool = False,
+        ft_std: Sequence[float] | None = None,
+        ray: str = "auto",
+    ) -> None:
+        if not force_threshold >= 0:
+            raise InputError(f"--localize-threshold must be >= 0 N, got {force_threshold}")
+        if ft_std is not None:
+            std = np.asarray(ft_std, np.float64).reshape(-1)
+            if std.shape != (6,) or not (std >= 0).all():
+                raise InputError(f"--localize-ft-std takes 6 numbers >= 0 [N; N m], got {ft_std}")
+            ft_std = std.tolist()
+        self.meshes = meshes
+        self.links = links if isinstance(links, str) else tuple(links)
+        self.force_threshold = float(force_threshold)
+        self.accept_ambiguous = bool(accept_ambiguous)
+        self.ft_std = ft_std
+        self.ray = ray
+        self._localizers: dict[tuple, Any] = {}
+
+    @classmethod
+    def load(
+        cls, model: RobotModel, urdf: Any, links: Sequence[str] | str = "subtree", **options: Any
+    ) -> LogLocalize:
+        """Load the collision meshes of ``urdf`` (the file ``model`` was built from).
+
+        Args:
+            model: the robot.
+            urdf: its URDF path (or a :class:`~torchcontact.robots.RobotSpec`).
+            links: as the constructor.
+            **options: the constructor's keyword options.
+
+        Raises:
+            InputError: the robot has no collision geometry, or a named link has none (with the
+                files that failed to load), or is not a link of the robot.
+            MissingExtraError: trimesh (or pycollada for ``.dae`` files) is not installed.
+        """
+        import os
+
+        from torchcontact.meshes import load_meshes
+
+        named = None if isinstance(links, str) else list(links)
+        if isinstance(links, str) and links != "subtree":
+            raise InputError(f"--localize takes link names or 'subtree', got {links!r}")
+        meshes = load_meshes(model, os.fspath(urdf), "collision", links=named)
+        for _, _, why in meshes.missing:  # a missing extra is the one thing to say
+            if "pip install" in why and not meshes.links:
+                raise MissingExtraError(why.split("'")[1], "meshes")
+        if not meshes.links:
+            why = "; ".join(f"{link}: {f}: {w}" for link, f, w in meshes.missing[:3])
+            raise InputError(
+                f"--localize: {model.name} ({os.fspath(urdf)}) has no collision mesh"
+                + (f" that loads ({why})" if why else " (no <collision> element in the URDF)")
+            )
+        return cls(meshes, links, **options)
+
+    def localizer(self, model: RobotModel, sensors: Sequence[str]) -> Any:
+        """The :class:`~torchcontact.localize.Localizer` of a set of sensors (built once).
+
+        Raises:
+            InputError: a candidate link outside the regions of ``sensors`` or without geometry.
+        """
+        from torchcontact.localize import Localizer
+
+        key = (id(model), tuple(sensors))
+        if key not in self._localizers:
+            try:
+                self._localizers[key] = Localizer(
+                    model, self.meshes, self.links, list(sensors),
+                    force_threshold=self.force_threshold, ray=self.ray,
+                )  # fmt: skip
+            except InputError as exc:
+                raise InputError(f"--localize: {exc}") from None
+        return self._localizers[key]
+
+    def covariance(self, sensors: Sequence[str]) -> dict[str, np.ndarray] | None:
+        """``{sensor: (6, 6)}`` reading covariances from ``ft_std`` (None without it)."""
+        if self.ft_std is None:
+            return None
+        return {s: np.diag(np.square(self.ft_std)) for s in sensors}
+
+    def options(self) -> dict[str, Any]:
+        """What the localization is (a resume must match; Ray workers rebuild it from this)."""
+        return {
+            "links": self.links if isinstance(self.links, str) else list(self.links),
+            "force_threshold": self.force_threshold,
+            "accept_ambiguous": self.accept_ambiguous,
+            "ft_std": self.ft_std,
+            "ray": self.ray,
+        }
+
+
+def localized_layout(layout: SlotLayout | None, links: Sequence[str]) -> SlotLayout:
+    """``layout`` with at least one ``force`` slot on each candidate link (sorted pairs).
+
+    A localized contact is added only to frames without skin contacts in its region, so one
+    ``force`` slot per candidate link is enough on top of the skin's own slots.
+    """
+    pairs: dict[tuple[str, str], int] = {}
+    if layout is not None:
+        for link, kind in zip(layout.links, layout.kinds, strict=True):
+            pairs[(link, kind)] = pairs.get((link, kind), 0) + 1
+    for link in links:
+        pairs[(link, "force")] = max(pairs.get((link, "force"), 0), 1)
+    out_links: list[str] = []
+    out_kinds: list[str] = []
+    for (link, kind), m in sorted(pairs.items()):
+        out_links += [link] * m
+        out_kinds += [kind] * m
+    return SlotLayout(tuple(out_links), tuple(out_kinds))
+
+
 # ---------------------------------------------------------------------- one chunk
 @dataclass
 class LogEstimator:
@@ -213,6 +370,7 @@ class LogEstimator:
             :meth:`bias_pass` over every chunk, then :meth:`bias_done`.
         noise: the F/T noise weighing the solve (:class:`~torchcontact.logs.noise.FTNoise`; set
             it with :meth:`set_noise` before the first chunk); None: the unweighted solve.
+        localize: contact localization (:class:`LogLocalize`), or None.
 
     Raises:
         LogError: joints missing from or extra to the model (mimic joints are not coordinates),
@@ -235,6 +393,7 @@ class LogEstimator:
     causal: tuple[int, int] | None = None
     bias: LogBias | None = None
     noise: FTNoise | None = None
+    localize: LogLocalize | None = None
     estimator: ContactEstimator = field(init=False)
     perm: np.ndarray = field(init=False)
     decoder: ChunkDecoder = field(init=False)
@@ -279,6 +438,22 @@ class LogEstimator:
                 self.model, list(self.sensors), correction=self.residual, backend="eager"
             )
             self._slot_regions: dict[tuple, np.ndarray] = {}
+        #: the localizer of the sensors in use (``localize``), or None
+        self.localizer = None
+        #: the output's contact struct fields besides force and moment
+        self.output_fields = list(self.contact_fields)
+        if self.localize is not None:
+            self.localizer = self.localize.localizer(self.model, self.sensors)
+            have = {n for n, _ in self.contact_fields}
+            import pyarrow as pa
+
+            types = {
+                "link": pa.string(),
+                "kind": pa.string(),
+                "position": pa.list_(pa.float64(), 3),
+                "normal": pa.list_(pa.float64()),  # nullable: see format.py
+            }
+            self.output_fields += [(n, types[n]) for n in LOCALIZED_FIELDS if n not in have]
         self.set_noise(self.noise)
 
     def set_noise(self, noise: FTNoise | None) -> None:
@@ -318,13 +493,18 @@ class LogEstimator:
             )
         if self.bias is not None:
             meta[META_BIAS] = json.dumps({**self.bias.describe(), "sensors": list(self.sensors)})
+        if self.localize is not None:
+            meta[META_LOCALIZE] = json.dumps(
+                {**self.localize.options(), "candidates": list(self.localizer.links)}
+            )
         self._schema = output_schema(
             self.model.joint_names,
             self.sensors,
-            self.contact_fields,
+            self.output_fields,
             meta,
             constraints=self.constraints is not None,
             bias=self.bias is not None,
+            localize=self.localizer.sensor_names if self.localizer is not None else (),
         )
         return self._schema
 
@@ -533,10 +713,6 @@ class LogEstimator:
         import pyarrow as pa
 
         model, N = self.model, d.n
-        if d.contacts is None:
-            self.decoder.slots(d, model.dtype, model.device)
-        contacts, records, slot = d.contacts, d.records, d.slot
-        assert contacts is not None
         if d.qd is None or d.qdd is None:
             raise LogError(f"{self.source}: qd/qdd of a chunk were not derived")
         ft = dict(d.ft)
@@ -545,6 +721,19 @@ class LogEstimator:
             ft, *bias = self._bias_corrected(d, ft)
         elif self.residual is not None:
             ft[self.residual.sensor] = self._corrected(d, ft[self.residual.sensor])
+        schema = self.output_schema()
+        ctype = schema.field("contacts").type.value_type
+        located: dict[str, Any] = {}
+        if self.localizer is not None:
+            if d.located is None:
+                d.located = self.localized(d, ft)
+            contacts, records, slot, children, located = d.located
+        else:
+            if d.contacts is None:
+                self.decoder.slots(d, model.dtype, model.device)
+            contacts, records, slot = d.contacts, d.records, d.slot
+            children = {n: d.fields[n] for n, _ in self.contact_fields}
+        assert contacts is not None
         res = self._solve(d, ft, contacts, previous, backend)
 
         code = res["status"]
@@ -571,9 +760,6 @@ class LogEstimator:
         if ok_c.any():
             cf[ok_c] = res["force"][records.frame[ok_c], slot[ok_c]]
             cm[ok_c] = res["moment"][records.frame[ok_c], slot[ok_c]]
-        schema = self.output_schema()
-        ctype = schema.field("contacts").type.value_type
-        children = {n: d.fields[n] for n, _ in self.contact_fields}
         children["force"], children["moment"] = fixed_list(cf), fixed_list(cm)
         cons = self.constraints
         if cons is not None:  # the cone binds; null where the contact was not estimated
@@ -606,7 +792,78 @@ class LogEstimator:
         out["status_code"] = pa.array(code)
         out["status"] = status_text(code)
         out["status_detail"] = d.issues.details()
+        out.update(located)
         return pa.table(out, schema=schema)
+
+    def localized(
+        self, d: Decoded, ft: dict[str, np.ndarray] | None = None
+    ) -> tuple[Contacts, ContactRecords, np.ndarray, dict[str, Any], dict[str, Any]]:
+        """Localize a chunk's contacts and slot the records with them added.
+
+        Args:
+            d: the chunk (derivatives set).
+            ft: its readings (default ``d.ft``; with a residual, the corrected ones).
+
+        Returns:
+            ``(contacts, records, slot, children, columns)``: the slots; every input record and
+            the localized ``force`` records, by frame; each one's slot (-1: not estimated); the
+            output struct's child arrays but force and moment (an added record's input fields
+            are null); the localization columns.
+        """
+        import pyarrow as pa
+
+        from torchcontact.localize import localize_chunk
+
+        model, loc, opts = self.model, self.localizer, self.localize
+        assert loc is not None and opts is not None
+        ft = d.ft if ft is None else ft
+        ctype = self.output_schema().field("contacts").type.value_type
+        good = d.slot >= 0
+        # every skin record (a malformed one in a region also keeps the frame from localizing)
+        lc = localize_chunk(
+            loc, d.q, d.qd, d.qdd, ft, d.records,
+            base=d.base or None, ft_covariance=opts.covariance(loc.sensor_names),
+            accept_ambiguous=opts.accept_ambiguous,
+        )  # fmt: skip
+        records, source = lc.records, lc.source  # by frame; source -1: a localized record
+        mine_rows = source < 0
+        added = records.select(np.flatnonzero(mine_rows))
+        M, A = len(d.records), len(added)
+        usable = mine_rows.copy()
+        usable[~mine_rows] = good[source[~mine_rows]]
+        idx = np.flatnonzero(usable)
+        sub = records.select(idx)
+        friction = self.decoder.friction
+        if friction is None and self.constraints is not None:
+            friction = loc.friction  # the cone the localizer accepted the point in
+        kw = dict(dtype=model.dtype, device=model.device, friction=friction)
+        contacts, slot_good = Contacts.from_records(sub, d.n, self.layout, **kw)
+        if self.layout is not None and (slot_good < 0).any():
+            # a pair beyond the log's layout (the scan saw other data): this chunk gets its own
+            contacts, slot_good = Contacts.from_records(sub, d.n, None, **kw)
+        slot = np.full(M + A, -1, np.int64)
+        slot[idx] = slot_good
+        # each output record's row in [input records, localized records]
+        take = pa.array(np.where(mine_rows, M + np.cumsum(mine_rows) - 1, source))
+        # the output struct's fields: the input's values, the localized records' own
+        have = {n for n, _ in self.contact_fields}
+        fill = {
+            "link": lambda: pa.array(added.links.tolist(), pa.string()),
+            "kind": lambda: pa.array(["force"] * A, pa.string()),
+            "position": lambda: fixed_list(added.positions),
+            "normal": lambda: fixed_list(
+                np.full((A, 3), np.nan) if added.normals is None else added.normals
+            ),
+        }
+        children: dict[str, Any] = {}
+        for fld in ctype:
+            n = fld.name
+            if n in ("force", "moment", "cone_active"):
+                continue
+            mine = fill[n]().cast(fld.type) if n in fill else pa.nulls(A, fld.type)
+            theirs = d.fields[n].cast(fld.type) if n in have else pa.nulls(M, fld.type)
+            children[n] = pa.concat_arrays([theirs, mine]).take(take)
+        return contacts, records, slot, children, lc.columns
 
     def _solve(
         self,
@@ -917,6 +1174,8 @@ def _finish_chunk(
         le.decoder.derive(d, qd, qdd, starts, length)
     else:
         d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
+    if le.localizer is not None and le.residual is None and LOCALIZE_ON_READER:
+        d.located = le.localized(d)  # overlaps the estimate of the chunk before
     return d  # its slots are filled by the estimate (the reader thread has enough to do)
 
 

@@ -119,6 +119,41 @@ def _describe_noise(noise: dict) -> str:
     return "weighted solve: " + "; ".join(parts)
 
 
+def _localize(args: argparse.Namespace) -> dict[str, Any] | None:
+    """``--localize`` and its options -> the options of a run's LogLocalize, or None."""
+    given = [n for n in ("localize_ft_std",) if getattr(args, n) is not None]
+    given += ["localize_ambiguous"] if args.localize_ambiguous else []
+    given += ["localize_threshold"] if args.localize_threshold != 1.0 else []
+    if args.localize is None:
+        if given:
+            names = ", ".join(f"--{n.replace('_', '-')}" for n in given)
+            raise InputError(f"{names} apply with --localize only")
+        return None
+    links: Any = _names([args.localize])
+    if not links:
+        raise InputError("--localize: name the candidate links, or 'subtree'")
+    if links == ["subtree"]:
+        links = "subtree"
+    elif "subtree" in links:
+        raise InputError("--localize: give link names or 'subtree', not both")
+    std = None
+    if args.localize_ft_std is not None:
+        try:
+            std = [float(x) for x in args.localize_ft_std.split(",")]
+        except ValueError:
+            std = []
+        if len(std) != 6:
+            raise InputError(
+                f"--localize-ft-std takes 6 numbers FX,FY,FZ,MX,MY,MZ, got {args.localize_ft_std!r}"
+            )
+    return {
+        "links": links,
+        "force_threshold": args.localize_threshold,
+        "accept_ambiguous": args.localize_ambiguous,
+        "ft_std": std,
+    }
+
+
 def _fraction(text: str) -> float:
     """``--max-bad``: a number in [0, 1]."""
     try:
@@ -174,6 +209,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         constraints=_constraints(args),
         ft_noise=parse_ft_noise(args.ft_noise),
         unweighted=args.unweighted,
+        localize=_localize(args),
     )
     if args.ft_noise and args.unweighted:
         raise InputError("give --ft-noise or --unweighted, not both")
@@ -220,6 +256,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 f"{s['input']} -> {s['output']}: {s['frames']} frames"
                 f" ({s['frames_per_s']:.0f} frames/s, {s['bad_now']} with a non-zero status)"
                 + (f", derived {'/'.join(s['derived'])} from q" if s["derived"] else "")
+                + "".join(
+                    f"; {r}: {v['localized']} frames localized"
+                    + "".join(f", {n} {k.lower()}" for k, n in v["status"].items() if n)
+                    for r, v in s.get("localize", {}).items()
+                )
             )
             if "cones" in s:
                 print(f"  cones: {_describe_cones(s['cones'])}")
@@ -588,6 +629,34 @@ def add_parser(subparsers: Any) -> None:
         default=3,
         metavar="P",
         help="--derivatives causal: polynomial degree, 3 for no low-frequency delay (default: 3)",
+    )
+    est.add_argument(
+        "--localize",
+        metavar="LINK[,LINK...]",
+        help="in frames without a skin contact in a sensor's region, localize one contact from"
+        " the F/T wrench and these candidate links' collision meshes, or every link with a"
+        " collision mesh in a sensor's subtree with 'subtree', and estimate it as a force"
+        " contact there (needs the meshes extra; default: none, no localization)",
+    )
+    est.add_argument(
+        "--localize-threshold",
+        type=float,
+        default=1.0,
+        metavar="N",
+        help="no contact below this force, N (--localize)",
+    )
+    est.add_argument(
+        "--localize-ambiguous",
+        action="store_true",
+        help="also estimate the first candidate where the line of action enters the links at"
+        " several points (status bit 16; default: those frames are estimated contact-free)"
+        " (--localize)",
+    )
+    est.add_argument(
+        "--localize-ft-std",
+        metavar="FX,FY,FZ,MX,MY,MZ",
+        help="F/T noise standard deviations, N and N m, for the localized point's"
+        " localize_position_std (--localize; default: none, the column is NaN)",
     )
     est.add_argument(
         "--max-bad",

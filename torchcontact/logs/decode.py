@@ -107,10 +107,12 @@ def log_columns(
     sensors: Sequence[str] | None = None,
     constraints: Any = None,
     extra_columns: Sequence[str] = (),
+    localize: bool = False,
 ) -> LogColumns:
     """Check a log's schema and list what an estimate reads from it.
 
-    A log without a ``contacts`` column is estimated as contact-free, with one warning.
+    A log without a ``contacts`` column is estimated as contact-free, with one warning (none when
+    its contacts are localized: ``localize``).
 
     Args:
         schema: the log's Arrow schema.
@@ -119,6 +121,7 @@ def log_columns(
         sensors: sensors to use (default: those with a column).
         constraints: a :class:`~torchcontact.logs.LogConstraints` or None.
         extra_columns: further columns needed (a residual's features, e.g. ``temperature``).
+        localize: the contacts are localized from the F/T readings (``estimate --localize``).
 
     Raises:
         LogError: no ``t_ns`` or ``q``, no joint names, no sensor column, a contacts column that
@@ -147,7 +150,7 @@ def log_columns(
         for need in ("link", "kind", "position"):
             if need not in names:
                 raise LogError(f"{src}: contact struct lacks field {need!r} (has {names})")
-    else:
+    elif not localize:
         warnings.warn(
             f"{src}: no 'contacts' column: every frame is estimated as contact-free (any contact"
             " load shows in residual.<sensor>)",
@@ -424,6 +427,8 @@ class Decoded:
         ft_cov: sensor -> ``(n, 6, 6)`` reading noise covariances of the log's ``ft_cov.<s>``
             column (:attr:`ChunkDecoder.cov_sensors`; identity on frames whose value is
             malformed, which get status bit 1).
+        located: the chunk's localization, when the reader computed it
+            (:meth:`~torchcontact.logs.chunks.LogEstimator.localized`), else None.
     """
 
     n: int
@@ -445,6 +450,7 @@ class Decoded:
     short: np.ndarray | None = None
     row: int = 0
     ft_cov: dict[str, np.ndarray] = field(default_factory=dict)
+    located: Any = None
 
 
 class ChunkDecoder:

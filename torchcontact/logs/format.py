@@ -65,6 +65,7 @@ __all__ = [
     "META_FT_NOISE",
     "META_FT_PROFILES",
     "META_JOINT_NAMES",
+    "META_LOCALIZE",
     "META_RESIDUAL",
     "META_SENSORS",
     "META_SOURCE",
@@ -128,6 +129,10 @@ META_FT_PROFILES = b"torchcontact.ft_profiles"
 #: "sensors": {sensor: {"source": text, "std": 6 floats or null}}}`` (``estimate``'s summary
 #: ``noise``).
 META_FT_NOISE = b"torchcontact.ft_noise"
+#: Output logs with localized contacts (``torchcontact estimate --localize``): JSON of the
+#: options (``links``, ``force_threshold``, ``accept_ambiguous``, ``ft_std``, ``ray``) and the
+#: ``candidates`` links.
+META_LOCALIZE = b"torchcontact.localize"
 #: Optional IMU columns and the :class:`torchcontact.BaseMotion` field each one fills.
 BASE_COLUMNS = {"base.omega": "omega", "base.domega": "domega", "base.acc": "proper_acc"}
 #: Columns holding one value per joint, in the order of ``torchcontact.joint_names``.

@@ -45,8 +45,10 @@ from torchcontact.logs.chunks import (
     LogBias,
     LogConstraints,
     LogEstimator,
+    LogLocalize,
     decoded_chunks,
     estimate_stream,
+    localized_layout,
 )
 from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
@@ -61,6 +63,7 @@ __all__ = [
     "LogConstraints",
     "LogError",
     "LogEstimator",
+    "LogLocalize",
     "estimate_file",
     "estimate_files",
     "expand_inputs",
@@ -209,10 +212,12 @@ def prepare(
     constraints: LogConstraints | None = None,
     causal: tuple[int, int] | None = None,
     bias: LogBias | None = None,
+    localize: LogLocalize | None = None,
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
     """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
 
-    A log without a ``contacts`` column is estimated as contact-free, with one warning; a log
+    A log without a ``contacts`` column is estimated as contact-free, with one warning (unless
+    its contacts are localized); a log
     whose ``qd``/``qdd`` are derived and whose ``t_ns`` splits into several time segments gets
     one warning that counts them.
 
@@ -226,6 +231,7 @@ def prepare(
         constraints: see :class:`LogEstimator`.
         causal: see :class:`LogEstimator` (``--derivatives causal``).
         bias: see :class:`LogEstimator` (``--track-bias``).
+        localize: see :class:`LogEstimator` (the layout gets a ``force`` slot per candidate).
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
@@ -242,7 +248,7 @@ def prepare(
     src = str(path)
     pf = open_log(path)
     extra = [] if residual is None else residual.extra_columns
-    cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra)
+    cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
     scan = scan_log(pf, src, bool(cols.contact_fields))
     le = LogEstimator(
         model,
@@ -258,8 +264,11 @@ def prepare(
         step_ns=scan.step_ns,
         causal=causal,
         bias=bias,
+        localize=localize,
     )
     le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
+    if le.localizer is not None:
+        le.layout = le.decoder.layout = localized_layout(le.layout, le.localizer.links)
     le.decoder.whole_log_segment = scan.segments == 1
     if cols.derived and scan.segments > 1:
         warnings.warn(f"{src}: {scan.describe_time()}", UserWarning, stacklevel=3)
@@ -285,6 +294,8 @@ def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: 
         ident["constraints"] = repr(le.constraints)
     if le.noise is not None:  # ... and the same noise
         ident["noise"] = le.noise.summary()
+    if le.localize is not None:
+        ident["localize"] = le.localize.options()
     return ident
 
 
@@ -339,7 +350,33 @@ def log_summary(le: LogEstimator, scan: LogScan) -> dict:
     out["time_segments"] = scan.segments
     if le.derived and le.causal is None:  # causal: the first frames of segments, per chunk
         out["not_differentiable"] = scan.short_frames
+    if le.localizer is not None:
+        out["localize_links"] = list(le.localizer.links)
     return out
+
+
+def run_localize(
+    localize: LogLocalize | Mapping[str, Any] | None, model: RobotModel, robot: Any
+) -> LogLocalize | None:
+    """A run's :class:`LogLocalize`: as given, or loaded from ``robot``'s URDF with options.
+
+    Args:
+        localize: a :class:`LogLocalize`, its options (``links`` and the keyword options of
+            :class:`LogLocalize`), or None.
+        model: the robot.
+        robot: its URDF path or :class:`~torchcontact.robots.RobotSpec` (options only).
+
+    Raises:
+        InputError: options with a robot given as a model (pass a :class:`LogLocalize`), or as
+            :meth:`LogLocalize.load`.
+        MissingExtraError: the ``meshes`` extra is missing.
+    """
+    if localize is None or isinstance(localize, LogLocalize):
+        return localize
+    if isinstance(robot, RobotModel):
+        raise InputError("localize options need the robot's URDF path: pass a LogLocalize")
+    opts = dict(localize)
+    return LogLocalize.load(model, robot, opts.pop("links", "subtree"), **opts)
 
 
 # ---------------------------------------------------------------------- the local engine
@@ -365,6 +402,7 @@ def estimate_file(
     track_bias: LogBias | bool | None = None,
     ft_noise: Mapping[str, Any] | Sequence[str] | None = None,
     unweighted: bool = False,
+    localize: LogLocalize | Mapping[str, Any] | None = None,
 ) -> dict:
     """Estimate every frame of a log and write the output log (local engine).
 
@@ -404,6 +442,9 @@ def estimate_file(
             weighing the solve; sensors not given take theirs from the log
             (:mod:`torchcontact.logs.noise`).
         unweighted: the paper's unweighted ``pinv(A) b`` (no ``ft_noise`` then).
+        localize: contact localization from the F/T wrench and the collision meshes in frames
+            without skin contact (:class:`LogLocalize`, or its options with ``robot`` a URDF
+            path), or None.
 
     Returns:
         A summary dict: input, output, frames, processed_now, ok_now, bad_now, seconds,
@@ -415,7 +456,10 @@ def estimate_file(
         ``cones`` (:func:`~torchcontact.logs.run.unusable`'s tally: solves, frames converged
         and not, frames with an active cone, well-posed frames whose unconstrained estimate
         lies outside a cone) over the frames estimated now; with ``track_bias`` also ``bias``
-        (:meth:`LogEstimator.bias_done`).
+        (:meth:`LogEstimator.bias_done`); with ``localize`` also ``localize_links`` (the
+        candidates) and ``localize``: per localizing sensor, ``localized`` (frames whose
+        localized contact was estimated) and ``status`` (frames with each
+        :class:`~torchcontact.status.LocalizeStatus` bit, by name) over the output's frames.
 
     Raises:
         InputError: ``batch_size`` or ``half_window`` < 1, an unknown ``derivatives``, a bad
@@ -451,8 +495,18 @@ def estimate_file(
                 f"{path}: --resume (resume=True) is not supported with a recurrent (GRU) residual:"
                 " its state depends on every earlier frame; rerun from the start"
             )
+        localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(
-            path, model, sensors, residual, velocity_margin, ft_range, constraints, causal, bias
+            path,
+            model,
+            sensors,
+            residual,
+            velocity_margin,
+            ft_range,
+            constraints,
+            causal,
+            bias,
+            localize,
         )
         log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
@@ -503,6 +557,7 @@ def estimate_file(
                 le.output_schema(),
                 progress=show,
                 cone_sensors=list(le.sensors) if constraints is not None else [],
+                localize=localize_tally(le),
                 t0=t0,
                 **log_summary(le, scan),
                 **extra,
@@ -550,6 +605,13 @@ def bias_pass(
     for d in decoded_chunks(le, tables, half_window, 0, None):
         le.bias_pass(d)
     return le.bias_done()
+
+
+def localize_tally(le: LogEstimator) -> tuple[list[str], bool] | None:
+    """``(localizing sensors, accept_ambiguous)`` for the run's summary, None without."""
+    if le.localizer is None or le.localize is None:
+        return None
+    return list(le.localizer.sensor_names), le.localize.accept_ambiguous
 
 
 def _context(
@@ -619,6 +681,10 @@ def estimate_files(
     model = load_robot(robot, kwargs.get("dtype", torch.float64), kwargs.pop("device", "cpu"))
     if kwargs.get("residual") is not None:  # load and verify once for all files
         kwargs["residual"] = load_residual(kwargs["residual"], model)
+    if kwargs.get("localize") is not None:  # the meshes loaded once for all files
+        kwargs["localize"] = loc = run_localize(kwargs["localize"], model, robot)
+        sensors = kwargs.get("sensors") or list(model.ft_sensors)
+        loc.localizer(model, sensors)  # bad links are refused before any file is read
     return [
         estimate_file(f, model, o, device=str(model.device), **kwargs)
         for f, o in zip(files, outs, strict=True)

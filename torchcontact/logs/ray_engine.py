@@ -39,6 +39,7 @@ from torchcontact.identity import RobotIdentity
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
+    LogLocalize,
     decoded_chunks,
     estimate_stream,
 )
@@ -51,12 +52,14 @@ from torchcontact.logs.pipeline import (
     kernel_backend,
     load_residual,
     load_robot,
+    localize_tally,
     log_noise,
     log_summary,
     output_paths,
     prepare,
     resolve_device,
     run_ident,
+    run_localize,
 )
 from torchcontact.logs.run import Done, Run, side_paths
 from torchcontact.robots import RobotSpec, ft_sensor_specs
@@ -109,6 +112,10 @@ def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
         res = None if job["residual"] is None else load_residual(job["residual"], model)
         args = dict(le_args)
         layout = args.pop("layout")
+        opts = args.pop("localize")
+        if opts is not None:  # the meshes loaded once per worker process and config
+            opts = dict(opts)
+            args["localize"] = LogLocalize.load(model, robot, opts.pop("links"), **opts)
         le = LogEstimator(model, residual=res, **args)
         if layout is not None:
             from torchcontact.contacts import SlotLayout
@@ -205,6 +212,28 @@ def _user_error(exc: BaseException) -> BaseException:
 TASK_RETRIES = 3
 
 
+def worker_args(le: LogEstimator, path: str | Path) -> dict[str, Any]:
+    """The :class:`LogEstimator` arguments a worker process rebuilds it from (picklable).
+
+    The layout is the driver's (the log's scan); a localization travels as its options, and each
+    worker process loads the meshes from the robot's URDF once (:func:`_worker_state`).
+    """
+    return {
+        "input_joint_names": list(le.input_joint_names),
+        "sensors": list(le.sensors),
+        "contact_fields": list(le.contact_fields),
+        "source": str(path),
+        "derived": list(le.derived),
+        "velocity_margin": le.velocity_margin,
+        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
+        "constraints": le.constraints,
+        "noise": le.noise,
+        "step_ns": le.step_ns,
+        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
+        "localize": None if le.localize is None else le.localize.options(),
+    }
+
+
 def _unit_dataset(
     ray: Any,
     todo: list[int],
@@ -228,19 +257,7 @@ def _unit_dataset(
         "whole_log_segment": le.decoder.whole_log_segment,
         **options,
     }
-    le_args = {
-        "input_joint_names": list(le.input_joint_names),
-        "sensors": list(le.sensors),
-        "contact_fields": list(le.contact_fields),
-        "source": str(path),
-        "derived": list(le.derived),
-        "velocity_margin": le.velocity_margin,
-        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
-        "constraints": le.constraints,
-        "noise": le.noise,
-        "step_ns": le.step_ns,
-        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
-    }
+    le_args = worker_args(le, path)
     ds = ray.data.from_items([{"unit": u} for u in todo], override_num_blocks=len(todo))
     # the robot as the driver has it: the URDF with the declared --ft-sensor sensors, and the
     # model's identity, which each worker's model must have
@@ -286,6 +303,7 @@ def estimate_file_ray(
     constraints: Any = None,
     ft_noise: Any = None,
     unweighted: bool = False,
+    localize: Any = None,
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
@@ -319,6 +337,8 @@ def estimate_file_ray(
             solver's tolerance).
         ft_noise: as :func:`estimate_file` (resolved once here, before the units run).
         unweighted: as :func:`estimate_file`.
+        localize: as :func:`estimate_file` (options or a :class:`LogLocalize`); each worker
+            process loads the meshes once from ``robot``'s URDF.
 
     Returns:
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
@@ -346,8 +366,9 @@ def estimate_file_ray(
                 f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
                 " order); use --engine local"
             )
+        localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                        constraints)  # fmt: skip
+                                        constraints, localize)  # fmt: skip
         log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
@@ -388,6 +409,7 @@ def estimate_file_ray(
             le.output_schema(),
             progress=show,
             cone_sensors=list(le.sensors) if constraints is not None else [],
+            localize=localize_tally(le),
             t0=t0,
             **log_summary(le, scan),
             engine="ray",

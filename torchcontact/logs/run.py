@@ -197,6 +197,7 @@ class _Tally:
     """Frames, statuses and cone solves of the tables written to the output."""
 
     cone_sensors: list[str]
+    localize: tuple[list[str], bool] | None = None
     rows: int = 0
     bad: int = 0
     ok_now: int = 0
@@ -214,9 +215,14 @@ class _Tally:
     active_frames: int = 0
     well_posed_frames: int = 0
     outside_frames: int = 0
+    located: dict[str, int] = field(default_factory=dict)
+    located_bits: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
+
+        if self.localize is not None:
+            self._add_localized(table)
 
         code = table.column("status_code")
         # frames with NaN outputs: a status bit other than the warnings (outputs kept)
@@ -283,6 +289,21 @@ class _Tally:
         well[frame[tested]] = True
         self.well_posed_frames += int(well.sum())
 
+    def _add_localized(self, table: Any) -> None:
+        """Frames whose localized contact was estimated, and frames with each status bit."""
+        from torchcontact.localize import localized_frames
+        from torchcontact.status import LocalizeStatus
+
+        sensors, ambiguous = self.localize  # type: ignore[misc]
+        for s in sensors:
+            code = table.column(f"localize_status_code.{s}").to_numpy(zero_copy_only=False)
+            has = table.column(f"localize_link.{s}").is_valid().to_numpy(zero_copy_only=False)
+            used = localized_frames(code, has, ambiguous)
+            self.located[s] = self.located.get(s, 0) + int(used.sum())
+            bits = self.located_bits.setdefault(s, {b.name: 0 for b in LocalizeStatus})
+            for b in LocalizeStatus:
+                bits[b.name] += int(((code & int(b)) != 0).sum())
+
     def summary(self) -> dict:
         top = sorted(self.details.items(), key=lambda kv: (-kv[1], kv[0]))[:3]
         out: dict[str, Any] = {"bad_frames": self.bad, "bad_details": [list(t) for t in top]}
@@ -303,6 +324,11 @@ class _Tally:
                 "cone_active_frames": self.active_frames,
                 "well_posed_frames": self.well_posed_frames,
                 "outside_cone_frames": self.outside_frames,
+            }
+        if self.localize is not None:
+            out["localize"] = {
+                s: {"localized": self.located.get(s, 0), "status": self.located_bits.get(s, {})}
+                for s in self.localize[0]
             }
         return out
 
@@ -495,6 +521,7 @@ class Run:
         *,
         progress: bool = False,
         cone_sensors: list[str] | None = None,
+        localize: tuple[list[str], bool] | None = None,
         t0: float | None = None,
         **summary: Any,
     ) -> dict:
@@ -506,6 +533,8 @@ class Run:
             schema: the output schema.
             progress: show a progress bar.
             cone_sensors: sensors with friction-cone columns (their solves are tallied).
+            localize: ``(localizing sensors, accept_ambiguous)``: their localized frames and
+                status bits are tallied (``estimate --localize``), or None.
             t0: ``time.perf_counter()`` when the job started (the summary's ``seconds`` count
                 from there; default: now).
             **summary: more keys of the summary (input, sensors, derived, engine, ...).
@@ -514,8 +543,9 @@ class Run:
             The summary: input, output, frames, processed_now, ok_now, bad_now, seconds,
             frames_per_s, resumed_chunks, chunks, bad_frames (NaN outputs: a status other than
             the warning bits), bad_details, outside_training and outside_training_details
-            (frames whose learned correction extrapolates, when any), the given keys, and
-            with cones ``cones``.
+            (frames whose learned correction extrapolates, when any), the given keys, with cones
+            ``cones``, with ``localize`` ``localize`` (per sensor: ``localized`` frames and
+            ``status``, frames per bit name).
 
         Raises:
             LogError: an I/O error (names the path), units missing at the end; an engine's
@@ -528,7 +558,7 @@ class Run:
         resumed = len(self.done)
         bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
         bar.update(sum(self.units[k][1] - self.units[k][0] for k in self.done))
-        tally = _Tally(list(cone_sensors or []))
+        tally = _Tally(list(cone_sensors or []), localize)
         writer = LogWriter(self.out, schema)
         sink = _OrderedSink(self, writer, tally, bar)
         try:
