@@ -368,7 +368,7 @@ def estimate_file_ray(
             )
         localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                        constraints, localize)  # fmt: skip
+                                        constraints, localize=localize)  # fmt: skip
         log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
