@@ -37,6 +37,7 @@ __all__ = [
     "FTNoise",
     "SensorNoise",
     "contact_free_noise",
+    "fixed_noise",
     "parse_ft_noise",
 ]
 
@@ -287,6 +288,73 @@ def resolve(
                     " axis: a noise-free or quantised log); give --ft-noise",
                 )
             out[s] = SensorNoise(f"contact-free frames ({pairs} pairs)", tuple(std))
+    return FTNoise(out)
+
+
+def fixed_noise(
+    ft_noise: Mapping[str, Sequence[float] | str] | Sequence[str],
+    sensors: Sequence[str],
+    robot_sensors: Sequence[str] | None = None,
+) -> FTNoise:
+    """The constant noise of every sensor of an exported estimator (``export --ft-noise``).
+
+    The exported graphs and C libraries whiten each sensor's rows by a noise fixed at export
+    (``docs/deployment.md``); unlike a log run there is no other source, so every sensor in use
+    needs one.
+
+    Args:
+        ft_noise: ``--ft-noise`` strings (:func:`parse_ft_noise`) or their parsed form
+            ``{sensor: (6,) standard deviations [N; N m] or a profile name}`` (2 numbers:
+            ``SIGMA_F, SIGMA_M``).
+        sensors: the sensors in use, in the estimator's order.
+        robot_sensors: every F/T sensor of the robot (for the message; default ``sensors``).
+
+    Returns:
+        :class:`FTNoise` with a :class:`SensorNoise` (its ``std``) per sensor, in ``sensors``
+        order.
+
+    Raises:
+        InputError: a malformed value, a standard deviation that is not > 0, a sensor the robot
+            does not have or the estimator does not use, a sensor without noise, an unknown
+            profile or one without ``[noise]``.
+
+    Example:
+        >>> fixed_noise(["base_ft=0.1,0.005"], ["base_ft"]).sensors["base_ft"].std
+        (0.1, 0.1, 0.1, 0.005, 0.005, 0.005)
+    """
+    if isinstance(ft_noise, Mapping):
+        given: dict[str, tuple[float, ...] | str] = {}
+        for s, v in ft_noise.items():
+            if isinstance(v, str):
+                given[s] = v
+                continue
+            nums = _positive([str(float(x)) for x in v], f"{s}={list(v)}")
+            if nums is None or len(nums) not in (2, 6):
+                raise InputError(f"--ft-noise {s}: give 2 (SIGMA_F,SIGMA_M) or 6 numbers")
+            given[s] = nums if len(nums) == 6 else (nums[0],) * 3 + (nums[1],) * 3
+    else:
+        given = parse_ft_noise(ft_noise)
+    everything = list(robot_sensors) if robot_sensors is not None else list(sensors)
+    for s in given:
+        if s not in everything:
+            raise InputError(
+                f"--ft-noise {s}: the robot has no F/T sensor {s!r} (its sensors: {everything})"
+            )
+        if s not in sensors:
+            raise InputError(f"--ft-noise {s}: not a sensor of the estimator ({list(sensors)})")
+    left = [s for s in sensors if s not in given]
+    if left:
+        raise InputError(
+            f"--ft-noise: no noise for {left}; an exported estimator is weighted by every"
+            " sensor's noise (give each sensor SENSOR=SIGMA_F,SIGMA_M, 6 numbers or a profile)"
+        )
+    out: dict[str, SensorNoise] = {}
+    for s in sensors:
+        g = given[s]
+        if isinstance(g, str):
+            out[s] = SensorNoise(f"profile {g} (--ft-noise)", _profile_std(g, f"--ft-noise {s}"))
+        else:
+            out[s] = SensorNoise("--ft-noise", tuple(float(v) for v in g))
     return FTNoise(out)
 
 
