@@ -574,9 +574,6 @@ def export_residual_checkpoint(
     if recurrent:
         meta["state_shape"] = ["N", learned.layers, learned.hidden]  # type: ignore[union-attr]
     meta.update(_stack_parts(corr, opset))
-    if noise is not None:  # only then: an unweighted export stays as it was
-        meta[Key.FT_NOISE] = ftn.summary()
-        meta[Key.SOLVER] += "; noise-weighted (ft_noise, whitened rows)"
     written = fmt.encode(meta)
     _write(gb, path, written, opset)
     if check:

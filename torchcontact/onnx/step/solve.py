@@ -55,8 +55,8 @@ def solve_region(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: in
     """
     gb = ctx.gb
     if w is not None:  # whiten: G~ = W G W, b~ = W b; y = W y~ below
-        y, rank = _solve(ctx, gb.op("Mul", G, gb.f(np.outer(w, w))),
-                         gb.op("Mul", b, gb.f(w[:, None])), R, r_min, ncols, w[:6, None])
+        Gw, bw = gb.op("Mul", G, gb.f(np.outer(w, w))), gb.op("Mul", b, gb.f(w[:, None]))
+        y, rank = _solve(ctx, Gw, bw, R, r_min, ncols, w[:6, None])
         return gb.op("Mul", y, gb.f(w[:, None])), rank
     return _solve(ctx, G, b, R, r_min, ncols)
 
