@@ -153,6 +153,42 @@ def test_c_step_is_weighted_alike(tmp_path):
     assert json.loads(path.with_suffix(".json").read_text())["ft_noise"] == meta["ft_noise"]
 
 
+def test_constrained_graph_is_weighted_alike(tmp_path):
+    """``--constraints --ft-noise``: the cone solve on the whitened rows, as the library's."""
+    from torchcontact.export import export_estimator
+    from torchcontact.runtime import EstimatorRuntime
+
+    model, f64 = robot_model("tcarm"), torch.float64
+    links, kinds = ("forearm_skin", "hand_skin"), ("force", "force")
+    cones = tc.FrictionCones(3)  # a small budget: quick to trace, no frame stops early
+    path = tmp_path / "cones.onnx"
+    export_estimator(model, None, links, kinds, path, dtype=f64, constraints=cones,
+                     ft_noise=NOISE["tcarm"])  # fmt: skip
+    rt = EstimatorRuntime(path)
+    assert rt.ft_noise == STD["tcarm"]
+    g = torch.Generator().manual_seed(0)
+    n = 16
+    q, qd, qdd = (torch.rand(n, model.nv, generator=g, dtype=f64) - 0.5 for _ in range(3))
+    pos = (torch.rand(n, 2, 3, generator=g, dtype=f64) - 0.5) * 0.05
+    normals = torch.randn(n, 2, 3, generator=g, dtype=f64)
+    ft = torch.randn(n, 6, generator=g, dtype=f64) * 5
+    friction = torch.full((n, 2), 0.5, dtype=f64)
+    c = tc.Contacts(links, kinds, pos, normals=normals, friction=friction,
+                    pushing=torch.ones(n, 2, dtype=torch.bool))  # fmt: skip
+    cov = {"base_ft": torch.diag(torch.tensor(STD["tcarm"]["base_ft"], dtype=f64) ** 2)}
+    est = reference_estimator("tcarm")
+    ref = est.estimate(q, qd, qdd, {"base_ft": ft}, c, constraints=cones, backend="eager",
+                       ft_covariance=cov)  # fmt: skip
+    plain = est.estimate(q, qd, qdd, {"base_ft": ft}, c, constraints=cones, backend="eager")
+    out = rt.run(q.numpy(), qd.numpy(), qdd.numpy(), ft[:, None].numpy(), pos.numpy(),
+                 normals=normals.numpy(), friction=friction.numpy(),
+                 pushing=np.ones((n, 2)))  # fmt: skip
+    scale = float(ref.force.abs().max())
+    assert float((ref.force - plain.force).abs().max()) > 1e-3 * scale  # weighting matters
+    np.testing.assert_allclose(out["force"], ref.force.numpy(), rtol=0, atol=1e-9 * scale)
+    np.testing.assert_array_equal(out["status"], ref.status.numpy())
+
+
 def test_unweighted_export_is_unchanged(exports):
     """Without ``ft_noise`` the graphs are byte for byte those of main at d499cb6.
 
