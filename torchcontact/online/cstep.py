@@ -330,7 +330,7 @@ def export_c_step(
     flags = (bool(moving_base), bool(torque_rows), bool(covariance))
     ftn = noise = None
     if ft_noise is not None:
-        from torchcontact.logs.noise import fixed_noise
+        from torchcontact.noise import fixed_noise
 
         if torque_rows:
             raise InputError(

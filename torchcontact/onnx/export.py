@@ -231,7 +231,7 @@ def export_estimator(
                 "ft_noise with torque_rows: the torque rows' noise is not known (a weighted"
                 " estimate needs every row's noise); export one or the other"
             )
-        from torchcontact.logs.noise import fixed_noise
+        from torchcontact.noise import fixed_noise
 
         ftn = fixed_noise(ft_noise, est.sensor_names, list(m.ft_sensors))
         noise = tuple(ftn.sensors[s].std for s in est.sensor_names)
