@@ -41,7 +41,9 @@ STD = {
 SLOT_INPUTS = ("positions", "active", "directions", "wrenches", "ft_residual")
 
 
-def _weighted_reference(name: str, x: dict, rt=None) -> tc.ContactEstimate:
+def _weighted_reference(
+    name: str, x: dict, rt=None, covariance: bool = False
+) -> tc.ContactEstimate:
     """The torch estimator's weighted estimate, ``ft_covariance = diag(std^2)`` (float64)."""
     lay = LAYOUTS[name]
     est = reference_estimator(name)
@@ -51,7 +53,7 @@ def _weighted_reference(name: str, x: dict, rt=None) -> tc.ContactEstimate:
                     t["active"] > 0.5)  # fmt: skip
     cov = {s: torch.diag(torch.tensor(sd, dtype=torch.float64) ** 2) for s, sd in STD[name].items()}
     ref = est.estimate(t["q"], t["qd"], t["qdd"], ft, c, backend="eager", ft_covariance=cov,
-                       weighted=True, covariance=False)  # fmt: skip
+                       weighted=True, covariance=covariance)  # fmt: skip
     if rt is not None:  # NaN for the joints whose torques the graph does not output
         keep = {rt.joint_names.index(j) for j in rt.metadata["torque_joints"]}
         tau = ref.joint_torques.clone()
@@ -79,6 +81,27 @@ def test_weighted_graphs_equal_the_weighted_estimate(exports, name):
     if name == "tcarm":
         out = rt.run(x["q"], x["qd"], x["qdd"], x["ft"], **kw)
         assert_parity(out, ref, sensors, np.float64)
+
+
+def test_covariance_of_the_weighted_step_graph(tmp_path):
+    """``--covariance --ft-noise``: ``ft_cov`` propagated through the weighted solve."""
+    from torchcontact.export import export_estimator
+    from torchcontact.runtime import EstimatorRuntime
+
+    name = "tcarm"
+    lay, std = LAYOUTS[name], STD[name]["base_ft"]
+    path = tmp_path / "cov.onnx"
+    export_estimator(robot_model(name), None, lay["links"], lay["kinds"], path,
+                     dtype=torch.float64, covariance=True, ft_noise=NOISE[name])  # fmt: skip
+    rt = EstimatorRuntime(path)
+    x = scene(name, 8, seed=5)
+    cov = np.diag(np.square(std))  # the noise the graph is weighted by: the library's case
+    ref = _weighted_reference(name, x, covariance=True)
+    for i in range(len(x["q"])):
+        got = rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], ft_cov=cov[None],
+                      **{k: x[k][i] for k in SLOT_INPUTS})  # fmt: skip
+        np.testing.assert_allclose(got["covariance"], ref.covariance[i], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(got["force"], ref.force[i], rtol=0, atol=1e-8)
 
 
 def test_rank_deficient_frames_equal_numpy_weighted_least_squares(exports):
