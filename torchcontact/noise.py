@@ -213,7 +213,7 @@ def fixed_noise(
             if isinstance(v, str):
                 given[s] = v
                 continue
-            nums = _positive([str(float(x)) for x in v], f"{s}={list(v)}")
+            nums = _positive([str(x) for x in v], f"{s}={list(v)}")
             if nums is None or len(nums) not in (2, 6):
                 raise InputError(f"--ft-noise {s}: give 2 (SIGMA_F,SIGMA_M) or 6 numbers")
             given[s] = nums if len(nums) == 6 else (nums[0],) * 3 + (nums[1],) * 3
