@@ -88,6 +88,7 @@ def _estimator(args: argparse.Namespace) -> int:
                 velocity_margin=args.velocity_margin,
                 constraints=cones,
                 online=_payload_links(args) or bool(args.online),
+                ft_noise=args.ft_noise,
             )
     except TorchContactError:
         raise
@@ -150,6 +151,7 @@ def _estimator_c(args: argparse.Namespace) -> int:
             prefix=args.prefix,
             march=args.march,
             build=not args.no_build,
+            ft_noise=args.ft_noise,
         )
     for sensor, c in meta["correction"].items():
         left = [k for k in c["layers"] if k not in c["in_library"]]
@@ -162,7 +164,9 @@ def _estimator_c(args: argparse.Namespace) -> int:
     files = {"path": args.out, "header": f"{stem}.h", "source": f"{stem}.cpp"}
     print(json.dumps({**files, "metadata": f"{stem}.json", "in_size": meta["in_size"],
                       "out_size": meta["out_size"], "inputs": meta["inputs"],
-                      "outputs": meta["outputs"]}, indent=1))  # fmt: skip
+                      "outputs": meta["outputs"],
+                      **({"ft_noise": meta["ft_noise"]} if "ft_noise" in meta else {})},
+                     indent=1))  # fmt: skip
     return 0
 
 
@@ -286,6 +290,15 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         help="inputs tau_measured, tau_mask (joint torque sensors)",
     )
     e.add_argument("--covariance", action="store_true", help="input ft_cov, output covariance")
+    e.add_argument(
+        "--ft-noise",
+        action="append",
+        metavar="SENSOR=SIGMA_F,SIGMA_M",
+        help="reading noise std of a sensor, N and N m (or 6 numbers FX,..,MZ, or a driver profile"
+        " with datasheet noise, e.g. robotiq-ft300): the solve weighted by it, constants of the"
+        " graph or library (give every sensor; repeatable; default: none, the unweighted"
+        " pinv(A) b; docs/deployment.md)",
+    )
     e.add_argument(
         "--joints",
         default=None,

@@ -104,6 +104,7 @@ def estimate_program(
     tau_noise: bool = False,
     *,
     correction: ReadingCorrection | None = None,
+    noise: Sequence[Sequence[float]] | None = None,
 ) -> kernels.Program:
     """The whole estimator of a layout as one program.
 
@@ -134,7 +135,17 @@ def estimate_program(
     :func:`torchcontact.solve.weighted_solve_program`, the constrained solve on the whitened
     rows; ``cov`` is then the covariance of the weighted estimate. Without it ``ft_cov`` (and
     ``tau_var``) are only propagated to ``cov``.
+
+    With ``noise`` (per sensor 6 standard deviations ``[N; N m]``, a diagonal covariance fixed
+    in the program: an exported graph's or C library's ``--ft-noise``) the solve is weighted by
+    these constants instead of the ``ft_cov`` input, the same whitening; ``ft_cov`` is then an
+    input only with ``with_cov``, the frame's noise propagated through the weighted solve.
     """
+    if noise is not None:
+        weighted = True
+        noise = tuple(tuple(float(v) for v in sd) for sd in noise)
+        if len(noise) != len(em.sensors) or any(len(sd) != 6 for sd in noise):
+            raise ValueError(f"noise: 6 standard deviations per sensor ({len(em.sensors)})")
     S, K, nv = len(em.sensors), len(em.slots), em.tree.nv
     kinds = em.kinds
     has_dir = "force_dir" in kinds
@@ -149,7 +160,7 @@ def estimate_program(
         inputs.update(omega=3, domega=3, proper_acc=3)
     if torque_rows:
         inputs.update(tau_measured=nv, tau_mask=nv)
-    if with_cov or weighted:
+    if with_cov or (weighted and noise is None):
         inputs["ft_cov"] = 36 * S
     if tau_noise and torque_rows:
         inputs["tau_var"] = nv
@@ -266,21 +277,30 @@ def estimate_program(
         if with_cov or weighted:
             eye = [1.0 if i == j else 0.0 for i in range(6) for j in range(6)]
             for r, reg in enumerate(em.regions):
-                ft_cov = x["ft_cov"][36 * r : 36 * r + 36]
-                sig6 = [select(ok, v, e) for v, e in zip(ft_cov, eye, strict=True)]
                 rows = list(reg.torque_coords) if torque_rows else []
                 Rr = 6 + len(rows)
-                sig = [[sig6[6 * i + j] if i < 6 and j < 6 else 0.0 for j in range(Rr)]
-                       for i in range(Rr)]  # fmt: skip
-                for t, c in enumerate(rows):
-                    if tau_noise:
-                        v = x["tau_var"][c]
-                        good = logical_and(ok, logical_and(isfinite(v), gt(v, 0.0)))
-                        sig[6 + t][6 + t] = select(good, v, 1.0)
-                    else:  # unknown: unit weight, nothing to propagate
-                        sig[6 + t][6 + t] = 1.0 if weighted else 0.0
+
+                def block(sig6: list, rows: list = rows, Rr: int = Rr) -> list[list]:
+                    sig = [[sig6[6 * i + j] if i < 6 and j < 6 else 0.0 for j in range(Rr)]
+                           for i in range(Rr)]  # fmt: skip
+                    for t, c in enumerate(rows):
+                        if tau_noise:
+                            v = x["tau_var"][c]
+                            good = logical_and(ok, logical_and(isfinite(v), gt(v, 0.0)))
+                            sig[6 + t][6 + t] = select(good, v, 1.0)
+                        else:  # unknown: unit weight, nothing to propagate
+                            sig[6 + t][6 + t] = 1.0 if weighted else 0.0
+                    return sig
+
+                sig = None
+                if "ft_cov" in x:
+                    ft_cov = x["ft_cov"][36 * r : 36 * r + 36]
+                    sig = block([select(ok, v, e) for v, e in zip(ft_cov, eye, strict=True)])
                 sigmas[r] = sig
-                if weighted:
+                if noise is not None:  # constants: the exported noise
+                    var = [noise[r][i] ** 2 if i == j else 0.0 for i in range(6) for j in range(6)]
+                    chol[r] = cholesky(block(var))
+                elif weighted:
                     chol[r] = cholesky(sig)
         ys, ranks, resid, factors = [], [], [], []
         for r, reg in enumerate(em.regions):
@@ -353,6 +373,8 @@ def estimate_program(
         key += f"|corr={correction.key}"
     if weighted or tau_noise:
         key += f"|weighted={weighted}|tau_noise={tau_noise and torque_rows}"
+    if noise is not None:
+        key += f"|noise={noise}"
     return kernels.Program("estimator", fn, inputs, outputs, key)
 
 
@@ -528,10 +550,10 @@ def predict_program(em: EstimationModel, moving_base: bool) -> kernels.Program:
     return kernels.Program("predict", fn, inputs, {"ft": 6 * S}, f"pred|{em.key}|{moving_base}")
 
 
-def program(em: EstimationModel, name: str, *flags) -> kernels.Program:
+def program(em: EstimationModel, name: str, *flags, **options) -> kernels.Program:
     """The cached program ``name`` (``"estimate"`` or ``"predict"``) of a layout."""
-    key = (name, *flags)
+    key = (name, *flags, *sorted(options.items()))
     if key not in em._programs:
         make = {"estimate": estimate_program, "predict": predict_program}[name]
-        em._programs[key] = make(em, *flags)
+        em._programs[key] = make(em, *flags, **options)
     return em._programs[key]

@@ -23,12 +23,18 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from torchcontact.errors import InputError
+from torchcontact.noise import (  # the one parser and value types, re-exported here
+    FTNoise,
+    SensorNoise,
+    fixed_noise,
+    parse_ft_noise,
+    profile_std,
+)
 
 __all__ = [
     "MIN_NOISE_PAIRS",
@@ -37,6 +43,7 @@ __all__ = [
     "FTNoise",
     "SensorNoise",
     "contact_free_noise",
+    "fixed_noise",
     "parse_ft_noise",
 ]
 
@@ -50,153 +57,6 @@ NOISE_PAIRS = 20_000
 STD_FLOOR = 1e-6
 #: MAD -> standard deviation of a Gaussian.
 _MAD_SCALE = 1.482602218505602
-
-
-@dataclass(frozen=True)
-class SensorNoise:
-    """One sensor's noise and where it came from.
-
-    Attributes:
-        source: ``"--ft-noise"``, ``"profile NAME (--ft-noise)"``, ``"column ft_cov.<s>"``,
-            ``"profile NAME (log metadata)"`` or ``"contact-free frames (N pairs)"``.
-        std: ``(6,)`` standard deviations ``[N; N m]`` of a diagonal covariance, or None for the
-            per-frame covariances of the log's column.
-    """
-
-    source: str
-    std: tuple[float, ...] | None = None
-
-    @property
-    def column(self) -> bool:
-        """The covariance is the log's per-frame ``ft_cov.<sensor>`` column."""
-        return self.std is None
-
-
-@dataclass(frozen=True)
-class FTNoise:
-    """The noise of every sensor of a run, or why the run is unweighted.
-
-    Attributes:
-        sensors: sensor -> :class:`SensorNoise` (every sensor in use when weighted).
-        unweighted: why the solve is the unweighted ``pinv(A) b`` (None: weighted).
-    """
-
-    sensors: Mapping[str, SensorNoise] = field(default_factory=dict)
-    unweighted: str | None = None
-
-    @property
-    def weighted(self) -> bool:
-        """The solve is weighted by :attr:`sensors`."""
-        return self.unweighted is None
-
-    def column_sensors(self) -> list[str]:
-        """Sensors whose covariance is the log's per-frame column."""
-        return [s for s, n in self.sensors.items() if self.weighted and n.column]
-
-    def covariances(self, ft_cov: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
-        """``ft_covariance`` of a chunk: sensor -> ``(6, 6)`` or ``(n, 6, 6)``; None: unweighted.
-
-        Args:
-            ft_cov: the chunk's per-frame covariances ``(n, 6, 6)`` of :meth:`column_sensors`.
-        """
-        if not self.weighted:
-            return None
-        out = {}
-        for s, n in self.sensors.items():
-            out[s] = ft_cov[s] if n.column else np.diag(np.square(np.asarray(n.std)))
-        return out
-
-    def summary(self) -> dict:
-        """JSON-ready: ``{"weighted", "reason"?, "sensors": {s: {"source", "std"}}}``."""
-        out: dict[str, Any] = {"weighted": self.weighted}
-        if not self.weighted:
-            out["reason"] = self.unweighted
-        out["sensors"] = {
-            s: {"source": n.source, "std": None if n.std is None else [float(v) for v in n.std]}
-            for s, n in self.sensors.items()
-        }
-        return out
-
-    def describe(self) -> str:
-        """One line for the CLI: which noise weighted the solve, or why none did."""
-        if not self.weighted:
-            return f"unweighted ({self.unweighted})"
-        return "weighted by " + ", ".join(f"{s}: {n.source}" for s, n in self.sensors.items())
-
-    def metadata(self) -> str:
-        """The output log's :data:`~torchcontact.logs.format.META_FT_NOISE` value."""
-        return json.dumps(self.summary())
-
-
-def _positive(values: Sequence[str], what: str) -> tuple[float, ...] | None:
-    try:
-        nums = tuple(float(v) for v in values)
-    except ValueError:
-        return None
-    if not all(0 < v < math.inf for v in nums):
-        raise InputError(
-            f"--ft-noise {what}: a standard deviation must be a finite number > 0 (a covariance"
-            f" must be symmetric positive definite), got {list(values)}"
-        )
-    return nums
-
-
-def parse_ft_noise(values: Iterable[str] | None) -> dict[str, tuple[float, ...] | str]:
-    """``--ft-noise`` values -> ``{sensor: (6,) standard deviations or a profile name}``.
-
-    ``NAME=SIGMA_F,SIGMA_M`` (N, N m: forces and moments), ``NAME=FX,FY,FZ,MX,MY,MZ`` or
-    ``NAME=PROFILE`` (a driver profile with a datasheet ``[noise]``: name or TOML path).
-
-    Raises:
-        InputError: not ``NAME=...``, a sensor given twice, 3-5 or 7+ numbers, a standard
-            deviation that is not > 0.
-
-    Example:
-        >>> parse_ft_noise(["base_ft=0.1,0.005"])
-        {'base_ft': (0.1, 0.1, 0.1, 0.005, 0.005, 0.005)}
-    """
-    out: dict[str, tuple[float, ...] | str] = {}
-    for v in values or ():
-        name, sep, rest = v.partition("=")
-        name, rest = name.strip(), rest.strip()
-        if not sep or not name or not rest:
-            raise InputError(
-                f"--ft-noise {v}: expected SENSOR=SIGMA_F,SIGMA_M, SENSOR=FX,FY,FZ,MX,MY,MZ"
-                " (standard deviations, N and N m) or SENSOR=PROFILE"
-            )
-        if name in out:
-            raise InputError(f"--ft-noise: sensor {name!r} given twice")
-        parts = [p.strip() for p in rest.split(",")]
-        nums = _positive(parts, v)
-        if nums is None:
-            if len(parts) > 1:
-                raise InputError(f"--ft-noise {v}: {rest!r} is neither numbers nor a profile")
-            out[name] = rest
-        elif len(nums) == 2:
-            out[name] = (nums[0],) * 3 + (nums[1],) * 3
-        elif len(nums) == 6:
-            out[name] = nums
-        else:
-            raise InputError(
-                f"--ft-noise {v}: give 2 (SIGMA_F,SIGMA_M) or 6 standard deviations, got"
-                f" {len(nums)}"
-            )
-    return out
-
-
-def _profile_std(name: str, where: str) -> tuple[float, ...]:
-    from torchcontact.drivers.profiles import ProfileError, load_profile
-
-    try:
-        prof = load_profile(name)
-    except ProfileError as exc:
-        raise InputError(f"{where}: {exc}") from None
-    if prof.noise_std is None:
-        raise InputError(
-            f"{where}: profile {prof.name!r} gives no datasheet noise ([noise].std); give the"
-            " standard deviations instead (SENSOR=SIGMA_F,SIGMA_M)"
-        )
-    return prof.noise_std
 
 
 def resolve(
@@ -258,9 +118,7 @@ def resolve(
         if s in given:
             g = given[s]
             if isinstance(g, str):
-                out[s] = SensorNoise(
-                    f"profile {g} (--ft-noise)", _profile_std(g, f"--ft-noise {s}")
-                )
+                out[s] = SensorNoise(f"profile {g} (--ft-noise)", profile_std(g, f"--ft-noise {s}"))
             else:
                 out[s] = SensorNoise("--ft-noise", tuple(g))
         elif ft_cov_column(s) in columns:
@@ -268,7 +126,7 @@ def resolve(
         elif s in profiles:
             where = f"{source}: metadata {META_FT_PROFILES.decode()} {s}"
             name = str(profiles[s])
-            out[s] = SensorNoise(f"profile {name} (log metadata)", _profile_std(name, where))
+            out[s] = SensorNoise(f"profile {name} (log metadata)", profile_std(name, where))
     left = [s for s in sensors if s not in out]
     if left:
         found = estimate(left)

@@ -154,9 +154,14 @@ def step_program(
     correction: InertialCorrection,
     coords: Sequence[int],
     flags: tuple[bool, bool, bool] = (False, False, False),
+    noise: Sequence[Sequence[float]] | None = None,
 ) -> kernels.Program:
-    """The C step's program: the estimator with the correction, torques of ``coords`` only."""
-    base = estimate_program(em, *flags, correction=correction)
+    """The C step's program: the estimator with the correction, torques of ``coords`` only.
+
+    ``noise`` (per sensor 6 standard deviations, N and N m): the solve weighted by these
+    constants (:func:`~torchcontact.estimation.programs.estimate_program`).
+    """
+    base = estimate_program(em, *flags, correction=correction, noise=noise)
     coords = tuple(int(c) for c in coords)
     outputs = dict(base.outputs)
     outputs["tau"] = len(coords)
@@ -248,6 +253,7 @@ def export_c_step(
     march: str = "native",
     compiler: str | None = None,
     build: bool = True,
+    ft_noise: Mapping[str, Sequence[float] | str] | Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Write the single-frame estimator as a C library: ``NAME.so``, ``.h``, ``.cpp``, ``.json``.
 
@@ -277,6 +283,9 @@ def export_c_step(
         march: the compiler's ``-march`` (``native``: this CPU; e.g. ``x86-64-v3`` for others).
         compiler: the C++ compiler (default ``$CXX``, else ``g++``, ``c++`` or ``clang++``).
         build: compile the library (False: write the source, header and metadata only).
+        ft_noise: every sensor's reading noise (as
+            :func:`torchcontact.export.export_estimator`): the solve weighted by it, constants
+            of the library (metadata ``ft_noise``); None: the unweighted ``pinv(A) b``.
 
     Returns:
         The metadata (also written to ``NAME.json`` and returned by ``<prefix>_metadata()``).
@@ -319,7 +328,18 @@ def export_c_step(
         tuple(lay.bodies for lay in layouts), tuple(lay.payload_body for lay in layouts)
     )
     flags = (bool(moving_base), bool(torque_rows), bool(covariance))
-    prog = step_program(em, corr, coords, flags)
+    ftn = noise = None
+    if ft_noise is not None:
+        from torchcontact.noise import fixed_noise
+
+        if torque_rows:
+            raise InputError(
+                "ft_noise with torque_rows: the torque rows' noise is not known (a weighted"
+                " estimate needs every row's noise); export one or the other"
+            )
+        ftn = fixed_noise(ft_noise, names, list(m.ft_sensors))
+        noise = tuple(ftn.sensors[s].std for s in names)
+    prog = step_program(em, corr, coords, flags, noise)
     S, K = len(names), len(links)
     fin, in_off, in_size = _layout(prog.inputs, S, K, len(coords), names, names)
     fout, out_off, out_size = _layout(prog.outputs, S, K, len(coords), names, names)
@@ -370,6 +390,7 @@ def export_c_step(
             }
             for s, c in stacks.items()
         },
+        **({} if ftn is None else {"ft_noise": ftn.summary()}),
         "program_key": prog.key,
         "march": march,
         "torchcontact_version": __version__,

@@ -153,8 +153,12 @@ def _estimator_outputs(gb: GraphBuilder, cols: dict, K: int, nv: int, S: int, co
     gb.output("status", ["N"], np.int64)
 
 
-def batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list, coords):
+def batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list, coords,
+                  noise: Sequence[Sequence[float]] | None = None):  # fmt: skip
     """The batched graph: the estimator program, one node per scalar operation over ``N``.
+
+    ``noise`` (per sensor 6 standard deviations, N and N m): the solve weighted by it, fixed in
+    the graph (:func:`~torchcontact.estimation.programs.estimate_program`).
 
     Returns:
         ``(GraphBuilder, input shapes)``.
@@ -201,7 +205,7 @@ def batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list
             if h is not None:
                 gb.op("Identity", h, out=fmt.state_out(rg.sensor))
                 states.append((fmt.state_out(rg.sensor), ["N", *rg.state_shape], rg.dtype))
-    prog = program(em, "estimate", *flags)
+    prog = program(em, "estimate", *flags, **({} if noise is None else {"noise": noise}))
     ins = _program_inputs(gb, em, readings)
     for k in fmt.BASE_INPUTS:
         ins[k] = k
@@ -219,7 +223,8 @@ def batched_graph(em, flags: tuple[bool, bool, bool], dtype: np.dtype, res: list
     return gb, shapes
 
 
-def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype):
+def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype,
+                      noise: Sequence[Sequence[float]] | None = None):  # fmt: skip
     """The friction-cone constrained estimator of a layout as one batched graph.
 
     The program of :func:`~torchcontact.estimation.programs.estimate_program` with ``cones``:
@@ -233,6 +238,8 @@ def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype):
         em: the layout.
         cones: ``(iterations, eps, tol, stop, prior)`` (:meth:`FrictionCones.program_flags`).
         dtype: float32 or float64.
+        noise: per sensor 6 standard deviations: the solve weighted by them (as
+            :func:`batched_graph`).
 
     Returns:
         ``(GraphBuilder, input shapes)``.
@@ -247,7 +254,8 @@ def constrained_graph(em: EstimationModel, cones: tuple, dtype: np.dtype):
         gb.input(name, sh)
     n = gb.op("Slice", gb.op("Shape", "q"), gb.i([0]), gb.i([1]))
     readings = gb.op("Reshape", gb.op("Sub", "ft", "ft_residual"), gb.i([-1, 6 * S]))
-    prog = program(em, "estimate", False, False, False, tuple(cones), False, False)
+    prog = program(em, "estimate", False, False, False, tuple(cones), False, False,
+                   **({} if noise is None else {"noise": noise}))  # fmt: skip
     ins = _program_inputs(gb, em, readings)
     ins["normals"] = gb.op("Reshape", "normals", gb.i([-1, 3 * K]))
     ins["friction"] = "friction"

@@ -124,6 +124,7 @@ def export_estimator(
     joints: Sequence[str] | str | None = None,
     constraints: FrictionCones | None = None,
     online: bool | Mapping[str, str] = False,
+    ft_noise: Mapping[str, Sequence[float] | str] | Sequence[str] | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -170,12 +171,20 @@ def export_estimator(
             ``regressor.<sensor> (6, 10)`` (:mod:`torchcontact.onnx.step.online`; the runtime's
             bias tracking, ``tare``, payloads); a correction stack's offset and inertial layers
             become their defaults (metadata ``online``). The batched graph is unchanged.
+        ft_noise: every sensor's reading noise, ``{sensor: (6,) standard deviations [N; N m],
+            (2,) SIGMA_F, SIGMA_M or a driver profile name}`` or ``--ft-noise`` strings
+            (:func:`torchcontact.logs.noise.fixed_noise`): both graphs solve weighted by it,
+            as :meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` with
+            ``ft_covariance = diag(std^2)`` (constants in the graphs; metadata ``ft_noise``).
+            None: the paper's unweighted ``pinv(A) b``.
 
     Returns:
         The metadata written into the files' ``metadata_props``.
 
     Raises:
         ValueError: an unknown sensor, link or kind, a slot no sensor measures, a bad option.
+        InputError: an ``ft_noise`` that is not > 0, for a sensor the estimator lacks, or
+            missing a sensor.
         ModelMismatchError: a residual graph made for another robot, joint set or sensor.
 
     Example:
@@ -215,6 +224,17 @@ def export_estimator(
     )
     em = est.layout(tuple(links), tuple(kinds))
     res = load_residual_graphs(residual, m, est.sensor_names)
+    noise = None
+    if ft_noise is not None:
+        if torque_rows:
+            raise InputError(
+                "ft_noise with torque_rows: the torque rows' noise is not known (a weighted"
+                " estimate needs every row's noise); export one or the other"
+            )
+        from torchcontact.noise import fixed_noise
+
+        ftn = fixed_noise(ft_noise, est.sensor_names, list(m.ft_sensors))
+        noise = tuple(ftn.sensors[s].std for s in est.sensor_names)
     npd = np.dtype(str(dtype).removeprefix("torch."))
     flags = (bool(moving_base), bool(torque_rows), bool(covariance))
     path = Path(path)
@@ -229,10 +249,10 @@ def export_estimator(
                 " moving_base, torque_rows, covariance, residual, joints or online)"
             )
         cones = constraints.program_flags(m.dtype)  # the objective's prior included
-        gb, shapes = constrained_graph(em, cones, npd)
+        gb, shapes = constrained_graph(em, cones, npd, noise)
         outputs = [*ESTIMATOR_OUTPUTS, *CONE_OUTPUTS]
     else:
-        gb, shapes = batched_graph(em, flags, npd, res, coords)
+        gb, shapes = batched_graph(em, flags, npd, res, coords, noise)
         outputs = [*ESTIMATOR_OUTPUTS, *(["covariance"] if covariance else [])]
     meta = {
         Key.FORMAT: FORMAT,
@@ -301,10 +321,13 @@ def export_estimator(
             meta[Key.ONLINE] = [lay.to_json(m.body_names) for lay in layouts]
             meta[Key.SLOT_REGIONS] = [sl.region for sl in em.slots]
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords,
-                                         online=layouts)  # fmt: skip
+                                         online=layouts, noise=noise)  # fmt: skip
         meta[Key.STEP_INPUTS] = lin.as_dict()
         meta[Key.STEP_OUTPUTS] = lout.as_dict()
         graphs.append((sm, step, "step"))
+    if noise is not None:  # only then: an unweighted export stays as it was
+        meta[Key.FT_NOISE] = ftn.summary()
+        meta[Key.SOLVER] += "; noise-weighted (ft_noise, whitened rows)"
     written = fmt.encode(meta)
     for gm, p, kind in graphs:
         gm.opset_import[0].version = opset

@@ -201,6 +201,9 @@ class Key:
     STEP_INPUTS = "step_inputs"
     STEP_OUTPUTS = "step_outputs"
     CONSTRAINTS = "constraints"
+    #: the noise the solve is weighted by (graphs exported with ``ft_noise``; absent: the
+    #: unweighted ``pinv(A) b``): :meth:`torchcontact.logs.noise.FTNoise.summary`
+    FT_NOISE = "ft_noise"
     #: per sensor the layout of the online inputs (step graphs exported with ``online``, C
     #: libraries): :meth:`torchcontact.online.state.SensorLayout.to_json`
     ONLINE = "online"

@@ -369,11 +369,25 @@ class EstimatorRuntime:
         """The input names :meth:`step` takes (the file's inputs and those it may leave unused)."""
         return self._accepts
 
+    @property
+    def ft_noise(self) -> dict[str, tuple[float, ...]] | None:
+        """Per sensor the 6 standard deviations ``[N; N m]`` the solve is weighted by.
+
+        Fixed at export (``export estimator --ft-noise``, metadata ``ft_noise``); None: the
+        file solves the paper's unweighted ``pinv(A) b``.
+        """
+        noise = self.metadata.get(Key.FT_NOISE)
+        if not noise:
+            return None
+        return {s: tuple(float(v) for v in n["std"]) for s, n in noise["sensors"].items()}
+
     def __repr__(self) -> str:
+        noise = self.ft_noise
+        weighting = "unweighted" if noise is None else f"weighted by ft_noise {noise}"
         return (
             f"EstimatorRuntime({self.path!r}, robot={self.metadata['robot']!r}, nv={self.nv},"
             f" sensors={list(self.sensor_names)}, slots={list(self.slot_kinds)},"
-            f" dtype={self.dtype}, backend={self.kind!r})"
+            f" dtype={self.dtype}, backend={self.kind!r}, {weighting})"
         )
 
     def reset(self) -> None:

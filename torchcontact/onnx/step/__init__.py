@@ -12,7 +12,8 @@ stages of :mod:`torchcontact.estimation.stages` (Del Prete et al., HRI 2012, Sec
 2. :mod:`~torchcontact.onnx.step.kinematics`: poses, motion and body wrenches (``forward``);
 3. :mod:`~torchcontact.onnx.step.regions`: transmitted wrenches, ``b``, slot geometry and Gram
    matrices (``region_rhs``, ``contact_maps``);
-4. :mod:`~torchcontact.onnx.step.solve`: the minimum-norm solve (:mod:`torchcontact.solve`);
+4. :mod:`~torchcontact.onnx.step.solve`: the minimum-norm solve (:mod:`torchcontact.solve`),
+   noise-weighted by constants in a graph exported with ``ft_noise``;
 5. :mod:`~torchcontact.onnx.step.outputs`: contact wrenches, torques, the packed output
    (``contact_wrenches``, ``backward``, ``covariance``);
 
@@ -41,7 +42,8 @@ __all__ = ["Flags", "StepContext", "build_step_graph", "context", "stages"]
 
 
 def context(em: EstimationModel, flags: Flags, dtype, residuals: Sequence = (),
-            coords: Sequence[int] | None = None, online: Sequence = ()) -> StepContext:  # fmt: skip
+            coords: Sequence[int] | None = None, online: Sequence = (),
+            noise: Sequence[Sequence[float]] | None = None) -> StepContext:  # fmt: skip
     """The :class:`StepContext` of a layout: pruned tree, packed input layout, graph builder.
 
     Args:
@@ -52,12 +54,15 @@ def context(em: EstimationModel, flags: Flags, dtype, residuals: Sequence = (),
         coords: the joint coordinates whose torques to compute (None: all).
         online: per sensor its :class:`~torchcontact.online.state.SensorLayout`: the online
             inputs and outputs (:mod:`~torchcontact.onnx.step.online`); empty: none.
+        noise: per sensor 6 standard deviations ``[N; N m]``: the weighted solve; None: none.
     """
+    if noise is not None:
+        noise = tuple(tuple(float(v) for v in sd) for sd in noise)
     coords = tuple(range(em.tree.nv)) if coords is None else tuple(coords)
     extra = tuple(dict.fromkeys(c for rg, _ in residuals for c in rg.extra))
     ctx = StepContext(em.prune(coords), em, tuple(em.kept_bodies(coords)), coords, flags,
                       GraphBuilder(dtype, "torchcontact_step"), StepLayout(), extra,
-                      tuple(online))  # fmt: skip
+                      tuple(online), noise)  # fmt: skip
     states = [(rg.sensor, tuple(rg.state_shape)) for rg, _ in residuals if rg.state_shape]
     for name, shape in inputs.fields(ctx.em, flags, extra if residuals else (), states):
         ctx.lay.add(name, shape)
@@ -75,6 +80,7 @@ def build_step_graph(
     residuals: Sequence = (),
     coords: Sequence[int] | None = None,
     online: Sequence = (),
+    noise: Sequence[Sequence[float]] | None = None,
 ):
     """The single-frame graph of a layout.
 
@@ -92,13 +98,16 @@ def build_step_graph(
         online: per sensor its :class:`~torchcontact.online.state.SensorLayout`: inputs
             ``bias``, ``theta.<sensor>``, outputs ``ft_model``, ``regressor.<sensor>``
             (:mod:`~torchcontact.onnx.step.online`).
+        noise: per sensor 6 standard deviations ``[N; N m]``: each sensor's rows whitened by
+            them, constants of the graph (:mod:`~torchcontact.onnx.step.solve`); None: the
+            unweighted ``pinv(A) b``.
 
     Returns:
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
         one output ``out`` ``(1, O)``, packed as the layouts say.
     """
     ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords,
-                  online)  # fmt: skip
+                  online, noise)  # fmt: skip
     x = ctx.gb.input("x", [1, ctx.lay.size])
     v = stages(ctx, x, residuals)
     lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
@@ -190,7 +199,8 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
             ranks.append(gb.f([[0.0]]))
             resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
             continue
-        y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols)
+        y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
+                                     ctx.whitening(r, R))  # fmt: skip
         ys.append(y)
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))

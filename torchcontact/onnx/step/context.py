@@ -51,6 +51,8 @@ class StepContext:
         online: per sensor its :class:`~torchcontact.online.state.SensorLayout` when the graph
             has the online inputs and outputs (:mod:`~torchcontact.onnx.step.online`), else
             empty.
+        noise: per sensor (region) 6 standard deviations ``[N; N m]`` the solve is weighted by
+            (:mod:`~torchcontact.onnx.step.solve`), or None: the unweighted ``pinv(A) b``.
     """
 
     em: EstimationModel
@@ -62,6 +64,7 @@ class StepContext:
     lay: StepLayout = field(default_factory=StepLayout)
     extra: tuple[str, ...] = ()
     online: tuple = ()
+    noise: tuple[tuple[float, ...], ...] | None = None
 
     @property
     def nb(self) -> int:
@@ -105,6 +108,14 @@ class StepContext:
         for k, s in enumerate(self.em.slots):
             B[s.body, k] = 1.0
         return B
+
+    def whitening(self, r: int, R: int) -> np.ndarray | None:
+        """``(R,)`` ``1 / sigma`` of region ``r``'s rows (torque rows: 1), None: unweighted."""
+        if self.noise is None:
+            return None
+        w = np.ones(R)
+        w[:6] = 1.0 / np.sqrt(np.square(np.asarray(self.noise[r], dtype=np.float64)))
+        return w
 
     def depths(self) -> list[int]:
         """Depth of every body (the root 0)."""
