@@ -268,7 +268,9 @@ def test_ray_worker_rebuilds_the_localization(icub_noskin):
     pf, le, columns, _ = prepare(icub_noskin, model, ["l_arm_ft"], localize=loc)
     job = {"threads": 0, "dtype": "float64", "device": "cpu", "residual": None,
            "whole_log_segment": le.decoder.whole_log_segment}  # fmt: skip
-    le2, _ = _worker_state(str(icub_noskin), urdf, worker_args(le, icub_noskin), job)
+    robot = {"robot": urdf, "ft_sensors": [], "identity": model.identity.sha256,
+             "identity_entries": model.identity.to_json()}  # the driver's (ray_engine)  # fmt: skip
+    le2, _ = _worker_state(str(icub_noskin), robot, worker_args(le, icub_noskin), job)
     assert le2.localize is not loc and le2.localize.options() == loc.options()
     assert le2.localizer.links == le.localizer.links and le2.layout == le.layout
     assert ("l_hand", "force") in zip(le.layout.links, le.layout.kinds, strict=True)

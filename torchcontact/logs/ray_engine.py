@@ -115,7 +115,7 @@ def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
         opts = args.pop("localize")
         if opts is not None:  # the meshes loaded once per worker process and config
             opts = dict(opts)
-            args["localize"] = LogLocalize.load(model, robot, opts.pop("links"), **opts)
+            args["localize"] = LogLocalize.load(model, spec, opts.pop("links"), **opts)
         le = LogEstimator(model, residual=res, **args)
         if layout is not None:
             from torchcontact.contacts import SlotLayout
