@@ -454,6 +454,14 @@ class LogEstimator:
                 "normal": pa.list_(pa.float64()),  # nullable: see format.py
             }
             self.output_fields += [(n, types[n]) for n in LOCALIZED_FIELDS if n not in have]
+            # a localized record leaves the input's other fields null: fixed-size list fields
+            # become plain lists (pyarrow < 26 cannot read a null fixed-size list entry back)
+            self.output_fields = [
+                (n, pa.list_(t.value_type))
+                if pa.types.is_fixed_size_list(t) and n != "position"
+                else (n, t)
+                for n, t in self.output_fields
+            ]
         self.set_noise(self.noise)
 
     def set_noise(self, noise: FTNoise | None) -> None:
