@@ -613,7 +613,8 @@ class ChunkDecoder:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""
         good = np.flatnonzero(d.slot >= 0)
         layout = self.layout
-        sub = d.records.select(good)
+        # every record good (the common case): no copy of the records
+        sub = d.records if len(good) == len(d.records) else d.records.select(good)
         if layout is not None and len(good) and (layout.assign(sub) < 0).any():
             # a pair beyond the log's layout (the scan saw other data): this chunk gets its own
             layout = None
