@@ -615,11 +615,16 @@ def vectors(
         column = column.combine_chunks()
     check_vector_type(column.type, name or "a vector column", source)
     N = len(column)
-    if N == 0 or pa.types.is_null(column.type):
+    if N == 0 or pa.types.is_null(column.type) or column.null_count == N:
         return np.full((N, n), np.nan), np.ones(N, bool)
     flat = _float64(column.flatten())  # flatten honours the array's offset
-    if pa.types.is_fixed_size_list(column.type) and column.type.list_size == n:
-        if not column.null_count:  # the common case: the values as they are, no copy
+    if not column.null_count and len(flat) == N * n:
+        # the common cases: every row has n values (a fixed size n, or offsets n apart); the
+        # values as they are, no copy
+        if (
+            pa.types.is_fixed_size_list(column.type)
+            or (np.diff(np.asarray(column.offsets.to_numpy(zero_copy_only=False))) == n).all()
+        ):
             return _nan_filled(flat).reshape(N, n), np.zeros(N, bool)
     null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
     out = np.full((N, n), np.nan)
