@@ -673,6 +673,8 @@ class ChunkDecoder:
         ln, lc, kn, kc = records.name_codes()
         link_msg = [self.link_problem(None if n is None else str(n)) for n in ln]
         kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
+        if not self.cones and self._all_good(link_msg, kind_msg, kn, kc, malformed):
+            return np.zeros(M, bool)  # the common chunk: no per-record reasons to build
         reason = np.array(link_msg, dtype=object)[lc]
         reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
         bit[~np.equal(reason, None)] = 128
@@ -699,6 +701,23 @@ class ChunkDecoder:
             rows[records.frame[sel]] = True
             issues.add(rows, int(bit[sel][0]), msg)
         return bad_record
+
+    @staticmethod
+    def _all_good(
+        link_msg: list[str | None],
+        kind_msg: list[str | None],
+        kn: np.ndarray,
+        kc: np.ndarray,
+        malformed: dict[str, np.ndarray],
+    ) -> bool:
+        """No record has a problem that :meth:`_check_contacts` (without cones) would name."""
+        if any(m is not None for m in (*link_msg, *kind_msg)) or malformed["position"].any():
+            return False
+        names = list(kn)
+        for kind, col in (("force_dir", "direction"), ("known", "wrench")):
+            if kind in names and malformed[col][kc == names.index(kind)].any():
+                return False
+        return True
 
     def _check_cones(
         self,
