@@ -673,7 +673,7 @@ class ChunkDecoder:
         ln, lc, kn, kc = records.name_codes()
         link_msg = [self.link_problem(None if n is None else str(n)) for n in ln]
         kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
-        if not self.cones and self._all_good(link_msg, kind_msg, kn, kc, malformed):
+        if not self.cones and self._all_good(link_msg, kind_msg, lc, kc, malformed, kn):
             return np.zeros(M, bool)  # the common chunk: no per-record reasons to build
         reason = np.array(link_msg, dtype=object)[lc]
         reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
@@ -706,12 +706,18 @@ class ChunkDecoder:
     def _all_good(
         link_msg: list[str | None],
         kind_msg: list[str | None],
-        kn: np.ndarray,
+        lc: np.ndarray,
         kc: np.ndarray,
         malformed: dict[str, np.ndarray],
+        kn: np.ndarray,
     ) -> bool:
         """No record has a problem that :meth:`_check_contacts` (without cones) would name."""
-        if any(m is not None for m in (*link_msg, *kind_msg)) or malformed["position"].any():
+        # the names the records use (the distinct names may hold a None no record has)
+        for msg, codes in ((link_msg, lc), (kind_msg, kc)):
+            used = np.bincount(codes, minlength=len(msg)) > 0
+            if any(m is not None for m, u in zip(msg, used, strict=True) if u):
+                return False
+        if malformed["position"].any():
             return False
         names = list(kn)
         for kind, col in (("force_dir", "direction"), ("known", "wrench")):
