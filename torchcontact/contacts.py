@@ -186,7 +186,8 @@ class Contacts:
         arrays, slot = layout.fill(records, frames, friction=friction)
 
         def t(x: np.ndarray | None) -> Tensor | None:
-            return None if x is None else torch.tensor(x, dtype=dtype, device=device)
+            # the arrays are fill's own: shared, not copied, when dtype and device allow
+            return None if x is None else torch.as_tensor(x, dtype=dtype, device=device)
 
         pushing = arrays.get("pushing")
         contacts = cls(

@@ -18,6 +18,26 @@ def test_vectors_fixed_plain_and_bad_rows():
     assert v.tolist() == [[3.0, 4.0, 5.0]] and not bad.any()
 
 
+def test_vectors_shortcuts_equal_the_row_by_row_reading():
+    """The no-copy paths (plain lists n long, sliced, all null) read what the rows say."""
+    rows = [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]
+    cases = {
+        "plain": pa.array(rows),
+        "slice": pa.array(rows).slice(1),
+        "large": pa.array(rows, pa.large_list(pa.float64())),
+        "ints": pa.array([[1, 2], [3, 4]]),
+        "total n*N, rows not n": pa.array([[1.0], [2.0, 3.0, 4.0]]),
+        "all null": pa.array([None, None], pa.list_(pa.float64())),
+        "null value": pa.array([[1.0, None], [2.0, 3.0]]),
+    }
+    for name, col in cases.items():
+        v, bad = fmt.vectors(col, 2)
+        want = [r if r is not None and len(r) == 2 else [None, None] for r in col.to_pylist()]
+        want = np.array([[np.nan if x is None else x for x in r] for r in want])
+        np.testing.assert_array_equal(v, want, err_msg=name)
+        assert bad.tolist() == [r is None or len(r) != 2 for r in col.to_pylist()], name
+
+
 def test_input_schema_metadata_roundtrip(tmp_path):
     schema = fmt.input_schema(["a", "b"], ["s"], derivatives=False)
     pq.write_table(schema.empty_table(), tmp_path / "x.parquet")

@@ -131,3 +131,27 @@ def test_driver_logs_name_their_profile_and_the_profile_gives_the_datasheet_nois
     assert json.loads(meta[META_FT_PROFILES]) == {"ft300": "robotiq-ft300"}
     assert load_profile("robotiq-ft300").noise_std == tuple(STD)
     assert load_profile("generic-float32").noise_std is None  # no datasheet: no noise
+
+
+def test_the_run_reuses_the_tables_the_noise_estimate_read(model, noisy_log, tmp_path, monkeypatch):
+    """The first tables read for the contact-free noise are not read again: same output bytes."""
+    from torchcontact.logs import pipeline
+
+    monkeypatch.setattr(pipeline, "NOISE_BATCH", 64)  # several noise chunks on a short log
+    calls = []
+    read = pipeline.read_chunks
+
+    def counted(pf, columns, batch_size, source, first_row=0):
+        calls.append(first_row)
+        return read(pf, columns, batch_size, source, first_row)
+
+    monkeypatch.setattr(pipeline, "read_chunks", counted)
+    outs = {}
+    for keep in (0, 3):
+        monkeypatch.setattr(pipeline, "NOISE_KEEP", keep)
+        calls.clear()
+        s = estimate_file(noisy_log, model, tmp_path / f"k{keep}.parquet", batch_size=64)
+        assert s["noise"]["sensors"]["base_ft"]["source"].startswith("contact-free frames (")
+        outs[keep] = (pq.read_table(s["output"]), list(calls))
+    assert outs[3][0].equals(outs[0][0])
+    assert outs[0][1][-1] == 0 and outs[3][1][-1] == 3 * 64  # the run reads from the 4th chunk

@@ -758,7 +758,8 @@ class LogEstimator:
         # ---- outputs of frames with a non-zero status are NaN (the estimator's own rows are),
         # but for the warning bits (Status.OUTSIDE_TRAINING: the outputs are kept)
         bad = (code & ~WARNINGS) != 0
-        jt = np.where(bad[:, None], np.nan, res["tau"])
+        any_bad = bool(bad.any())  # most chunks have no bad frame: their arrays as they are
+        jt = np.where(bad[:, None], np.nan, res["tau"]) if any_bad else res["tau"]
 
         # ---- output rows: input contacts with force and moment added, in record order
         M = len(records)
@@ -789,7 +790,9 @@ class LogEstimator:
             rank, unknowns = res[f"rank.{s}"], res[f"unknowns.{s}"]
             out[f"rank.{s}"], out[f"unknowns.{s}"] = pa.array(rank), pa.array(unknowns)
             out[f"nullity.{s}"] = pa.array(unknowns - rank)
-            out[f"residual.{s}"] = pa.array(np.where(bad, np.nan, res[f"residual.{s}"]))
+            residual = res[f"residual.{s}"]
+            residual = np.where(bad, np.nan, residual) if any_bad else residual
+            out[f"residual.{s}"] = pa.array(residual)
             if cons is not None:  # the solver's status; null on frames with a non-zero status
                 out[f"converged.{s}"] = pa.array(res[f"converged.{s}"], mask=bad)
                 out[f"iterations.{s}"] = pa.array(res[f"iterations.{s}"], mask=bad)

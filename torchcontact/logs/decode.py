@@ -619,7 +619,8 @@ class ChunkDecoder:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""
         good = np.flatnonzero(d.slot >= 0)
         layout = self.layout
-        sub = d.records.select(good)
+        # every record good (the common case): no copy of the records
+        sub = d.records if len(good) == len(d.records) else d.records.select(good)
         if layout is not None and len(good) and (layout.assign(sub) < 0).any():
             # a pair beyond the log's layout (the scan saw other data): this chunk gets its own
             layout = None
@@ -678,6 +679,8 @@ class ChunkDecoder:
         ln, lc, kn, kc = records.name_codes()
         link_msg = [self.link_problem(None if n is None else str(n)) for n in ln]
         kind_msg = [None if k in KINDS else f"unknown contact kind {k!r}" for k in kn]
+        if not self.cones and self._all_good(link_msg, kind_msg, lc, kc, malformed, kn):
+            return np.zeros(M, bool)  # the common chunk: no per-record reasons to build
         reason = np.array(link_msg, dtype=object)[lc]
         reason = np.where(np.equal(reason, None), np.array(kind_msg, dtype=object)[kc], reason)
         bit[~np.equal(reason, None)] = 128
@@ -704,6 +707,29 @@ class ChunkDecoder:
             rows[records.frame[sel]] = True
             issues.add(rows, int(bit[sel][0]), msg)
         return bad_record
+
+    @staticmethod
+    def _all_good(
+        link_msg: list[str | None],
+        kind_msg: list[str | None],
+        lc: np.ndarray,
+        kc: np.ndarray,
+        malformed: dict[str, np.ndarray],
+        kn: np.ndarray,
+    ) -> bool:
+        """No record has a problem that :meth:`_check_contacts` (without cones) would name."""
+        # the names the records use (the distinct names may hold a None no record has)
+        for msg, codes in ((link_msg, lc), (kind_msg, kc)):
+            used = np.bincount(codes, minlength=len(msg)) > 0
+            if any(m is not None for m, u in zip(msg, used, strict=True) if u):
+                return False
+        if malformed["position"].any():
+            return False
+        names = list(kn)
+        for kind, col in (("force_dir", "direction"), ("known", "wrench")):
+            if kind in names and malformed[col][kc == names.index(kind)].any():
+                return False
+        return True
 
     def _check_cones(
         self,

@@ -575,6 +575,13 @@ def _float64(values: Any) -> Any:
     return pc.cast(values, pa.float64(), safe=False)
 
 
+def _nan_filled(values: Any) -> np.ndarray:
+    """A float64 pyarrow array as numpy, NaN for its nulls (no copy when it has none)."""
+    if values.null_count:
+        values = values.fill_null(np.nan)
+    return np.asarray(values.to_numpy(zero_copy_only=False), float)
+
+
 def vectors(
     column: Any, n: int, name: str = "", source: object = ""
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -613,16 +620,22 @@ def vectors(
         column = column.combine_chunks()
     check_vector_type(column.type, name or "a vector column", source)
     N = len(column)
-    out = np.full((N, n), np.nan)
-    if N == 0 or pa.types.is_null(column.type):
-        return out, np.ones(N, bool)
-    null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
+    if N == 0 or pa.types.is_null(column.type) or column.null_count == N:
+        return np.full((N, n), np.nan), np.ones(N, bool)
     flat = _float64(column.flatten())  # flatten honours the array's offset
-    if pa.types.is_fixed_size_list(column.type) and column.type.list_size == n and not null.any():
-        return np.asarray(flat.fill_null(np.nan).to_numpy(zero_copy_only=False)).reshape(N, n), null
+    if not column.null_count and len(flat) == N * n:
+        # the common cases: every row has n values (a fixed size n, or offsets n apart); the
+        # values as they are, no copy
+        if (
+            pa.types.is_fixed_size_list(column.type)
+            or (np.diff(np.asarray(column.offsets.to_numpy(zero_copy_only=False))) == n).all()
+        ):
+            return _nan_filled(flat).reshape(N, n), np.zeros(N, bool)
+    null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
+    out = np.full((N, n), np.nan)
     lengths = pc.list_value_length(column).fill_null(-1).to_numpy(zero_copy_only=False)
     bad = null | (lengths != n)
-    flat = np.asarray(flat.fill_null(np.nan).to_numpy(zero_copy_only=False), float)
+    flat = _nan_filled(flat)
     parent = pc.list_parent_indices(column).to_numpy(zero_copy_only=False)
     good_rows = ~bad
     keep = good_rows[parent]

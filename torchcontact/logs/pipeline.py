@@ -149,6 +149,14 @@ def kernel_backend(frames: int, device: str, shared: bool = False) -> str:
     return kind if limit is not None and frames >= limit else "auto"
 
 
+#: Rows of the chunks the contact-free noise estimate reads from a log's start (fixed: a resume
+#: with another ``batch_size`` finds the same noise).
+NOISE_BATCH = 8192
+#: Of those chunks, how many the run keeps to use again instead of reading them twice (memory:
+#: a few chunks, once, at the start).
+NOISE_KEEP = 8
+
+
 def read_chunks(
     pf: Any, columns: Sequence[str], batch_size: int, source: str, first_row: int = 0
 ) -> Iterator[Any]:
@@ -307,13 +315,18 @@ def log_noise(
     ft_noise: Mapping[str, Any] | None,
     unweighted: bool,
     source: str,
-) -> None:
+) -> list[Any]:
     """Resolve the run's F/T noise (:mod:`torchcontact.logs.noise`) and set it on ``le``.
 
     Each sensor's noise comes from ``ft_noise``, the log's ``ft_cov.<sensor>`` column, its
     profile in the log's metadata, or its contact-free frames (read from the log's start in
-    chunks of a fixed size, so that a resume with another ``batch_size`` finds the same noise);
-    ``columns`` gains the covariance columns to read.
+    chunks of :data:`NOISE_BATCH` rows, so that a resume with another ``batch_size`` finds the
+    same noise); ``columns`` gains the covariance columns to read.
+
+    Returns:
+        The first tables of ``columns`` that the contact-free estimate read (at most
+        :data:`NOISE_KEEP`, from row 0, :data:`NOISE_BATCH` rows each but the log's last), so
+        that the run does not read them twice (:func:`with_head`); empty when it read none.
 
     Raises:
         InputError: an ``ft_noise`` sensor the robot lacks or the run does not use, a bad
@@ -324,9 +337,17 @@ def log_noise(
 
     given = ft_noise if isinstance(ft_noise, Mapping) else parse_ft_noise(ft_noise)
 
+    kept: list[Any] = []
+
+    def tables() -> Iterator[Any]:
+        for tab in read_chunks(pf, columns, NOISE_BATCH, source):
+            if len(kept) < NOISE_KEEP:
+                kept.append(tab)
+            yield tab
+
     def chunks() -> Iterator[Any]:
         try:
-            yield from decoded_chunks(le, read_chunks(pf, columns, 8192, source), half_window)
+            yield from decoded_chunks(le, tables(), half_window)
         except LogError:  # damaged data: the noise is estimated from the frames before it, and
             return  # the run meets the damage after estimating those (kept for --resume)
 
@@ -338,7 +359,30 @@ def log_noise(
                     estimate, unweighted=unweighted, torques="tau_measured" in columns,
                     source=source)  # fmt: skip
     le.set_noise(noise)
-    columns += [ft_cov_column(s) for s in noise.column_sensors()]
+    cov = [ft_cov_column(s) for s in noise.column_sensors()]
+    columns += cov
+    if cov:
+        kept.clear()  # tables without the covariance columns the run reads
+    return kept
+
+
+def with_head(
+    head: list[Any], pf: Any, columns: Sequence[str], batch_size: int, source: str, first: int
+) -> Iterator[Any]:
+    """:func:`read_chunks` from row ``first``, taking the tables :func:`log_noise` read already.
+
+    ``head`` (emptied as it goes, so that memory stays flat) is used when it starts at
+    ``first`` with tables of ``batch_size`` rows: the same tables that reading would give.
+    """
+    if first != 0 or batch_size != NOISE_BATCH:
+        head.clear()
+    rows = 0
+    while head:
+        tab = head.pop(0)
+        rows += tab.num_rows
+        yield tab
+    if rows < pf.metadata.num_rows:
+        yield from read_chunks(pf, columns, batch_size, source, first + rows)
 
 
 def log_summary(le: LogEstimator, scan: LogScan) -> dict:
@@ -508,7 +552,7 @@ def estimate_file(
             bias,
             localize,
         )
-        log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
+        head = log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         # an interrupted run keeps its chunk size: read it before the ident is compared
@@ -545,7 +589,7 @@ def estimate_file(
         backend = kernel_backend(total - first, str(model.device))
 
         def produce() -> Iterator[Done]:
-            tables = read_chunks(pf, columns, batch_size, str(path), first)
+            tables = with_head(head, pf, columns, batch_size, str(path), first)
             decoded = decoded_chunks(le, tables, half_window, first, before)
             with background(decoded, name="reader") as chunks:
                 for k, tab in enumerate(estimate_stream(le, iter(chunks), previous, backend)):
