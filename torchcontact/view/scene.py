@@ -47,6 +47,7 @@ from torchcontact.logs.plot import (
     ILL_POSED_RGB,
     MAX_DIRECTIONS,
     NULLSPACE_RGB,
+    SLOT_COLORS,
     TRUTH_ALPHA,
     NullDirection,
     ill_posed_note,
@@ -393,14 +394,7 @@ class RerunScene:
 
     def _log_styles(self) -> None:
         rr = self.rr
-        palette = [
-            (31, 119, 180),
-            (255, 127, 14),
-            (44, 160, 44),
-            (214, 39, 40),
-            (148, 103, 189),
-            (140, 86, 75),
-        ]
+        palette = list(SLOT_COLORS[: len(_AXES)])  # one colour per axis, plot.py's cycle
         for s in self.sensors:
             self._series(
                 f"plots/identifiability/{s}/rank",
