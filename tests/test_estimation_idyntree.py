@@ -261,7 +261,9 @@ B_LINKS = ["l_hand", "r_lower_leg", *["l_foot"] * 6, "r_forearm", "l_upper_leg",
 B_KINDS = ["wrench", "force", *["force_dir"] * 6, "force", "force_dir", "force_dir"]
 
 
-@pytest.mark.parametrize("backend", ["eager", "cpu"])
+# eager only: the generated kernel equals eager on every output of the whole robot with every
+# contact kind (tests/test_kernels.py), and this kernel's build costs 20-27 s of the suite
+@pytest.mark.parametrize("backend", ["eager"])
 def test_estimate_matches_idyntree_pinocchio_and_truth(icub, backend):
     model, est, ref = icub
     pinrobot = PinRobot(ROBOTS["icub"](), model)
