@@ -67,6 +67,7 @@ from torchcontact.logs.format import (
     META_URDF_SHA256,
     META_VERSION,
     bias_column,
+    contact_struct_type,
     fixed_list,
     ft_column,
     joint_permutation,
@@ -447,12 +448,7 @@ class LogEstimator:
             have = {n for n, _ in self.contact_fields}
             import pyarrow as pa
 
-            types = {
-                "link": pa.string(),
-                "kind": pa.string(),
-                "position": pa.list_(pa.float64(), 3),
-                "normal": pa.list_(pa.float64()),  # nullable: see format.py
-            }
+            types = {f.name: f.type for f in contact_struct_type(cone=True)}  # the format's
             self.output_fields += [(n, types[n]) for n in LOCALIZED_FIELDS if n not in have]
             # a localized record leaves the input's other fields null: fixed-size list fields
             # become plain lists (pyarrow < 26 cannot read a null fixed-size list entry back)
