@@ -95,8 +95,47 @@ def _estimator(args: argparse.Namespace) -> int:
     except ValueError as e:
         raise InputError(str(e)) from None
     step = str(step_graph_path(args.out))
-    print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
+    if args.json:
+        print(json.dumps({"path": str(args.out), "step_path": step, **meta}, indent=1))
+    else:
+        print(estimator_summary(args.out, step, meta))
     return 0
+
+
+def estimator_summary(path: str, step: str, meta: dict[str, str]) -> str:
+    """A few lines on exported estimator graphs (``--json`` prints all of ``meta``).
+
+    ``meta``: the batched graph's ``metadata_props`` (strings, JSON values encoded); the robot
+    identity and the input/output layouts in it run to kilobytes, which a terminal does not need.
+    """
+    import os
+
+    from torchcontact.onnx.format import decode
+
+    m = decode(meta)
+    sensors = ", ".join(s["name"] if isinstance(s, dict) else str(s) for s in m["sensors"])
+    slots = ", ".join(f"{lk}:{kd}" for lk, kd in zip(m["slot_links"], m["slot_kinds"], strict=True))
+    shapes = m.get("input_shapes") or {}
+    ins = [f"{i} {'x'.join(map(str, shapes[i]))}" if i in shapes else i for i in m["inputs"]]
+    options = [k.replace("_", " ") for k in ("moving_base", "torque_rows", "covariance")
+               if m.get(k) in (True, "true")]  # fmt: skip
+    if m.get("constraints") not in (None, "null", False):
+        options.append("friction cones")
+    if m.get("ft_noise") not in (None, "null"):
+        options.append("noise-weighted (--ft-noise)")
+    if m.get("residuals"):
+        options.append(f"corrections {m['residuals']}")
+    kb = [f"{os.path.getsize(x) / 1e3:.1f} kB" if os.path.isfile(x) else "?" for x in (path, step)]
+    lines = [
+        f"wrote {path} ({kb[0]}, frames batched) and {step} ({kb[1]}, one frame per call)",
+        f"  robot {m['robot']}, sensors {sensors}; slots {slots}",
+        f"  inputs {'; '.join(ins)}",
+        f"  outputs {', '.join(m['outputs'])}",
+        f"  {m['dtype']}, opset {m['opset']}"
+        + (f"; {', '.join(options)}" if options else ""),
+        "  all metadata: --json",
+    ]  # fmt: skip
+    return "\n".join(lines)
 
 
 def _payload_links(args: argparse.Namespace) -> dict[str, str]:
@@ -346,6 +385,12 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         "--out",
         required=True,
         help="output .onnx path (and <stem>.step.onnx); --format c: NAME.so (and .h, .cpp, .json)",
+    )
+    e.add_argument(
+        "--json",
+        action="store_true",
+        help="print the graphs' whole metadata as JSON (robot identity, layouts) instead of a"
+        " summary",
     )
     r = sub.add_parser("residual", help="a learned F/T residual checkpoint (MLP or GRU)")
     r.add_argument("checkpoint", help="checkpoint folder written by torchcontact train")

@@ -303,6 +303,7 @@ def test_cli_exports(tmp_path):
             "sensed",
             "--out",
             str(path),
+            "--json",
         ],
         capture_output=True,
         text=True,
@@ -311,6 +312,14 @@ def test_cli_exports(tmp_path):
     assert r.returncode == 0, r.stderr
     printed = json.loads(r.stdout)
     meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    # without --json: a few lines, not the kilobytes of metadata
+    from export.__main__ import estimator_summary
+
+    summary = estimator_summary(str(path), printed["step_path"], meta)
+    lines = summary.splitlines()
+    assert len(lines) == 6 and len(summary) < 1000 and len(r.stdout) > 5 * len(summary)
+    assert "slots hand_skin:force, forearm_skin:force_dir" in lines[1]
+    assert "float64" in lines[4] and "moving base" in lines[4] and "covariance" in lines[4]
     assert printed["path"] == str(path) and printed["step_path"].endswith(".step.onnx")
     assert meta["robot"] == "tcarm" and meta["dtype"] == "float64"
     assert json.loads(meta["slot_links"]) == ["hand_skin", "forearm_skin"]
