@@ -133,7 +133,7 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
     partial = tmp_path / "d.parquet.partial"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and driver.poll() is None:
-        if list(partial.glob("part-*.arrow")):
+        if list(partial.glob("part-*.parquet")):
             break
         time.sleep(0.005)
     if driver.poll() is not None:
@@ -151,7 +151,7 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
 
 def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch):
     from torchcontact.logs import LogError
-    from torchcontact.logs import format as pl
+    from torchcontact.logs import parts
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
@@ -160,7 +160,7 @@ def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch
     def crash(self, *a, **k):  # killed after every unit, before the output is complete
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pl.LogWriter, "close", crash)
+    monkeypatch.setattr(parts.PartStitcher, "close", crash)  # the driver joins the parts
     with pytest.raises(KeyboardInterrupt):
         estimate_file_ray(small_groups, tcarm_path(), out, **KW)
     monkeypatch.undo()

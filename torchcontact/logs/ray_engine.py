@@ -6,10 +6,12 @@ task (plain Ray tasks, ``workers`` of them in flight at once, spread over the no
 process builds the model and estimator once): a task reads its unit's rows straight from the
 Parquet file (with ``2 h`` frames of context across the unit's edges), decodes and estimates
 them in chunks of ``batch_size`` with the local engine's functions and the log's one slot
-layout, and journals
-``OUT.partial/part-<u>.arrow`` (temporary name, atomic rename). The driver runs the same
-:class:`~torchcontact.logs.run.Run` as the local engine (lock, journal, ordered writer, summary):
-it writes the parts into the output in unit order, which is the row order, as they finish.
+layout, and journals them as ``OUT.partial/part-<u>.parquet``, encoded with the output's schema
+and writer options (temporary name, atomic rename). The driver runs the same
+:class:`~torchcontact.logs.run.Run` as the local engine (lock, journal, ordered writer, summary)
+and joins the parts' bytes into the output in unit order, which is the row order, as they
+finish (:mod:`torchcontact.logs.parts`): the encoding, the costly part of writing, runs in the
+workers, and the driver only copies bytes and reads the status columns for the summary.
 
 A worker process that dies (killed, out of memory) costs a retry of its unit
 (:data:`TASK_RETRIES`), not the run; a killed driver leaves the journal, and ``--resume`` keeps
@@ -46,7 +48,8 @@ from torchcontact.logs.chunks import (
 )
 from torchcontact.logs.decode import stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, open_log, write_journal
+from torchcontact.logs.format import check_outputs, open_log
+from torchcontact.logs.parts import write_part
 from torchcontact.logs.pipeline import (
     _check_positive,
     expand_inputs,
@@ -153,7 +156,8 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
         decoded = decoded_chunks(le, chunks, h, start, before, after)
         # a unit's first frame starts cold: units run in parallel and in any order
         tables = estimate_stream(le, decoded, None, job["backend"])
-        write_journal(tables, Path(job["partial"]) / f"part-{int(u):08d}.arrow")
+        # encoded here, in parallel: the driver joins the parts' bytes (torchcontact.logs.parts)
+        write_part(tables, Path(job["partial"]) / f"part-{int(u):08d}.parquet", job["schema"])
         rows.append(stop - start)
     import ray
 
@@ -253,6 +257,7 @@ def _unit_tasks(
         "partial": str(run.partial.resolve()),
         "residual": None if res is None else res.source,
         "whole_log_segment": le.decoder.whole_log_segment,
+        "schema": le.output_schema(),  # the driver's: every part has the output's schema
         **options,
     }
     # the robot as the driver has it: the URDF with the declared --ft-sensor sensors, and the
@@ -411,6 +416,7 @@ def estimate_file_ray(
             cone_sensors=list(le.sensors) if constraints is not None else [],
             localize=localize_tally(le),
             t0=t0,
+            stitch=True,
             **log_summary(le, scan),
             engine="ray",
         )

@@ -40,6 +40,7 @@ import numpy as np
 from torchcontact._lock import OutputLock, lock_path
 from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.format import LogWriter, read_journal, write_journal
+from torchcontact.logs.parts import PartStitcher, read_part_columns
 from torchcontact.status import WARNINGS, Status
 
 OUTSIDE = int(Status.OUTSIDE_TRAINING)
@@ -217,6 +218,15 @@ class _Tally:
     outside_frames: int = 0
     located: dict[str, int] = field(default_factory=dict)
     located_bits: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def columns(self, names: list[str]) -> list[str]:
+        """The columns of an output with ``names`` that :meth:`add` reads."""
+        want = {"status_code", "status_detail", "status"}
+        for s in self.cone_sensors:
+            want |= {f"iterations.{s}", f"converged.{s}", "contacts"}
+        for s in self.localize[0] if self.localize is not None else []:
+            want |= {f"localize_status_code.{s}", f"localize_link.{s}"}
+        return [n for n in names if n in want]
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
@@ -433,11 +443,19 @@ class Run:
         return rec if isinstance(rec, dict) else None
 
     def _parts(self) -> list[Path]:
-        return sorted(self.partial.glob("part-*.arrow")) if self.partial.is_dir() else []
+        if not self.partial.is_dir():
+            return []
+        return sorted([*self.partial.glob("part-*.arrow"), *self.partial.glob("part-*.parquet")])
 
     def part(self, k: int) -> Path:
-        """Path of unit ``k``'s journal part."""
-        return self.partial / f"part-{k:08d}.arrow"
+        """Path of unit ``k``'s journal part.
+
+        Arrow IPC (local engine) or Parquet (Ray engine, :func:`torchcontact.logs.parts.write_part`,
+        joined into the output as they are).
+        """
+        arrow = self.partial / f"part-{k:08d}.arrow"
+        parquet = arrow.with_suffix(".parquet")
+        return parquet if parquet.exists() else arrow
 
     def start(
         self, ident: dict, units: list[tuple[int, int]], resume: bool, recurrent: bool = False
@@ -523,6 +541,7 @@ class Run:
         cone_sensors: list[str] | None = None,
         localize: tuple[list[str], bool] | None = None,
         t0: float | None = None,
+        stitch: bool = False,
         **summary: Any,
     ) -> dict:
         """Write the engine's units into the output, in order, and return the summary.
@@ -537,6 +556,8 @@ class Run:
                 status bits are tallied (``estimate --localize``), or None.
             t0: ``time.perf_counter()`` when the job started (the summary's ``seconds`` count
                 from there; default: now).
+            stitch: the engine journals Parquet parts (the Ray engine): the output is those
+                parts joined (:class:`~torchcontact.logs.parts.PartStitcher`), not encoded again.
             **summary: more keys of the summary (input, sensors, derived, engine, ...).
 
         Returns:
@@ -559,7 +580,8 @@ class Run:
         bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
         bar.update(sum(self.units[k][1] - self.units[k][0] for k in self.done))
         tally = _Tally(list(cone_sensors or []), localize)
-        writer = LogWriter(self.out, schema)
+        # Parquet parts (Ray workers encoded them) are joined byte for byte; tables are encoded
+        writer = PartStitcher(self.out, schema) if stitch else LogWriter(self.out, schema)
         sink = _OrderedSink(self, writer, tally, bar)
         try:
             try:
@@ -681,8 +703,15 @@ class _OrderedSink:
         while self.written < len(run.units) and self.written in run.done:
             k = self.written
             tab = self._held.pop(k, None)
+            part = run.part(k)
+            if tab is None and part.suffix == ".parquet":  # encoded by a worker: its bytes
+                tab = read_part_columns(part, self.tally.columns(self.writer.schema.names))
+                _io(self.run.tmp, lambda: self.writer.append(part))  # noqa: B023
+                self.tally.add(tab, k in self.now)
+                self.written += 1
+                continue
             if tab is None:
-                tab = read_journal(run.part(k))
+                tab = read_journal(part)
             _io(self.run.tmp, lambda: self.writer.write(tab))  # noqa: B023
             self.tally.add(tab, k in self.now)
             self.written += 1
