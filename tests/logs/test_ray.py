@@ -150,8 +150,7 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
 
 
 def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch):
-    from torchcontact.logs import LogError
-    from torchcontact.logs import parts
+    from torchcontact.logs import LogError, parts
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
