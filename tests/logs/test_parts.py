@@ -122,3 +122,39 @@ def test_refusals(tmp_path):
     with pytest.raises(LogError, match="page index"):
         st_.append(tmp_path / "idx.parquet")
     st_.abort()
+
+
+def test_a_run_joining_parts_tallies_as_one_writing_tables(tmp_path):
+    """The Ray engine's path (workers' Parquet parts joined) against the local engine's (tables
+    journalled and encoded): same rows and the same summary, bad frames and their texts too."""
+    from torchcontact.logs.run import Done, Run
+
+    n = 300
+    code = np.zeros(n, np.int32)
+    code[[5, 6, 250]] = 1  # bad frames, in two units
+    code[[7, 100]] = 1024  # a warning bit: outputs kept, its detail counted
+    status = pa.array(["ok" if c == 0 else "bad" if c == 1 else "ok" for c in code])
+    detail = pa.array([None if c == 0 else "F/T not finite" if c == 1 else
+                       "q[0] outside the training range" for c in code])  # fmt: skip
+    tab = pa.table({"t_ns": np.arange(n, dtype=np.int64), "status_code": code,
+                    "status": status, "status_detail": detail})  # fmt: skip
+    units = [(0, 128), (128, 256), (256, 300)]
+    summaries, outs = [], []
+    for stitch in (False, True):
+        out = tmp_path / f"o{int(stitch)}.parquet"
+        with Run(out, "log.parquet") as run:
+            run.start({"engine": "x"}, units, resume=False)
+            done = []
+            for u, (lo, hi) in enumerate(units):
+                part = tab.slice(lo, hi - lo)
+                if stitch:
+                    write_part([part], run.part(u).with_suffix(".parquet"), tab.schema)
+                    part = None
+                done.append(Done(u, hi - lo, part))
+            summaries.append(run.execute(iter(done[::-1]), tab.schema, stitch=stitch))
+        outs.append(pq.read_table(out))
+    assert outs[0].equals(outs[1], check_metadata=True) and outs[1].equals(tab)
+    a, b = ({k: v for k, v in s.items() if k not in ("seconds", "frames_per_s", "output")}
+            for s in summaries)  # fmt: skip
+    assert a == b and b["bad_frames"] == 3 and b["bad_details"] == [["F/T not finite", 3]]
+    assert b["outside_training"] == 2

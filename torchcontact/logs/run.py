@@ -220,13 +220,26 @@ class _Tally:
     located_bits: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def columns(self, names: list[str]) -> list[str]:
-        """The columns of an output with ``names`` that :meth:`add` reads."""
-        want = {"status_code", "status_detail", "status"}
+        """The columns of an output with ``names`` that :meth:`add` reads, but the status texts.
+
+        The texts (``status``, ``status_detail``: decoding them costs more than the rest) are
+        read only for a part with a frame whose code needs them (:meth:`needs_texts`).
+        """
+        want = {"status_code"}
         for s in self.cone_sensors:
             want |= {f"iterations.{s}", f"converged.{s}", "contacts"}
         for s in self.localize[0] if self.localize is not None else []:
             want |= {f"localize_status_code.{s}", f"localize_link.{s}"}
         return [n for n in names if n in want]
+
+    @staticmethod
+    def needs_texts(table: Any) -> bool:
+        """Whether :meth:`add` reads the status texts of ``table`` (a bad or outside frame)."""
+        import pyarrow.compute as pc
+
+        code = table.column("status_code")
+        hit = pc.not_equal(pc.bit_wise_and(code, ~WARNINGS | OUTSIDE), 0)
+        return bool(pc.any(hit).as_py())
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
@@ -705,7 +718,11 @@ class _OrderedSink:
             tab = self._held.pop(k, None)
             part = run.part(k)
             if tab is None and part.suffix == ".parquet":  # encoded by a worker: its bytes
-                tab = read_part_columns(part, self.tally.columns(self.writer.schema.names))
+                names = self.writer.schema.names
+                tab = read_part_columns(part, self.tally.columns(names))
+                if self.tally.needs_texts(tab):
+                    texts = [n for n in ("status", "status_detail") if n in names]
+                    tab = read_part_columns(part, [*tab.column_names, *texts])
                 _io(self.run.tmp, lambda: self.writer.append(part))  # noqa: B023
                 self.tally.add(tab, k in self.now)
                 self.written += 1
