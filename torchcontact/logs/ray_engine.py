@@ -65,7 +65,7 @@ from torchcontact.logs.pipeline import (
     run_ident,
     run_localize,
 )
-from torchcontact.logs.run import Done, Run, side_paths
+from torchcontact.logs.run import Done, Run, background, side_paths
 from torchcontact.robots import RobotSpec, ft_sensor_specs
 
 __all__ = ["estimate_file_ray", "estimate_files_ray", "plan_units"]
@@ -154,10 +154,16 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
             after = stamps_and_positions(tab.slice(stop - lo), le.perm, width, path, stop)
         chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
         decoded = decoded_chunks(le, chunks, h, start, before, after)
-        # a unit's first frame starts cold: units run in parallel and in any order
-        tables = estimate_stream(le, decoded, None, job["backend"])
-        # encoded here, in parallel: the driver joins the parts' bytes (torchcontact.logs.parts)
-        write_part(tables, Path(job["partial"]) / f"part-{int(u):08d}.parquet", job["schema"])
+        # as the local engine: decoding on a reader thread, the estimate here, the encoding on
+        # a writer thread (pyarrow and the kernels release the GIL); a unit's first frame
+        # starts cold: units run in parallel and in any order
+        with (
+            background(decoded, name="reader") as ready,
+            background(estimate_stream(le, iter(ready), None, job["backend"]), name="est") as tabs,
+        ):
+            # encoded here, in parallel: the driver joins the parts' bytes (logs/parts.py)
+            write_part(iter(tabs), Path(job["partial"]) / f"part-{int(u):08d}.parquet",
+                       job["schema"])  # fmt: skip
         rows.append(stop - start)
     import ray
 
