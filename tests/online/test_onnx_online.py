@@ -177,7 +177,7 @@ def test_cli_online(tmp_path, capsys):
     out = tmp_path / "arm.onnx"
     argv = ["estimator", "--robot", "tcarm", "--slot", "hand_skin:force", "--dtype", "float64",
             "--online", "--payload-link", "base_ft=tool", "--out", str(out)]  # fmt: skip
-    assert main(argv) == 0
+    assert main([*argv, "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert json.loads(printed["online"])[0]["payload_link"] == "tool"
     rt = EstimatorRuntime(out, robot="tcarm", track_bias=True)
