@@ -146,12 +146,12 @@ def test_failure_before_the_first_chunk_leaves_nothing(model, small, tmp_path, m
     assert "nothing was kept" in msg
     assert list(tmp_path.iterdir()) == []
 
-    # a read-only folder for the journal's first part: the same
-    def read_only(tables, path):
+    # a read-only folder for the journal's first entry: the same (o.parquet.tmp goes too)
+    def read_only(index, path):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr("torchcontact.logs.run.write_journal", read_only)
-    with pytest.raises(LogError, match="part-00000000.arrow: read-only file system"):
+    monkeypatch.setattr("torchcontact.logs.run.write_part_index", read_only)
+    with pytest.raises(LogError, match="part-00000000.index: read-only file system"):
         estimate_file(log, model, out)
     assert list(tmp_path.iterdir()) == []
 
@@ -160,21 +160,21 @@ def test_disk_full_mid_run_names_the_path_and_keeps_the_chunks(model, small, tmp
     log, ref = small
     out = tmp_path / "o.parquet"
     calls = []
-    real = fmt.LogWriter.write
+    real = fmt.PartsWriter.append
 
-    def full_after_two(self, table, *a, **k):
+    def full_after_two(self, part):
         calls.append(1)
-        if len(calls) > 2:  # what pyarrow raises on a full disk (no file named)
-            raise OSError("Error writing bytes to file. Detail: [errno 28] No space left on device")
-        return real(self, table, *a, **k)
+        if len(calls) > 2:  # a full disk (the OS error names no file)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, part)
 
-    monkeypatch.setattr(fmt.LogWriter, "write", full_after_two)
+    monkeypatch.setattr(fmt.PartsWriter, "append", full_after_two)
     with pytest.raises(LogError) as e:
         estimate_file(log, model, out, batch_size=50)
     msg = str(e.value)
     assert msg.startswith(f"{out}.tmp: no space left on device (errno 28); free some space")
-    assert "of 4 chunks are kept in" in msg and msg.endswith("for --resume")
-    assert not out.exists() and not _side(out)[2].exists()
+    assert "2 of 4 chunks are kept in" in msg and msg.endswith("for --resume")
+    assert not out.exists() and _side(out)[2].exists()  # o.parquet.tmp holds the kept chunks
     # the reader and writer threads ended with the run
     names = {t.name for t in threading.enumerate()}
     assert not names & {"torchcontact-reader", "torchcontact-writer"}
@@ -224,16 +224,16 @@ def test_resume_of_a_derived_log_in_small_chunks(model, sim_log_q_only, tmp_path
     ref = tmp_path / "ref.parquet"
     estimate_file(log, model, ref, batch_size=7)
     out = tmp_path / "o.parquet"
-    real = fmt.LogWriter.write
+    real = fmt.PartsWriter.append
     calls = []
 
-    def interrupted(self, table, *a, **k):
+    def interrupted(self, part):
         calls.append(1)
         if len(calls) > 4:
             raise KeyboardInterrupt
-        return real(self, table, *a, **k)
+        return real(self, part)
 
-    monkeypatch.setattr(fmt.LogWriter, "write", interrupted)
+    monkeypatch.setattr(fmt.PartsWriter, "append", interrupted)
     with pytest.raises(KeyboardInterrupt):
         estimate_file(log, model, out, batch_size=7)
     monkeypatch.undo()

@@ -52,7 +52,7 @@ from torchcontact.logs.chunks import (
 )
 from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, iter_chunks, open_log, read_journal
+from torchcontact.logs.format import check_outputs, iter_chunks, open_log
 from torchcontact.logs.run import Done, Run, background, side_paths
 from torchcontact.model import RobotModel
 
@@ -585,7 +585,7 @@ def estimate_file(
         before = _context(pf, le, first, half_window, str(path))
         if derivatives == "causal":
             extra["derivatives"] = le.derivative_method()
-        previous = read_journal(run.part(done - 1)) if done and constraints else None
+        previous = run.read_part(done - 1) if done and constraints else None
         backend = kernel_backend(total - first, str(model.device))
 
         def produce() -> Iterator[Done]:

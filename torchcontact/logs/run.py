@@ -7,16 +7,22 @@ both:
    from before anything is written until the end. A second run on the same output, with or
    without ``--resume``, stops at once naming the first (pid, host, start time); ``--resume`` and
    the "interrupted run" message apply only when no live process holds the lock.
-2. **Journal**: each unit ``k`` (a chunk of the local engine, a Ray unit) is written to
-   ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
-   ``OUT.progress.json`` records what the run is (:meth:`Run.start`); ``--resume`` keeps the
-   journalled units of an interrupted run with the same inputs and options.
-3. **Output**: units are written to ``OUT.tmp`` in order, on a writer thread fed through a bounded
-   queue (so writing overlaps the engine's work and memory stays flat), then renamed to ``OUT``.
-4. **Failures leave the ground clean**: a run that fails before journalling any unit removes
+2. **Output and journal in one**: units are encoded as Parquet row groups and appended to
+   ``OUT.tmp`` in order (:class:`~torchcontact.logs.format.PartsWriter`), on a writer thread fed
+   through a bounded queue (so writing overlaps the engine's work and memory stays flat); the
+   footer is joined from the units' own at the end and ``OUT.tmp`` renamed to ``OUT``. Once a
+   unit's bytes are in ``OUT.tmp``, ``OUT.partial/part-<k>.index`` records where (a small entry:
+   offsets and the unit's footer, temporary name and atomic rename), and ``OUT.progress.json``
+   records what the run is (:meth:`Run.start`). ``--resume`` keeps the recorded units of an
+   interrupted run with the same inputs and options: ``OUT.tmp`` is cut after the last one and
+   the run appends after it. The data are written once, never a second copy.
+   A unit estimated out of order (a Ray worker's) waits in ``OUT.partial/part-<k>.arrow`` (Arrow
+   IPC) until its turn; journals of earlier versions (every unit an ``.arrow`` part) are read
+   the same way.
+3. **Failures leave the ground clean**: a run that fails before recording any unit removes
    ``OUT.partial``, ``OUT.progress.json`` and ``OUT.tmp``; otherwise the message says how many
    units are kept for ``--resume``. An I/O error (a full disk, a read-only folder) names the path.
-5. **Summary**: the same dict from both engines, with the frames whose status is not 0 and
+4. **Summary**: the same dict from both engines, with the frames whose status is not 0 and
    their most frequent details (:func:`unusable`, the CLI's ``--max-bad``).
 """
 
@@ -39,7 +45,15 @@ import numpy as np
 
 from torchcontact._lock import OutputLock, lock_path
 from torchcontact.errors import LogError, TorchContactError
-from torchcontact.logs.format import LogWriter, read_journal, write_journal
+from torchcontact.logs.format import (
+    PartIndex,
+    PartsWriter,
+    encode_part,
+    read_journal,
+    read_part,
+    read_part_index,
+    write_part_index,
+)
 from torchcontact.status import WARNINGS, Status
 
 OUTSIDE = int(Status.OUTSIDE_TRAINING)
@@ -433,11 +447,34 @@ class Run:
         return rec if isinstance(rec, dict) else None
 
     def _parts(self) -> list[Path]:
-        return sorted(self.partial.glob("part-*.arrow")) if self.partial.is_dir() else []
+        if not self.partial.is_dir():
+            return []
+        return sorted([*self.partial.glob("part-*.arrow"), *self.partial.glob("part-*.index")])
 
     def part(self, k: int) -> Path:
-        """Path of unit ``k``'s journal part."""
+        """Path of unit ``k``'s table waiting for its turn (Arrow IPC: a Ray worker's)."""
         return self.partial / f"part-{k:08d}.arrow"
+
+    def index(self, k: int) -> Path:
+        """Path of unit ``k``'s journal entry (where it lies in ``OUT.tmp``)."""
+        return self.partial / f"part-{k:08d}.index"
+
+    def _written(self) -> list[PartIndex]:
+        """The recorded units in ``OUT.tmp``, in order (units 0, 1, ...)."""
+        out = []
+        while self.index(len(out)).is_file():
+            out.append(read_part_index(self.index(len(out))))
+        return out
+
+    def read_part(self, k: int) -> Any:
+        """The output table of a unit done before (recorded in ``OUT.tmp``, or waiting).
+
+        Raises:
+            LogError: the unit is unreadable.
+        """
+        if self.part(k).is_file():
+            return read_journal(self.part(k))
+        return read_part(self.tmp, read_part_index(self.index(k)))
 
     def start(
         self, ident: dict, units: list[tuple[int, int]], resume: bool, recurrent: bool = False
@@ -476,6 +513,7 @@ class Run:
                 )
             for tmp in self.partial.glob("*.tmp"):
                 tmp.unlink()
+            self._check_written()
             self.done = {int(p.stem.removeprefix("part-")) for p in self._parts()}
             if not self.done <= set(range(len(units))):
                 raise LogError(
@@ -491,16 +529,39 @@ class Run:
         except LogError as exc:
             raise LogError(f"{exc}; {self.kept()}") from None
 
+    def _check_written(self) -> None:
+        """Recorded units must be consecutive from 0 and lie in ``OUT.tmp``.
+
+        Raises:
+            LogError: they do not (entries that skip a unit, an ``OUT.tmp`` shorter than them).
+        """
+        entries = sorted(self.partial.glob("part-*.index"))
+        written = self._written()
+        if len(entries) != len(written):
+            raise LogError(
+                f"{self.out}: the entries of {self.partial} are not consecutive; delete it and"
+                " rerun"
+            )
+        if written:
+            size = self.tmp.stat().st_size if self.tmp.is_file() else -1
+            if size < written[-1].end:
+                raise LogError(
+                    f"{self.out}: {self.tmp.name} is shorter than the units {self.partial.name}"
+                    f" records ({max(size, 0)} of {written[-1].end} bytes); delete"
+                    f" {self.partial} and {self.sidecar.name}, and rerun"
+                )
+
     def record(self) -> None:
         """Write the sidecar (atomically)."""
         _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
 
     def _clean_failed(self) -> None:
-        """After a failure: drop ``OUT.tmp``; with no unit journalled, the journal too."""
-        self.tmp.unlink(missing_ok=True)
+        """After a failure: with no unit recorded, drop ``OUT.tmp`` and the journal."""
         if self.partial.is_dir():
             for tmp in self.partial.glob("*.tmp"):
                 tmp.unlink(missing_ok=True)
+        if not self.index(0).is_file():
+            self.tmp.unlink(missing_ok=True)  # it holds no recorded unit
         if not self._parts():
             shutil.rmtree(self.partial, ignore_errors=True)
             self.sidecar.unlink(missing_ok=True)
@@ -559,7 +620,7 @@ class Run:
         bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
         bar.update(sum(self.units[k][1] - self.units[k][0] for k in self.done))
         tally = _Tally(list(cone_sensors or []), localize)
-        writer = LogWriter(self.out, schema)
+        writer = _io(self.tmp, lambda: PartsWriter(self.out, schema, self._written()))
         sink = _OrderedSink(self, writer, tally, bar)
         try:
             try:
@@ -571,17 +632,18 @@ class Run:
                 if close is not None:  # stops the engine's threads (a generator's finally)
                     close()
                 sink.abort()
-                writer.abort()
+                writer.abort(keep=True)  # its recorded units stay for --resume
                 if isinstance(exc, TorchContactError):
                     raise type(exc)(f"{exc}; {self.kept()}") from None
                 raise
             if sink.written != len(self.units):
-                writer.abort()
+                writer.abort(keep=True)
                 missing = len(self.units) - sink.written
                 raise LogError(f"{self.out}: {missing} chunks missing; {self.kept()}")
             _io(self.tmp, writer.close)
         finally:
             bar.close()
+            writer.abort(keep=True)  # closed already, unless an error left it open
         shutil.rmtree(self.partial)
         self.sidecar.unlink()
         seconds = time.perf_counter() - t0
@@ -604,15 +666,17 @@ class Run:
 
 
 class _OrderedSink:
-    """The writer thread: journals the units it is given and writes them to the output in order.
+    """The writer thread: encodes the units it is given and appends them to the output in order.
 
-    Units journalled before (a resume) or by the engine (Ray) are read back from the journal when
-    their turn comes; at most one estimated table waits in memory besides the queue.
+    A unit is recorded in the journal (:func:`~torchcontact.logs.format.write_part_index`) once
+    its bytes are in ``OUT.tmp``. Units recorded before (a resume) are read back for the summary's
+    tally; units the engine journalled itself (Ray) are read from their Arrow part when their turn
+    comes; at most one estimated table waits in memory besides the queue.
     """
 
-    def __init__(self, run: Run, writer: LogWriter, tally: _Tally, bar: Any) -> None:
+    def __init__(self, run: Run, writer: PartsWriter, tally: _Tally, bar: Any) -> None:
         self.run, self.writer, self.tally, self.bar = run, writer, tally, bar
-        self.written = 0
+        self.written = len(writer.parts)  # units already in OUT.tmp (a resume)
         self.now: set[int] = set()
         self._held: dict[int, Any] = {}
         self._q: queue.Queue = queue.Queue(QUEUE_DEPTH)
@@ -658,19 +722,18 @@ class _OrderedSink:
     # writer thread
     def _work(self) -> None:
         try:
-            self._drain()  # units of an interrupted run
+            for k in range(self.written):  # units of an interrupted run, in OUT.tmp already
+                self.tally.add(self.run.read_part(k), False)
+            self._drain()  # units of an interrupted run waiting in the journal
             while True:
                 d = self._q.get()
                 if d is None:
                     return
                 run = self.run
                 if d.table is not None:
-                    part = run.part(d.unit)
-                    _io(part, lambda: write_journal([d.table], part))  # noqa: B023
                     self._held[d.unit] = d.table
                 run.done.add(d.unit)
                 self.now.add(d.unit)
-                run.record()
                 self.bar.update(d.rows)
                 self._drain()
         except BaseException as exc:
@@ -681,8 +744,15 @@ class _OrderedSink:
         while self.written < len(run.units) and self.written in run.done:
             k = self.written
             tab = self._held.pop(k, None)
-            if tab is None:
+            waiting = tab is None  # journalled by the engine (or an earlier version)
+            if waiting:
                 tab = read_journal(run.part(k))
-            _io(self.run.tmp, lambda: self.writer.write(tab))  # noqa: B023
+            part = encode_part(tab, self.writer.schema)
+            index = _io(run.tmp, lambda: self.writer.append(part))  # noqa: B023
+            entry = run.index(k)
+            _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
+            if waiting:
+                run.part(k).unlink()
+            run.record()
             self.tally.add(tab, k in self.now)
             self.written += 1
