@@ -240,3 +240,45 @@ def test_resume_of_a_derived_log_in_small_chunks(model, sim_log_q_only, tmp_path
     s = estimate_file(log, model, out, batch_size=7, resume=True)
     assert s["resumed_chunks"] >= 4 and s["derived"] == ["qd", "qdd"]
     assert out.read_bytes() == ref.read_bytes()
+
+
+def test_resume_after_a_chunk_written_but_not_recorded(model, small, tmp_path, monkeypatch):
+    """Killed between a chunk's bytes and its journal entry: the bytes are cut, the chunk redone;
+    and a journal of the earlier format (every chunk an Arrow part) is read, not refused."""
+    log, ref = small
+    out = tmp_path / "o.parquet"
+    real = fmt.PartsWriter.append
+    calls = []
+
+    def torn(self, part):
+        calls.append(1)
+        if len(calls) > 2:  # the third chunk's bytes half written, then the process dies
+            self._file.write(memoryview(part.data)[: len(part.data) // 2])
+            raise KeyboardInterrupt
+        return real(self, part)
+
+    monkeypatch.setattr(fmt.PartsWriter, "append", torn)
+    with pytest.raises(KeyboardInterrupt):
+        estimate_file(log, model, out, batch_size=50)
+    monkeypatch.undo()
+    partial, sidecar = _side(out)[:2]
+    ident = json.loads(sidecar.read_text())
+    assert sorted(p.name for p in partial.iterdir()) == [
+        "part-00000000.index",
+        "part-00000001.index",
+    ]
+    s = estimate_file(log, model, out, batch_size=50, resume=True)
+    assert s["resumed_chunks"] == 2 and s["frames"] == 200
+    assert out.read_bytes() == ref.read_bytes()
+
+    # the earlier journal: Arrow IPC parts of chunks 0 and 1, an OUT.tmp it never read back
+    ref_tab = pq.read_table(ref)
+    partial.mkdir()
+    for k in (0, 1):
+        fmt.write_journal([ref_tab.slice(50 * k, 50)], partial / f"part-{k:08d}.arrow")
+    sidecar.write_text(json.dumps({**ident, "parts_done": 2}))
+    _side(out)[2].write_bytes(b"PAR1 an old writer's unfinished file")
+    out.unlink()
+    s = estimate_file(log, model, out, batch_size=50, resume=True)
+    assert s["resumed_chunks"] == 2 and out.read_bytes() == ref.read_bytes()
+    assert not any(p.exists() for p in _side(out))
