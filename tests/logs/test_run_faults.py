@@ -51,14 +51,12 @@ def _child_estimate(log, out, **kw):
 
 
 def _wait_for(path, proc, timeout=60.0, parts=0):
+    """Wait until ``path`` (a run's sidecar) exists and the run's journal has ``parts`` entries."""
+    partial = path.with_name(path.name.replace(".progress.json", ".partial"))
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and proc.is_alive():
-        if path.exists():
-            try:
-                if json.loads(path.read_text())["parts_done"] >= parts:
-                    return True
-            except (OSError, ValueError, KeyError):
-                pass
+        if path.exists() and len(list(partial.glob("part-*.index"))) >= parts:
+            return True
         time.sleep(0.005)
     return False
 

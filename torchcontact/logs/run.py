@@ -552,7 +552,11 @@ class Run:
                 )
 
     def record(self) -> None:
-        """Write the sidecar (atomically)."""
+        """Write the sidecar (atomically): what the run is, once at its start.
+
+        The units done are the journal's entries (``OUT.partial``), not counted here: the
+        sidecar is not rewritten per unit.
+        """
         _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
 
     def _clean_failed(self) -> None:
@@ -753,6 +757,5 @@ class _OrderedSink:
             _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
             if waiting:
                 run.part(k).unlink()
-            run.record()
             self.tally.add(tab, k in self.now)
             self.written += 1
