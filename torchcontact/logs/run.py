@@ -62,6 +62,9 @@ __all__ = ["Done", "Run", "background", "side_paths", "unusable"]
 
 #: Items waiting between two pipeline stages (chunks in flight stay bounded: memory is flat).
 QUEUE_DEPTH = 2
+#: Threads encoding output chunks as Parquet at once (pyarrow releases the GIL): on many cores
+#: the encoding is off the writer thread, which only appends the encoded bytes in order.
+ENCODERS = 2
 NOT_CONVERGED = int(Status.NOT_CONVERGED)
 #: Share of the well-posed frames whose unconstrained estimate lies outside a friction cone above
 #: which ``estimate --constraints`` warns that the friction contradicts the data (with the right
@@ -679,7 +682,10 @@ class _OrderedSink:
     """
 
     def __init__(self, run: Run, writer: PartsWriter, tally: _Tally, bar: Any) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
         self.run, self.writer, self.tally, self.bar = run, writer, tally, bar
+        self._encoders = ThreadPoolExecutor(ENCODERS, thread_name_prefix="torchcontact-encoder")
         self.written = len(writer.parts)  # units already in OUT.tmp (a resume)
         self.now: set[int] = set()
         self._held: dict[int, Any] = {}
@@ -690,6 +696,12 @@ class _OrderedSink:
 
     # producer side (main thread)
     def put(self, d: Done) -> None:
+        if d is not None and d.table is not None:  # encoded on a pool thread meanwhile
+            d = Done(
+                d.unit,
+                d.rows,
+                (d.table, self._encoders.submit(encode_part, d.table, self.writer.schema)),
+            )
         while True:
             self._raise()
             try:
@@ -702,6 +714,7 @@ class _OrderedSink:
         """No more units: wait until everything is written."""
         self.put(None)  # type: ignore[arg-type]
         self._thread.join()
+        self._encoders.shutdown()
         self._raise()
 
     def abort(self) -> None:
@@ -715,6 +728,7 @@ class _OrderedSink:
                     continue
         finally:
             self._thread.join()
+            self._encoders.shutdown(cancel_futures=True)
 
     def _raise(self) -> None:
         if self._error is not None:
@@ -747,11 +761,14 @@ class _OrderedSink:
         run = self.run
         while self.written < len(run.units) and self.written in run.done:
             k = self.written
-            tab = self._held.pop(k, None)
-            waiting = tab is None  # journalled by the engine (or an earlier version)
+            held = self._held.pop(k, None)
+            waiting = held is None  # journalled by the engine (or an earlier version)
             if waiting:
                 tab = read_journal(run.part(k))
-            part = encode_part(tab, self.writer.schema)
+                part = encode_part(tab, self.writer.schema)
+            else:
+                tab, encoding = held
+                part = encoding.result()
             index = _io(run.tmp, lambda: self.writer.append(part))  # noqa: B023
             entry = run.index(k)
             _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
