@@ -348,7 +348,8 @@ def log_noise(
 
     kept: list[Any] = []
     # the decoding goes on where the estimate stopped when it kept every chunk it decoded
-    stream = decoded_chunks(le, read_chunks(pf, columns, NOISE_BATCH, source), half_window)
+    tables = read_chunks(pf, columns, NOISE_BATCH, source)
+    stream = decoded_chunks(le, tables, half_window, slots=True)  # slotted: the run's too
     state = {"whole": True}
 
     def chunks() -> Iterator[Any]:
@@ -424,7 +425,7 @@ def with_head(
     before = _context(pf, le, rows, half_window, le.source)
     if rows < pf.metadata.num_rows:
         tables = read_chunks(pf, columns, batch_size, le.source, rows)
-        yield from decoded_chunks(le, tables, half_window, rows, before)
+        yield from decoded_chunks(le, tables, half_window, rows, before, slots=True)
 
 
 def log_summary(le: LogEstimator, scan: LogScan) -> dict:
