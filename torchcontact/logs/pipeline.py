@@ -14,9 +14,10 @@ The data's way through a run:
 
 :func:`prepare` does step 1 for a log and builds its :class:`LogEstimator`. The local engine
 (:func:`estimate_file`) overlaps the three steps on threads joined by bounded queues: a reader
-thread reads and decodes chunks (pyarrow's reads release the GIL), the calling thread estimates
-them (the kernels release the GIL), the writer thread journals them and writes the Parquet
-output. Order, resume and checksums are those of a sequential run.
+thread reads and decodes chunks and slots their contacts (pyarrow's reads release the GIL), the
+calling thread estimates them (the kernels release the GIL), two encoder threads encode their
+output tables as Parquet row groups and the writer thread appends those to the output in order,
+recording each in the journal. Order, resume and checksums are those of a sequential run.
 
 Kernels: a log's one kernel is built in the background while the first chunks run eagerly, and the
 run switches to it at the first chunk after the build (``backend="auto"`` of
