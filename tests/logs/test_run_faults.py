@@ -280,3 +280,11 @@ def test_resume_after_a_chunk_written_but_not_recorded(model, small, tmp_path, m
     s = estimate_file(log, model, out, batch_size=50, resume=True)
     assert s["resumed_chunks"] == 2 and out.read_bytes() == ref.read_bytes()
     assert not any(p.exists() for p in _side(out))
+
+    # killed after publishing the output, before removing the journal: said so, nothing touched
+    partial.mkdir()
+    fmt.write_part_index(fmt.PartIndex(4, 10, 50, b""), partial / "part-00000000.index")
+    sidecar.write_text(json.dumps({**ident, "parts_done": 1}))
+    with pytest.raises(LogError, match="left by a run that had published o.parquet"):
+        estimate_file(log, model, out, batch_size=50, resume=True)
+    assert out.read_bytes() == ref.read_bytes()

@@ -547,6 +547,13 @@ class Run:
             )
         if written:
             size = self.tmp.stat().st_size if self.tmp.is_file() else -1
+            if size < 0 and self.out.is_file():
+                # killed between publishing the output and removing the journal
+                raise LogError(
+                    f"{self.out}: {self.partial.name} is left by a run that had published"
+                    f" {self.out.name} (no {self.tmp.name}): delete {self.partial} and"
+                    f" {self.sidecar.name} (rerun to estimate it again)"
+                )
             if size < written[-1].end:
                 raise LogError(
                     f"{self.out}: {self.tmp.name} is shorter than the units {self.partial.name}"
