@@ -9,6 +9,7 @@ Run on a quiet machine (each mode writes its own table; every timing runs in its
     python benchmarks/pipeline.py --race 20                           # two runs on one output
     python benchmarks/pipeline.py --wait-rule 50000 200000 1000000    # wait for the kernel?
     python benchmarks/pipeline.py --device cuda                       # estimate --device cuda
+    python benchmarks/pipeline.py --frames 200000 --warm 5 --compare-with /work/main  # CPU A/B
 
 The log (written once into ``--tmp``, default a new temporary folder; pass a folder to reuse it):
 the issue's iCub log, ``iCubGenova04`` from ``icub-models``, sensor ``l_arm_ft``, 0-2 pure-force
@@ -30,6 +31,14 @@ Default mode, every row in its own process, same log, medians of ``--repeat`` ru
 - ``a second run during the first's build``: a cold run, and a second process on the same cache
   started as soon as the first one's kernel source appears; it must end with exit 0.
 - ``torchcontact --help``: a fresh process (median of 5), next to ``python -c pass``.
+
+``--warm N`` (with ``--compare-with CHECKOUT``): the glue's CPU, old against new. N rounds, each
+running, alternately, the pyarrow floor and, for each tree, one process that runs a warm
+:func:`~torchcontact.logs.estimate_file` once (kernel traced and loaded, noise, ...) and then
+twice more, measured: wall and CPU seconds of the whole process (``os.times``, every thread)
+and the thread CPU of each stage (``time.thread_time`` around the pipeline's functions; the
+pyarrow and encoder pool threads are in the process total only). Outputs are checked equal to
+the floor's estimate table (``pq.read_table(a).equals(b)``, metadata too). Medians per tree.
 """
 
 from __future__ import annotations
@@ -170,6 +179,8 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
         s = estimate_file(log, model, out, batch_size=BATCH, progress=False, device=device)
         res = {"seconds": time.perf_counter() - t0, "cpu": _cpu() - c0, "frames": s["frames"],
                "slots": s.get("slots")}  # fmt: skip
+    elif kind == "stages":
+        res = _stages(robot, log, out, extra)
     elif kind == "inmem":
         import torchcontact as tc
         from torchcontact.contacts import Contacts
@@ -201,6 +212,82 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
         res = {"seconds": time.perf_counter() - t0, "cpu": _cpu() - c0, "frames": n}
     res["maxrss_mb"] = _rss_mb()
     print(json.dumps(res))
+
+
+def _stages(robot: str, log: str, out: str, ref: str) -> dict:
+    """A warm estimate_file (after one unmeasured), twice: wall, process CPU, CPU per stage."""
+    import collections
+    import functools
+
+    import pyarrow.parquet as pq
+
+    import torchcontact as tc
+    import torchcontact.logs.chunks as ch
+    import torchcontact.logs.decode as dec
+    import torchcontact.logs.pipeline as pl
+    from torchcontact.logs import estimate_file
+
+    acc: dict[str, float] = collections.defaultdict(float)
+
+    def wrap(obj, name, label, gen=False):
+        f = getattr(obj, name, None)
+        if f is None:
+            return
+
+        @functools.wraps(f)
+        def timed(*a, **k):
+            t = time.thread_time()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[label] += time.thread_time() - t
+
+        @functools.wraps(f)
+        def timed_gen(*a, **k):
+            it = f(*a, **k)
+            while True:
+                t = time.thread_time()
+                try:
+                    x = next(it)
+                except StopIteration:
+                    return
+                finally:
+                    acc[label] += time.thread_time() - t
+                yield x
+
+        setattr(obj, name, timed_gen if gen else timed)
+
+    import torchcontact.logs.format as fmt
+    import torchcontact.logs.run as run
+
+    wrap(pl, "prepare", "prepare (scan)")
+    wrap(pl, "log_noise", "noise estimate (its reading, decoding, kernel)")
+    wrap(pl, "read_chunks", "Parquet read (calling thread; pyarrow's threads: total only)", True)
+    wrap(dec.ChunkDecoder, "decode", "decoding (Arrow -> arrays, checks)")
+    wrap(dec.ChunkDecoder, "slots", "contacts into the slots")
+    wrap(ch.LogEstimator, "_solve", "estimator kernel (and its tensors)")
+    wrap(ch.LogEstimator, "estimate", "per-chunk estimate (slots + kernel + output rows)")
+    for mod in (run, fmt):  # this tree's journal and writer, or an older tree's
+        wrap(mod, "encode_part", "Parquet encoding of the output (pool threads)")
+        wrap(mod, "write_part_index", "journal entries")
+        wrap(mod, "write_journal", "journal parts (Arrow IPC)")
+    wrap(fmt.LogWriter, "write", "Parquet write of the output")
+    wrap(getattr(fmt, "PartsWriter", None), "append", "appending the encoded output")
+    wrap(run.Run, "record", "sidecar")
+    wrap(run._Tally, "add", "summary tally")
+    urdf, _, _ = robot_setup(robot)
+    model = tc.RobotModel.from_urdf(urdf)
+    estimate_file(log, model, out, batch_size=BATCH, progress=False)
+    want = pq.read_table(ref)
+    runs = []
+    for _ in range(2):
+        Path(out).unlink()
+        acc.clear()
+        t0, c0 = time.perf_counter(), _cpu()
+        estimate_file(log, model, out, batch_size=BATCH, progress=False)
+        runs.append({"seconds": time.perf_counter() - t0, "cpu": _cpu() - c0, "stages": dict(acc)})
+    equal = pq.read_table(out).equals(want, check_metadata=True)
+    return {"runs": runs, "equal": bool(equal), "frames": want.num_rows}
 
 
 def _rows(contacts, sl):
@@ -382,6 +469,87 @@ def mode_table(args, tmp: Path) -> None:
     print(f"| compilers at once, cold run (one kernel per log) <= 1 | {cold['compilers']} |")
 
 
+def mode_warm(args, tmp: Path) -> None:
+    """The glue's CPU: floor, this tree and ``--compare-with`` alternated, warm, stage by stage."""
+    log = write_log(args.robot, args.frames, tmp / f"{args.robot}{args.frames}.parquet")
+    out = tmp / "out.parquet"
+    cache = tmp / "cache-warm"
+    env = {**os.environ, "TORCHCONTACT_CACHE": str(cache)}
+    run_child("e2e", args.robot, log, out, args.device, env)  # kernels into the cache
+    deadline = time.monotonic() + 600  # its detached build may outlive it
+    while not list(cache.glob("kernels/*/*.so")) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    run_child("e2e", args.robot, log, out, args.device, env)  # the reference: every chunk compiled
+    est = tmp / "estimate.parquet"
+    os.replace(out, est)
+    import torchcontact as tc
+    from torchcontact.logs.pipeline import prepare
+
+    urdf, _, _ = robot_setup(args.robot)
+    _, _, columns, _ = prepare(log, tc.RobotModel.from_urdf(urdf))
+    Path(str(est) + ".columns").write_text(json.dumps(columns))
+    trees = {"this tree": env}
+    if args.compare_with:
+        code = str(Path(args.compare_with).resolve())
+        trees[args.compare_with] = {**env, "PYTHONPATH": code, "TC_BENCH_CODE": code}
+        run_child("e2e", args.robot, log, out, args.device, trees[args.compare_with])
+    floors: list[dict] = []
+    got: dict[str, list[dict]] = {k: [] for k in trees}
+    equal = {k: True for k in trees}
+    for _ in range(args.warm):
+        floors.append(run_child("floor", args.robot, log, out, str(est)))
+        for name, e in trees.items():
+            r = run_child("stages", args.robot, log, out, str(est), e)
+            got[name] += r["runs"]
+            equal[name] &= r["equal"]
+    n = floors[0]["frames"]
+    per = 200_000 / n
+
+    def med(xs):
+        return statistics.median(xs)
+
+    print(metadata())
+    load = os.getloadavg()[0]
+    print(f"log: {log.name}, {n:,} frames, robot {args.robot}; {args.warm} rounds (floor, then"
+          f" each tree: one process, 2 warm runs); load average at the end {load:.1f}")  # fmt: skip
+    print()
+    names = list(trees)
+    print("| measure (per 200 k frames, medians) | pyarrow floor | " + " | ".join(names) + " |")
+    print("|---|---:|" + "---:|" * len(names))
+    fl_s, fl_c = med([f["seconds"] for f in floors]), med([f["cpu"] for f in floors])
+    print(
+        f"| wall seconds | {fl_s * per:.2f} | "
+        + " | ".join(f"{med([r['seconds'] for r in got[k]]) * per:.2f}" for k in names)
+        + " |"
+    )
+    print(
+        f"| CPU seconds (process) | {fl_c * per:.2f} | "
+        + " | ".join(f"{med([r['cpu'] for r in got[k]]) * per:.2f}" for k in names)
+        + " |"
+    )
+    print(
+        "| warm / floor, wall (goal >= 0.8) | 1 | "
+        + " | ".join(f"{fl_s / med([r['seconds'] for r in got[k]]):.2f}" for k in names)
+        + " |"
+    )
+    print(
+        "| warm / floor, CPU | 1 | "
+        + " | ".join(f"{fl_c / med([r['cpu'] for r in got[k]]):.2f}" for k in names)
+        + " |"
+    )
+    print("| output equal to the reference | | " + " | ".join(str(equal[k]) for k in names) + " |")
+    print()
+    print("| stage: thread CPU seconds per 200 k frames (medians) | " + " | ".join(names) + " |")
+    print("|---|" + "---:|" * len(names))
+    stages = list(dict.fromkeys(s for k in names for r in got[k] for s in r["stages"]))
+    for st in stages:
+        cells = []
+        for k in names:
+            xs = [r["stages"][st] for r in got[k] if st in r["stages"]]
+            cells.append(f"{med(xs) * per:.3f}" if xs else "-")
+        print(f"| {st} | " + " | ".join(cells) + " |")
+
+
 def mode_wait_rule(args, tmp: Path) -> None:
     """First runs (empty cache) that wait for the kernel against runs that go on eagerly while
     it builds, for several log lengths: the data behind WAIT_FOR_KERNEL_FRAMES."""
@@ -526,6 +694,13 @@ def main() -> None:
     )
     ap.add_argument("--mem", type=int, nargs=2, help="peak RSS of two log lengths")
     ap.add_argument(
+        "--warm",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="the glue's CPU per stage, warm, alternating the floor, this tree and --compare-with",
+    )
+    ap.add_argument(
         "--wait-rule",
         type=int,
         nargs="+",
@@ -544,6 +719,8 @@ def main() -> None:
     tmp.mkdir(parents=True, exist_ok=True)
     if a.mem:
         return mode_mem(a, tmp)
+    if a.warm:
+        return mode_warm(a, tmp)
     if a.wait_rule:
         return mode_wait_rule(a, tmp)
     if a.ray:

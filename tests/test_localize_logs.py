@@ -210,15 +210,15 @@ def test_estimate_localize_against_truth_chunks_and_resume(panda, noskin_log, tm
         for name in out.column_names:  # (repr: NaN equals NaN, floats to the last bit)
             assert repr(again[name].to_pylist()) == repr(out[name].to_pylist()), name
     part = tmp_path / "part.parquet"
-    real, calls = fmt.LogWriter.write, []
+    real, calls = fmt.PartsWriter.append, []
 
-    def interrupted(self, table, *a, **k):
+    def interrupted(self, encoded, *a, **k):
         calls.append(1)
         if len(calls) > 2:
             raise KeyboardInterrupt
-        return real(self, table, *a, **k)
+        return real(self, encoded, *a, **k)
 
-    monkeypatch.setattr(fmt.LogWriter, "write", interrupted)
+    monkeypatch.setattr(fmt.PartsWriter, "append", interrupted)
     with pytest.raises(KeyboardInterrupt):
         estimate_file(noskin_log, model, part, localize=loc, batch_size=64)
     monkeypatch.undo()

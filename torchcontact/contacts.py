@@ -145,6 +145,7 @@ class Contacts:
         dtype: torch.dtype | None = None,
         device: torch.device | str = "cpu",
         friction: float | None = None,
+        slot: np.ndarray | None = None,
     ) -> tuple[Contacts, np.ndarray]:
         """Slots from per-frame records: the variable-count-to-slots assignment.
 
@@ -158,6 +159,8 @@ class Contacts:
             device: of the tensors.
             friction: friction coefficient of the records that give neither ``friction`` nor
                 ``cone_angle`` (None: theirs stays NaN, which a constrained estimate refuses).
+            slot: ``(M,)`` the records' slots from ``layout.assign(records)``, when the caller
+                has them already (not computed again).
 
         Returns:
             ``(contacts, slot)``: :class:`Contacts` with ``(B, K, ...)`` tensors (``active`` marks
@@ -183,7 +186,7 @@ class Contacts:
 
         dtype = torch.float64 if dtype is None else dtype
         layout = SlotLayout.covering(records) if layout is None else layout
-        arrays, slot = layout.fill(records, frames, friction=friction)
+        arrays, slot = layout.fill(records, frames, friction=friction, slot=slot)
 
         def t(x: np.ndarray | None) -> Tensor | None:
             # the arrays are fill's own: shared, not copied, when dtype and device allow
@@ -467,7 +470,11 @@ class SlotLayout:
         return np.where((key_id >= 0) & (rank < mult), start + rank, -1)
 
     def fill(
-        self, records: ContactRecords, frames: int, friction: float | None = None
+        self,
+        records: ContactRecords,
+        frames: int,
+        friction: float | None = None,
+        slot: np.ndarray | None = None,
     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Per-slot arrays of B frames from records (numpy; :meth:`Contacts.from_records` wraps it).
 
@@ -475,6 +482,7 @@ class SlotLayout:
             records: M records of frames ``0 .. frames - 1``.
             frames: number of frames B.
             friction: friction coefficient of records without ``friction`` or ``cone_angle``.
+            slot: ``(M,)`` the records' slots from :meth:`assign`, when the caller has them.
 
         Returns:
             ``(arrays, slot)``: ``positions (B, K, 3)``, ``active (B, K)`` bool, and, when the
@@ -491,13 +499,16 @@ class SlotLayout:
         """
         if len(records) and (records.frame.min() < 0 or records.frame.max() >= frames):
             raise InputError(f"contact records: frames must lie in [0, {frames})")
-        slot = self.assign(records)
+        slot = self.assign(records) if slot is None else slot
         K = self.K
-        ok = np.flatnonzero(slot >= 0)
+        every = bool((slot >= 0).all())
+        ok = np.arange(len(slot)) if every else np.flatnonzero(slot >= 0)
         f, k = records.frame[ok], slot[ok]
+        flat = f * K + k  # (frame, slot) -> one index into the (B * K) rows
         out = {"positions": np.zeros((frames, K, 3)), "active": np.zeros((frames, K), bool)}
-        out["positions"][f, k] = records.positions[ok]
-        out["active"][f, k] = True
+        pos = records.positions if every else records.positions[ok]
+        out["positions"].reshape(-1, 3)[flat] = pos
+        out["active"].reshape(-1)[flat] = True
         kinds = records.kinds[ok]
         if "force_dir" in self.kinds:
             D = out["directions"] = np.zeros((frames, K, 3))

@@ -13,8 +13,8 @@ from torchcontact.logs.format import (
     META_URDF_SHA256,
     META_VERSION,
     fixed_list,
-    read_journal,
 )
+from torchcontact.logs.run import Run
 from torchcontact.status import status_messages
 
 
@@ -303,9 +303,10 @@ def test_corrupted_input_is_detected_and_the_chunks_before_are_kept(model, sim_l
     with pytest.raises(LogError, match=r"in.parquet: corrupted data in row group \d") as e:
         estimate_file(path, model, out, batch_size=50)
     assert "chunks are kept in" in str(e.value) and "for --resume" in str(e.value)
-    parts = sorted((tmp_path / "o.parquet.partial").glob("part-*.arrow"))
+    parts = sorted((tmp_path / "o.parquet.partial").glob("part-*.index"))
     assert parts and not out.exists()  # nothing complete-looking, the processed chunks kept
-    assert all(read_journal(p).num_rows == 50 for p in parts)
+    run = Run(out, path)  # the recorded chunks read back from o.parquet.tmp
+    assert all(run.read_part(k).num_rows == 50 for k in range(len(parts)))
 
 
 def test_garbage_values_without_checksums_never_report_ok_with_nan(model, sim_log, tmp_path):

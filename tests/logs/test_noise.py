@@ -134,7 +134,8 @@ def test_driver_logs_name_their_profile_and_the_profile_gives_the_datasheet_nois
 
 
 def test_the_run_reuses_the_tables_the_noise_estimate_read(model, noisy_log, tmp_path, monkeypatch):
-    """The first tables read for the contact-free noise are not read again: same output bytes."""
+    """The first chunks read and decoded for the contact-free noise are not read again, and the
+    decoding goes on where the noise stopped when it kept every chunk: same output bytes."""
     from torchcontact.logs import pipeline
 
     monkeypatch.setattr(pipeline, "NOISE_BATCH", 64)  # several noise chunks on a short log
@@ -147,11 +148,12 @@ def test_the_run_reuses_the_tables_the_noise_estimate_read(model, noisy_log, tmp
 
     monkeypatch.setattr(pipeline, "read_chunks", counted)
     outs = {}
-    for keep in (0, 3):
+    for keep in (0, 3, 1000):
         monkeypatch.setattr(pipeline, "NOISE_KEEP", keep)
         calls.clear()
         s = estimate_file(noisy_log, model, tmp_path / f"k{keep}.parquet", batch_size=64)
         assert s["noise"]["sensors"]["base_ft"]["source"].startswith("contact-free frames (")
         outs[keep] = (pq.read_table(s["output"]), list(calls))
-    assert outs[3][0].equals(outs[0][0])
+    assert outs[3][0].equals(outs[0][0]) and outs[1000][0].equals(outs[0][0])
     assert outs[0][1][-1] == 0 and outs[3][1][-1] == 3 * 64  # the run reads from the 4th chunk
+    assert outs[1000][1] == [0]  # one read of the log, the noise's and the run's

@@ -51,14 +51,12 @@ def _child_estimate(log, out, **kw):
 
 
 def _wait_for(path, proc, timeout=60.0, parts=0):
+    """Wait until ``path`` (a run's sidecar) exists and the run's journal has ``parts`` entries."""
+    partial = path.with_name(path.name.replace(".progress.json", ".partial"))
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and proc.is_alive():
-        if path.exists():
-            try:
-                if json.loads(path.read_text())["parts_done"] >= parts:
-                    return True
-            except (OSError, ValueError, KeyError):
-                pass
+        if path.exists() and len(list(partial.glob("part-*.index"))) >= parts:
+            return True
         time.sleep(0.005)
     return False
 
@@ -146,12 +144,12 @@ def test_failure_before_the_first_chunk_leaves_nothing(model, small, tmp_path, m
     assert "nothing was kept" in msg
     assert list(tmp_path.iterdir()) == []
 
-    # a read-only folder for the journal's first part: the same
-    def read_only(tables, path):
+    # a read-only folder for the journal's first entry: the same (o.parquet.tmp goes too)
+    def read_only(index, path):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr("torchcontact.logs.run.write_journal", read_only)
-    with pytest.raises(LogError, match="part-00000000.arrow: read-only file system"):
+    monkeypatch.setattr("torchcontact.logs.run.write_part_index", read_only)
+    with pytest.raises(LogError, match="part-00000000.index: read-only file system"):
         estimate_file(log, model, out)
     assert list(tmp_path.iterdir()) == []
 
@@ -160,21 +158,21 @@ def test_disk_full_mid_run_names_the_path_and_keeps_the_chunks(model, small, tmp
     log, ref = small
     out = tmp_path / "o.parquet"
     calls = []
-    real = fmt.LogWriter.write
+    real = fmt.PartsWriter.append
 
-    def full_after_two(self, table, *a, **k):
+    def full_after_two(self, part):
         calls.append(1)
-        if len(calls) > 2:  # what pyarrow raises on a full disk (no file named)
-            raise OSError("Error writing bytes to file. Detail: [errno 28] No space left on device")
-        return real(self, table, *a, **k)
+        if len(calls) > 2:  # a full disk (the OS error names no file)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, part)
 
-    monkeypatch.setattr(fmt.LogWriter, "write", full_after_two)
+    monkeypatch.setattr(fmt.PartsWriter, "append", full_after_two)
     with pytest.raises(LogError) as e:
         estimate_file(log, model, out, batch_size=50)
     msg = str(e.value)
     assert msg.startswith(f"{out}.tmp: no space left on device (errno 28); free some space")
-    assert "of 4 chunks are kept in" in msg and msg.endswith("for --resume")
-    assert not out.exists() and not _side(out)[2].exists()
+    assert "2 of 4 chunks are kept in" in msg and msg.endswith("for --resume")
+    assert not out.exists() and _side(out)[2].exists()  # o.parquet.tmp holds the kept chunks
     # the reader and writer threads ended with the run
     names = {t.name for t in threading.enumerate()}
     assert not names & {"torchcontact-reader", "torchcontact-writer"}
@@ -224,19 +222,69 @@ def test_resume_of_a_derived_log_in_small_chunks(model, sim_log_q_only, tmp_path
     ref = tmp_path / "ref.parquet"
     estimate_file(log, model, ref, batch_size=7)
     out = tmp_path / "o.parquet"
-    real = fmt.LogWriter.write
+    real = fmt.PartsWriter.append
     calls = []
 
-    def interrupted(self, table, *a, **k):
+    def interrupted(self, part):
         calls.append(1)
         if len(calls) > 4:
             raise KeyboardInterrupt
-        return real(self, table, *a, **k)
+        return real(self, part)
 
-    monkeypatch.setattr(fmt.LogWriter, "write", interrupted)
+    monkeypatch.setattr(fmt.PartsWriter, "append", interrupted)
     with pytest.raises(KeyboardInterrupt):
         estimate_file(log, model, out, batch_size=7)
     monkeypatch.undo()
     s = estimate_file(log, model, out, batch_size=7, resume=True)
     assert s["resumed_chunks"] >= 4 and s["derived"] == ["qd", "qdd"]
+    assert out.read_bytes() == ref.read_bytes()
+
+
+def test_resume_after_a_chunk_written_but_not_recorded(model, small, tmp_path, monkeypatch):
+    """Killed between a chunk's bytes and its journal entry: the bytes are cut, the chunk redone;
+    and a journal of the earlier format (every chunk an Arrow part) is read, not refused."""
+    log, ref = small
+    out = tmp_path / "o.parquet"
+    real = fmt.PartsWriter.append
+    calls = []
+
+    def torn(self, part):
+        calls.append(1)
+        if len(calls) > 2:  # the third chunk's bytes half written, then the process dies
+            self._file.write(memoryview(part.data)[: len(part.data) // 2])
+            raise KeyboardInterrupt
+        return real(self, part)
+
+    monkeypatch.setattr(fmt.PartsWriter, "append", torn)
+    with pytest.raises(KeyboardInterrupt):
+        estimate_file(log, model, out, batch_size=50)
+    monkeypatch.undo()
+    partial, sidecar = _side(out)[:2]
+    ident = json.loads(sidecar.read_text())
+    assert sorted(p.name for p in partial.iterdir()) == [
+        "part-00000000.index",
+        "part-00000001.index",
+    ]
+    s = estimate_file(log, model, out, batch_size=50, resume=True)
+    assert s["resumed_chunks"] == 2 and s["frames"] == 200
+    assert out.read_bytes() == ref.read_bytes()
+
+    # the earlier journal: Arrow IPC parts of chunks 0 and 1, an OUT.tmp it never read back
+    ref_tab = pq.read_table(ref)
+    partial.mkdir()
+    for k in (0, 1):
+        fmt.write_journal([ref_tab.slice(50 * k, 50)], partial / f"part-{k:08d}.arrow")
+    sidecar.write_text(json.dumps({**ident, "parts_done": 2}))
+    _side(out)[2].write_bytes(b"PAR1 an old writer's unfinished file")
+    out.unlink()
+    s = estimate_file(log, model, out, batch_size=50, resume=True)
+    assert s["resumed_chunks"] == 2 and out.read_bytes() == ref.read_bytes()
+    assert not any(p.exists() for p in _side(out))
+
+    # killed after publishing the output, before removing the journal: said so, nothing touched
+    partial.mkdir()
+    fmt.write_part_index(fmt.PartIndex(4, 10, 50, b""), partial / "part-00000000.index")
+    sidecar.write_text(json.dumps({**ident, "parts_done": 1}))
+    with pytest.raises(LogError, match="left by a run that had published o.parquet"):
+        estimate_file(log, model, out, batch_size=50, resume=True)
     assert out.read_bytes() == ref.read_bytes()

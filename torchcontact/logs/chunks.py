@@ -1127,6 +1127,7 @@ def decoded_chunks(
     first_row: int = 0,
     before: tuple[np.ndarray, np.ndarray] | None = None,
     after: tuple[np.ndarray, np.ndarray] | None = None,
+    slots: bool = False,
 ) -> Iterator[Decoded]:
     """Decode consecutive tables of a log: arrays, time segments, derived ``qd``/``qdd``.
 
@@ -1139,6 +1140,9 @@ def decoded_chunks(
             order), or None at the log's start.
         after: ``(t_ns, q)`` of the up to ``2 h`` frames following the last table, or None at
             the log's end.
+        slots: place each chunk's contacts in the log's slots here (the local engine's reader
+            thread: off the estimating thread, which is the longest on many cores); else
+            :meth:`LogEstimator.estimate` does.
 
     Yields:
         :class:`~torchcontact.logs.decode.Decoded`, ready for :meth:`LogEstimator.estimate`.
@@ -1154,10 +1158,10 @@ def decoded_chunks(
         ahead.append(dec.decode(tab, row))
         row += tab.num_rows
         while ahead and sum(x.n for x in list(ahead)[1:]) >= c and (len(ahead) > 1 or not c):
-            yield _finish_chunk(le, ahead, stream, after, c, last_t)
+            yield _finish_chunk(le, ahead, stream, after, c, last_t, slots)
             last_t = np.r_[last_t, ahead.popleft().t][-2:]
     while ahead:
-        yield _finish_chunk(le, ahead, stream, after, c, last_t)
+        yield _finish_chunk(le, ahead, stream, after, c, last_t, slots)
         last_t = np.r_[last_t, ahead.popleft().t][-2:]
 
 
@@ -1168,6 +1172,7 @@ def _finish_chunk(
     after: tuple[np.ndarray, np.ndarray] | None,
     c: int,
     last_t: np.ndarray,
+    slots: bool = False,
 ) -> Decoded:
     """Derivatives (with the frames ahead as context) and segment starts of ``ahead[0]``."""
     d = ahead[0]
@@ -1183,7 +1188,9 @@ def _finish_chunk(
         d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
     if le.localizer is not None and le.residual is None and LOCALIZE_ON_READER:
         d.located = le.localized(d)  # overlaps the estimate of the chunk before
-    return d  # its slots are filled by the estimate (the reader thread has enough to do)
+    elif slots and le.localizer is None:
+        le.decoder.slots(d, le.model.dtype, le.model.device)
+    return d
 
 
 def estimate_stream(

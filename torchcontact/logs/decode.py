@@ -621,11 +621,15 @@ class ChunkDecoder:
         layout = self.layout
         # every record good (the common case): no copy of the records
         sub = d.records if len(good) == len(d.records) else d.records.select(good)
-        if layout is not None and len(good) and (layout.assign(sub) < 0).any():
-            # a pair beyond the log's layout (the scan saw other data): this chunk gets its own
-            layout = None
+        slot = None
+        if layout is not None and len(good):
+            slot = layout.assign(sub)  # computed once: from_records takes it
+            if (slot < 0).any():
+                # a pair beyond the log's layout (the scan saw other data): this chunk gets its
+                # own
+                layout, slot = None, None
         contacts, slot_good = Contacts.from_records(
-            sub, d.n, layout, dtype=dtype, device=device, friction=self.friction
+            sub, d.n, layout, dtype=dtype, device=device, friction=self.friction, slot=slot
         )
         d.slot[good] = slot_good
         d.contacts = contacts
@@ -772,7 +776,9 @@ def _joints(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     """``(N, nv)`` log-order joint values -> model order, C-contiguous (what kernels read)."""
     if np.array_equal(perm, np.arange(len(perm))):
         return values
-    return values.take(perm, axis=1)  # numpy's a[:, perm] would be Fortran-ordered
+    # numpy's a[:, perm] would be Fortran-ordered; "clip" skips the bounds check (perm's
+    # indices are the log's own joint columns, from joint_permutation): 20 % less
+    return values.take(perm, axis=1, mode="clip")
 
 
 def stamps_and_positions(

@@ -45,7 +45,8 @@ from __future__ import annotations
 import json
 import os
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,10 @@ __all__ = [
     "META_ROBOT",
     "META_URDF_SHA256",
     "META_VERSION",
+    "EncodedPart",
     "LogWriter",
+    "PartIndex",
+    "PartsWriter",
     "bias_column",
     "check_number_type",
     "check_outputs",
@@ -90,17 +94,21 @@ __all__ = [
     "joint_permutation",
     "localization_fields",
     "logged_robot",
+    "encode_part",
     "open_log",
     "output_schema",
     "read_contacts",
     "read_journal",
     "read_log_columns",
+    "read_part",
+    "read_part_index",
     "read_rows",
     "robot_metadata",
     "struct_list",
     "timestamps",
     "vectors",
     "write_journal",
+    "write_part_index",
     "write_table",
 ]
 
@@ -1155,7 +1163,6 @@ class LogWriter:
 
     def write(self, table: Any, row_group_size: int | None = None) -> None:
         """Append a table (or record batch) cast to the schema."""
-        import pyarrow as pa
         import pyarrow.parquet as pq
 
         if self._writer is None:
@@ -1164,9 +1171,7 @@ class LogWriter:
             self._writer = pq.ParquetWriter(
                 _tmp(self.path), self.schema, write_statistics=stats, **WRITE_OPTIONS
             )
-        if isinstance(table, pa.RecordBatch):
-            table = pa.Table.from_batches([table])
-        table = table.replace_schema_metadata(self.schema.metadata).cast(self.schema)
+        table = _conformed(table, self.schema)
         self._writer.write_table(table, row_group_size=row_group_size)
         self.rows += table.num_rows
 
@@ -1193,6 +1198,196 @@ class LogWriter:
             self.close()
         else:
             self.abort()
+
+
+def _conformed(table: Any, schema: Any) -> Any:
+    """``table`` as a table of ``schema`` (its metadata, its types: cast only when they differ)."""
+    import pyarrow as pa
+
+    if isinstance(table, pa.RecordBatch):
+        table = pa.Table.from_batches([table])
+    if table.schema.equals(schema, check_metadata=True):
+        return table  # an estimate's own table: the cast would copy nothing but cost 15 %
+    return table.replace_schema_metadata(schema.metadata).cast(schema)
+
+
+# ---------------------------------------------------------------------- a log written in parts
+@dataclass(frozen=True)
+class EncodedPart:
+    """A table encoded as the row groups of a Parquet log, not yet placed in a file.
+
+    Attributes:
+        data: the column chunks (the bytes between ``PAR1`` and the footer of the part's own
+            file).
+        footer: that file's footer (Thrift ``FileMetaData``), offsets counted from its start.
+        rows: the table's rows.
+    """
+
+    data: Any
+    footer: bytes
+    rows: int
+
+
+def encode_part(table: Any, schema: Any) -> EncodedPart:
+    """Encode a table (or record batch) as a part of a log (:class:`PartsWriter`).
+
+    The options, checksums and statistics of :class:`LogWriter`, one row group per million rows
+    (pyarrow's default), as :meth:`LogWriter.write` would write it. The encoding releases the
+    GIL: several parts may be encoded at once on several threads.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from torchcontact.logs._footer import split_file
+
+    table = _conformed(table, schema)
+    sink = pa.BufferOutputStream()
+    stats = ["t_ns"] if "t_ns" in schema.names else False
+    with pq.ParquetWriter(sink, schema, write_statistics=stats, **WRITE_OPTIONS) as w:
+        w.write_table(table)
+    data, footer = split_file(memoryview(sink.getvalue()))
+    return EncodedPart(data, bytes(footer), table.num_rows)
+
+
+@dataclass(frozen=True)
+class PartIndex:
+    """Where a part lies in the file :class:`PartsWriter` writes (a journal entry of a run).
+
+    Attributes:
+        start: byte offset of its column chunks.
+        size: their length in bytes.
+        rows: its rows.
+        footer: the footer of the part's own file (:class:`EncodedPart`).
+    """
+
+    start: int
+    size: int
+    rows: int
+    footer: bytes
+
+    @property
+    def end(self) -> int:
+        """The byte after the part."""
+        return self.start + self.size
+
+
+class PartsWriter:
+    """Write a Parquet log part by part, each part's bytes final as soon as it is appended.
+
+    The file ``<path>.tmp`` is ``PAR1`` and the parts' column chunks one after the other; the
+    footer, joined from the parts' own footers (:mod:`torchcontact.logs._footer`), is written by
+    :meth:`close`, which then renames the file to ``path``. The result is the file
+    :class:`LogWriter` writes from the same tables, byte for byte. Since a part never changes once
+    appended, a run interrupted at any point (``kill -9`` included) can keep the parts it recorded
+    (their :class:`PartIndex`) and go on appending after them (``done``).
+
+    Args:
+        path: the final file.
+        schema: the pyarrow schema (with its metadata).
+        done: the parts already in ``<path>.tmp`` (a resumed run), in order; the file is cut
+            after the last one (bytes of a part that was not recorded go).
+
+    Raises:
+        LogError: ``<path>.tmp`` does not hold the ``done`` parts (shorter, or not a log's start).
+    """
+
+    def __init__(self, path: str | Path, schema: Any, done: Sequence[PartIndex] = ()) -> None:
+        from torchcontact.logs._footer import MAGIC
+
+        self.path = Path(path)
+        self.tmp = _tmp(self.path)
+        self.schema = schema
+        self.parts: list[PartIndex] = list(done)
+        self.rows = sum(p.rows for p in self.parts)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.parts:
+            end = self.parts[-1].end
+            size = self.tmp.stat().st_size if self.tmp.is_file() else -1
+            if size < end:
+                raise LogError(f"{self.tmp}: shorter ({size} bytes) than its journal ({end} bytes)")
+            self._file = open(self.tmp, "r+b", buffering=0)
+            if self._file.read(4) != MAGIC:
+                self._file.close()
+                raise LogError(f"{self.tmp}: not the start of a Parquet log")
+            self._file.truncate(end)
+            self._file.seek(end)
+        else:
+            self._file = open(self.tmp, "wb", buffering=0)
+            self._file.write(MAGIC)
+        self.position = self.parts[-1].end if self.parts else len(MAGIC)
+
+    def append(self, part: EncodedPart) -> PartIndex:
+        """Append an encoded part; returns where it lies (handed to the OS when this returns)."""
+        view = memoryview(part.data)
+        done = 0
+        while done < len(view):  # a raw file may write less than asked
+            done += self._file.write(view[done:])
+        index = PartIndex(self.position, len(view), part.rows, part.footer)
+        self.position += len(view)
+        self.parts.append(index)
+        self.rows += part.rows
+        return index
+
+    def close(self) -> None:
+        """Write the joined footer and rename the file (an empty log keeps its schema)."""
+        from torchcontact.logs._footer import footer_bytes, join_footers
+
+        if not self.parts:
+            self.append(encode_part(self.schema.empty_table(), self.schema))
+        self._file.write(footer_bytes(join_footers((p.start, p.footer) for p in self.parts)))
+        self._file.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self, keep: bool = False) -> None:
+        """Close the file; drop it unless ``keep`` (its parts are kept for a resume)."""
+        if not self._file.closed:
+            self._file.close()
+        if not keep:
+            self.tmp.unlink(missing_ok=True)
+
+
+def write_encoded_part(tables: Iterable[Any], path: str | Path, schema: Any) -> Path:
+    """A unit's tables as a Parquet file of its own: a Ray worker's part of a run's output.
+
+    The options of :class:`LogWriter`, one row group per table (as :func:`encode_part` encodes
+    one chunk), temporary name and atomic rename. The driver appends the file's column chunks to
+    the output as they are (:func:`read_encoded_part`, :meth:`PartsWriter.append`): the workers
+    encode in parallel, the driver copies bytes.
+
+    Raises:
+        InputError: no table.
+    """
+    with LogWriter(path, schema) as w:
+        n = 0
+        for tab in tables:
+            w.write(tab)
+            n += 1
+        if n == 0:
+            raise InputError(f"{path}: a part needs at least one table")
+    return Path(path)
+
+
+def read_encoded_part(path: str | Path) -> tuple[EncodedPart, Any]:
+    """The :class:`EncodedPart` of a file :func:`write_encoded_part` wrote, and its bytes.
+
+    Returns:
+        ``(part, buffer)``: the part to append, and the whole file as a pyarrow buffer (to read
+        columns of it, e.g. ``pq.read_table(pa.BufferReader(buffer), columns=...)``).
+
+    Raises:
+        LogError: the file is not a whole Parquet file.
+    """
+    import pyarrow as pa
+
+    from torchcontact.logs._footer import FooterError, footer_rows, split_file
+
+    try:
+        data = Path(path).read_bytes()
+        chunks, footer = split_file(data)
+        rows = footer_rows(bytes(footer))
+    except (OSError, FooterError) as exc:
+        raise LogError(f"{path}: unreadable part of a run ({exc})") from None
+    return EncodedPart(chunks, bytes(footer), rows), pa.py_buffer(data)
 
 
 def write_table(table: Any, path: str | Path, row_group_size: int | None = None) -> Path:
@@ -1230,6 +1425,65 @@ def write_journal(tables: Iterator[Any] | Sequence[Any], path: str | Path) -> Pa
         raise
     os.replace(tmp, path)
     return path
+
+
+def write_part_index(index: PartIndex, path: str | Path) -> Path:
+    """Record where a part of a run's output lies: a journal entry (temporary name, rename).
+
+    The entry is a JSON line (``start``, ``size``, ``rows``) and the part's footer; it is written
+    after the part's bytes were handed to the OS, so an entry always describes bytes that exist.
+    """
+    path = Path(path)
+    tmp = _tmp(path)
+    head = json.dumps({"start": index.start, "size": index.size, "rows": index.rows})
+    try:
+        with open(tmp, "wb") as f:
+            f.write(head.encode() + b"\n" + index.footer)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_part_index(path: str | Path) -> PartIndex:
+    """A journal entry written by :func:`write_part_index`.
+
+    Raises:
+        LogError: an unreadable entry.
+    """
+    try:
+        data = Path(path).read_bytes()
+        head, footer = data.split(b"\n", 1)
+        rec = json.loads(head)
+        return PartIndex(int(rec["start"]), int(rec["size"]), int(rec["rows"]), footer)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LogError(f"{path}: unreadable part of an interrupted run ({exc})") from None
+
+
+def read_part(path: str | Path, index: PartIndex) -> Any:
+    """The table of one part of a file :class:`PartsWriter` writes (page checksums verified).
+
+    Raises:
+        LogError: the part cannot be read back (a damaged file).
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from torchcontact.logs._footer import standalone
+
+    try:
+        with open(path, "rb") as f:
+            f.seek(index.start)
+            data = f.read(index.size)
+        if len(data) != index.size:
+            raise OSError(f"{len(data)} of {index.size} bytes")
+        buf = pa.BufferReader(standalone(data, index.footer))
+        return pq.read_table(buf, page_checksum_verification=True)
+    except (OSError, ValueError, pa.ArrowException) as exc:
+        raise LogError(
+            f"{path}: the part at byte {index.start} of an interrupted run is unreadable ({exc})"
+        ) from None
 
 
 def read_journal(path: str | Path) -> Any:

@@ -14,9 +14,10 @@ The data's way through a run:
 
 :func:`prepare` does step 1 for a log and builds its :class:`LogEstimator`. The local engine
 (:func:`estimate_file`) overlaps the three steps on threads joined by bounded queues: a reader
-thread reads and decodes chunks (pyarrow's reads release the GIL), the calling thread estimates
-them (the kernels release the GIL), the writer thread journals them and writes the Parquet
-output. Order, resume and checksums are those of a sequential run.
+thread reads and decodes chunks and slots their contacts (pyarrow's reads release the GIL), the
+calling thread estimates them (the kernels release the GIL), two encoder threads encode their
+output tables as Parquet row groups and the writer thread appends those to the output in order,
+recording each in the journal. Order, resume and checksums are those of a sequential run.
 
 Kernels: a log's one kernel is built in the background while the first chunks run eagerly, and the
 run switches to it at the first chunk after the build (``backend="auto"`` of
@@ -33,6 +34,7 @@ import glob
 import os
 import time
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +54,7 @@ from torchcontact.logs.chunks import (
 )
 from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, iter_chunks, open_log, read_journal
+from torchcontact.logs.format import check_outputs, iter_chunks, open_log
 from torchcontact.logs.run import Done, Run, background, side_paths
 from torchcontact.model import RobotModel
 
@@ -172,17 +174,23 @@ def read_chunks(
     skip = first_row - int(bounds[g0])
     buf: list[Any] = []
     have = 0
-    for tab in iter_chunks(pf, columns, batch_size, source, range(g0, len(sizes))):
+    # the rows skipped are read in one table (not batch_size rows at a time: a resume's context
+    # of 2 frames would be thousands of tables); each table read is combined once
+    step = max(batch_size, skip)
+    for tab in iter_chunks(pf, columns, step, source, range(g0, len(sizes))):
         if skip:
             cut = min(skip, tab.num_rows)
             tab, skip = tab.slice(cut), skip - cut
         buf.append(tab)
         have += tab.num_rows
-        while have >= batch_size:
-            t = pa.concat_tables(buf).combine_chunks()
-            yield t.slice(0, batch_size)
-            rest = t.slice(batch_size)
-            buf, have = [rest], rest.num_rows
+        if have < batch_size:
+            continue
+        t = buf[0] if len(buf) == 1 else pa.concat_tables(buf).combine_chunks()
+        at = 0
+        while have - at >= batch_size:
+            yield t.slice(at, batch_size)
+            at += batch_size
+        buf, have = [t.slice(at)], have - at
     if have:
         yield pa.concat_tables(buf).combine_chunks()
 
@@ -315,7 +323,7 @@ def log_noise(
     ft_noise: Mapping[str, Any] | None,
     unweighted: bool,
     source: str,
-) -> list[Any]:
+) -> NoiseHead:
     """Resolve the run's F/T noise (:mod:`torchcontact.logs.noise`) and set it on ``le``.
 
     Each sensor's noise comes from ``ft_noise``, the log's ``ft_cov.<sensor>`` column, its
@@ -324,9 +332,11 @@ def log_noise(
     same noise); ``columns`` gains the covariance columns to read.
 
     Returns:
-        The first tables of ``columns`` that the contact-free estimate read (at most
-        :data:`NOISE_KEEP`, from row 0, :data:`NOISE_BATCH` rows each but the log's last), so
-        that the run does not read them twice (:func:`with_head`); empty when it read none.
+        The first chunks that the contact-free estimate read and decoded (at most
+        :data:`NOISE_KEEP`, consecutive from row 0, :data:`NOISE_BATCH` rows each but the log's
+        last), so that the run neither reads nor decodes them again (:func:`with_head`); empty
+        when it read none, or when the run decodes otherwise (``ft_cov`` columns to read, a
+        localizing estimate).
 
     Raises:
         InputError: an ``ft_noise`` sensor the robot lacks or the run does not use, a bad
@@ -338,18 +348,22 @@ def log_noise(
     given = ft_noise if isinstance(ft_noise, Mapping) else parse_ft_noise(ft_noise)
 
     kept: list[Any] = []
-
-    def tables() -> Iterator[Any]:
-        for tab in read_chunks(pf, columns, NOISE_BATCH, source):
-            if len(kept) < NOISE_KEEP:
-                kept.append(tab)
-            yield tab
+    # the decoding goes on where the estimate stopped when it kept every chunk it decoded
+    tables = read_chunks(pf, columns, NOISE_BATCH, source)
+    stream = decoded_chunks(le, tables, half_window, slots=True)  # slotted: the run's too
+    state = {"whole": True}
 
     def chunks() -> Iterator[Any]:
         try:
-            yield from decoded_chunks(le, tables(), half_window)
+            for d in stream:
+                if len(kept) < NOISE_KEEP:
+                    kept.append(d)  # decoded as the run decodes it (same rows, same context)
+                else:
+                    state["whole"] = False
+                yield d
         except LogError:  # damaged data: the noise is estimated from the frames before it, and
-            return  # the run meets the damage after estimating those (kept for --resume)
+            state["whole"] = False  # the run meets the damage after estimating those (kept
+            return  # for --resume)
 
     def estimate(sensors: list[str]) -> dict:
         return contact_free_noise(le, chunks(), sensors)
@@ -361,28 +375,58 @@ def log_noise(
     le.set_noise(noise)
     cov = [ft_cov_column(s) for s in noise.column_sensors()]
     columns += cov
-    if cov:
-        kept.clear()  # tables without the covariance columns the run reads
-    return kept
+    if cov or le.localizer is not None:
+        # chunks decoded without the covariance columns the run reads, or localized before
+        # the noise was known
+        kept.clear()
+    return NoiseHead(kept, stream if kept and state["whole"] else None)
+
+
+@dataclass
+class NoiseHead:
+    """The chunks :func:`log_noise` decoded, for the run to take (:func:`with_head`).
+
+    Attributes:
+        chunks: decoded chunks from row 0, :data:`NOISE_BATCH` rows each (at most
+            :data:`NOISE_KEEP`).
+        rest: the decoding that gave them, to go on with (the chunks after), or None when it
+            cannot (it decoded more chunks than it kept, or met damaged data).
+    """
+
+    chunks: list[Any]
+    rest: Iterator[Any] | None = None
 
 
 def with_head(
-    head: list[Any], pf: Any, columns: Sequence[str], batch_size: int, source: str, first: int
+    head: NoiseHead,
+    pf: Any,
+    le: LogEstimator,
+    columns: Sequence[str],
+    batch_size: int,
+    half_window: int,
+    first: int,
 ) -> Iterator[Any]:
-    """:func:`read_chunks` from row ``first``, taking the tables :func:`log_noise` read already.
+    """The decoded chunks of a run from row ``first``, taking those :func:`log_noise` decoded.
 
     ``head`` (emptied as it goes, so that memory stays flat) is used when it starts at
-    ``first`` with tables of ``batch_size`` rows: the same tables that reading would give.
+    ``first`` with chunks of ``batch_size`` rows: the chunks that decoding would give. The rest
+    comes from the decoding that gave them, or else is read and decoded from the row after
+    them, with the frames before as context (as a resumed run starts).
     """
+    kept = head.chunks
     if first != 0 or batch_size != NOISE_BATCH:
-        head.clear()
-    rows = 0
-    while head:
-        tab = head.pop(0)
-        rows += tab.num_rows
-        yield tab
+        kept.clear()
+    rest = head.rest if kept else None
+    rows = first + sum(d.n for d in kept)
+    while kept:
+        yield kept.pop(0)
+    if rest is not None:
+        yield from rest
+        return
+    before = _context(pf, le, rows, half_window, le.source)
     if rows < pf.metadata.num_rows:
-        yield from read_chunks(pf, columns, batch_size, source, first + rows)
+        tables = read_chunks(pf, columns, batch_size, le.source, rows)
+        yield from decoded_chunks(le, tables, half_window, rows, before, slots=True)
 
 
 def log_summary(le: LogEstimator, scan: LogScan) -> dict:
@@ -582,15 +626,13 @@ def estimate_file(
                 f"{out}: parts of {run.partial} are not consecutive; delete it and rerun"
             )
         first = done * batch_size
-        before = _context(pf, le, first, half_window, str(path))
         if derivatives == "causal":
             extra["derivatives"] = le.derivative_method()
-        previous = read_journal(run.part(done - 1)) if done and constraints else None
+        previous = run.read_part(done - 1) if done and constraints else None
         backend = kernel_backend(total - first, str(model.device))
 
         def produce() -> Iterator[Done]:
-            tables = with_head(head, pf, columns, batch_size, str(path), first)
-            decoded = decoded_chunks(le, tables, half_window, first, before)
+            decoded = with_head(head, pf, le, columns, batch_size, half_window, first)
             with background(decoded, name="reader") as chunks:
                 for k, tab in enumerate(estimate_stream(le, iter(chunks), previous, backend)):
                     yield Done(done + k, tab.num_rows, tab)

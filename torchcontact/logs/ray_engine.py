@@ -9,9 +9,10 @@ them in chunks of ``batch_size`` with the local engine's functions and the log's
 layout, and journals them as ``OUT.partial/part-<u>.parquet``, encoded with the output's schema
 and writer options (temporary name, atomic rename). The driver runs the same
 :class:`~torchcontact.logs.run.Run` as the local engine (lock, journal, ordered writer, summary)
-and joins the parts' bytes into the output in unit order, which is the row order, as they
-finish (:mod:`torchcontact.logs.parts`): the encoding, the costly part of writing, runs in the
-workers, and the driver only copies bytes and reads the status columns for the summary.
+and appends the parts' bytes to the output in unit order, which is the row order, as they
+finish (:class:`~torchcontact.logs.format.PartsWriter`, as the local engine's chunks): the
+encoding, the costly part of writing, runs in the workers, and the driver copies bytes and reads
+the status columns for the summary.
 
 A worker process that dies (killed, out of memory) costs a retry of its unit
 (:data:`TASK_RETRIES`), not the run; a killed driver leaves the journal, and ``--resume`` keeps
@@ -48,8 +49,7 @@ from torchcontact.logs.chunks import (
 )
 from torchcontact.logs.decode import stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, open_log
-from torchcontact.logs.parts import write_part
+from torchcontact.logs.format import check_outputs, open_log, write_encoded_part
 from torchcontact.logs.pipeline import (
     _check_positive,
     expand_inputs,
@@ -161,9 +161,9 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
             background(decoded, name="reader") as ready,
             background(estimate_stream(le, iter(ready), None, job["backend"]), name="est") as tabs,
         ):
-            # encoded here, in parallel: the driver joins the parts' bytes (logs/parts.py)
-            write_part(iter(tabs), Path(job["partial"]) / f"part-{int(u):08d}.parquet",
-                       job["schema"])  # fmt: skip
+            # encoded here, in parallel: the driver appends the part's bytes as they are
+            write_encoded_part(iter(tabs), Path(job["partial"]) / f"part-{int(u):08d}.parquet",
+                               job["schema"])  # fmt: skip
         rows.append(stop - start)
     import ray
 
@@ -422,7 +422,6 @@ def estimate_file_ray(
             cone_sensors=list(le.sensors) if constraints is not None else [],
             localize=localize_tally(le),
             t0=t0,
-            stitch=True,
             **log_summary(le, scan),
             engine="ray",
         )

@@ -7,16 +7,22 @@ both:
    from before anything is written until the end. A second run on the same output, with or
    without ``--resume``, stops at once naming the first (pid, host, start time); ``--resume`` and
    the "interrupted run" message apply only when no live process holds the lock.
-2. **Journal**: each unit ``k`` (a chunk of the local engine, a Ray unit) is written to
-   ``OUT.partial/part-<k>.arrow`` (Arrow IPC, temporary name and atomic rename) and
-   ``OUT.progress.json`` records what the run is (:meth:`Run.start`); ``--resume`` keeps the
-   journalled units of an interrupted run with the same inputs and options.
-3. **Output**: units are written to ``OUT.tmp`` in order, on a writer thread fed through a bounded
-   queue (so writing overlaps the engine's work and memory stays flat), then renamed to ``OUT``.
-4. **Failures leave the ground clean**: a run that fails before journalling any unit removes
+2. **Output and journal in one**: units are encoded as Parquet row groups and appended to
+   ``OUT.tmp`` in order (:class:`~torchcontact.logs.format.PartsWriter`), on a writer thread fed
+   through a bounded queue (so writing overlaps the engine's work and memory stays flat); the
+   footer is joined from the units' own at the end and ``OUT.tmp`` renamed to ``OUT``. Once a
+   unit's bytes are in ``OUT.tmp``, ``OUT.partial/part-<k>.index`` records where (a small entry:
+   offsets and the unit's footer, temporary name and atomic rename), and ``OUT.progress.json``
+   records what the run is (:meth:`Run.start`). ``--resume`` keeps the recorded units of an
+   interrupted run with the same inputs and options: ``OUT.tmp`` is cut after the last one and
+   the run appends after it. The data are written once, never a second copy.
+   A unit estimated out of order (a Ray worker's) waits in ``OUT.partial/part-<k>.arrow`` (Arrow
+   IPC) until its turn; journals of earlier versions (every unit an ``.arrow`` part) are read
+   the same way.
+3. **Failures leave the ground clean**: a run that fails before recording any unit removes
    ``OUT.partial``, ``OUT.progress.json`` and ``OUT.tmp``; otherwise the message says how many
    units are kept for ``--resume``. An I/O error (a full disk, a read-only folder) names the path.
-5. **Summary**: the same dict from both engines, with the frames whose status is not 0 and
+4. **Summary**: the same dict from both engines, with the frames whose status is not 0 and
    their most frequent details (:func:`unusable`, the CLI's ``--max-bad``).
 """
 
@@ -39,8 +45,16 @@ import numpy as np
 
 from torchcontact._lock import OutputLock, lock_path
 from torchcontact.errors import LogError, TorchContactError
-from torchcontact.logs.format import LogWriter, read_journal, write_journal
-from torchcontact.logs.parts import PartStitcher, read_part_columns
+from torchcontact.logs.format import (
+    PartIndex,
+    PartsWriter,
+    encode_part,
+    read_encoded_part,
+    read_journal,
+    read_part,
+    read_part_index,
+    write_part_index,
+)
 from torchcontact.status import WARNINGS, Status
 
 OUTSIDE = int(Status.OUTSIDE_TRAINING)
@@ -49,6 +63,9 @@ __all__ = ["Done", "Run", "background", "side_paths", "unusable"]
 
 #: Items waiting between two pipeline stages (chunks in flight stay bounded: memory is flat).
 QUEUE_DEPTH = 2
+#: Threads encoding output chunks as Parquet at once (pyarrow releases the GIL): on many cores
+#: the encoding is off the writer thread, which only appends the encoded bytes in order.
+ENCODERS = 2
 NOT_CONVERGED = int(Status.NOT_CONVERGED)
 #: Share of the well-posed frames whose unconstrained estimate lies outside a friction cone above
 #: which ``estimate --constraints`` warns that the friction contradicts the data (with the right
@@ -193,6 +210,32 @@ def _atomic_json(path: Path, data: dict) -> None:
 
 
 # ---------------------------------------------------------------------- tallies
+def _part_table(data: Any, tally: _Tally | None = None) -> Any:
+    """A worker's Parquet part (its bytes): every column, or only those ``tally`` reads.
+
+    The status texts are read only for a part with a frame whose code needs them: decoding them
+    cost 1.5 us per frame in the Ray driver, more than the rest of its work.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    def read(columns: list[str] | None) -> Any:
+        try:
+            return pq.read_table(
+                pa.BufferReader(data), columns=columns, page_checksum_verification=True
+            )
+        except (OSError, pa.ArrowException) as exc:
+            raise LogError(f"a Ray worker's part is unreadable ({exc})") from None
+
+    if tally is None:
+        return read(None)
+    names = pq.read_schema(pa.BufferReader(data)).names
+    tab = read(tally.columns(names))
+    if tally.needs_texts(tab):
+        tab = read([*tab.column_names, *(n for n in ("status", "status_detail") if n in names)])
+    return tab
+
+
 @dataclass
 class _Tally:
     """Frames, statuses and cone solves of the tables written to the output."""
@@ -222,8 +265,8 @@ class _Tally:
     def columns(self, names: list[str]) -> list[str]:
         """The columns of an output with ``names`` that :meth:`add` reads, but the status texts.
 
-        The texts (``status``, ``status_detail``: decoding them costs more than the rest) are
-        read only for a part with a frame whose code needs them (:meth:`needs_texts`).
+        The texts (``status``, ``status_detail``) matter only for a part with a frame whose code
+        needs them (:meth:`needs_texts`).
         """
         want = {"status_code"}
         for s in self.cone_sensors:
@@ -458,17 +501,43 @@ class Run:
     def _parts(self) -> list[Path]:
         if not self.partial.is_dir():
             return []
-        return sorted([*self.partial.glob("part-*.arrow"), *self.partial.glob("part-*.parquet")])
+        return sorted(
+            p for x in ("arrow", "parquet", "index") for p in self.partial.glob(f"part-*.{x}")
+        )
 
     def part(self, k: int) -> Path:
-        """Path of unit ``k``'s journal part.
+        """Path of unit ``k``'s table waiting for its turn.
 
-        Arrow IPC (local engine) or Parquet (Ray engine, :func:`torchcontact.logs.parts.write_part`,
-        joined into the output as they are).
+        A Ray worker's: a Parquet file (:func:`~torchcontact.logs.format.write_encoded_part`),
+        appended as it is; Arrow IPC in journals of earlier versions.
         """
         arrow = self.partial / f"part-{k:08d}.arrow"
         parquet = arrow.with_suffix(".parquet")
-        return parquet if parquet.exists() else arrow
+        return parquet if parquet.is_file() else arrow
+
+    def index(self, k: int) -> Path:
+        """Path of unit ``k``'s journal entry (where it lies in ``OUT.tmp``)."""
+        return self.partial / f"part-{k:08d}.index"
+
+    def _written(self) -> list[PartIndex]:
+        """The recorded units in ``OUT.tmp``, in order (units 0, 1, ...)."""
+        out = []
+        while self.index(len(out)).is_file():
+            out.append(read_part_index(self.index(len(out))))
+        return out
+
+    def read_part(self, k: int) -> Any:
+        """The output table of a unit done before (recorded in ``OUT.tmp``, or waiting).
+
+        Raises:
+            LogError: the unit is unreadable.
+        """
+        part = self.part(k)
+        if part.is_file():
+            if part.suffix == ".parquet":
+                return _part_table(read_encoded_part(part)[1])
+            return read_journal(part)
+        return read_part(self.tmp, read_part_index(self.index(k)))
 
     def start(
         self, ident: dict, units: list[tuple[int, int]], resume: bool, recurrent: bool = False
@@ -507,6 +576,7 @@ class Run:
                 )
             for tmp in self.partial.glob("*.tmp"):
                 tmp.unlink()
+            self._check_written()
             self.done = {int(p.stem.removeprefix("part-")) for p in self._parts()}
             if not self.done <= set(range(len(units))):
                 raise LogError(
@@ -522,16 +592,50 @@ class Run:
         except LogError as exc:
             raise LogError(f"{exc}; {self.kept()}") from None
 
+    def _check_written(self) -> None:
+        """Recorded units must be consecutive from 0 and lie in ``OUT.tmp``.
+
+        Raises:
+            LogError: they do not (entries that skip a unit, an ``OUT.tmp`` shorter than them).
+        """
+        entries = sorted(self.partial.glob("part-*.index"))
+        written = self._written()
+        if len(entries) != len(written):
+            raise LogError(
+                f"{self.out}: the entries of {self.partial} are not consecutive; delete it and"
+                " rerun"
+            )
+        if written:
+            size = self.tmp.stat().st_size if self.tmp.is_file() else -1
+            if size < 0 and self.out.is_file():
+                # killed between publishing the output and removing the journal
+                raise LogError(
+                    f"{self.out}: {self.partial.name} is left by a run that had published"
+                    f" {self.out.name} (no {self.tmp.name}): delete {self.partial} and"
+                    f" {self.sidecar.name} (rerun to estimate it again)"
+                )
+            if size < written[-1].end:
+                raise LogError(
+                    f"{self.out}: {self.tmp.name} is shorter than the units {self.partial.name}"
+                    f" records ({max(size, 0)} of {written[-1].end} bytes); delete"
+                    f" {self.partial} and {self.sidecar.name}, and rerun"
+                )
+
     def record(self) -> None:
-        """Write the sidecar (atomically)."""
+        """Write the sidecar (atomically): what the run is, once at its start.
+
+        The units done are the journal's entries (``OUT.partial``), not counted here: the
+        sidecar is not rewritten per unit.
+        """
         _atomic_json(self.sidecar, {**self.ident, "parts_done": len(self.done)})
 
     def _clean_failed(self) -> None:
-        """After a failure: drop ``OUT.tmp``; with no unit journalled, the journal too."""
-        self.tmp.unlink(missing_ok=True)
+        """After a failure: with no unit recorded, drop ``OUT.tmp`` and the journal."""
         if self.partial.is_dir():
             for tmp in self.partial.glob("*.tmp"):
                 tmp.unlink(missing_ok=True)
+        if not self.index(0).is_file():
+            self.tmp.unlink(missing_ok=True)  # it holds no recorded unit
         if not self._parts():
             shutil.rmtree(self.partial, ignore_errors=True)
             self.sidecar.unlink(missing_ok=True)
@@ -554,7 +658,6 @@ class Run:
         cone_sensors: list[str] | None = None,
         localize: tuple[list[str], bool] | None = None,
         t0: float | None = None,
-        stitch: bool = False,
         **summary: Any,
     ) -> dict:
         """Write the engine's units into the output, in order, and return the summary.
@@ -569,8 +672,6 @@ class Run:
                 status bits are tallied (``estimate --localize``), or None.
             t0: ``time.perf_counter()`` when the job started (the summary's ``seconds`` count
                 from there; default: now).
-            stitch: the engine journals Parquet parts (the Ray engine): the output is those
-                parts joined (:class:`~torchcontact.logs.parts.PartStitcher`), not encoded again.
             **summary: more keys of the summary (input, sensors, derived, engine, ...).
 
         Returns:
@@ -593,8 +694,7 @@ class Run:
         bar = tqdm(total=total, unit="frames", disable=not progress, desc=Path(self.source).name)
         bar.update(sum(self.units[k][1] - self.units[k][0] for k in self.done))
         tally = _Tally(list(cone_sensors or []), localize)
-        # Parquet parts (Ray workers encoded them) are joined byte for byte; tables are encoded
-        writer = PartStitcher(self.out, schema) if stitch else LogWriter(self.out, schema)
+        writer = _io(self.tmp, lambda: PartsWriter(self.out, schema, self._written()))
         sink = _OrderedSink(self, writer, tally, bar)
         try:
             try:
@@ -606,17 +706,18 @@ class Run:
                 if close is not None:  # stops the engine's threads (a generator's finally)
                     close()
                 sink.abort()
-                writer.abort()
+                writer.abort(keep=True)  # its recorded units stay for --resume
                 if isinstance(exc, TorchContactError):
                     raise type(exc)(f"{exc}; {self.kept()}") from None
                 raise
             if sink.written != len(self.units):
-                writer.abort()
+                writer.abort(keep=True)
                 missing = len(self.units) - sink.written
                 raise LogError(f"{self.out}: {missing} chunks missing; {self.kept()}")
             _io(self.tmp, writer.close)
         finally:
             bar.close()
+            writer.abort(keep=True)  # closed already, unless an error left it open
         shutil.rmtree(self.partial)
         self.sidecar.unlink()
         seconds = time.perf_counter() - t0
@@ -639,15 +740,20 @@ class Run:
 
 
 class _OrderedSink:
-    """The writer thread: journals the units it is given and writes them to the output in order.
+    """The writer thread: encodes the units it is given and appends them to the output in order.
 
-    Units journalled before (a resume) or by the engine (Ray) are read back from the journal when
-    their turn comes; at most one estimated table waits in memory besides the queue.
+    A unit is recorded in the journal (:func:`~torchcontact.logs.format.write_part_index`) once
+    its bytes are in ``OUT.tmp``. Units recorded before (a resume) are read back for the summary's
+    tally; units the engine journalled itself (Ray) are read from their Arrow part when their turn
+    comes; at most one estimated table waits in memory besides the queue.
     """
 
-    def __init__(self, run: Run, writer: LogWriter, tally: _Tally, bar: Any) -> None:
+    def __init__(self, run: Run, writer: PartsWriter, tally: _Tally, bar: Any) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
         self.run, self.writer, self.tally, self.bar = run, writer, tally, bar
-        self.written = 0
+        self._encoders = ThreadPoolExecutor(ENCODERS, thread_name_prefix="torchcontact-encoder")
+        self.written = len(writer.parts)  # units already in OUT.tmp (a resume)
         self.now: set[int] = set()
         self._held: dict[int, Any] = {}
         self._q: queue.Queue = queue.Queue(QUEUE_DEPTH)
@@ -657,6 +763,12 @@ class _OrderedSink:
 
     # producer side (main thread)
     def put(self, d: Done) -> None:
+        if d is not None and d.table is not None:  # encoded on a pool thread meanwhile
+            d = Done(
+                d.unit,
+                d.rows,
+                (d.table, self._encoders.submit(encode_part, d.table, self.writer.schema)),
+            )
         while True:
             self._raise()
             try:
@@ -669,6 +781,7 @@ class _OrderedSink:
         """No more units: wait until everything is written."""
         self.put(None)  # type: ignore[arg-type]
         self._thread.join()
+        self._encoders.shutdown()
         self._raise()
 
     def abort(self) -> None:
@@ -682,6 +795,7 @@ class _OrderedSink:
                     continue
         finally:
             self._thread.join()
+            self._encoders.shutdown(cancel_futures=True)
 
     def _raise(self) -> None:
         if self._error is not None:
@@ -693,19 +807,18 @@ class _OrderedSink:
     # writer thread
     def _work(self) -> None:
         try:
-            self._drain()  # units of an interrupted run
+            for k in range(self.written):  # units of an interrupted run, in OUT.tmp already
+                self.tally.add(self.run.read_part(k), False)
+            self._drain()  # units of an interrupted run waiting in the journal
             while True:
                 d = self._q.get()
                 if d is None:
                     return
                 run = self.run
                 if d.table is not None:
-                    part = run.part(d.unit)
-                    _io(part, lambda: write_journal([d.table], part))  # noqa: B023
                     self._held[d.unit] = d.table
                 run.done.add(d.unit)
                 self.now.add(d.unit)
-                run.record()
                 self.bar.update(d.rows)
                 self._drain()
         except BaseException as exc:
@@ -715,20 +828,21 @@ class _OrderedSink:
         run = self.run
         while self.written < len(run.units) and self.written in run.done:
             k = self.written
-            tab = self._held.pop(k, None)
-            part = run.part(k)
-            if tab is None and part.suffix == ".parquet":  # encoded by a worker: its bytes
-                names = self.writer.schema.names
-                tab = read_part_columns(part, self.tally.columns(names))
-                if self.tally.needs_texts(tab):
-                    texts = [n for n in ("status", "status_detail") if n in names]
-                    tab = read_part_columns(part, [*tab.column_names, *texts])
-                _io(self.run.tmp, lambda: self.writer.append(part))  # noqa: B023
-                self.tally.add(tab, k in self.now)
-                self.written += 1
-                continue
-            if tab is None:
-                tab = read_journal(part)
-            _io(self.run.tmp, lambda: self.writer.write(tab))  # noqa: B023
+            held = self._held.pop(k, None)
+            waiting = held is None  # journalled by the engine (or an earlier version)
+            if waiting and run.part(k).suffix == ".parquet":  # a Ray worker encoded it
+                part, data = read_encoded_part(run.part(k))
+                tab = _part_table(data, self.tally)
+            elif waiting:
+                tab = read_journal(run.part(k))
+                part = encode_part(tab, self.writer.schema)
+            else:
+                tab, encoding = held
+                part = encoding.result()
+            index = _io(run.tmp, lambda: self.writer.append(part))  # noqa: B023
+            entry = run.index(k)
+            _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
+            if waiting:
+                run.part(k).unlink()
             self.tally.add(tab, k in self.now)
             self.written += 1

@@ -1,0 +1,57 @@
+"""Parquet parts joined by their footers (logs/_footer.py) give one writer's file, byte for byte."""
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from torchcontact.logs import _footer
+from torchcontact.logs.format import WRITE_OPTIONS, PartsWriter, encode_part, fixed_list
+
+
+def _table(n, seed):
+    rng = np.random.default_rng(seed)
+    return pa.table(
+        {
+            "t_ns": pa.array(np.arange(n, dtype=np.int64) + 1000 * seed),
+            "v": fixed_list(rng.standard_normal((n, 3))),
+            "s": pa.array([None if i % 3 else f"x{i}" for i in range(n)], pa.string()),
+        }
+    ).replace_schema_metadata({b"k": b"v"})
+
+
+def _file(tables, path, row_group_size=None):
+    with pq.ParquetWriter(path, tables[0].schema, write_statistics=["t_ns"], **WRITE_OPTIONS) as w:
+        for t in tables:
+            w.write_table(t, row_group_size=row_group_size)
+
+
+def test_parts_joined_are_one_writers_file(tmp_path):
+    tables = [_table(n, i) for i, n in enumerate((50, 1, 0, 37))]
+    _file(tables, tmp_path / "one.parquet")
+    w = PartsWriter(tmp_path / "parts.parquet", tables[0].schema)
+    for t in tables:
+        w.append(encode_part(t, t.schema))
+    w.close()
+    assert (tmp_path / "parts.parquet").read_bytes() == (tmp_path / "one.parquet").read_bytes()
+
+    # parts of several row groups each: offsets shifted, ordinals renumbered
+    _file(tables, tmp_path / "rg.parquet", row_group_size=16)
+    data = bytearray(b"PAR1")
+    footers = []
+    for i, t in enumerate(tables):
+        _file([t], tmp_path / f"p{i}.parquet", row_group_size=16)
+        chunks, footer = _footer.split_file((tmp_path / f"p{i}.parquet").read_bytes())
+        footers.append((len(data), footer))
+        data += chunks
+    data += _footer.footer_bytes(_footer.join_footers(footers))
+    assert bytes(data) == (tmp_path / "rg.parquet").read_bytes()
+    meta = pq.ParquetFile(pa.BufferReader(bytes(data))).metadata
+    assert meta.num_row_groups == 4 + 1 + 1 + 3 and meta.num_rows == 88
+
+
+def test_a_footer_it_cannot_read_is_refused():
+    with pytest.raises(_footer.FooterError, match="not a whole Parquet file"):
+        _footer.split_file(b"PAR1 not a file")
+    with pytest.raises(_footer.FooterError):
+        _footer.join_footers([])
