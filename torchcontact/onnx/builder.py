@@ -124,6 +124,28 @@ class GraphBuilder:
         to = helper.np_dtype_to_tensor_dtype(self.dtype if to_float else np.dtype(bool))
         return self.op("Cast", x, to=to)
 
+    def branch(self, build: Callable[[], Sequence[str]], name: str = "branch"):
+        """A subgraph (an ``If`` branch) of the nodes ``build()`` emits; returns its GraphProto.
+
+        ``build`` emits nodes through this builder as usual (they go to the subgraph; constants
+        stay initializers of the main graph, which the subgraph reads from the outer scope) and
+        returns the values the branch outputs, in order (of the graph's float dtype; a value the
+        branch does not compute, a constant or an outer value, gets an ``Identity``).
+        """
+        from onnx import helper
+
+        outer = self.nodes
+        self.nodes = []
+        try:
+            vals = list(build())
+            made = {o for n in self.nodes for o in n.output}
+            outs = [v if v in made else self.op("Identity", v) for v in vals]
+            nodes = self.nodes
+        finally:
+            self.nodes = outer
+        infos = [helper.make_tensor_value_info(o, onnx_type(self.dtype), None) for o in outs]
+        return helper.make_graph(nodes, self.fresh(name), [], infos)
+
     def model(self, metadata: dict[str, str] | None = None):
         """The ``onnx.ModelProto``."""
         from onnx import helper

@@ -78,15 +78,67 @@ def solve_region(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: in
 
 def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
            w6: np.ndarray | None = None):  # fmt: skip
-    """:func:`solve_region` on (whitened) ``G``, ``b``; ``w6``: the unit right sides' whitening."""
+    """:func:`solve_region` on (whitened) ``G``, ``b``; ``w6``: the unit right sides' whitening.
+
+    Two branches of one ``If``: the full-rank frame (every pivot is accepted whatever the
+    order) takes ``y = G^-1 rhs`` from an unpivoted sweep; any other frame the pivoted
+    elimination (:func:`_pivoted`).
+    """
     gb = ctx.gb
-    big = _BIG[ctx.dtype]
-    eye = np.eye(R)
     rhs = b
     if ncols > 1:  # unit right sides for the covariance: d y / d b_j, j < 6
         E6 = np.zeros((R, 6))
         E6[:6, :6] = np.eye(6) if w6 is None else np.diag(w6[:, 0])
         rhs = gb.op("Concat", b, gb.f(E6), axis=1)
+    diag = gb.i(np.arange(R)[:, None])
+    d0 = gb.op("GatherElements", G, diag, axis=1)
+    # the rank rule: a pivot counts above rtol times the largest diagonal of G
+    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
+    # Jacobi scaling first, G' = D G D with D = diag(d0)^-1/2 (unit diagonal: the unpivoted
+    # sweep below is then as accurate as the pivoted elimination on badly scaled, whitened G)
+    sc = gb.op("Pow", d0, gb.f(-0.5))
+    A = gb.op("Mul", G, gb.op("Gemm", sc, sc, transB=1))
+    # the sweep operator (Goodnight 1979) on every index in order: A <- A - a a^T / d with
+    # a = A e_k - e_k, d = A_kk, which is the sweep but for -2 on the swept diagonal entry; those
+    # offsets are never read again (column k is read only at step k), so they are added at the
+    # end: the result is 2 I - G'^-1
+    eye = np.eye(R)
+    for k in range(R):
+        c = gb.op("Gather", A, gb.i([k]), axis=1)
+        a = gb.op("Sub", c, gb.f(eye[:, k : k + 1]))
+        d = gb.op("Gather", c, gb.i([k]), axis=0)
+        A = gb.op("Gemm", gb.op("Div", a, d), a, A, alpha=-1.0, transB=1)
+    # full rank for the pivoted rule whatever the pivot order when 1 / (G^-1)_ii > tol for every
+    # i: each pivot the elimination can meet, a Schur complement's diagonal entry, is at least
+    # 1 / (G^-1)_ii (eliminating more only lowers it); 1 / (G^-1)_ii = d0_i / (G'^-1)_ii. NaN
+    # (a zero diagonal or pivot met here) fails.
+    h = gb.op("Sub", gb.f(2.0), gb.op("GatherElements", A, diag, axis=1))  # (G'^-1)_ii
+    ok = gb.cast(gb.op("Greater", gb.op("Div", d0, h), tol))
+    full = gb.op("Greater", gb.op("ReduceMin", ok, keepdims=0), gb.f(0.5))
+
+    def fast() -> list[str]:  # y = D G'^-1 D rhs
+        u = gb.op("Mul", rhs, sc)
+        y = gb.op("Mul", gb.op("Gemm", A, u, u, alpha=-1.0, beta=2.0), sc)
+        return [y, gb.f([[float(R)]])]
+
+    def pivoted() -> list[str]:
+        return list(_pivoted(ctx, G, rhs, d0, tol, R, r_min, ncols))
+
+    y, rank = gb.op("If", full, n_out=2, then_branch=gb.branch(fast, "full_rank"),
+                    else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
+    return y, rank
+
+
+def _pivoted(ctx: StepContext, G: str, rhs: str, d0: str, tol: str, R: int, r_min: int,
+             ncols: int):  # fmt: skip
+    """The pivoted Gauss-Jordan elimination and the least-squares projection (module doc).
+
+    ``rhs`` ``(R, ncols)``, ``d0`` the diagonal of ``G`` ``(R, 1)``, ``tol`` the rank rule's
+    threshold ``(1, 1)``.
+    """
+    gb = ctx.gb
+    big = _BIG[ctx.dtype]
+    eye = np.eye(R)
     Wc = 2 * R + ncols
     top = gb.op("Concat", G, gb.f(eye), rhs, axis=1)
     # rows R..2R-1 hold -I in the pivot columns: gathering column p gives [c; -e_p]
@@ -98,9 +150,6 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     J[:R, R:] = eye
     P = np.zeros((2 * R, 2 * R))  # [c; -e_p] -> [-big e_p; 0]: the used-pivot penalty
     P[:R, R:] = eye * big
-    d0 = gb.op("GatherElements", W, gb.i(np.arange(R)[:, None]), axis=1)
-    # the rank rule: a pivot counts above rtol times the largest diagonal of G
-    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
     dm = gb.op("Concat", d0, gb.f(np.full((R, 1), -big)), axis=0)
     pivots, oks = [], []
     for k in range(R):
