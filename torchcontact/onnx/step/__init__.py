@@ -199,8 +199,9 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
             ranks.append(gb.f([[0.0]]))
             resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
             continue
+        possible = solve.full_rank_possible(ctx, reg, R, chk.actK)
         y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
-                                     ctx.whitening(r, R))  # fmt: skip
+                                     ctx.whitening(r, R), possible)  # fmt: skip
         ys.append(y)
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))
