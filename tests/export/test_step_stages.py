@@ -239,3 +239,49 @@ def _program_inputs(probe: Probe, f: dict) -> dict:
     if probe.flags.covariance:
         ins["ft_cov"] = t(f["ft_cov"])
     return ins
+
+
+def test_solve_full_rank_sweep_and_pivoted_branches():
+    """The solve's two roads (``onnx.step.solve``) against ``solve_program``, and which one ran.
+
+    On one region's ``G``, ``b`` as graph inputs (float64): full-rank ``G`` (badly scaled as a
+    whitened system is, and well scaled) must take the sweep (its ``full`` output true) and
+    equal ``G^-1 b``; rank-deficient, zero and nearly singular ``G`` (below the rank rule) must
+    fail the sweep's test and give the pivoted elimination's rank and ``G y``.
+    """
+    from torchcontact.onnx.step import solve
+
+    lay = LAYOUTS["icub"]
+    full_em = tc.ContactEstimator(robot_model(lay["robot"]), lay["sensors"]).layout(
+        lay["links"], lay["kinds"]
+    )
+    ctx = step.context(full_em, Flags(), np.float64)
+    gb, R = ctx.gb, 6
+    G, b = gb.input("G", [R, R]), gb.input("b", [R, 1])
+    possible = gb.input("possible", [1, 1], bool)
+    y, rank = solve.solve_region(ctx, G, b, R, 3, 1, None, possible)
+    d0 = gb.op("GatherElements", G, gb.i(np.arange(R)[:, None]), axis=1)
+    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
+    full, _ = solve._sweep(ctx, G, b, R, d0, tol)
+    for out in (y, rank, full):
+        gb.output(out, None, bool if out == full else None)
+    sess = ort.InferenceSession(gb.model().SerializeToString(), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(R, 15))
+    scaled = np.diag([1e2, 1e2, 1e2, 1e-1, 1e-1, 1e-1])
+    A5 = A.copy()
+    A5[:, 5:] = 0.0
+    A5[5] = A5[0] + A5[1]  # rank 5
+    tiny = A.copy()
+    tiny[5] = tiny[0] + 1e-9 * tiny[5]  # rank 6, below the rank rule
+    cases = [(A @ A.T, True), (scaled @ A @ A.T @ scaled, True), (A5 @ A5.T, False),
+             (np.zeros((R, R)), False), (tiny @ tiny.T, False)]  # fmt: skip
+    for i, (Gv, fast) in enumerate(cases):
+        bv = rng.normal(size=(R, 1))
+        for poss in (True, False):
+            yv, rv, fv = sess.run(None, {"G": Gv, "b": bv, "possible": np.array([[poss]])})
+            assert bool(fv) == fast, f"case {i}: sweep test {bool(fv)}"
+            y_ref, r_ref, _, _ = solve_program(Gv.tolist(), bv[:, 0].tolist(), ctx.em.rank_rtol)
+            assert int(rv.item()) == int(r_ref), f"case {i}: rank {rv.item()} vs {r_ref}"
+            scale = max(1.0, float(np.abs(Gv).max())) * max(1.0, float(np.abs(y_ref).max()))
+            _close(Gv @ yv[:, 0], Gv @ np.array(y_ref), f"case {i}: G y", scale * _cond(Gv, y_ref))
