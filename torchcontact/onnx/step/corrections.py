@@ -31,7 +31,7 @@ from torchcontact.onnx.step.forms import (
 )
 from torchcontact.onnx.step.kinematics import bodies_to_root
 
-__all__ = ["NativeStack", "Wiring", "native_corrections", "native_stack"]
+__all__ = ["NativeStack", "Wiring", "fold_affine_ends", "native_corrections", "native_stack"]
 
 
 class Wiring:
@@ -279,10 +279,128 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     if st.nominal:
         parts.append(nominal)
     v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
-    feeds = {"features": gb.op("Cast", gb.op("MatMul", v, gb.f(st.perm)), to=to)}
+    learned, folded = fold_affine_ends(st.learned, st.perm)
+    feats = v if folded else gb.op("MatMul", v, gb.f(st.perm))
+    feeds = {"features": gb.op("Cast", feats, to=to)}
     if rg.state_shape:
         feeds["h_in"] = wiring.state_in(rg, to)
-    outs = inline(gb, st.learned, f"res{r}/", feeds)
+    outs = inline(gb, learned, f"res{r}/", feeds)
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
     return gb.cast(outs["residual"])
+
+
+def fold_affine_ends(model, pre: np.ndarray | None = None):
+    """A learned layer's graph with its constant affine ends folded into its first and last layer.
+
+    :func:`torchcontact.onnx.networks.emit_learned` writes ``z = (x - mean) / std`` before the
+    first ``Gemm`` and ``y tstd + tmean`` after the last: on one frame each is a node of its own
+    (onnxruntime's cost is per node). With ``pre`` (``(V, F)``, the features ``x = v pre``) the
+    first three become one ``Gemm`` on ``v``: ``v (pre W / std) + (b - (mean / std) W)``; the last
+    three one ``Gemm`` with ``W tstd`` and ``b tstd + tmean``. Other graphs (a GRU's first layer,
+    another network) keep what does not match.
+
+    Args:
+        model: the learned layer's ``onnx.ModelProto`` (input ``features``).
+        pre: ``(V, F)`` the map from the graph's values to the features, or None.
+
+    Returns:
+        ``(model, folded)``: a new model (or ``model`` itself), and whether its input is now ``v``
+        (``pre`` folded in).
+    """
+    from onnx import helper, numpy_helper
+
+    g = model.graph
+    consts = {t.name: numpy_helper.to_array(t).astype(np.float64) for t in g.initializer}
+    dtype = {t.name: numpy_helper.to_array(t).dtype for t in g.initializer}
+    users: dict[str, list] = {}
+    for n in g.node:
+        for i in n.input:
+            users.setdefault(i, []).append(n)
+    producer = {o: n for n in g.node for o in n.output}
+
+    def only_user(value: str, op: str):
+        us = users.get(value, [])
+        ok = len(us) == 1 and us[0].op_type == op and all(i in consts for i in us[0].input[1:])
+        return us[0] if ok else None
+
+    def linear(n) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(W (in, out), b)`` of a plain ``Gemm``/``MatMul`` with constant weights."""
+        attrs = {a.name: helper.get_attribute_value(a) for a in n.attribute}
+        if n.op_type == "MatMul":
+            W = consts[n.input[1]]
+            return W, np.zeros(W.shape[1])
+        if (
+            attrs.get("transA", 0)
+            or attrs.get("alpha", 1.0) != 1.0
+            or attrs.get("beta", 1.0) != 1.0
+        ):
+            return None
+        W = consts[n.input[1]].T if attrs.get("transB", 0) else consts[n.input[1]]
+        b = consts[n.input[2]] if len(n.input) > 2 else np.zeros(W.shape[1])
+        return W, np.broadcast_to(b, (W.shape[1],)).astype(np.float64)
+
+    drop, add, inits = set(), {}, []
+    kind = dtype[next(iter(consts))] if consts else np.float32
+
+    def gemm(x: str, W: np.ndarray, b: np.ndarray, out: str, tag: str):
+        names = [f"folded_{tag}_W", f"folded_{tag}_b"]
+        inits.extend([numpy_helper.from_array(W.astype(kind), names[0]),
+                      numpy_helper.from_array(b.astype(kind), names[1])])  # fmt: skip
+        return helper.make_node("Gemm", [x, *names], [out], name=out)
+
+    folded = False
+    sub = only_user("features", "Sub") if pre is not None else None
+    div = sub and only_user(sub.output[0], "Div")
+    first = div and (only_user(div.output[0], "Gemm") or only_user(div.output[0], "MatMul"))
+    if first is not None and (wb := linear(first)) is not None:
+        mean, std = consts[sub.input[1]], consts[div.input[1]]
+        W, b = wb
+        Wn = np.asarray(pre, np.float64) @ (W / std.reshape(-1, 1))
+        bn = b - (mean / std).reshape(-1) @ W
+        add[first.name or first.output[0]] = gemm("features", Wn, bn, first.output[0], "in")
+        drop |= {id(sub), id(div), id(first)}
+        folded = True
+    out = g.output[0].name
+    last_add = producer.get(out)
+    if last_add is not None and last_add.op_type == "Identity":
+        last_add = producer.get(last_add.input[0])
+    mul = (
+        producer.get(last_add.input[0])
+        if last_add is not None and last_add.op_type == "Add"
+        else None
+    )
+    last = producer.get(mul.input[0]) if mul is not None and mul.op_type == "Mul" else None
+    if (last is not None and last_add.input[1] in consts and mul.input[1] in consts
+            and last.op_type in ("Gemm", "MatMul") and id(last) not in drop
+            and len(users.get(last.output[0], [])) == 1 and len(users.get(mul.output[0], [])) == 1
+            and all(i in consts for i in last.input[1:])
+            and (wb := linear(last)) is not None):  # fmt: skip
+        scale, shift = consts[mul.input[1]].reshape(-1), consts[last_add.input[1]].reshape(-1)
+        W, b = wb
+        add[last.name or last.output[0]] = gemm(last.input[0], W * scale, b * scale + shift,
+                                                last_add.output[0], "out")  # fmt: skip
+        drop |= {id(mul), id(last_add), id(last)}
+    if not drop:
+        return model, False
+    nodes = []
+    for n in g.node:
+        if id(n) in drop:
+            key = n.name or n.output[0]
+            if key in add:
+                nodes.append(add[key])
+            continue
+        nodes.append(n)
+    inputs = list(g.input)
+    if folded:
+        x = next(i for i in inputs if i.name == "features")
+        shape = [d.dim_param or d.dim_value for d in x.type.tensor_type.shape.dim]
+        new_x = helper.make_tensor_value_info("features", x.type.tensor_type.elem_type,
+                                              [shape[0], int(np.shape(pre)[0])])  # fmt: skip
+        inputs = [new_x if i.name == "features" else i for i in inputs]
+    used = {i for n in nodes for i in n.input}
+    kept = [t for t in g.initializer if t.name in used]
+    graph = helper.make_graph(nodes, g.name, inputs, list(g.output), initializer=kept + inits)
+    new = helper.make_model(graph, opset_imports=list(model.opset_import))
+    new.ir_version = model.ir_version
+    return new, folded
