@@ -285,3 +285,46 @@ def test_solve_full_rank_sweep_and_pivoted_branches():
             assert int(rv.item()) == int(r_ref), f"case {i}: rank {rv.item()} vs {r_ref}"
             scale = max(1.0, float(np.abs(Gv).max())) * max(1.0, float(np.abs(y_ref).max()))
             _close(Gv @ yv[:, 0], Gv @ np.array(y_ref), f"case {i}: G y", scale * _cond(Gv, y_ref))
+
+
+def test_learned_layer_folding():
+    """``fold_affine_ends``: the feature map, normalisation and output scaling folded into the
+    MLP's first and last ``Gemm`` (4 nodes fewer in the network, and the feature map's ``MatMul``
+    before it), the same output; a GRU keeps its first layer (its head is folded)."""
+    import torch
+
+    from torchcontact.onnx.builder import GraphBuilder
+    from torchcontact.onnx.networks import emit_learned
+    from torchcontact.onnx.step.corrections import fold_affine_ends
+    from torchcontact.residual import ResidualGRU, ResidualMLP
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    V, F = 9, 7
+    pre = np.zeros((V, F))
+    pre[rng.permutation(V)[:F], np.arange(F)] = 1.0
+    v = rng.normal(size=(3, V)).astype(np.float32)
+    for net in (ResidualMLP(F, 16, 2), ResidualGRU(F, 8, layers=1)):
+        net.set_normalisation(torch.randn(64, F), torch.randn(64, 6))
+        gb = GraphBuilder(np.float32, "learned")
+        x = gb.input("features", ["N", F])
+        h = gb.input("h_in", ["N", 1, 8]) if net.kind == "gru" else None
+        y, h_out = emit_learned(gb, net, x, h)
+        gb.op("Identity", y, out="residual")
+        gb.output("residual", ["N", 6])
+        model = gb.model()
+        new, folded = fold_affine_ends(model, pre)
+        assert folded == (net.kind == "mlp")
+        feeds = {"h_in": np.zeros((3, 1, 8), np.float32)} if h else {}
+
+        def run(m, feats, feeds=feeds):
+            s = ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+            names = {i.name for i in s.get_inputs()}
+            return s.run(["residual"], {"features": feats, **{k: f for k, f in feeds.items()
+                                                              if k in names}})[0]  # fmt: skip
+
+        want = run(model, (v @ pre).astype(np.float32))
+        got = run(new, v if folded else (v @ pre).astype(np.float32))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+        removed = len(model.graph.node) - len(new.graph.node)
+        assert removed == (4 if net.kind == "mlp" else 2), removed
