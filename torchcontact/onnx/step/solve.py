@@ -111,6 +111,10 @@ def full_rank_possible(ctx: StepContext, reg: Region, R: int, act: str) -> str |
     if most[0] < R or not (most[1] >= 1 or most[2] >= 3):
         return None
     gb = ctx.gb
+    if R == 6 and "force_dir" not in kinds.values():
+        # a wrench (6 unknowns) or three forces (9) have the unknowns: one count decides
+        w = gb.op("Gemm", act, gb.f(M[:, 1:2] * 3.0 + M[:, 2:3]), transA=1)
+        return gb.op("Greater", w, gb.f([[2.5]]))
     v = gb.op("Gemm", act, gb.f(M), transA=1)  # (1, 3) over the active slots
     g = gb.cast(gb.op("Greater", v, gb.f([[R - 0.5, 0.5, 2.5]])))
     return gb.op("Greater", gb.op("MatMul", g, gb.f([[2.0], [1.0], [1.0]])), gb.f([[2.5]]))
@@ -141,8 +145,8 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
         return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
 
     def sweep() -> list[str]:
-        full, y = _sweep(ctx, G, rhs, R, d0, tol)
-        fast = gb.branch(lambda: [y, gb.f([[float(R)]])], "full_rank")
+        full, solve_full = _sweep(ctx, G, rhs, R, d0, tol)
+        fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
         return gb.op("If", full, n_out=2, then_branch=fast,
                      else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
 
@@ -151,18 +155,19 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     return y, rank
 
 
-def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str) -> tuple[str, str]:
-    """The unpivoted sweep: ``(full, y)``.
+def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str):
+    """The unpivoted sweep: ``(full, solve)``.
 
-    ``full``: whether the pivoted rule accepts every pivot whatever the order (a bool); then
-    ``y = G^-1 rhs``, from the sweep operator on the Jacobi-scaled ``G``.
+    ``full``: whether the pivoted rule accepts every pivot whatever the order (a bool);
+    ``solve()`` emits ``y = G^-1 rhs`` (in the branch that uses it), from the sweep operator on
+    the Jacobi-scaled ``G``.
     """
     gb = ctx.gb
     diag = gb.i(np.arange(R)[:, None])
     # Jacobi scaling first, G' = D G D with D = diag(d0)^-1/2 (unit diagonal: the unpivoted
     # sweep below is then as accurate as the pivoted elimination on badly scaled, whitened G)
-    sc = gb.op("Pow", d0, gb.f(-0.5))
-    A = gb.op("Mul", G, gb.op("Gemm", sc, sc, transB=1))
+    sc = gb.op("Sqrt", d0)  # D^-1
+    A = gb.op("Div", G, gb.op("Gemm", sc, sc, transB=1))
     # the sweep operator (Goodnight 1979) on every index in order: A <- A - a a^T / d with
     # a = A e_k - e_k, d = A_kk, which is the sweep but for -2 on the swept diagonal entry; those
     # offsets are never read again (column k is read only at step k), so they are added at the
@@ -180,8 +185,12 @@ def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str) -> tup
     h = gb.op("Sub", gb.f(2.0), gb.op("GatherElements", A, diag, axis=1))  # (G'^-1)_ii
     ok = gb.cast(gb.op("Greater", gb.op("Div", d0, h), tol))
     full = gb.op("Greater", gb.op("ReduceMin", ok, keepdims=0), gb.f(0.5))
-    u = gb.op("Mul", rhs, sc)  # y = D G'^-1 D rhs
-    return full, gb.op("Mul", gb.op("Gemm", A, u, u, alpha=-1.0, beta=2.0), sc)
+
+    def solve() -> str:  # y = D G'^-1 D rhs
+        u = gb.op("Div", rhs, sc)
+        return gb.op("Div", gb.op("Gemm", A, u, u, alpha=-1.0, beta=2.0), sc)
+
+    return full, solve
 
 
 def _pivoted(ctx: StepContext, G: str, rhs: str, R: int, r_min: int, ncols: int,
