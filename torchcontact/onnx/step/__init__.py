@@ -32,7 +32,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from torchcontact.estimation.layout import EstimationModel
-from torchcontact.onnx.builder import GraphBuilder
+from torchcontact.onnx.builder import GraphBuilder, fold_linear_chains
 from torchcontact.onnx.format import StepLayout
 from torchcontact.onnx.step import corrections, inputs, kinematics, outputs, regions, solve
 from torchcontact.onnx.step import online as online_stage
@@ -112,6 +112,7 @@ def build_step_graph(
     v = stages(ctx, x, residuals)
     lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
                            v["status"], v["e"], v["idx"], v["states"], v["more"])  # fmt: skip
+    fold_linear_chains(ctx.gb)  # products of the model's constant matrices, taken once
     return ctx.gb.model(), ctx.lay, lay_out
 
 
