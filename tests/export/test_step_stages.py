@@ -313,8 +313,9 @@ def test_learned_layer_folding():
         gb.op("Identity", y, out="residual")
         gb.output("residual", ["N", 6])
         model = gb.model()
-        new, folded = fold_affine_ends(model, pre)
-        assert folded == (net.kind == "mlp")
+        shift = rng.normal(size=6)
+        new, folded, shifted = fold_affine_ends(model, pre, shift)
+        assert folded == (net.kind == "mlp") and shifted
         feeds = {"h_in": np.zeros((3, 1, 8), np.float32)} if h else {}
 
         def run(m, feats, feeds=feeds):
@@ -323,7 +324,7 @@ def test_learned_layer_folding():
             return s.run(["residual"], {"features": feats, **{k: f for k, f in feeds.items()
                                                               if k in names}})[0]  # fmt: skip
 
-        want = run(model, (v @ pre).astype(np.float32))
+        want = run(model, (v @ pre).astype(np.float32)) + shift.astype(np.float32)
         got = run(new, v if folded else (v @ pre).astype(np.float32))
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
         removed = len(model.graph.node) - len(new.graph.node)

@@ -208,8 +208,9 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         in_sensor = []
         if sums:
             k = len(sums)
+            # (the stages below are products of pose features and wrench entries only: the
+            # operands need no 1 column)
             stacked = sums[0] if k == 1 else gb.op("Concat", *sums, axis=0)
-            both = gb.op("Concat", stacked, gb.f(np.ones((k, 1))), axis=1)
 
             def to_sensor(_i, t: list, w: list, reg=reg) -> list:
                 R, _, pR, _ = tp(t)
@@ -219,14 +220,19 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
                 return [*out[0], *out[1]]  # fmt: skip
 
             ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
-                          Operand(both, 7, one=6), k, to_sensor, 6, one=False,
+                          Operand(stacked, 6), k, to_sensor, 6, one=False,
                           hint=f"ysum{r}")  # fmt: skip
             in_sensor = [gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)]
-        c = gb.f(st.offset[None, :]) if st.offset is not None else None
+        # the offset goes into the learned layer's last bias when that computes in this dtype
+        shift = st.offset if np.dtype(rg.dtype) == ctx.dtype else None
+        if st.learned is not None:
+            out, shifted = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st,
+                                    shift)  # fmt: skip
+        offset = None if st.learned is not None and shifted else st.offset
+        c = gb.f(offset[None, :]) if offset is not None else None
         if st.delta:
             c = in_sensor[-1] if c is None else gb.op("Add", c, in_sensor[-1])
         if st.learned is not None:
-            out = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st)
             c = out if c is None else gb.op("Add", c, out)
         if c is None:
             continue
@@ -234,7 +240,6 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         col[st.region, 0] = 1.0
         d = gb.op("MatMul", gb.f(col * reg.sign), c)
         ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
-        one = gb.op("Concat", c, gb.f([[1.0]]), axis=1)
 
         def to_root(_i, t: list, cs: list, reg=reg) -> list:
             R, _, pR, _ = tp(t)
@@ -242,7 +247,7 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
             return [*w[0], *w[1]]
 
         w = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
-                     Operand(one, 7, one=6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
+                     Operand(c, 6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
         W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
     return W, ws_corr
 
@@ -262,8 +267,13 @@ def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
     return bodies_to_root(ctx, TP, fd, "fdelta_root")
 
 
-def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack) -> str:
-    """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``."""
+def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack,
+             shift: np.ndarray | None = None) -> tuple[str, bool]:  # fmt: skip
+    """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
+
+    Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)`` to add) is in it
+    (folded into its last bias).
+    """
     gb = ctx.gb
     to = onnx_type(rg.dtype)
     parts = []
@@ -279,7 +289,7 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     if st.nominal:
         parts.append(nominal)
     v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
-    learned, folded = fold_affine_ends(st.learned, st.perm)
+    learned, folded, shifted = fold_affine_ends(st.learned, st.perm, shift)
     feats = v if folded else gb.op("MatMul", v, gb.f(st.perm))
     feeds = {"features": gb.op("Cast", feats, to=to)}
     if rg.state_shape:
@@ -287,26 +297,27 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     outs = inline(gb, learned, f"res{r}/", feeds)
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
-    return gb.cast(outs["residual"])
+    return gb.cast(outs["residual"]), shifted
 
 
-def fold_affine_ends(model, pre: np.ndarray | None = None):
+def fold_affine_ends(model, pre: np.ndarray | None = None, shift: np.ndarray | None = None):
     """A learned layer's graph with its constant affine ends folded into its first and last layer.
 
     :func:`torchcontact.onnx.networks.emit_learned` writes ``z = (x - mean) / std`` before the
     first ``Gemm`` and ``y tstd + tmean`` after the last: on one frame each is a node of its own
     (onnxruntime's cost is per node). With ``pre`` (``(V, F)``, the features ``x = v pre``) the
     first three become one ``Gemm`` on ``v``: ``v (pre W / std) + (b - (mean / std) W)``; the last
-    three one ``Gemm`` with ``W tstd`` and ``b tstd + tmean``. Other graphs (a GRU's first layer,
-    another network) keep what does not match.
+    three one ``Gemm`` with ``W tstd`` and ``b tstd + tmean`` (``+ shift``). Other graphs (a GRU's
+    first layer, another network) keep what does not match.
 
     Args:
         model: the learned layer's ``onnx.ModelProto`` (input ``features``).
         pre: ``(V, F)`` the map from the graph's values to the features, or None.
+        shift: ``(6,)`` a constant to add to the output (the stack's offset), or None.
 
     Returns:
-        ``(model, folded)``: a new model (or ``model`` itself), and whether its input is now ``v``
-        (``pre`` folded in).
+        ``(model, folded, shifted)``: a new model (or ``model`` itself), whether its input is now
+        ``v`` (``pre`` folded in), whether its output includes ``shift``.
     """
     from onnx import helper, numpy_helper
 
@@ -349,7 +360,7 @@ def fold_affine_ends(model, pre: np.ndarray | None = None):
                       numpy_helper.from_array(b.astype(kind), names[1])])  # fmt: skip
         return helper.make_node("Gemm", [x, *names], [out], name=out)
 
-    folded = False
+    folded = shifted = False
     sub = only_user("features", "Sub") if pre is not None else None
     div = sub and only_user(sub.output[0], "Div")
     first = div and (only_user(div.output[0], "Gemm") or only_user(div.output[0], "MatMul"))
@@ -376,13 +387,15 @@ def fold_affine_ends(model, pre: np.ndarray | None = None):
             and len(users.get(last.output[0], [])) == 1 and len(users.get(mul.output[0], [])) == 1
             and all(i in consts for i in last.input[1:])
             and (wb := linear(last)) is not None):  # fmt: skip
-        scale, shift = consts[mul.input[1]].reshape(-1), consts[last_add.input[1]].reshape(-1)
+        scale, add_ = consts[mul.input[1]].reshape(-1), consts[last_add.input[1]].reshape(-1)
         W, b = wb
-        add[last.name or last.output[0]] = gemm(last.input[0], W * scale, b * scale + shift,
+        bias = b * scale + add_ + (0.0 if shift is None else np.asarray(shift, np.float64))
+        add[last.name or last.output[0]] = gemm(last.input[0], W * scale, bias,
                                                 last_add.output[0], "out")  # fmt: skip
+        shifted = shift is not None
         drop |= {id(mul), id(last_add), id(last)}
     if not drop:
-        return model, False
+        return model, False, False
     nodes = []
     for n in g.node:
         if id(n) in drop:
@@ -403,4 +416,4 @@ def fold_affine_ends(model, pre: np.ndarray | None = None):
     graph = helper.make_graph(nodes, g.name, inputs, list(g.output), initializer=kept + inits)
     new = helper.make_model(graph, opset_imports=list(model.opset_import))
     new.ir_version = model.ir_version
-    return new, folded
+    return new, folded, shifted
