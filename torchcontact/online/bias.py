@@ -566,24 +566,18 @@ class BiasSmoother:
             blk = self._read(lo, end)  # frames lo .. end - 1
             xb = blk[:, : 6 * S].reshape(-1, S, 6)
             pf, pp = blk[:, 6 * S : 7 * S], blk[:, 7 * S :]
-            # x_s[k] = (1 - c_k) x_f[k] + c_k x_s[k + 1]: a linear recurrence backward, all
-            # frames of the block at once (an affine scan from the block's end); the variances
-            # on Python floats as in the forward pass
-            m = end - lo
+            # x_s[k] = (1 - c_k) x_f[k] + c_k x_s[k + 1] and p_s[k] = c_k^2 p_s[k + 1] + p_f[k]
+            # - c_k^2 p_pred[k + 1]: linear recurrences backward, all frames of the block at
+            # once (affine scans from the block's end)
             ppn = np.concatenate([pp[1:], pp_next[None]])  # frame k + 1's predicted variance
             c = pf / ppn
             A, B = _affine_scan(c[::-1, :, None], ((1.0 - c)[..., None] * xb)[::-1])
             xb[...] = (A * x_next + B)[::-1]
             x_next = xb[0].copy()
-            for s in range(S):
-                ps, cs = float(p_next[s]), c[:, s].tolist()
-                pfs, pps = pf[:, s].tolist(), ppn[:, s].tolist()
-                out_s = [0.0] * m
-                for k in range(m - 1, -1, -1):
-                    ps = pfs[k] + cs[k] * cs[k] * (ps - pps[k])
-                    out_s[k] = ps
-                pf[:, s] = out_s
-                p_next[s] = ps
+            c2 = c * c
+            A, B = _affine_scan(c2[::-1], (pf - c2 * ppn)[::-1])
+            pf[...] = (A * p_next + B)[::-1]
+            p_next = pf[0].copy()
             pp_next = pp[0].copy()
             self._write(lo, blk)
             end = lo
