@@ -107,3 +107,42 @@ def test_emitted_program_matches_eager():
     y, z = _run(gb, {"u": u.numpy()})
     np.testing.assert_allclose(y, want["y"].numpy(), atol=1e-15, equal_nan=True)
     np.testing.assert_array_equal(z, want["z"].numpy())
+
+
+def test_fold_linear_chains():
+    """Constant-matrix chains merge (right, left, Gemm bias, column scaling, a dynamic Gemm C,
+    float64 constants in a float32 graph); a value an If branch reads, or used twice, stays."""
+    from onnx import TensorProto
+
+    from torchcontact.onnx.builder import fold_linear_chains
+
+    rng = np.random.default_rng(1)
+    C = [rng.normal(size=(4, 4)) for _ in range(6)]
+    gb = GraphBuilder(np.float32)
+    x = gb.input("x", [3, 4])
+    a = gb.op("Gemm", gb.op("MatMul", x, gb.f(C[0])), gb.f(C[1]), gb.f(np.ones((1, 4))))
+    a = gb.op("Mul", gb.op("Gemm", x, gb.f(C[2]), gb.f(np.ones(4)), transB=1), gb.f([[2.0] * 4]))
+    s = gb.op("Add", a, gb.op("MatMul", gb.f(C[3][:3, :3]), gb.op("MatMul", gb.f(C[4][:3, :3]), x)))
+    s = gb.op("Gemm", gb.op("MatMul", s, gb.f(C[5])), gb.f(C[0]), x)  # dynamic C
+    wide = gb.op("Cast", s, to=TensorProto.DOUBLE)
+    gb.dtype = np.dtype(np.float64)
+    w = gb.op("MatMul", gb.op("MatMul", wide, gb.f(C[1])), gb.f(C[2]))
+    gb.dtype = np.dtype(np.float32)
+    twice = gb.op("MatMul", x, gb.f(C[3]))
+    kept = gb.op("MatMul", x, gb.f(C[4]))  # read inside the branch
+    branch = gb.branch(lambda: [gb.op("MatMul", kept, gb.f(C[5]))])
+    cond = gb.const(np.array([True]), bool)
+    b = gb.op("If", cond, then_branch=branch, else_branch=branch)
+    y = gb.op("Add", gb.op("Add", gb.op("MatMul", twice, gb.f(C[0])), twice), b)
+    gb.op("Add", y, gb.op("MatMul", kept, gb.f(C[1])), out="y")  # kept: used once here too
+    gb.op("Identity", w, out="w")
+    gb.output("y", [3, 4])
+    gb.output("w", [3, 4], np.float64)
+    xv = rng.normal(size=(3, 4)).astype(np.float32)
+    want = _run(gb, {"x": xv})
+    n = len(gb.nodes)
+    assert fold_linear_chains(gb) == 5
+    assert len(gb.nodes) == n - 5
+    # (the session would refuse a float32 constant in the float64 chain)
+    for got, ref in zip(_run(gb, {"x": xv}), want, strict=True):
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4 * float(np.abs(ref).max()))

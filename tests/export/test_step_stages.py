@@ -239,3 +239,93 @@ def _program_inputs(probe: Probe, f: dict) -> dict:
     if probe.flags.covariance:
         ins["ft_cov"] = t(f["ft_cov"])
     return ins
+
+
+def test_solve_full_rank_sweep_and_pivoted_branches():
+    """The solve's two roads (``onnx.step.solve``) against ``solve_program``, and which one ran.
+
+    On one region's ``G``, ``b`` as graph inputs (float64): full-rank ``G`` (badly scaled as a
+    whitened system is, and well scaled) must take the sweep (its ``full`` output true) and
+    equal ``G^-1 b``; rank-deficient, zero and nearly singular ``G`` (below the rank rule) must
+    fail the sweep's test and give the pivoted elimination's rank and ``G y``.
+    """
+    from torchcontact.onnx.step import solve
+
+    lay = LAYOUTS["icub"]
+    full_em = tc.ContactEstimator(robot_model(lay["robot"]), lay["sensors"]).layout(
+        lay["links"], lay["kinds"]
+    )
+    ctx = step.context(full_em, Flags(), np.float64)
+    gb, R = ctx.gb, 6
+    G, b = gb.input("G", [R, R]), gb.input("b", [R, 1])
+    possible = gb.input("possible", [1, 1], bool)
+    y, rank = solve.solve_region(ctx, G, b, R, 3, 1, None, possible)
+    d0 = gb.op("GatherElements", G, gb.i(np.arange(R)[:, None]), axis=1)
+    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
+    full, _ = solve._sweep(ctx, G, b, R, d0, tol)
+    for out in (y, rank, full):
+        gb.output(out, None, bool if out == full else None)
+    sess = ort.InferenceSession(gb.model().SerializeToString(), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(R, 15))
+    scaled = np.diag([1e2, 1e2, 1e2, 1e-1, 1e-1, 1e-1])
+    A5 = A.copy()
+    A5[:, 5:] = 0.0
+    A5[5] = A5[0] + A5[1]  # rank 5
+    tiny = A.copy()
+    tiny[5] = tiny[0] + 1e-9 * tiny[5]  # rank 6, below the rank rule
+    cases = [(A @ A.T, True), (scaled @ A @ A.T @ scaled, True), (A5 @ A5.T, False),
+             (np.zeros((R, R)), False), (tiny @ tiny.T, False)]  # fmt: skip
+    for i, (Gv, fast) in enumerate(cases):
+        bv = rng.normal(size=(R, 1))
+        for poss in (True, False):
+            yv, rv, fv = sess.run(None, {"G": Gv, "b": bv, "possible": np.array([[poss]])})
+            assert bool(fv) == fast, f"case {i}: sweep test {bool(fv)}"
+            y_ref, r_ref, _, _ = solve_program(Gv.tolist(), bv[:, 0].tolist(), ctx.em.rank_rtol)
+            assert int(rv.item()) == int(r_ref), f"case {i}: rank {rv.item()} vs {r_ref}"
+            scale = max(1.0, float(np.abs(Gv).max())) * max(1.0, float(np.abs(y_ref).max()))
+            _close(Gv @ yv[:, 0], Gv @ np.array(y_ref), f"case {i}: G y", scale * _cond(Gv, y_ref))
+
+
+def test_learned_layer_folding():
+    """``fold_affine_ends``: the feature map, normalisation and output scaling folded into the
+    MLP's first and last ``Gemm`` (4 nodes fewer in the network, and the feature map's ``MatMul``
+    before it), the same output; a GRU keeps its first layer (its head is folded)."""
+    import torch
+
+    from torchcontact.onnx.builder import GraphBuilder
+    from torchcontact.onnx.networks import emit_learned
+    from torchcontact.onnx.step.corrections import fold_affine_ends
+    from torchcontact.residual import ResidualGRU, ResidualMLP
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    V, F = 9, 7
+    pre = np.zeros((V, F))
+    pre[rng.permutation(V)[:F], np.arange(F)] = 1.0
+    v = rng.normal(size=(3, V)).astype(np.float32)
+    for net in (ResidualMLP(F, 16, 2), ResidualGRU(F, 8, layers=1)):
+        net.set_normalisation(torch.randn(64, F), torch.randn(64, 6))
+        gb = GraphBuilder(np.float32, "learned")
+        x = gb.input("features", ["N", F])
+        h = gb.input("h_in", ["N", 1, 8]) if net.kind == "gru" else None
+        y, h_out = emit_learned(gb, net, x, h)
+        gb.op("Identity", y, out="residual")
+        gb.output("residual", ["N", 6])
+        model = gb.model()
+        shift = rng.normal(size=6)
+        new, folded, shifted = fold_affine_ends(model, pre, shift)
+        assert folded == (net.kind == "mlp") and shifted
+        feeds = {"h_in": np.zeros((3, 1, 8), np.float32)} if h else {}
+
+        def run(m, feats, feeds=feeds):
+            s = ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+            names = {i.name for i in s.get_inputs()}
+            return s.run(["residual"], {"features": feats, **{k: f for k, f in feeds.items()
+                                                              if k in names}})[0]  # fmt: skip
+
+        want = run(model, (v @ pre).astype(np.float32)) + shift.astype(np.float32)
+        got = run(new, v if folded else (v @ pre).astype(np.float32))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(np.abs(want).max()))
+        removed = len(model.graph.node) - len(new.graph.node)
+        assert removed == (4 if net.kind == "mlp" else 2), removed

@@ -134,3 +134,47 @@ def test_smoother_bad_input():
         smooth_bias(np.zeros((5, 6)), np.ones(4, bool))
     with pytest.raises(InputError, match="decrease"):
         smooth_bias(np.zeros((3, 6)), np.ones(3, bool), [0.0, 0.2, 0.1])
+
+
+def _sequential(z, free, q, x0, p0):
+    """The filter and RTS smoother frame by frame (the textbook recursions, one sensor)."""
+    n = len(z)
+    xf, pf, pp = np.zeros((n, 6)), np.zeros(n), np.zeros(n)
+    x, p = x0.copy(), p0
+    for k in range(n):
+        p = p + q[k]
+        pp[k] = p
+        g = p / (p + 1.0) if free[k] else 0.0
+        x = x + g * (z[k] - x) if free[k] else x
+        p = p * (1.0 - g)
+        xf[k], pf[k] = x, p
+    xs, ps = xf.copy(), pf.copy()
+    for k in range(n - 2, -1, -1):
+        c = pf[k] / pp[k + 1]
+        xs[k] = xf[k] + c * (xs[k + 1] - xf[k])
+        ps[k] = pf[k] + c * c * (ps[k + 1] - pp[k + 1])
+    return xf, pf, xs, ps
+
+
+def test_bias_smoother_scans_equal_the_sequential_recursions():
+    """``BiasSmoother``'s offsets by affine scans (forward in 3 chunks, backward in blocks of 50)
+    equal the frame-by-frame filter and smoother, a gated stretch and uneven steps included."""
+    from torchcontact.online.bias import BiasSmoother
+
+    rng = np.random.default_rng(4)
+    n = 400
+    z = rng.normal(size=(n, 1, 6)) + np.linspace(0.0, 2.0, n)[:, None, None]
+    free = rng.random(n) > 0.3
+    free[150:260] = False
+    t = np.cumsum(rng.uniform(0.005, 0.02, n))
+    sm = BiasSmoother(1, time_constant=0.3, period=0.01, offset=np.ones((1, 6)))
+    for a, b in ((0, 97), (97, 300), (300, n)):
+        sm.forward(z[a:b], free[a:b], t[a:b])
+    xf_scan = sm._parts and np.concatenate(sm._parts)[:, :6]
+    sm.smooth(block=50)
+    off, scale = sm.offsets(0, n)
+    q = sm.q_rate * np.diff(t, prepend=t[0])
+    xf, pf, xs, ps = _sequential(z[:, 0], free, q, np.ones(6), 1e4)
+    np.testing.assert_allclose(xf_scan, xf, rtol=0, atol=1e-12 * np.abs(xf).max())
+    np.testing.assert_allclose(off[:, 0], xs, rtol=0, atol=1e-12 * np.abs(xs).max())
+    np.testing.assert_allclose(scale[:, 0], ps, rtol=1e-12)

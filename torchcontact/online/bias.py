@@ -375,6 +375,25 @@ class BiasTrack(NamedTuple):
         return np.sqrt(self.scale[..., None] * np.diagonal(self.R, axis1=-2, axis2=-1))
 
 
+def _affine_scan(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Prefix compositions of the affine maps ``x -> a_k x + b_k`` along the first axis.
+
+    Returns ``(A, B)`` with ``x_k = A_k x_0 + B_k`` for ``x_k = a_k x_{k-1} + b_k`` (Hillis and
+    Steele's scan: ``log2 n`` passes over the arrays instead of ``n`` steps in Python).
+
+    Args:
+        a: ``(n, ...)`` factors (broadcasting against ``b``).
+        b: ``(n, ...)`` terms.
+    """
+    A, B = np.array(a, np.float64), np.array(b, np.float64)
+    s = 1
+    while s < len(A):
+        B[s:] = A[s:] * B[:-s] + B[s:]
+        A[s:] = A[s:] * A[:-s]
+        s *= 2
+    return A, B
+
+
 class BiasSmoother:
     """The forward filter and the RTS smoother over a log fed chunk by chunk (bounded memory).
 
@@ -486,24 +505,29 @@ class BiasSmoother:
         out = np.empty((n, self.width))
         xs = out[:, : 6 * S].reshape(n, S, 6)
         p_filt, p_pred = out[:, 6 * S : 7 * S], out[:, 7 * S :]
-        # the variances and gains: they depend only on the gating and the steps
-        p, gain = self._p, np.zeros((n, S))
-        for k in range(n):
-            p = p + q[k]
-            p_pred[k] = p
-            g = np.where(free[k], p / (p + 1.0), 0.0)
-            gain[k] = g
-            p = p * (1.0 - g)
-            p_filt[k] = p
-        self._p = p
-        # the offsets: x += g (z - x) on the frames that measure them
-        x = self._x
+        # the variances and gains: they depend only on the gating and the steps (a scalar
+        # recursion per sensor, on Python floats: the same arithmetic as numpy's, without its
+        # per-call cost)
+        gain = np.zeros((n, S))
+        ql = q.tolist()
+        for s in range(S):
+            p, fr = float(self._p[s]), free[:, s].tolist()
+            pp, pf, gs = [0.0] * n, [0.0] * n, [0.0] * n
+            for k in range(n):
+                p = p + ql[k]
+                pp[k] = p
+                g = p / (p + 1.0) if fr[k] else 0.0
+                gs[k] = g
+                p = p * (1.0 - g)
+                pf[k] = p
+            self._p[s] = p
+            p_pred[:, s], p_filt[:, s], gain[:, s] = pp, pf, gs
+        # the offsets: x_k = (1 - g_k) x_{k-1} + g_k z_k, a linear recurrence whose coefficients
+        # are known now: all frames at once by an affine scan
         zf = np.where(free[..., None], z, 0.0)
-        active = free.any(1)
-        for k in range(n):
-            if active[k]:
-                x = x + gain[k][:, None] * (zf[k] - x)
-            xs[k] = x
+        A, B = _affine_scan((1.0 - gain)[..., None], gain[..., None] * zf)
+        xs[...] = A * self._x + B
+        x = xs[-1].copy() if n else self._x
         self._x = x
         self.frames += n
         if self._file is not None:
@@ -542,13 +566,19 @@ class BiasSmoother:
             blk = self._read(lo, end)  # frames lo .. end - 1
             xb = blk[:, : 6 * S].reshape(-1, S, 6)
             pf, pp = blk[:, 6 * S : 7 * S], blk[:, 7 * S :]
-            for k in range(end - lo - 1, -1, -1):
-                c = pf[k] / pp_next
-                x_next = xb[k] + c[:, None] * (x_next - xb[k])
-                p_next = pf[k] + c * c * (p_next - pp_next)
-                pp_next = pp[k].copy()
-                xb[k] = x_next
-                pf[k] = p_next
+            # x_s[k] = (1 - c_k) x_f[k] + c_k x_s[k + 1] and p_s[k] = c_k^2 p_s[k + 1] + p_f[k]
+            # - c_k^2 p_pred[k + 1]: linear recurrences backward, all frames of the block at
+            # once (affine scans from the block's end)
+            ppn = np.concatenate([pp[1:], pp_next[None]])  # frame k + 1's predicted variance
+            c = pf / ppn
+            A, B = _affine_scan(c[::-1, :, None], ((1.0 - c)[..., None] * xb)[::-1])
+            xb[...] = (A * x_next + B)[::-1]
+            x_next = xb[0].copy()
+            c2 = c * c
+            A, B = _affine_scan(c2[::-1], (pf - c2 * ppn)[::-1])
+            pf[...] = (A * p_next + B)[::-1]
+            p_next = pf[0].copy()
+            pp_next = pp[0].copy()
             self._write(lo, blk)
             end = lo
 

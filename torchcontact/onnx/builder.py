@@ -26,7 +26,16 @@ import numpy as np
 
 from torchcontact._scalar import Sym, Trace
 
-__all__ = ["OPSET", "GraphBuilder", "Operand", "bilinear", "emit_program", "inline", "onnx_type"]
+__all__ = [
+    "OPSET",
+    "GraphBuilder",
+    "Operand",
+    "bilinear",
+    "emit_program",
+    "fold_linear_chains",
+    "inline",
+    "onnx_type",
+]
 
 #: ONNX opset of the graphs written here (onnxruntime >= 1.14 runs it).
 OPSET = 18
@@ -123,6 +132,28 @@ class GraphBuilder:
 
         to = helper.np_dtype_to_tensor_dtype(self.dtype if to_float else np.dtype(bool))
         return self.op("Cast", x, to=to)
+
+    def branch(self, build: Callable[[], Sequence[str]], name: str = "branch"):
+        """A subgraph (an ``If`` branch) of the nodes ``build()`` emits; returns its GraphProto.
+
+        ``build`` emits nodes through this builder as usual (they go to the subgraph; constants
+        stay initializers of the main graph, which the subgraph reads from the outer scope) and
+        returns the values the branch outputs, in order (of the graph's float dtype; a value the
+        branch does not compute, a constant or an outer value, gets an ``Identity``).
+        """
+        from onnx import helper
+
+        outer = self.nodes
+        self.nodes = []
+        try:
+            vals = list(build())
+            made = {o for n in self.nodes for o in n.output}
+            outs = [v if v in made else self.op("Identity", v) for v in vals]
+            nodes = self.nodes
+        finally:
+            self.nodes = outer
+        infos = [helper.make_tensor_value_info(o, onnx_type(self.dtype), None) for o in outs]
+        return helper.make_graph(nodes, self.fresh(name), [], infos)
 
     def model(self, metadata: dict[str, str] | None = None):
         """The ``onnx.ModelProto``."""
@@ -572,3 +603,171 @@ def inline(gb: GraphBuilder, model, prefix: str, inputs: dict[str, str]) -> dict
                 rename[x] = prefix + x
         gb.nodes.append(n)
     return {o.name: rename[o.name] for o in g.output}
+
+
+def fold_linear_chains(gb: GraphBuilder, keep: Sequence[str] = ()) -> int:
+    """Merge chains of products with constant matrices (the model's constants folded once).
+
+    A value used once, ``v = x C1 (+ c1)`` (``MatMul``/``Gemm`` with constant weights), feeding
+    ``v C2 (+ c2)`` or ``v * c`` (``c`` one scale per column) becomes one node,
+    ``x (C1 C2) (+ c1 C2 + c2)``; likewise ``Cl (Cl1 x)`` on the left. On one frame onnxruntime's
+    cost is per node (:mod:`torchcontact.onnx.step`), so each merge saves one. The products are
+    taken in float64 and stored in the graph's dtype.
+
+    Args:
+        gb: the graph, changed in place (its main graph; values read inside subgraphs are kept).
+        keep: values that must stay (graph outputs).
+
+    Returns:
+        The number of nodes removed.
+    """
+    from onnx import AttributeProto, helper, numpy_helper
+
+    const = {t.name: t for t in gb.initializers}
+    arrays: dict[str, np.ndarray] = {}
+
+    def value(name: str) -> np.ndarray | None:
+        if name not in const:
+            return None
+        if name not in arrays:
+            arrays[name] = numpy_helper.to_array(const[name]).astype(np.float64)
+        return arrays[name]
+
+    def sub_reads(graph, out: set) -> None:
+        for n in graph.node:
+            out.update(n.input)
+            for a in n.attribute:
+                if a.type == AttributeProto.GRAPH:
+                    sub_reads(a.g, out)
+                elif a.type == AttributeProto.GRAPHS:
+                    for g in a.graphs:
+                        sub_reads(g, out)
+
+    pinned = set(keep) | {o.name for o in gb.outputs}
+    for n in gb.nodes:
+        for a in n.attribute:
+            if a.type in (AttributeProto.GRAPH, AttributeProto.GRAPHS):
+                for g in [a.g] if a.type == AttributeProto.GRAPH else list(a.graphs):
+                    sub_reads(g, pinned)
+
+    def attrs(n) -> dict:
+        return {a.name: helper.get_attribute_value(a) for a in n.attribute}
+
+    def right(n):
+        """``(x, C, c)`` of ``x C + c`` (c None: no bias), or None."""
+        if n.op_type == "MatMul" and len(n.input) == 2 and value(n.input[1]) is not None:
+            C = value(n.input[1])
+            return (n.input[0], C, None) if C.ndim == 2 and value(n.input[0]) is None else None
+        if n.op_type != "Gemm" or value(n.input[0]) is not None or value(n.input[1]) is None:
+            return None
+        a = attrs(n)
+        if a.get("transA", 0) or a.get("alpha", 1.0) != 1.0 or a.get("beta", 1.0) != 1.0:
+            return None
+        C = value(n.input[1])
+        C = C.T if a.get("transB", 0) else C
+        if len(n.input) < 3 or not n.input[2]:
+            return n.input[0], C, None
+        c = value(n.input[2])
+        if c is None:
+            return None
+        return n.input[0], C, np.broadcast_to(c, (1, C.shape[1])) if c.ndim < 2 else c
+
+    def left(n):
+        """``(Cl, x)`` of a ``MatMul`` ``Cl x`` with a constant 2-D ``Cl``, or None."""
+        if n.op_type != "MatMul" or value(n.input[0]) is None or value(n.input[1]) is not None:
+            return None
+        Cl = value(n.input[0])
+        return (Cl, n.input[1]) if Cl.ndim == 2 else None
+
+    gb_new: dict[str, np.ndarray] = {}
+
+    def fresh(arr: np.ndarray) -> str:
+        """A placeholder for a new constant (made in the replaced one's dtype)."""
+        key = f"__fold{len(gb_new)}"
+        gb_new[key] = np.asarray(arr, np.float64)
+        return key
+
+    removed = 0
+    changed = True
+    while changed:
+        changed = False
+        producer = {o: n for n in gb.nodes for o in n.output}
+        uses: dict[str, int] = {}
+        for n in gb.nodes:
+            for i in n.input:
+                uses[i] = uses.get(i, 0) + 1
+        for n2 in list(gb.nodes):
+            v = n2.input[0] if n2.op_type in ("MatMul", "Gemm", "Mul") else None
+            if n2.op_type == "MatMul" and left(n2) is not None:
+                v = n2.input[1]
+            if v is None or v in pinned or uses.get(v) != 1 or v not in producer:
+                continue
+            n1 = producer[v]
+            new = None
+            if n2.op_type == "MatMul" and left(n2) is not None:
+                l1 = left(n1)
+                if l1 is not None:
+                    Cl = left(n2)[0] @ l1[0]
+                    new = helper.make_node("MatMul", [fresh(Cl), l1[1]], list(n2.output),
+                                           name=n2.name)  # fmt: skip
+            else:
+                r1 = right(n1)
+                if r1 is None:
+                    continue
+                x, C1, c1 = r1
+                if n2.op_type == "Mul":
+                    s = value(n2.input[1])
+                    if s is None or s.ndim > 2 or (s.ndim == 2 and s.shape[0] != 1):
+                        continue
+                    s = np.broadcast_to(s.reshape(1, -1), (1, C1.shape[1]))
+                    C, c = C1 * s, None if c1 is None else c1 * s
+                else:
+                    r2 = right(n2)
+                    dyn_c = None
+                    if r2 is None and n2.op_type == "Gemm":  # a dynamic C: x C1 C2 + Y
+                        a = attrs(n2)
+                        plain = a.get("alpha", 1.0) == 1.0 and a.get("beta", 1.0) == 1.0
+                        if (not plain or a.get("transA", 0) or c1 is not None
+                                or value(n2.input[1]) is None):  # fmt: skip
+                            continue
+                        C2 = value(n2.input[1])
+                        r2 = (v, C2.T if a.get("transB", 0) else C2, None)
+                        dyn_c = n2.input[2]
+                    if r2 is None:
+                        continue
+                    _, C2, c2 = r2
+                    C = C1 @ C2
+                    c = None if c1 is None else c1 @ C2
+                    if c2 is not None:
+                        c = c2 if c is None else c + c2
+                    if dyn_c is not None:
+                        new = helper.make_node("Gemm", [x, fresh(C), dyn_c], list(n2.output),
+                                               name=n2.name)  # fmt: skip
+                if new is None:
+                    if c is None and n1.op_type == "MatMul" and n2.op_type in ("MatMul", "Mul"):
+                        new = helper.make_node("MatMul", [x, fresh(C)], list(n2.output),
+                                               name=n2.name)  # fmt: skip
+                    else:
+                        bias = np.zeros((1, C.shape[1])) if c is None else c
+                        new = helper.make_node("Gemm", [x, fresh(C), fresh(bias)], list(n2.output),
+                                               name=n2.name)  # fmt: skip
+            if new is None:
+                continue
+            k = gb.nodes.index(n2)
+            # the new constants in the dtype of the ones they replace (a float32 graph's
+            # float64 solve keeps its float64)
+            dt = numpy_helper.to_array(const[next(i for i in n1.input if i in const)]).dtype
+            for j, name in enumerate(new.input):
+                if name not in const and name in gb_new:
+                    new.input[j] = gb.const(gb_new[name], dt)
+                    const[new.input[j]] = next(t for t in gb.initializers
+                                               if t.name == new.input[j])  # fmt: skip
+            gb.nodes[k] = new
+            gb.nodes.remove(n1)
+            removed += 1
+            changed = True
+            break
+    used = {i for n in gb.nodes for i in n.input} | pinned
+    gb.initializers = [t for t in gb.initializers if t.name in used]
+    gb._consts = {k: name for k, name in gb._consts.items() if name in used}
+    return removed

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from torchcontact.estimation.layout import EstimationModel
-from torchcontact.onnx.builder import GraphBuilder
+from torchcontact.onnx.builder import GraphBuilder, fold_linear_chains
 from torchcontact.onnx.format import StepLayout
 from torchcontact.onnx.step import corrections, inputs, kinematics, outputs, regions, solve
 from torchcontact.onnx.step import online as online_stage
@@ -112,6 +112,7 @@ def build_step_graph(
     v = stages(ctx, x, residuals)
     lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
                            v["status"], v["e"], v["idx"], v["states"], v["more"])  # fmt: skip
+    fold_linear_chains(ctx.gb)  # products of the model's constant matrices, taken once
     return ctx.gb.model(), ctx.lay, lay_out
 
 
@@ -199,8 +200,9 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
             ranks.append(gb.f([[0.0]]))
             resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
             continue
+        possible = solve.full_rank_possible(ctx, reg, R, chk.actK)
         y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
-                                     ctx.whitening(r, R))  # fmt: skip
+                                     ctx.whitening(r, R), possible)  # fmt: skip
         ys.append(y)
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))

@@ -31,7 +31,7 @@ from torchcontact.onnx.step.forms import (
 )
 from torchcontact.onnx.step.kinematics import bodies_to_root
 
-__all__ = ["NativeStack", "Wiring", "native_corrections", "native_stack"]
+__all__ = ["NativeStack", "Wiring", "fold_affine_ends", "native_corrections", "native_stack"]
 
 
 class Wiring:
@@ -208,8 +208,9 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         in_sensor = []
         if sums:
             k = len(sums)
+            # (the stages below are products of pose features and wrench entries only: the
+            # operands need no 1 column)
             stacked = sums[0] if k == 1 else gb.op("Concat", *sums, axis=0)
-            both = gb.op("Concat", stacked, gb.f(np.ones((k, 1))), axis=1)
 
             def to_sensor(_i, t: list, w: list, reg=reg) -> list:
                 R, _, pR, _ = tp(t)
@@ -219,14 +220,19 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
                 return [*out[0], *out[1]]  # fmt: skip
 
             ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
-                          Operand(both, 7, one=6), k, to_sensor, 6, one=False,
+                          Operand(stacked, 6), k, to_sensor, 6, one=False,
                           hint=f"ysum{r}")  # fmt: skip
             in_sensor = [gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)]
-        c = gb.f(st.offset[None, :]) if st.offset is not None else None
+        # the offset goes into the learned layer's last bias when that computes in this dtype
+        shift = st.offset if np.dtype(rg.dtype) == ctx.dtype else None
+        if st.learned is not None:
+            out, shifted = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st,
+                                    shift)  # fmt: skip
+        offset = None if st.learned is not None and shifted else st.offset
+        c = gb.f(offset[None, :]) if offset is not None else None
         if st.delta:
             c = in_sensor[-1] if c is None else gb.op("Add", c, in_sensor[-1])
         if st.learned is not None:
-            out = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st)
             c = out if c is None else gb.op("Add", c, out)
         if c is None:
             continue
@@ -234,7 +240,6 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         col[st.region, 0] = 1.0
         d = gb.op("MatMul", gb.f(col * reg.sign), c)
         ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
-        one = gb.op("Concat", c, gb.f([[1.0]]), axis=1)
 
         def to_root(_i, t: list, cs: list, reg=reg) -> list:
             R, _, pR, _ = tp(t)
@@ -242,7 +247,7 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
             return [*w[0], *w[1]]
 
         w = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
-                     Operand(one, 7, one=6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
+                     Operand(c, 6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
         W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
     return W, ws_corr
 
@@ -262,8 +267,13 @@ def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
     return bodies_to_root(ctx, TP, fd, "fdelta_root")
 
 
-def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack) -> str:
-    """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``."""
+def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack,
+             shift: np.ndarray | None = None) -> tuple[str, bool]:  # fmt: skip
+    """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
+
+    Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)`` to add) is in it
+    (folded into its last bias).
+    """
     gb = ctx.gb
     to = onnx_type(rg.dtype)
     parts = []
@@ -279,10 +289,131 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     if st.nominal:
         parts.append(nominal)
     v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
-    feeds = {"features": gb.op("Cast", gb.op("MatMul", v, gb.f(st.perm)), to=to)}
+    learned, folded, shifted = fold_affine_ends(st.learned, st.perm, shift)
+    feats = v if folded else gb.op("MatMul", v, gb.f(st.perm))
+    feeds = {"features": gb.op("Cast", feats, to=to)}
     if rg.state_shape:
         feeds["h_in"] = wiring.state_in(rg, to)
-    outs = inline(gb, st.learned, f"res{r}/", feeds)
+    outs = inline(gb, learned, f"res{r}/", feeds)
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
-    return gb.cast(outs["residual"])
+    return gb.cast(outs["residual"]), shifted
+
+
+def fold_affine_ends(model, pre: np.ndarray | None = None, shift: np.ndarray | None = None):
+    """A learned layer's graph with its constant affine ends folded into its first and last layer.
+
+    :func:`torchcontact.onnx.networks.emit_learned` writes ``z = (x - mean) / std`` before the
+    first ``Gemm`` and ``y tstd + tmean`` after the last: on one frame each is a node of its own
+    (onnxruntime's cost is per node). With ``pre`` (``(V, F)``, the features ``x = v pre``) the
+    first three become one ``Gemm`` on ``v``: ``v (pre W / std) + (b - (mean / std) W)``; the last
+    three one ``Gemm`` with ``W tstd`` and ``b tstd + tmean`` (``+ shift``). Other graphs (a GRU's
+    first layer, another network) keep what does not match.
+
+    Args:
+        model: the learned layer's ``onnx.ModelProto`` (input ``features``).
+        pre: ``(V, F)`` the map from the graph's values to the features, or None.
+        shift: ``(6,)`` a constant to add to the output (the stack's offset), or None.
+
+    Returns:
+        ``(model, folded, shifted)``: a new model (or ``model`` itself), whether its input is now
+        ``v`` (``pre`` folded in), whether its output includes ``shift``.
+    """
+    from onnx import helper, numpy_helper
+
+    g = model.graph
+    consts = {t.name: numpy_helper.to_array(t).astype(np.float64) for t in g.initializer}
+    dtype = {t.name: numpy_helper.to_array(t).dtype for t in g.initializer}
+    users: dict[str, list] = {}
+    for n in g.node:
+        for i in n.input:
+            users.setdefault(i, []).append(n)
+    producer = {o: n for n in g.node for o in n.output}
+
+    def only_user(value: str, op: str):
+        us = users.get(value, [])
+        ok = len(us) == 1 and us[0].op_type == op and all(i in consts for i in us[0].input[1:])
+        return us[0] if ok else None
+
+    def linear(n) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(W (in, out), b)`` of a plain ``Gemm``/``MatMul`` with constant weights."""
+        attrs = {a.name: helper.get_attribute_value(a) for a in n.attribute}
+        if n.op_type == "MatMul":
+            W = consts[n.input[1]]
+            return W, np.zeros(W.shape[1])
+        if (
+            attrs.get("transA", 0)
+            or attrs.get("alpha", 1.0) != 1.0
+            or attrs.get("beta", 1.0) != 1.0
+        ):
+            return None
+        W = consts[n.input[1]].T if attrs.get("transB", 0) else consts[n.input[1]]
+        b = consts[n.input[2]] if len(n.input) > 2 else np.zeros(W.shape[1])
+        return W, np.broadcast_to(b, (W.shape[1],)).astype(np.float64)
+
+    drop, add, inits = set(), {}, []
+    kind = dtype[next(iter(consts))] if consts else np.float32
+
+    def gemm(x: str, W: np.ndarray, b: np.ndarray, out: str, tag: str):
+        names = [f"folded_{tag}_W", f"folded_{tag}_b"]
+        inits.extend([numpy_helper.from_array(W.astype(kind), names[0]),
+                      numpy_helper.from_array(b.astype(kind), names[1])])  # fmt: skip
+        return helper.make_node("Gemm", [x, *names], [out], name=out)
+
+    folded = shifted = False
+    sub = only_user("features", "Sub") if pre is not None else None
+    div = sub and only_user(sub.output[0], "Div")
+    first = div and (only_user(div.output[0], "Gemm") or only_user(div.output[0], "MatMul"))
+    if first is not None and (wb := linear(first)) is not None:
+        mean, std = consts[sub.input[1]], consts[div.input[1]]
+        W, b = wb
+        Wn = np.asarray(pre, np.float64) @ (W / std.reshape(-1, 1))
+        bn = b - (mean / std).reshape(-1) @ W
+        add[first.name or first.output[0]] = gemm("features", Wn, bn, first.output[0], "in")
+        drop |= {id(sub), id(div), id(first)}
+        folded = True
+    out = g.output[0].name
+    last_add = producer.get(out)
+    if last_add is not None and last_add.op_type == "Identity":
+        last_add = producer.get(last_add.input[0])
+    mul = (
+        producer.get(last_add.input[0])
+        if last_add is not None and last_add.op_type == "Add"
+        else None
+    )
+    last = producer.get(mul.input[0]) if mul is not None and mul.op_type == "Mul" else None
+    if (last is not None and last_add.input[1] in consts and mul.input[1] in consts
+            and last.op_type in ("Gemm", "MatMul") and id(last) not in drop
+            and len(users.get(last.output[0], [])) == 1 and len(users.get(mul.output[0], [])) == 1
+            and all(i in consts for i in last.input[1:])
+            and (wb := linear(last)) is not None):  # fmt: skip
+        scale, add_ = consts[mul.input[1]].reshape(-1), consts[last_add.input[1]].reshape(-1)
+        W, b = wb
+        bias = b * scale + add_ + (0.0 if shift is None else np.asarray(shift, np.float64))
+        add[last.name or last.output[0]] = gemm(last.input[0], W * scale, bias,
+                                                last_add.output[0], "out")  # fmt: skip
+        shifted = shift is not None
+        drop |= {id(mul), id(last_add), id(last)}
+    if not drop:
+        return model, False, False
+    nodes = []
+    for n in g.node:
+        if id(n) in drop:
+            key = n.name or n.output[0]
+            if key in add:
+                nodes.append(add[key])
+            continue
+        nodes.append(n)
+    inputs = list(g.input)
+    if folded:
+        x = next(i for i in inputs if i.name == "features")
+        shape = [d.dim_param or d.dim_value for d in x.type.tensor_type.shape.dim]
+        new_x = helper.make_tensor_value_info("features", x.type.tensor_type.elem_type,
+                                              [shape[0], int(np.shape(pre)[0])])  # fmt: skip
+        inputs = [new_x if i.name == "features" else i for i in inputs]
+    used = {i for n in nodes for i in n.input}
+    kept = [t for t in g.initializer if t.name in used]
+    graph = helper.make_graph(nodes, g.name, inputs, list(g.output), initializer=kept + inits)
+    new = helper.make_model(graph, opset_imports=list(model.opset_import))
+    new.ir_version = model.ir_version
+    return new, folded, shifted
