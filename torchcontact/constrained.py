@@ -24,7 +24,8 @@ predictor-corrector steps (Mehrotra 1992) with Nesterov-Todd scaling of the seco
 (Nesterov & Todd 1997; the formulation of Vandenberghe, *The CVXOPT linear and quadratic cone
 program solvers*, 2010, Sec. 5-6, as used by ECOS and Clarabel). Each iteration factors the
 ``u x u`` Newton matrix ``A^T A + eps I + sum_k C_k^T W_k^{-2} C_k`` once (plain Cholesky: it is
-positive definite) and solves it for the predictor and the corrector right sides. Why this, for
+positive definite) and solves it for the predictor and the corrector right sides (the MAP
+objective: one solve, see Objectives). Why this, for
 batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of frames):
 
 * **Accuracy at a fixed budget, from a cold start.** The iteration count of an interior-point
@@ -99,11 +100,16 @@ measured 68 of 13,013 warm-started frames unconverged, up to 45 N off, all marke
 **Objectives** (:class:`FrictionCones`): the minimum-norm point above (``"min_norm"``), or the
 maximum a posteriori estimate under :class:`ForcePrior` (``"map"``, the default in float64):
 ``1/2 |A x - b|^2 + (eps + 1/s^2)/2 |x|^2 - nu/2 sum_k log((C_k x)^T J (C_k x))``, the point
-of the central path at ``nu`` (``s o z = nu e``), which the same iterations reach when the
-predictor aims at ``nu e`` and the centring goes from ``mu`` to ``nu`` (Mehrotra's second-order
-term is left out there: with it 3 % of multi-contact frames stalled at step length ~0 near a
-cone's boundary). A frame stops after a full step that leaves ``|s o z - nu e|`` at rounding
-level. ``docs/accuracy.md`` compares the objectives on held-out data.
+of the central path at ``nu`` (``s o z = nu e``), which the same iterations reach when each
+step aims at ``nu + sigma (mu - nu)`` instead of ``sigma mu``. There a step is one solve, with
+``sigma = 1 - alpha`` of the previous step's length ``alpha`` (after a full step straight at
+``nu``): Mehrotra's second-order term was left out first (with it 3 % of multi-contact frames
+stalled at step length ~0 near a cone's boundary), and then the predictor had no other use than
+``sigma``; without it the weighted estimator's time on the iCub benchmark fell by 12 % (CPU
+kernels, 20,000 frames: 66 to 59 ms) for about 5 % more iterations (7.8 against 7.4 per solved
+frame; a fixed ``sigma`` of 0 stalls frames far outside their cones, 0.05 to 0.3 needs 9.7 to
+20). A frame stops after a full step that leaves ``|s o z - nu
+e|`` at rounding level. ``docs/accuracy.md`` compares the objectives on held-out data.
 
 Everything is written on scalars (:mod:`torchcontact._scalar`): it runs eagerly on ``(N,)``
 tensors (CPU, CUDA, ONNX export) and inside generated kernels. :func:`cone_constrained_lstsq` is
@@ -605,8 +611,7 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
     solve aiming at ``nu + sigma (mu - nu)`` with ``sigma = 1 - alpha_prev`` (the previous step's
     length: after a full step straight at ``nu``, after a short one closer to the current
     ``mu``), so that the point of the central path at ``nu`` is a fixed point of the step. The
-    predictor's only use there was ``sigma``; without it an iteration costs 12 % less of the
-    whole estimator on the iCub benchmark, at as many iterations (``docs/accuracy.md``).
+    predictor's only use there was ``sigma`` (module docstring, Objectives).
     """
     cones, on, u = pb.cones, pb.on, len(x)
     # ---- residuals of the KKT conditions P x + q - C^T z = 0, C x - s = 0
