@@ -82,10 +82,10 @@ readings a frame did not converge in 25 iterations; from ``scale sqrt(nu)`` it t
 Warm, ``mu0 = nu``: the previous frame's estimate with the duals its own optimality gives
 (slacks :data:`WARM_MARGIN` inside the cones). Measured (``docs/accuracy.md``): held-out iCub
 frames, 7.8 iterations per solved frame against 10.5 before, at most 13 against 17, the answers
-equal to 5e-7 N; a smooth simulated tcarm log, 4.4 warm-started and 8.2 cold against 8.6 and
-8.2 with the min-norm start's duals. From an unrelated predecessor the warm start is poor
-(a start at ``nu`` far from the answer crawls as above) and the frame restarts cold: warm-start
-consecutive frames only (as :class:`PreviousFrame` and the log pipeline do).
+equal to 5e-7 N; a smooth simulated tcarm log, 4.4 warm-started and 8.2 cold (7.0 and 10.7
+before; 8.6 warm-started with the min-norm start's duals). From an unrelated predecessor the
+warm start is poor (a start at ``nu`` far from the answer crawls as above) and the frame restarts
+cold: warm-start consecutive frames only (as :class:`PreviousFrame` and the log pipeline do).
 
 **Status per frame.** ``iterations`` (the iterations the frame ran until it stopped; the budget
 if it never did; 0 when the pseudo-inverse solution was the answer), ``converged`` (it stopped
