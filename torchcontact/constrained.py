@@ -40,8 +40,9 @@ batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of fram
 * **Cost.** The iterations are one :func:`torchcontact._scalar.loop`: a generated kernel holds
   the code of one iteration and leaves the loop once every frame of its vector block has stopped
   (a frame stops when its iterate no longer moves, see below), so the cost follows the frames'
-  own iteration counts (13 on average, 14 per block of four on the iCub with four contacts),
-  not the budget. Square cones (a force's friction cone) are solved in cone coordinates
+  own iteration counts (held-out iCub frames with one to four contacts, ``benchmarks/cones.py``:
+  the MAP objective 7.8 per solved frame and 8.2 per block of four, min-norm 12.4 per solved
+  frame), not the budget. Square cones (a force's friction cone) are solved in cone coordinates
   ``y = C_k x`` (``A C_k^-1`` formed once per frame), where ``C_k = I`` and the iterations skip
   every product with it. One ``u x u`` Cholesky per iteration (about ``u^3 / 6`` multiply-adds:
   288 for four pure forces): a Woodbury (capacitance) form through the ``R x R`` matrix
@@ -256,9 +257,10 @@ class FrictionCones:
 
     Attributes:
         iterations: interior-point iteration budget (the exported graph runs all of it;
-            kernels and eager torch stop when every frame has stopped). Measured on the iCub
-            with four contacts: frames stop after 9 to 22 iterations in float64 (13 on
-            average), 7 to 16 in float32 (10).
+            kernels and eager torch stop when every frame has stopped). Measured on held-out
+            iCub frames with one to four contacts in float64: the MAP objective's frames stop
+            after at most 13 iterations (7.8 on average), the min-norm objective's after at
+            most 23 (12.4); with four contacts in float32 (min-norm) 7 to 16 (10).
         eps: regularisation ``eps`` of ``|A x - b|^2 + eps |x|^2`` (default
             :data:`DEFAULT_EPS` of the model's dtype).
         tol: tolerance of the ``converged`` flag on a stopped frame's relative KKT residuals
