@@ -26,8 +26,8 @@ answer; and the throughput of the constrained (MAP) estimator over the unconstra
 weighted, timed alternately in this run (generated CPU kernels, one thread).
 
 Run: ``python benchmarks/cones.py [--frames 20000] [--ref-frames 150] [--sets all|main]
-[--backend cpu|eager] [--rounds 5]`` (iDynTree and icub-models from the test extra, trimesh from
-the meshes extra). On a shared machine report the ratios, not the frames/s.
+[--backend cpu|eager] [--rounds 5] [--throughput-only]`` (iDynTree and icub-models from the
+test extra, trimesh from the meshes extra). On a shared machine report the ratios, not the frames/s.
 """
 
 from __future__ import annotations
@@ -53,6 +53,8 @@ def main() -> None:
     ap.add_argument("--backend", default="cpu")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--steps", type=int, default=20_000, help="Metropolis steps (posterior mean)")
+    ap.add_argument("--throughput-only", action="store_true",
+                    help="only the throughput rows, main set")  # fmt: skip
     args = ap.parse_args()
 
     from _cone_data import (
@@ -86,7 +88,7 @@ def main() -> None:
         "cone MAP w": {"constraints": tc.FrictionCones(), "ft_covariance": cov},
     }
     sets = [(m, d) for m in MAGNITUDES for d in DIRECTIONS]
-    if args.sets == "main":
+    if args.sets == "main" or args.throughput_only:
         sets = sets[:1]
     for si, (mag, dirn) in enumerate(sets):
         n = args.frames if si == 0 else args.other_frames
@@ -95,6 +97,9 @@ def main() -> None:
         print(f"\n## |f| {mag}, directions {dirn} in the {HALF_ANGLE} rad cone: {n} frames"
               f" (iDynTree readings + FT 300 noise, {time.perf_counter() - t0:.0f} s)")  # fmt: skip
         inputs = (fr["q"], fr["qd"], fr["qdd"], fr["ft"], fr["contacts"])
+        if args.throughput_only:
+            _throughput(est, inputs, cov, args.rounds, rate)
+            return
         res = {name: est.estimate(*inputs, **kw) for name, kw in est_kw.items()}
         errs = {name: _errors(r.force, fr) for name, r in res.items()}
         count = fr["count"]

@@ -24,7 +24,8 @@ predictor-corrector steps (Mehrotra 1992) with Nesterov-Todd scaling of the seco
 (Nesterov & Todd 1997; the formulation of Vandenberghe, *The CVXOPT linear and quadratic cone
 program solvers*, 2010, Sec. 5-6, as used by ECOS and Clarabel). Each iteration factors the
 ``u x u`` Newton matrix ``A^T A + eps I + sum_k C_k^T W_k^{-2} C_k`` once (plain Cholesky: it is
-positive definite) and solves it for the predictor and the corrector right sides. Why this, for
+positive definite) and solves it for the predictor and the corrector right sides (the MAP
+objective: one solve, see Objectives). Why this, for
 batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of frames):
 
 * **Accuracy at a fixed budget, from a cold start.** The iteration count of an interior-point
@@ -39,8 +40,9 @@ batched small problems (``u`` = 3 to 18 unknowns, 1 to 6 cones, millions of fram
 * **Cost.** The iterations are one :func:`torchcontact._scalar.loop`: a generated kernel holds
   the code of one iteration and leaves the loop once every frame of its vector block has stopped
   (a frame stops when its iterate no longer moves, see below), so the cost follows the frames'
-  own iteration counts (13 on average, 14 per block of four on the iCub with four contacts),
-  not the budget. Square cones (a force's friction cone) are solved in cone coordinates
+  own iteration counts (held-out iCub frames with one to four contacts, ``benchmarks/cones.py``:
+  the MAP objective 7.8 per solved frame and 8.2 per block of four, min-norm 12.4 per solved
+  frame), not the budget. Square cones (a force's friction cone) are solved in cone coordinates
   ``y = C_k x`` (``A C_k^-1`` formed once per frame), where ``C_k = I`` and the iterations skip
   every product with it. One ``u x u`` Cholesky per iteration (about ``u^3 / 6`` multiply-adds:
   288 for four pure forces): a Woodbury (capacitance) form through the ``R x R`` matrix
@@ -69,6 +71,23 @@ moved inside the cones and the duals at a multiple of the cone's centre, as inte
 methods require (the dual of the previous frame is not reused: a point on the cone boundary is
 a poor start).
 
+**Starting point of the MAP objective.** Its iterations end on the central path at ``nu``, not at
+complementarity 0, so its duals start on the central path's complementarity, ``z = mu0 s^-1``
+(``s o z = mu0 e``, ``s^-1 = J s / (s^T J s)``). Cold, ``mu0 = scale sqrt(nu)``: the geometric
+mean of the target ``nu`` and the ``scale^2`` of duals at the cones' centre (the min-norm start,
+which begins ~1e6 times above ``nu`` on the iCub and spends about 5 iterations coming down).
+Starting at ``nu`` itself is faster on the iCub (5.1 iterations) but leaves a frame whose
+pseudo-inverse estimate lies far outside its cone crawling (``z`` must grow by orders of
+magnitude while ``s`` may move only 99 % of the way to the boundary per step: on random tcarm
+readings a frame did not converge in 25 iterations; from ``scale sqrt(nu)`` it takes 16).
+Warm, ``mu0 = nu``: the previous frame's estimate with the duals its own optimality gives
+(slacks :data:`WARM_MARGIN` inside the cones). Measured (``docs/accuracy.md``): held-out iCub
+frames, 7.8 iterations per solved frame against 10.5 before, at most 13 against 17, the answers
+equal to 5e-7 N; a smooth simulated tcarm log, 4.4 warm-started and 8.2 cold (7.0 and 10.7
+before; 8.6 warm-started with the min-norm start's duals). From an unrelated predecessor the
+warm start is poor (a start at ``nu`` far from the answer crawls as above) and the frame restarts
+cold: warm-start consecutive frames only (as :class:`PreviousFrame` and the log pipeline do).
+
 **Status per frame.** ``iterations`` (the iterations the frame ran until it stopped; the budget
 if it never did; 0 when the pseudo-inverse solution was the answer), ``converged`` (it stopped
 and its relative KKT residuals meet ``tol``) and per cone ``active`` (the constraint binds: the
@@ -82,11 +101,16 @@ measured 68 of 13,013 warm-started frames unconverged, up to 45 N off, all marke
 **Objectives** (:class:`FrictionCones`): the minimum-norm point above (``"min_norm"``), or the
 maximum a posteriori estimate under :class:`ForcePrior` (``"map"``, the default in float64):
 ``1/2 |A x - b|^2 + (eps + 1/s^2)/2 |x|^2 - nu/2 sum_k log((C_k x)^T J (C_k x))``, the point
-of the central path at ``nu`` (``s o z = nu e``), which the same iterations reach when the
-predictor aims at ``nu e`` and the centring goes from ``mu`` to ``nu`` (Mehrotra's second-order
-term is left out there: with it 3 % of multi-contact frames stalled at step length ~0 near a
-cone's boundary). A frame stops after a full step that leaves ``|s o z - nu e|`` at rounding
-level. ``docs/accuracy.md`` compares the objectives on held-out data.
+of the central path at ``nu`` (``s o z = nu e``), which the same iterations reach when each
+step aims at ``nu + sigma (mu - nu)`` instead of ``sigma mu``. There a step is one solve, with
+``sigma = 1 - alpha`` of the previous step's length ``alpha`` (after a full step straight at
+``nu``): Mehrotra's second-order term was left out first (with it 3 % of multi-contact frames
+stalled at step length ~0 near a cone's boundary), and then the predictor had no other use than
+``sigma``; without it the weighted estimator's time on the iCub benchmark fell by 12 % (CPU
+kernels, 20,000 frames: 66 to 59 ms) for about 5 % more iterations (7.8 against 7.4 per solved
+frame; a fixed ``sigma`` of 0 stalls frames far outside their cones, 0.05 to 0.3 needs 9.7 to
+20). A frame stops after a full step that leaves ``|s o z - nu
+e|`` at rounding level. ``docs/accuracy.md`` compares the objectives on held-out data.
 
 Everything is written on scalars (:mod:`torchcontact._scalar`): it runs eagerly on ``(N,)``
 tensors (CPU, CUDA, ONNX export) and inside generated kernels. :func:`cone_constrained_lstsq` is
@@ -154,8 +178,9 @@ STOP_GAP: dict[torch.dtype, float] = {torch.float64: 1e-16, torch.float32: 1e-11
 #: reached its rounding floor (measured: 1e-16 to 1e-15 on infeasible problems in float64).
 STALL_GAP: dict[torch.dtype, float] = {torch.float64: 1e-14, torch.float32: 1e-8}
 #: Slacks of a warm start are moved inside the cones by the first of these times the scale
-#: ``1 + |C x0|``, its duals start at the second times the scale (cold: 0.1 and 1): a warm start
-#: is taken to be near the solution. Measured: on a simulated tcarm log (smooth motion, contacts
+#: ``1 + |C x0|``, its duals start at the second times the scale (cold: 0.1 and 1; the MAP
+#: objective's duals start at ``nu s^-1`` warm, see the module docstring): a warm start is taken
+#: to be near the solution. Measured: on a simulated tcarm log (smooth motion, contacts
 #: held 0.3 to 3 s), from each frame's predecessor, 7.3 iterations on average against 11.4 cold;
 #: from an unrelated frame's estimate (iCub, four contacts) 14.1 against 12.7.
 WARM_MARGIN = (1e-3, 1e-2)
@@ -232,9 +257,10 @@ class FrictionCones:
 
     Attributes:
         iterations: interior-point iteration budget (the exported graph runs all of it;
-            kernels and eager torch stop when every frame has stopped). Measured on the iCub
-            with four contacts: frames stop after 9 to 22 iterations in float64 (13 on
-            average), 7 to 16 in float32 (10).
+            kernels and eager torch stop when every frame has stopped). Measured on held-out
+            iCub frames with one to four contacts in float64: the MAP objective's frames stop
+            after at most 13 iterations (7.8 on average), the min-norm objective's after at
+            most 23 (12.4); with four contacts in float32 (min-norm) 7 to 16 (10).
         eps: regularisation ``eps`` of ``|A x - b|^2 + eps |x|^2`` (default
             :data:`DEFAULT_EPS` of the model's dtype).
         tol: tolerance of the ``converged`` flag on a stopped frame's relative KKT residuals
@@ -573,12 +599,21 @@ class _Problem(NamedTuple):
     nu: Scalar  # the barrier weight: the iterates go to the point of the central path s o z = nu e
 
 
-def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Scalar]]):
-    """One Mehrotra predictor-corrector step from ``(x, s, z)``: the next iterate and its length.
+#: The previous step length a centred solve's first iteration assumes (its centring ``sigma = 1 -
+#: alpha``: halfway from ``mu`` to ``nu``).
+ALPHA0 = 0.5
 
-    With ``nu > 0`` the complementarity target is ``s o z = nu e`` instead of 0: the predictor
-    aims at it and the centring term goes from ``mu`` to ``nu``, so that the point of the central
-    path at ``nu`` is a fixed point of the step (both corrections vanish there).
+
+def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Scalar]],
+          alpha_prev: Scalar = ALPHA0):  # fmt: skip
+    """One interior-point step from ``(x, s, z)``: the next iterate and its length.
+
+    With ``nu = 0`` a Mehrotra predictor-corrector step (two solves of one factorization). With
+    ``nu > 0`` the complementarity target is ``s o z = nu e`` instead of 0 and the step is one
+    solve aiming at ``nu + sigma (mu - nu)`` with ``sigma = 1 - alpha_prev`` (the previous step's
+    length: after a full step straight at ``nu``, after a short one closer to the current
+    ``mu``), so that the point of the central path at ``nu`` is a fixed point of the step. The
+    predictor's only use there was ``sigma`` (module docstring, Objectives).
     """
     cones, on, u = pb.cones, pb.on, len(x)
     # ---- residuals of the KKT conditions P x + q - C^T z = 0, C x - s = 0
@@ -605,29 +640,26 @@ def _step(pb: _Problem, x: list[Scalar], s: list[list[Scalar]], z: list[list[Sca
                 blk = mul(inv_eta2, sub(mul(2.0, mul(g[a], g[bb])), pb.CJC[k][a][bb]))
                 H[i][j] = add(H[i][j], select(on[k], blk, 0.0))
     L = cholesky([[H[max(i, j)][min(i, j)] for j in range(u)] for i in range(u)], pb.floor)
-    # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
     nu = pb.nu
-    if is_const(nu) and nu == 0:
-        v_a = [[neg(v) for v in lk] for lk in lam]
-    else:  # lam o (W dz + W^-1 ds) = nu e - lam o lam
-        v_a = []
-        for lk in lam:
-            ll = _jordan(lk, lk)
-            v_a.append(_jordan_solve(lk, [sub(nu, ll[0]), neg(ll[1]), neg(ll[2])]))
-    dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, v_a)
-    T_a = _inv_step(on, s, z, ds_a, dz_a)
-    alpha_a = select(gt(T_a, 1.0), div(1.0, _max(T_a, 1.0)), 1.0)
+    centred = not (is_const(nu) and nu == 0)
     mu = mul(sum_([select(on[k], _dot(s[k], z[k]), 0.0) for k in range(len(cones))]), pb.inv_m)
-    one_minus = sub(1.0, alpha_a)
-    sigma = mul(mul(one_minus, one_minus), one_minus)
+    if centred:  # no predictor: the centring follows the previous step's length
+        sigma = sub(1.0, alpha_prev)
+    else:  # ---- predictor (affine scaling): lam o (W dz + W^-1 ds) = -lam o lam
+        v_a = [[neg(v) for v in lk] for lk in lam]
+        dx_a, ds_a, dz_a = _newton(cones, on, L, rd, rp, scs, v_a)
+        T_a = _inv_step(on, s, z, ds_a, dz_a)
+        alpha_a = select(gt(T_a, 1.0), div(1.0, _max(T_a, 1.0)), 1.0)
+        one_minus = sub(1.0, alpha_a)
+        sigma = mul(mul(one_minus, one_minus), one_minus)
     # ---- corrector (Mehrotra): lam o (W dz + W^-1 ds) = -(lam o lam + (W^-1 ds_a) o (W dz_a)
-    # - sigma mu e), the same factorization
+    # - sigma mu e), the same factorization; centred: the step itself
     vs = []
     for k in range(len(cones)):
         ll = _jordan(lam[k], lam[k])
-        corr = _jordan(_w_apply(scs[k], ds_a[k], inverse=True),
-                       _w_apply(scs[k], dz_a[k], inverse=False))  # fmt: skip
-        if is_const(nu) and nu == 0:
+        if not centred:
+            corr = _jordan(_w_apply(scs[k], ds_a[k], inverse=True),
+                           _w_apply(scs[k], dz_a[k], inverse=False))  # fmt: skip
             target = mul(sigma, mu)
         else:
             # towards the central path at nu: no second-order term, which stalls the step near
@@ -799,11 +831,20 @@ def solve_cones(
         scale = add(1.0, sqrt(size2))
         margin = mul(select(warm, WARM_MARGIN[0], 0.1), scale)
         dual0 = mul(select(warm, WARM_MARGIN[1], 1.0), scale)
+        # the MAP objective's duals (module docstring, "Starting point of the MAP objective"):
+        # on the central path's complementarity at scale sqrt(nu) cold, at nu itself warm
+        mu0 = select(warm, nu, mul(sqrt(nu), scale)) if centred else 0.0
         s0, z0 = [], []
         for o, v in zip(on, st, strict=True):
             shift = _max(sub(margin, _eig_min(v)), 0.0)
-            s0.append(_on3(o, [add(v[0], shift), v[1], v[2]], e))
-            z0.append(_on3(o, [dual0, 0.0, 0.0], e))
+            sk = [add(v[0], shift), v[1], v[2]]
+            s0.append(_on3(o, sk, e))
+            if centred:  # s o z = mu0 e: z = mu0 s^-1, s^-1 = J s / (s^T J s)
+                inv = div(mu0, _jdot(sk, sk))
+                z0.append(_on3(o, [mul(inv, sk[0]), neg(mul(inv, sk[1])), neg(mul(inv, sk[2]))],
+                               e))  # fmt: skip
+            else:
+                z0.append(_on3(o, [dual0, 0.0, 0.0], e))
         return [*x0, *(v for sk in s0 for v in sk), *(v for zk in z0 for v in zk)]
 
     gap_stop = mul(stop[0], add(1.0, qq))
@@ -813,16 +854,17 @@ def solve_cones(
         gap_stop = mul(100.0 * stop[0], nu2m)
         gap_stall = mul(100.0 * stop[1], nu2m)
 
-    def unpack(state: Sequence[Scalar]) -> tuple[list, list, list, Scalar, Scalar, Scalar]:
+    def unpack(state: Sequence[Scalar]) -> tuple[list, list, list, Scalar, Scalar, Scalar, Scalar]:
+        # x, s, z, iterations, stopped, the previous gap and step length
         x = list(state[:u])
         s = [list(state[u + 3 * k : u + 3 * k + 3]) for k in range(m)]
         z = [list(state[u + 3 * m + 3 * k : u + 3 * m + 3 * k + 3]) for k in range(m)]
-        return x, s, z, *state[u + 6 * m : u + 6 * m + 3]
+        return x, s, z, *state[u + 6 * m : u + 6 * m + 4]
 
     def body(state: list[Scalar]) -> tuple[list[Scalar], Scalar]:
-        x, s, z, count, stopped, gap_prev = unpack(state)
+        x, s, z, count, stopped, gap_prev, alpha_prev = unpack(state)
         frozen = gt(stopped, 0.5)
-        x_new, s_new, z_new, alpha = _step(pb, x, s, z)
+        x_new, s_new, z_new, alpha = _step(pb, x, s, z, alpha_prev)
         # ---- take the step unless it went non-finite or the frame has stopped
         ok = isfinite(sum_([*x_new, *(v for sk in s_new for v in sk),
                             *(v for zk in z_new for v in zk)]))  # fmt: skip
@@ -846,19 +888,19 @@ def solve_cones(
             near = logical_or(logical_not(gt(gap, gap_stop)), stall)
             halt = logical_or(frozen, logical_and(full, near))
         new = [*x, *(v for sk in s for v in sk), *(v for zk in z for v in zk), count,
-               select(halt, 1.0, 0.0), select(frozen, gap_prev, gap)]  # fmt: skip
+               select(halt, 1.0, 0.0), select(frozen, gap_prev, gap), alpha]  # fmt: skip
         return new, halt
 
     def converged(state: Sequence[Scalar]) -> Scalar:
-        x, s, z, _, stopped, _ = unpack(state)
+        x, s, z, _, stopped, _, _ = unpack(state)
         kkt = _converged(P, q, qq, cones, on, x, s, z, tol, nu if centred else 0.0, m_on)
         return logical_and(gt(stopped, 0.5), kkt)
 
     if x_start is None:
         start_on = False
     x0 = [select(start_on, a, b_) for a, b_ in zip(x_start or x_pinv, x_pinv, strict=True)]
-    cold = [*start(list(x_pinv), False), 0.0, select(inside0, 1.0, 0.0), float("inf")]
-    init = cold if x_start is None else [*start(x0, start_on), *cold[-3:]]
+    cold = [*start(list(x_pinv), False), 0.0, select(inside0, 1.0, 0.0), float("inf"), ALPHA0]
+    init = cold if x_start is None else [*start(x0, start_on), *cold[-4:]]
     state = loop(iterations, body, init)
     if x_start is not None:
         # ---- a warm-started frame that did not converge starts again from x_pinv, cold, with
@@ -868,9 +910,9 @@ def solve_cones(
         count1 = state[u + 6 * m]
         init2 = [select(redo, a, b_) for a, b_ in zip(cold[: u + 6 * m], state[: u + 6 * m],
                                                      strict=True)]  # fmt: skip
-        init2 += [count1, select(redo, 0.0, 1.0), select(redo, float("inf"), state[-1])]
+        init2 += [count1, select(redo, 0.0, 1.0), select(redo, float("inf"), state[-2]), ALPHA0]
         state = loop(iterations, body, init2)
-    x, s, z, count, stopped, _ = unpack(state)
+    x, s, z, count, stopped, _, _ = unpack(state)
     # active: the slack is on the cone's boundary (or apex) to within ACTIVE_RTOL of its size
     # plus one unit (N), so a slack at the apex (size ~0) counts; the dual alone cannot tell, as
     # it is only eps-sized when the cone merely picks a point of the least-squares set
