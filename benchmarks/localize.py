@@ -369,6 +369,13 @@ def validate_sequences(setup, runs, run_frames, rng):
                 row[f"median_{mode}"] = float(np.median(err)) if len(err) else np.nan
                 row[f"ambiguous_{mode}"] = float(((code[above] & 16) != 0).mean())
                 row[f"prior_{mode}"] = float(((code[above] & 256) != 0).mean())
+                wrong = above & (got != link)
+                several = (code & (16 | 256)) != 0
+                row[f"miss_{mode}"] = tuple(
+                    int(x.sum())
+                    for x in (wrong & (got < 0), wrong & (got >= 0) & several,
+                              wrong & (got >= 0) & ~several)
+                )  # fmt: skip
             rows.append(row)
     return rows
 
@@ -380,14 +387,16 @@ def print_sequences(rows, run_frames):
     )
     print("| robot | force (N) | noise | frames (runs) | correct link, frame by frame |"
           " correct link, temporal prior | ambiguous left | resolved by the prior |"
-          " median error (mm), frame by frame / prior |")  # fmt: skip
-    print("| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+          " median error (mm), frame by frame / prior | misses: no point / several entries /"
+          " one entry, frame by frame; prior |")  # fmt: skip
+    print("| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(
             f"| {r['robot']} | {r['force']:g} | {r['noise']} | {r['frames']} ({r['runs']}) |"
             f" {100 * r['correct_frame']:.1f} % | {100 * r['correct_prior']:.1f} % |"
             f" {100 * r['ambiguous_prior']:.1f} % | {100 * r['prior_prior']:.1f} % |"
             f" {r['median_frame']:.2f} / {r['median_prior']:.2f} |"
+            f" {'/'.join(map(str, r['miss_frame']))}; {'/'.join(map(str, r['miss_prior']))} |"
         )
 
 

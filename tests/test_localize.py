@@ -489,6 +489,8 @@ def _temporal_prior_loop(status, link, pos, starts):
         if not anchors:
             continue
         votes = np.bincount([link[i] for i in anchors])
+        if 3 * votes.max() < 2 * len(anchors):
+            continue
         anchors = [i for i in anchors if link[i] == int(np.argmax(votes))]
         for i in run:
             if status[i] & 16:
@@ -554,6 +556,21 @@ def test_prior_and_sequence_resolve_two_links_on_the_line(arm):
     assert rs.status.tolist() == [0, 0, 256, 256, 256, 2, 16, 16, 16, 2, 0, 256, 16]
     assert (rs.link[[2, 3, 4, 11]] == hand).all()
     torch.testing.assert_close(rs.position[[2, 3, 4, 11]], p.expand(4, 3), atol=1e-9, rtol=0)
+    # the log chunk function: the same, and a skin contact in the region ends a run
+    from torchcontact.contacts import ContactRecords
+    from torchcontact.localize import localize_chunk
+
+    npy = [x.numpy() for x in (q, q, q)]
+    skin = ContactRecords([1], ["hand"], ["force"], np.zeros((1, 3)))
+    for temporal, want in ((False, r.status.tolist()), (True, rs.status.tolist())):
+        lc = localize_chunk(loc, *npy, {"base_ft": ft["base_ft"].numpy()}, ContactRecords.empty(),
+                            starts=starts.numpy(), temporal=temporal)  # fmt: skip
+        assert lc.columns["localize_status_code.base_ft"].to_pylist() == want
+        assert (lc.records.frame == np.flatnonzero(np.isin(want, [0, 256]))).all()
+    lc = localize_chunk(loc, *npy, {"base_ft": ft["base_ft"].numpy()}, skin,
+                        starts=starts.numpy(), temporal=True)  # fmt: skip
+    code = lc.columns["localize_status_code.base_ft"].to_pylist()
+    assert code[:5] == [0, 32, 16, 16, 16]  # frame 1 has skin: frames 2-4 follow frame 0 no more
     with pytest.raises(InputError, match="starts"):
         loc.localize_sequence(q, q, q, ft, starts=starts[:3])
     with pytest.raises(InputError, match="prior"):

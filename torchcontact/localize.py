@@ -1346,10 +1346,10 @@ def temporal_prior(
     A contact persists while it lasts: within a *run* (consecutive frames whose status has none
     of the bits 1, 2, 32: a force above the threshold, finite input, no skin contact; cut at
     time segment starts), an ambiguous frame (bit 16) takes as its prior the link and point of
-    the nearest frame with status 0 of the same run (the earlier one on a tie) whose link is the
-    one most of the run's status-0 frames are on (noise near a silhouette flips a few frames to
-    the other link). Vectorised with running maxima and minima of frame indices and per-run
-    votes, no loop over frames.
+    the nearest frame with status 0 of the same run (the earlier one on a tie) on the link that
+    at least two thirds of the run's status-0 frames are on (noise near a silhouette flips a few
+    frames to the other link; a run without such a majority gets no prior). Vectorised with
+    running maxima and minima of frame indices and per-run votes, no loop over frames.
 
     Args:
         status: ``(N,)`` int64 localization status bits (:data:`LOCALIZE_STATUS`).
@@ -1378,7 +1378,10 @@ def temporal_prior(
         votes = torch.zeros(n, L, dtype=torch.int64, device=idx.device)
         votes.index_put_((run_lo[anchor], link[anchor]), torch.ones_like(link[anchor]),
                          accumulate=True)  # fmt: skip
-        anchor &= link == votes.argmax(1)[run_lo.clamp_min(0)]
+        best, top = votes.max(1)
+        clear = 3 * best >= 2 * votes.sum(1)  # two thirds of the run's anchors on one link
+        rl = run_lo.clamp_min(0)
+        anchor &= (link == top[rl]) & clear[rl]
     before = torch.cummax(torch.where(anchor, idx, -1), 0).values
     after = torch.flip(torch.cummin(torch.flip(torch.where(anchor, idx, n), [0]), 0).values, [0])
     ok_b = before >= run_lo
