@@ -571,6 +571,8 @@ def test_prior_and_sequence_resolve_two_links_on_the_line(arm):
                         starts=starts.numpy(), temporal=True)  # fmt: skip
     code = lc.columns["localize_status_code.base_ft"].to_pylist()
     assert code[:5] == [0, 32, 16, 16, 16]  # frame 1 has skin: frames 2-4 follow frame 0 no more
+    empty = loc.localize_sequence(q[:0], q[:0], q[:0], {"base_ft": ft["base_ft"][:0]})
+    assert empty["base_ft"].status.shape == (0,) and empty["base_ft"].position.shape == (0, 3)
     with pytest.raises(InputError, match="starts"):
         loc.localize_sequence(q, q, q, ft, starts=starts[:3])
     with pytest.raises(InputError, match="prior"):

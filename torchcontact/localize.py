@@ -908,7 +908,7 @@ class Localizer:
             if x.shape[: x.dim() - len(trailing)] != batch:
                 raise InputError(f"{name} must be {shape} with B={tuple(batch)}, got"
                                  f" {tuple(x.shape)}")  # fmt: skip
-            return flatten_batch(x, batch, len(trailing)).reshape(n, -1)
+            return flatten_batch(x, batch, len(trailing)).reshape(n, math.prod(trailing))
 
         tensors = {k: per_frame(k, x, (nv,)) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
         for i, s in enumerate(names):
