@@ -571,6 +571,16 @@ def test_prior_and_sequence_resolve_two_links_on_the_line(arm):
                         starts=starts.numpy(), temporal=True)  # fmt: skip
     code = lc.columns["localize_status_code.base_ft"].to_pylist()
     assert code[:5] == [0, 32, 16, 16, 16]  # frame 1 has skin: frames 2-4 follow frame 0 no more
+    # holding the contact: a line 4 mm beside the hand point misses the hand and enters only
+    # the forearm below (status 0 there); within hold_distance of the run's prior it is held
+    p2 = _hand_point(arm, [cb + [0.048, 0.0, -0.05]] * 3 + [cb + [0.052, 0.0, -0.05]])
+    f2 = torch.tensor([slant] * 3 + [[0.2, 0.0, 4.0]], dtype=torch.float64) @ R
+    q2, ft2 = _readings(arm, "hand", p2, f2)
+    for hold, want in ((0.0, ([0, 0, 0, 0], "forearm")), (5e-3, ([0, 0, 0, 256], "hand"))):
+        r2 = loc.localize_sequence(q2, q2, q2, ft2, hold_distance=hold)["base_ft"]
+        assert r2.status.tolist() == want[0] and loc.links[int(r2.link[3])] == want[1]
+    torch.testing.assert_close(r2.position[3], p2[0], atol=1e-9, rtol=0)
+    torch.testing.assert_close(r2.normal[3], r2.normal[0])
     empty = loc.localize_sequence(q[:0], q[:0], q[:0], {"base_ft": ft["base_ft"][:0]})
     assert empty["base_ft"].status.shape == (0,) and empty["base_ft"].position.shape == (0, 3)
     with pytest.raises(InputError, match="starts"):

@@ -854,7 +854,8 @@ class Localizer:
         base: BaseMotion | None = None,
         ft_covariance: Mapping[str, Tensor] | None = None,
         chunk_size: int | None = 65536,
-        prior: Mapping[str, tuple[Tensor, Tensor]] | None = None,
+        prior: Mapping[str, tuple[Tensor, ...]] | None = None,
+        hold_distance: float = 0.0,
     ) -> dict[str, Localization]:
         """Localize the contact of every frame in each sensor's region.
 
@@ -874,7 +875,10 @@ class Localizer:
                 whose line enters the links at several points reports the one nearest the prior
                 point (status bit 256, ``PRIOR``, instead of 16, ``AMBIGUOUS``); other frames
                 are unchanged. For a sequence of frames, :meth:`localize_sequence` finds the
-                priors itself.
+                priors itself. An optional third tensor ``(*B, 3)``: the outward normal there.
+            hold_distance: with ``prior``: a frame whose line passes within this distance of
+                its prior point (m) but that reports another link or no point reports the prior
+                point (bit 256); 0 (default): never.
 
         Returns:
             localizing sensor name -> :class:`Localization` with ``(*B, ...)`` fields.
@@ -938,16 +942,21 @@ class Localizer:
                 cov = c.expand(*batch, 6, 6).reshape(n, 6, 6)
             pr = None
             if prior is not None and s in prior:
-                pl, pp = prior[s]
-                if tuple(pl.shape) != tuple(batch) or tuple(pp.shape) != (*batch, 3):
+                pl, *rest = prior[s]
+                shapes = [tuple(x.shape) for x in rest]
+                if tuple(pl.shape) != tuple(batch) or shapes not in (
+                    [(*batch, 3)],
+                    [(*batch, 3)] * 2,
+                ):
                     raise InputError(
-                        f"prior[{s!r}] must be (link (*B,), position (*B, 3)) with B="
-                        f"{tuple(batch)}, got {tuple(pl.shape)} and {tuple(pp.shape)}"
+                        f"prior[{s!r}] must be (link (*B,), position (*B, 3)[, normal (*B, 3)])"
+                        f" with B={tuple(batch)}, got {[tuple(pl.shape), *shapes]}"
                     )
-                pr = (pl.reshape(n), pp.reshape(n, 3))
+                pr = (pl.reshape(n), *(x.reshape(n, 3) for x in rest))
             loc = self.localize_wrench(
-                b, R_all[:, slots], p_all[:, slots], s, status=status0, covariance=cov, prior=pr
-            )
+                b, R_all[:, slots], p_all[:, slots], s, status=status0, covariance=cov, prior=pr,
+                hold_distance=hold_distance,
+            )  # fmt: skip
             result[s] = Localization(*(None if v is None else v.reshape((*batch, *v.shape[1:]))
                                        for v in loc))  # fmt: skip
         return result
@@ -964,6 +973,7 @@ class Localizer:
         base: BaseMotion | None = None,
         ft_covariance: Mapping[str, Tensor] | None = None,
         chunk_size: int | None = 65536,
+        hold_distance: float = 0.0,
     ) -> dict[str, Localization]:
         """Localize consecutive frames, resolving ambiguous ones by their neighbours' contacts.
 
@@ -987,6 +997,10 @@ class Localizer:
             base: as :meth:`localize`.
             ft_covariance: as :meth:`localize`.
             chunk_size: as :meth:`localize`.
+            hold_distance: also hold the contact through the run's other frames: a frame of a
+                run with a prior whose line passes within this distance (m) of the prior point
+                but that reports another link, or none (noise moved the line off the link),
+                reports the prior point (bit 256); 0 (default): only ambiguous frames change.
 
         Returns:
             localizing sensor name -> :class:`Localization` with ``(N, ...)`` fields.
@@ -1011,7 +1025,8 @@ class Localizer:
                 code = torch.where(skip[s].to(code.device), code | int(LocalizeStatus.SKIN_CONTACT),
                                    code)  # fmt: skip
             codes[s] = code
-            priors[s] = temporal_prior(code, r.link, r.position, starts)
+            priors[s] = temporal_prior(code, r.link, r.position, starts, r.normal,
+                                       every=hold_distance > 0)  # fmt: skip
             # ambiguous frames of runs without an unambiguous frame: their last entry too
             in_run = _runs(code, starts)[0]
             amb = in_run & ((code & _AMBIGUOUS) != 0) & (priors[s][0] < 0) & (r.link >= 0)
@@ -1020,7 +1035,7 @@ class Localizer:
                        torch.where(amb[:, None], r.position + 1e3 * f, math.nan))  # fmt: skip
         last = self._localize_with(q, qd, qdd, ft, lone, res, base, ft_covariance, chunk_size)
         for s, r in res.items():  # runs whose other hypothesis is the one that stays put
-            lk, pp = priors[s]
+            lk, pp, pn = priors[s]
             amb = torch.nonzero(lone[s][0] >= 0).reshape(-1)
             if not len(amb):
                 continue
@@ -1034,14 +1049,18 @@ class Localizer:
             lk[amb] = torch.where(take_a | take_b, torch.where(take_b, la.link[amb],
                                                                r.link[amb]), -1)  # fmt: skip
             pp[amb] = torch.where((take_a | take_b)[:, None], pick, math.nan)
-            priors[s] = (lk, pp)
-        return self._localize_with(q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size)
+            pn = pn.clone()
+            pn[amb] = torch.where(take_b[:, None], la.normal[amb], r.normal[amb])
+            priors[s] = (lk, pp, pn)
+        return self._localize_with(q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size,
+                                   hold_distance)  # fmt: skip
 
-    def _localize_with(self, q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size):
+    def _localize_with(self, q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size,
+                       hold_distance=0.0):  # fmt: skip
         """``res`` with the frames that have a prior (link >= 0) localized again with it."""
         n = q.shape[0]
         need = torch.zeros(n, dtype=torch.bool, device=q.device)
-        for pl, _ in priors.values():
+        for pl, *_ in priors.values():
             need |= (pl >= 0).to(need.device)
         idx = torch.nonzero(need).reshape(-1)
         if not len(idx):
@@ -1053,7 +1072,8 @@ class Localizer:
         sub = self.localize(
             q[idx], qd[idx], qdd[idx], {k: v[idx] for k, v in ft.items()}, base=sub_base,
             ft_covariance=sub_cov, chunk_size=chunk_size,
-            prior={s: (pl[idx], pp[idx]) for s, (pl, pp) in priors.items()},
+            prior={s: tuple(x[idx] for x in pr) for s, pr in priors.items()},
+            hold_distance=hold_distance,
         )  # fmt: skip
         out = {}
         for s, r in res.items():
@@ -1079,7 +1099,8 @@ class Localizer:
         *,
         status: Tensor | None = None,
         covariance: Tensor | None = None,
-        prior: tuple[Tensor, Tensor] | None = None,
+        prior: tuple[Tensor, ...] | None = None,
+        hold_distance: float = 0.0,
     ) -> Localization:
         """Stages 2-5 for one sensor: localize from its region's ``b`` and the links' poses.
 
@@ -1095,6 +1116,10 @@ class Localizer:
             prior: ``(link (N,), position (N, 3))``: per frame, where the contact is expected
                 (an index into :attr:`links`, -1 for none, and a point in that link's frame, m):
                 an ambiguous frame reports the entry nearest it (status bit 256 instead of 16).
+                A third tensor ``(N, 3)``, the outward normal there (link frame), is optional.
+            hold_distance: with a prior, a frame whose line passes within this distance of the
+                prior point (m) but reports another link, or no point, reports the prior point
+                itself (the contact held; bit 256, the bits 4, 8, 16, 64, 128 cleared); 0: never.
 
         Returns:
             :class:`Localization` with ``(N, ...)`` fields; ``link`` indexes :attr:`links`.
@@ -1138,7 +1163,7 @@ class Localizer:
         edge = _on_edge(ts, orig, dirs, hits, max(1e-9, 1e3 * eps))
         target = None
         if prior is not None:
-            target = self._prior_parameter(prior, frames, slots, Rl, pl, a, u)
+            target, p_local, p_ok, p_s = self._prior_parameter(prior, frames, slots, Rl, pl, a, u)
         sel = select_entries(hits, group, len(frames), self.merge_distance, dedup,
                              ts.normal[hits.tri], dirs[hits.ray], cos_min, edge,
                              target)  # fmt: skip
@@ -1182,6 +1207,24 @@ class Localizer:
             code[frames[gone[~close]]] |= _MISS
         else:
             code[frames[gone]] |= _MISS
+        if prior is not None and hold_distance > 0 and len(frames):
+            # the contact held: the line passes the prior point within the distance, but the
+            # frame reports another link or nothing
+            off = p_s - a[frames]
+            off = off - (off * u[frames]).sum(-1, keepdim=True) * u[frames]
+            ray_p = torch.arange(len(frames), device=dev) * L + p_local
+            hold = p_ok & (off.norm(dim=-1) <= hold_distance)
+            hold &= ~found | (ray_link[ray_sel] != ray_link[ray_p])
+            h = torch.nonzero(hold).reshape(-1)
+            found[h] = True
+            ray_sel[h] = ray_p[h]
+            pt_sel[h] = prior[1].to(device=dev, dtype=dtype)[frames[h]]
+            if nrm_sel is not None:
+                nrm_sel[h] = (prior[2].to(device=dev, dtype=dtype)[frames[h]] if len(prior) > 2
+                              else nan)  # fmt: skip
+            held = frames[h]
+            code[held] = (code[held] & ~(_MISS | _PULLING | _AMBIGUOUS | _OUTSIDE_CONE | _SNAPPED)
+                          ) | _PRIOR  # fmt: skip
         fr_found = frames[found]
         rays = ray_sel[found]
         li = ray_link[rays]
@@ -1219,15 +1262,18 @@ class Localizer:
         p: Tensor,
         a: Tensor,
         u: Tensor,
-    ) -> Tensor:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(n',)`` the line parameter nearest each live frame's prior point (NaN: no prior).
+
+        Also returns the prior link's index among ``slots``, whether the frame has a prior, and
+        the prior point in the sensor frame ``(n', 3)``.
 
         The prior point, in its link's frame, is posed in the sensor frame by the frame's own
         pose of that link (``R``, ``p``: ``(n', L, ...)`` of the live ``frames``); the line
         parameter is the same in every link's frame (``point = a + t u``, sensor frame), so the
         candidate nearest the prior point is the one whose parameter is nearest this.
         """
-        link, pos = prior
+        link, pos = prior[0], prior[1]
         n = a.shape[0]
         if link.shape != (n,) or pos.shape != (n, 3):
             raise InputError(f"prior must be (link (N,), position (N, 3)) with N={n}, got"
@@ -1245,7 +1291,7 @@ class Localizer:
         ar = torch.arange(len(frames), device=dev)
         p_s = torch.einsum("nij,nj->ni", R[ar, li], torch.where(ok[:, None], pp, 0.0)) + p[ar, li]
         t = ((p_s - a[frames]) * u[frames]).sum(-1)
-        return torch.where(ok, t, torch.full_like(t, math.nan))
+        return torch.where(ok, t, torch.full_like(t, math.nan)), li, ok, p_s
 
 
 def _runs(status: Tensor, starts: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -1339,8 +1385,13 @@ def stationary_choice(
 
 
 def temporal_prior(
-    status: Tensor, link: Tensor, position: Tensor, starts: Tensor | None = None
-) -> tuple[Tensor, Tensor]:
+    status: Tensor,
+    link: Tensor,
+    position: Tensor,
+    starts: Tensor | None = None,
+    normal: Tensor | None = None,
+    every: bool = False,
+) -> tuple[Tensor, ...]:
     """For each ambiguous frame of a sequence, the contact of its nearest unambiguous neighbour.
 
     A contact persists while it lasts: within a *run* (consecutive frames whose status has none
@@ -1356,10 +1407,14 @@ def temporal_prior(
         link: ``(N,)`` int64 link index (-1 none).
         position: ``(N, 3)`` contact point in the link's frame, m.
         starts: ``(N,)`` bool, True where a time segment starts; None: one segment.
+        normal: ``(N, 3)`` outward normals (link frame): the prior's normal is returned too.
+        every: a prior for every frame of a run but its anchors (the status-0 frames on the
+            majority link), not only for the ambiguous ones (``hold_distance``).
 
     Returns:
-        ``(prior_link (N,), prior_position (N, 3))``: -1 and NaN where a frame is not ambiguous
-        or its run has no unambiguous frame; the :meth:`Localizer.localize` ``prior`` format.
+        ``(prior_link (N,), prior_position (N, 3)[, prior_normal (N, 3)])``: -1 and NaN where a
+        frame is not ambiguous or its run has no unambiguous frame; the
+        :meth:`Localizer.localize` ``prior`` format.
 
     Example:
         >>> st = torch.tensor([0, 16, 16, 2, 16, 0])
@@ -1388,11 +1443,14 @@ def temporal_prior(
     ok_a = (after <= run_hi) & (after < n)
     take_b = ok_b & (~ok_a | (idx - before <= after - idx))
     src = torch.where(take_b, before, after)
-    use = in_run & ((status & _AMBIGUOUS) != 0) & (ok_b | ok_a)
+    use = in_run & (~anchor if every else (status & _AMBIGUOUS) != 0) & (ok_b | ok_a)
     src = torch.where(use, src, 0).clamp(0, max(n - 1, 0))
     prior_link = torch.where(use, link[src], -1) if n else link.clone()
     prior_pos = torch.where(use[:, None], position[src], math.nan) if n else position.clone()
-    return prior_link, prior_pos
+    if normal is None:
+        return prior_link, prior_pos
+    prior_n = torch.where(use[:, None], normal[src], math.nan) if n else normal.clone()
+    return prior_link, prior_pos, prior_n
 
 
 def _point_covariance(f: Tensor, m: Tensor, s: Tensor, n: Tensor, sigma: Tensor) -> Tensor:
