@@ -21,7 +21,7 @@ and nested sensors are accounted for exactly as in the estimate.
 3. ray casting: every intersection of the (infinite) line with the candidate meshes, by a
    breadth-first traversal of a bounding-volume hierarchy over the (ray, node) pairs, one tensor
    step per tree level (``ray="torch"``), by testing every triangle (``"brute"``), or by Embree
-   through trimesh (``"embree"``, CPU, when ``embreex`` is installed);
+   directly (``"embree"``, CPU, when ``embreex`` is installed);
 4. selection: hits sorted along the line; a hit entering the union of the candidate meshes
    (``f . n < 0`` and no mesh around it, counted by the entries and exits before it) is a
    candidate contact; the first one along the force is reported, several distinct ones (farther
@@ -443,19 +443,17 @@ def cast_bvh(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor) -> H
 
 def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs: Tensor,
                 ray_link: Tensor) -> Hits:  # fmt: skip
-    """Every hit of the lines with their links' meshes, by Embree (trimesh's ``ray_pyembree``).
+    """Every hit of the lines with their links' meshes, by Embree (``embreex``).
 
     Each line becomes a ray starting outside its link's bounding sphere; Embree casts it again
-    past each hit (trimesh's ``multiple_hits``). Embree computes in float32 whatever the inputs.
+    past each hit (:func:`_embree_all_hits`). Embree computes in float32 (on the mesh centred at
+    its box's middle); the hit parameter is recomputed in float64 on the hit triangle's plane.
 
     Raises:
-        MissingExtraError: trimesh or embreex is not installed.
+        MissingExtraError: embreex is not installed.
     """
-    try:
-        import trimesh
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-    except ImportError:
-        raise MissingExtraError("embreex", "meshes") from None
+    if not embree_available():
+        raise MissingExtraError("embreex", "meshes")
     dev, dtype = orig.device, orig.dtype
     On = orig.detach().cpu().double().numpy()
     Dn = dirs.detach().cpu().double().numpy()
@@ -466,14 +464,13 @@ def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs:
         nf = len(m.faces)
         rays = np.flatnonzero(rl == li)
         if len(rays):
-            mesh = trimesh.Trimesh(m.vertices, m.faces, process=False)
-            inter = _embree_cache(mesh, RayMeshIntersector)
+            scene, center, base = _embree_scene(m)
             c = 0.5 * (m.vertices.min(0) + m.vertices.max(0))
             radius = float(np.linalg.norm(m.vertices - c, axis=1).max()) + 1e-3
             o, d = On[rays], Dn[rays]
             s0 = ((c - o) * d).sum(1) - radius  # start before the sphere along the line
             start = o + s0[:, None] * d
-            _, index_ray, index_tri = inter.intersects_location(start, d, multiple_hits=True)
+            index_ray, index_tri = _embree_all_hits(scene, m, start - center, d, base, center)
             if len(index_ray):
                 r = rays[index_ray]
                 tri = index_tri + offset
@@ -496,20 +493,80 @@ def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs:
     return Hits(r, f, t, entering)
 
 
-_EMBREE: dict[int, object] = {}
+_EMBREE: dict[tuple, tuple] = {}
 
 
-def _embree_cache(mesh, cls):
-    key = hash((mesh.vertices.tobytes(), mesh.faces.tobytes()))
+def _embree_scene(m: LinkMesh) -> tuple[object, np.ndarray, float]:
+    """An Embree scene of a link mesh (built once per mesh), its centre and the step past a hit.
+
+    The vertices are centred at the middle of their box before the float32 conversion.
+    """
+    v = np.asarray(m.vertices, np.float64)
+    f = np.asarray(m.faces, np.int64)
+    key = (v.tobytes(), f.tobytes())
     if key not in _EMBREE:
-        _EMBREE[key] = cls(mesh)
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        center = 0.5 * (v.min(0) + v.max(0))
+        scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene=scene, vertices=(v - center).astype(np.float32),
+                     indices=f.astype(np.int32))  # fmt: skip
+        base = max(1e-8, float(np.linalg.norm(v.max(0) - v.min(0))) * 1e-6)
+        _EMBREE[key] = (scene, center, base)
     return _EMBREE[key]
 
 
+def _embree_all_hits(
+    scene, m: LinkMesh, orig: np.ndarray, d: np.ndarray, base: float, center: np.ndarray
+):
+    """Every triangle the rays ``orig + t d`` (``t > 0``; centred frame, float64) pass through.
+
+    Cast, step past each hit on the hit triangle's plane (float64) and cast again until every
+    ray leaves the mesh; a ray that meets the same triangle again (float32 rounding) steps twice
+    as far. Returns ``(ray, triangle)`` index arrays, one row per hit.
+    """
+    tri = np.asarray(m.vertices, np.float64)[np.asarray(m.faces, np.int64)]
+    tri = tri - center
+    v0 = tri[:, 0]
+    nrm = np.cross(tri[:, 1] - v0, tri[:, 2] - v0)
+    o = np.array(orig, np.float64)
+    step = np.full(len(o), base)
+    last = np.full(len(o), -1, np.int64)
+    live = np.arange(len(o))
+    out_r, out_f = [], []
+    for _ in range(100):
+        if not len(live):
+            break
+        q = scene.run(o[live].astype(np.float32), d[live].astype(np.float32))
+        hit = q >= 0
+        r, f = live[hit], q[hit].astype(np.int64)
+        dupe = last[r] == f
+        last[r] = f
+        ok_r, ok_f = r[~dupe], f[~dupe]
+        den = (d[ok_r] * nrm[ok_f]).sum(1)
+        fine = den != 0
+        ok_r, ok_f = ok_r[fine], ok_f[fine]
+        out_r.append(ok_r)
+        out_f.append(ok_f)
+        t = ((v0[ok_f] - o[ok_r]) * nrm[ok_f]).sum(1) / den[fine]
+        o[ok_r] += (t + base)[:, None] * d[ok_r]
+        step[ok_r] = base
+        stuck = r[dupe]
+        step[stuck] *= 2.0
+        o[stuck] += step[stuck, None] * d[stuck]
+        live = np.concatenate([ok_r, stuck])
+    if not out_r:
+        z = np.zeros(0, np.int64)
+        return z, z
+    return np.concatenate(out_r), np.concatenate(out_f)
+
+
 def embree_available() -> bool:
-    """True when trimesh can use Embree (the ``embreex`` package is installed)."""
+    """True when Embree can be used (the ``embreex`` package is installed)."""
     try:
-        from trimesh.ray.ray_pyembree import RayMeshIntersector  # noqa: F401
+        from embreex import rtcore_scene  # noqa: F401
+        from embreex.mesh_construction import TriangleMesh  # noqa: F401
     except ImportError:
         return False
     return True
@@ -723,7 +780,7 @@ class Localizer:
             nearest edge point of a triangle facing the force if it passes within this
             distance, m (status bit 128); 0 disables it.
         ray: ray casting backend, one of :data:`RAY_BACKENDS`: ``"torch"`` (tree traversal in
-            torch, any device), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
+            torch, any device), ``"brute"`` (every triangle), ``"embree"`` (embreex,
             computed on the CPU); ``"auto"``: Embree for a CPU model when ``embreex`` is
             installed (about 10x the torch traversal there), else torch.
         backend: backend of the line program (:mod:`torchcontact.kernels`).
