@@ -1217,7 +1217,11 @@ class Localizer:
         scale = 1.0 + float(a.abs().max()) if len(frames) else 1.0
         dedup = max(1e-9, 1e3 * eps) * scale
         cos_min = None if self.friction is None else 1.0 / math.sqrt(1.0 + self.friction**2)
-        edge = _on_edge(ts, orig, dirs, hits, max(1e-9, 1e3 * eps))
+        # edges and vertices pass the friction-cone test; only entries are tested there
+        edge = torch.zeros_like(hits.entering)
+        e_in = torch.nonzero(hits.entering).reshape(-1)
+        sub = Hits(*(x[e_in] for x in hits))
+        edge[e_in] = _on_edge(ts, orig, dirs, sub, max(1e-9, 1e3 * eps))
         target = None
         if prior is not None:
             target, p_local, p_ok, p_s = self._prior_parameter(prior, frames, slots, Rl, pl, a, u)
