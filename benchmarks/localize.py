@@ -28,7 +28,7 @@ readings.
 **Throughput**: iCub forearm + hand collision meshes, ``Localizer.localize`` end to end (readings
 in, localization out) at batch 1e5, with its stages timed apart, against in-process references:
 trimesh's own ray casting (``trimesh.ray.ray_triangle``, numpy, on the same lines) and a
-brute-force numpy loop over frames (a subset, extrapolated), and Embree through trimesh when
+brute-force numpy loop over frames (a subset, extrapolated), and Embree (embreex) when
 ``embreex`` is installed.
 
 Run: ``python benchmarks/localize.py [--frames 2000] [--batch 100000] [--threads 2]
@@ -630,8 +630,8 @@ def throughput(batch, threads, rng):
             torch.set_num_threads(nt)
             rt, iqr = rate(lambda: loce.localize(*ins, {sensor: ft[sensor]}), batch, 2.0)
             print(
-                '| torchcontact `Localizer.localize` with Embree (`ray="embree"`, trimesh +'
-                f" embreex), end to end, {nt} thread(s) | float64 | {rt:,.0f} |"
+                '| torchcontact `Localizer.localize` with Embree (`ray="embree"`, embreex),'
+                f" end to end, {nt} thread(s) | float64 | {rt:,.0f} |"
                 f" {rt / ref_rate:.1f}x | {iqr:.2f} |"
             )
         torch.set_num_threads(threads)

@@ -29,6 +29,10 @@ and nested sensors are accounted for exactly as in the estimate.
 5. the first-order propagation of the F/T noise to the contact point.
 
 The status of each frame is a bit field of :data:`torchcontact.status.LOCALIZE_STATUS`.
+
+A contact lasts: :meth:`Localizer.localize` takes a ``prior`` (where each frame's contact is
+expected) that resolves ambiguous frames, and :meth:`Localizer.localize_sequence` finds the
+priors of consecutive frames itself (:func:`temporal_prior`, :func:`stationary_choice`).
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ __all__ = [
     "TriangleSet",
     "localize_chunk",
     "localized_frames",
+    "stationary_choice",
     "temporal_prior",
 ]
 
