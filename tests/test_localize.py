@@ -467,3 +467,123 @@ def test_single_link_onnx_graph_matches_the_localizer(arm):
         assert abs(mres[0] - ref.moment_residual[i].item()) < 1e-4
     assert status == [s & ~16 for s in ref.status.tolist()]  # the graph does not count entries
     assert status[0] == 2 and 0 in status and 4 in status
+
+
+def _temporal_prior_loop(status, link, pos, starts):
+    """The temporal prior frame by frame (the reference of the vectorised one)."""
+    n = len(status)
+    in_run = [(c & (1 | 2 | 32)) == 0 for c in status]
+    runs, k = [], 0
+    while k < n:  # maximal runs of contact, cut at segment starts
+        if not in_run[k]:
+            k += 1
+            continue
+        j = k + 1
+        while j < n and in_run[j] and not starts[j]:
+            j += 1
+        runs.append(range(k, j))
+        k = j
+    out_l, out_p = [-1] * n, [[np.nan] * 3 for _ in range(n)]
+    for run in runs:
+        anchors = [i for i in run if status[i] == 0 and link[i] >= 0]
+        if not anchors:
+            continue
+        votes = np.bincount([link[i] for i in anchors])
+        if 3 * votes.max() < 2 * len(anchors):
+            continue
+        anchors = [i for i in anchors if link[i] == int(np.argmax(votes))]
+        for i in run:
+            if status[i] & 16:
+                j = min(anchors, key=lambda a: (abs(a - i), a))  # the earlier one on a tie
+                out_l[i], out_p[i] = link[j], list(pos[j])
+    return out_l, out_p
+
+
+def test_temporal_prior_matches_a_loop_over_frames():
+    from torchcontact.localize import temporal_prior
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 300):
+        status = rng.choice([0, 0, 0, 16, 16, 2, 64, 32, 1, 16 | 64], n)
+        link = np.where(np.isin(status, [0, 16, 64, 80]), rng.integers(0, 3, n), -1)
+        pos = rng.normal(size=(n, 3))
+        starts = rng.random(n) < 0.05
+        pl, pp = temporal_prior(torch.as_tensor(status), torch.as_tensor(link),
+                                torch.as_tensor(pos), torch.as_tensor(starts))  # fmt: skip
+        rl, rp = _temporal_prior_loop(status.tolist(), link.tolist(), pos, starts.tolist())
+        assert pl.tolist() == rl
+        np.testing.assert_array_equal(pp.numpy(), np.array(rp).reshape(n, 3))
+        assert n < 300 or (pl >= 0).sum() > 20  # the case is exercised
+
+
+def test_prior_and_sequence_resolve_two_links_on_the_line(arm):
+    """Pushing up into the hand's bottom face: a vertical line enters the forearm box below it
+    first (ambiguous); a slanted one misses the forearm (the hand only). A prior, or the
+    slanted frames before in the same run, pick the hand."""
+    ca, cb = np.array([0.3, 0.1, 0.5]), np.array([0.3, 0.1, 0.8])
+    meshes = {"forearm": _box(arm, "forearm", ca), "hand": _box(arm, "hand", cb)}
+    loc = Localizer(arm, meshes, links=["forearm", "hand"])
+    fp = arm.forward_pass(*(torch.zeros(1, arm.nv, dtype=torch.float64),) * 3)
+    R = arm.frame_pose(fp, "hand")[0][0]
+    hand = loc.links.index("hand")
+    p = _hand_point(arm, [cb + [0.04, 0.0, -0.05]])
+    up, slant = [0.0, 0.0, 4.0], [-1.2, 0.0, 4.0]
+    none = [0.0, 0.0, 0.0]
+    kinds = [slant, slant, up, up, up, none, up, up, up, none, slant, up, up]
+    f = torch.tensor(kinds, dtype=torch.float64) @ R
+    q, ft = _readings(arm, "hand", p.expand(len(kinds), 3), f)
+    r = loc.localize(q, q, q, ft)["base_ft"]
+    assert r.status.tolist() == [0, 0, 16, 16, 16, 2, 16, 16, 16, 2, 0, 16, 16]
+    assert [loc.links[i] for i in r.link[2:5].tolist()] == ["forearm"] * 3
+    # a prior on the hand (one on the forearm) takes that link's entry, bit 256 for 16
+    n = len(kinds)
+    for want in ("hand", "forearm"):
+        li = loc.links.index(want)
+        prior = (torch.full((n,), li), r.position[2].expand(n, 3) if want == "forearm"
+                 else p.expand(n, 3))  # fmt: skip
+        rp = loc.localize(q, q, q, ft, prior={"base_ft": prior})["base_ft"]
+        amb = r.status == 16
+        assert (rp.status[amb] == 256).all() and (rp.link[amb] == li).all()
+        assert (rp.status[~amb] == r.status[~amb]).all()
+    rp = loc.localize(q, q, q, ft, prior={"base_ft": (torch.full((n,), -1), p.expand(n, 3))})
+    assert rp["base_ft"].status.tolist() == r.status.tolist()
+    # the sequence: frames 2-4 follow frames 0-1 (run 0-4); frames 6-8 have no unambiguous
+    # frame in their run (frames 5 and 9 have no force; the robot is at rest, so both entries
+    # stay put and the run stays ambiguous); frame 11 follows 10, a segment starts at 12
+    starts = torch.zeros(n, dtype=torch.bool)
+    starts[12] = True
+    rs = loc.localize_sequence(q, q, q, ft, starts=starts)["base_ft"]
+    assert rs.status.tolist() == [0, 0, 256, 256, 256, 2, 16, 16, 16, 2, 0, 256, 16]
+    assert (rs.link[[2, 3, 4, 11]] == hand).all()
+    torch.testing.assert_close(rs.position[[2, 3, 4, 11]], p.expand(4, 3), atol=1e-9, rtol=0)
+    # the log chunk function: the same, and a skin contact in the region ends a run
+    from torchcontact.contacts import ContactRecords
+    from torchcontact.localize import localize_chunk
+
+    npy = [x.numpy() for x in (q, q, q)]
+    skin = ContactRecords([1], ["hand"], ["force"], np.zeros((1, 3)))
+    for temporal, want in ((False, r.status.tolist()), (True, rs.status.tolist())):
+        lc = localize_chunk(loc, *npy, {"base_ft": ft["base_ft"].numpy()}, ContactRecords.empty(),
+                            starts=starts.numpy(), temporal=temporal)  # fmt: skip
+        assert lc.columns["localize_status_code.base_ft"].to_pylist() == want
+        assert (lc.records.frame == np.flatnonzero(np.isin(want, [0, 256]))).all()
+    lc = localize_chunk(loc, *npy, {"base_ft": ft["base_ft"].numpy()}, skin,
+                        starts=starts.numpy(), temporal=True)  # fmt: skip
+    code = lc.columns["localize_status_code.base_ft"].to_pylist()
+    assert code[:5] == [0, 32, 16, 16, 16]  # frame 1 has skin: frames 2-4 follow frame 0 no more
+    # holding the contact: a line 4 mm beside the hand point misses the hand and enters only
+    # the forearm below (status 0 there); within hold_distance of the run's prior it is held
+    p2 = _hand_point(arm, [cb + [0.048, 0.0, -0.05]] * 3 + [cb + [0.052, 0.0, -0.05]])
+    f2 = torch.tensor([slant] * 3 + [[0.2, 0.0, 4.0]], dtype=torch.float64) @ R
+    q2, ft2 = _readings(arm, "hand", p2, f2)
+    for hold, want in ((0.0, ([0, 0, 0, 0], "forearm")), (5e-3, ([0, 0, 0, 256], "hand"))):
+        r2 = loc.localize_sequence(q2, q2, q2, ft2, hold_distance=hold)["base_ft"]
+        assert r2.status.tolist() == want[0] and loc.links[int(r2.link[3])] == want[1]
+    torch.testing.assert_close(r2.position[3], p2[0], atol=1e-9, rtol=0)
+    torch.testing.assert_close(r2.normal[3], r2.normal[0])
+    empty = loc.localize_sequence(q[:0], q[:0], q[:0], {"base_ft": ft["base_ft"][:0]})
+    assert empty["base_ft"].status.shape == (0,) and empty["base_ft"].position.shape == (0, 3)
+    with pytest.raises(InputError, match="starts"):
+        loc.localize_sequence(q, q, q, ft, starts=starts[:3])
+    with pytest.raises(InputError, match="prior"):
+        loc.localize(q, q, q, ft, prior={"base_ft": (torch.zeros(2), p)})

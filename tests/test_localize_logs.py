@@ -263,7 +263,8 @@ def test_ray_worker_rebuilds_the_localization(icub_noskin):
 
     urdf = str(ROBOTS["icub"]())
     model = load_robot(urdf)
-    opts = {"links": ["l_forearm", "l_hand"], "accept_ambiguous": True, "force_threshold": 0.5}
+    opts = {"links": ["l_forearm", "l_hand"], "accept_ambiguous": True, "force_threshold": 0.5,
+            "temporal": True}  # fmt: skip
     loc = run_localize(opts, model, urdf)
     pf, le, columns, _ = prepare(icub_noskin, model, ["l_arm_ft"], localize=loc)
     job = {"threads": 0, "dtype": "float64", "device": "cpu", "residual": None,
@@ -272,6 +273,7 @@ def test_ray_worker_rebuilds_the_localization(icub_noskin):
              "identity_entries": model.identity.to_json()}  # the driver's (ray_engine)  # fmt: skip
     le2, _ = _worker_state(str(icub_noskin), robot, worker_args(le, icub_noskin), job)
     assert le2.localize is not loc and le2.localize.options() == loc.options()
+    assert le2.localize.temporal is True
     assert le2.localizer.links == le.localizer.links and le2.layout == le.layout
     assert ("l_hand", "force") in zip(le.layout.links, le.layout.kinds, strict=True)
     assert le2.output_schema().equals(le.output_schema(), check_metadata=True)

@@ -21,7 +21,7 @@ and nested sensors are accounted for exactly as in the estimate.
 3. ray casting: every intersection of the (infinite) line with the candidate meshes, by a
    breadth-first traversal of a bounding-volume hierarchy over the (ray, node) pairs, one tensor
    step per tree level (``ray="torch"``), by testing every triangle (``"brute"``), or by Embree
-   through trimesh (``"embree"``, CPU, when ``embreex`` is installed);
+   directly (``"embree"``, CPU, when ``embreex`` is installed);
 4. selection: hits sorted along the line; a hit entering the union of the candidate meshes
    (``f . n < 0`` and no mesh around it, counted by the entries and exits before it) is a
    candidate contact; the first one along the force is reported, several distinct ones (farther
@@ -29,6 +29,10 @@ and nested sensors are accounted for exactly as in the estimate.
 5. the first-order propagation of the F/T noise to the contact point.
 
 The status of each frame is a bit field of :data:`torchcontact.status.LOCALIZE_STATUS`.
+
+A contact lasts: :meth:`Localizer.localize` takes a ``prior`` (where each frame's contact is
+expected) that resolves ambiguous frames, and :meth:`Localizer.localize_sequence` finds the
+priors of consecutive frames itself (:func:`temporal_prior`, :func:`stationary_choice`).
 """
 
 from __future__ import annotations
@@ -64,6 +68,8 @@ __all__ = [
     "TriangleSet",
     "localize_chunk",
     "localized_frames",
+    "stationary_choice",
+    "temporal_prior",
 ]
 
 #: Ray-casting backends of :class:`Localizer`.
@@ -73,9 +79,9 @@ RAY_BACKENDS = ("auto", "torch", "brute", "embree")
 _NONFINITE, _NO_CONTACT = int(LocalizeStatus.NONFINITE), int(LocalizeStatus.NO_CONTACT)
 _MISS, _PULLING = int(LocalizeStatus.NO_INTERSECTION), int(LocalizeStatus.PULLING)
 _AMBIGUOUS, _OUTSIDE_CONE = int(LocalizeStatus.AMBIGUOUS), int(LocalizeStatus.OUTSIDE_CONE)
-_SNAPPED = int(LocalizeStatus.NEAR_MISS)
+_SNAPPED, _PRIOR = int(LocalizeStatus.NEAR_MISS), int(LocalizeStatus.PRIOR)
 #: bits that come with a contact point (a caveat, not a failure)
-SOFT_BITS = _AMBIGUOUS | _OUTSIDE_CONE | _SNAPPED
+SOFT_BITS = _AMBIGUOUS | _OUTSIDE_CONE | _SNAPPED | _PRIOR
 
 
 class Localization(NamedTuple):
@@ -442,19 +448,17 @@ def cast_bvh(ts: TriangleSet, orig: Tensor, dirs: Tensor, ray_link: Tensor) -> H
 
 def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs: Tensor,
                 ray_link: Tensor) -> Hits:  # fmt: skip
-    """Every hit of the lines with their links' meshes, by Embree (trimesh's ``ray_pyembree``).
+    """Every hit of the lines with their links' meshes, by Embree (``embreex``).
 
     Each line becomes a ray starting outside its link's bounding sphere; Embree casts it again
-    past each hit (trimesh's ``multiple_hits``). Embree computes in float32 whatever the inputs.
+    past each hit (:func:`_embree_all_hits`). Embree computes in float32 (on the mesh centred at
+    its box's middle); the hit parameter is recomputed in float64 on the hit triangle's plane.
 
     Raises:
-        MissingExtraError: trimesh or embreex is not installed.
+        MissingExtraError: embreex is not installed.
     """
-    try:
-        import trimesh
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-    except ImportError:
-        raise MissingExtraError("embreex", "meshes") from None
+    if not embree_available():
+        raise MissingExtraError("embreex", "meshes")
     dev, dtype = orig.device, orig.dtype
     On = orig.detach().cpu().double().numpy()
     Dn = dirs.detach().cpu().double().numpy()
@@ -465,14 +469,13 @@ def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs:
         nf = len(m.faces)
         rays = np.flatnonzero(rl == li)
         if len(rays):
-            mesh = trimesh.Trimesh(m.vertices, m.faces, process=False)
-            inter = _embree_cache(mesh, RayMeshIntersector)
+            scene, center, base = _embree_scene(m)
             c = 0.5 * (m.vertices.min(0) + m.vertices.max(0))
             radius = float(np.linalg.norm(m.vertices - c, axis=1).max()) + 1e-3
             o, d = On[rays], Dn[rays]
             s0 = ((c - o) * d).sum(1) - radius  # start before the sphere along the line
             start = o + s0[:, None] * d
-            _, index_ray, index_tri = inter.intersects_location(start, d, multiple_hits=True)
+            index_ray, index_tri = _embree_all_hits(scene, m, start - center, d, base, center)
             if len(index_ray):
                 r = rays[index_ray]
                 tri = index_tri + offset
@@ -495,20 +498,80 @@ def cast_embree(meshes: Sequence[LinkMesh], ts: TriangleSet, orig: Tensor, dirs:
     return Hits(r, f, t, entering)
 
 
-_EMBREE: dict[int, object] = {}
+_EMBREE: dict[tuple, tuple] = {}
 
 
-def _embree_cache(mesh, cls):
-    key = hash((mesh.vertices.tobytes(), mesh.faces.tobytes()))
+def _embree_scene(m: LinkMesh) -> tuple[object, np.ndarray, float]:
+    """An Embree scene of a link mesh (built once per mesh), its centre and the step past a hit.
+
+    The vertices are centred at the middle of their box before the float32 conversion.
+    """
+    v = np.asarray(m.vertices, np.float64)
+    f = np.asarray(m.faces, np.int64)
+    key = (v.tobytes(), f.tobytes())
     if key not in _EMBREE:
-        _EMBREE[key] = cls(mesh)
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        center = 0.5 * (v.min(0) + v.max(0))
+        scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene=scene, vertices=(v - center).astype(np.float32),
+                     indices=f.astype(np.int32))  # fmt: skip
+        base = max(1e-8, float(np.linalg.norm(v.max(0) - v.min(0))) * 1e-6)
+        _EMBREE[key] = (scene, center, base)
     return _EMBREE[key]
 
 
+def _embree_all_hits(
+    scene, m: LinkMesh, orig: np.ndarray, d: np.ndarray, base: float, center: np.ndarray
+):
+    """Every triangle the rays ``orig + t d`` (``t > 0``; centred frame, float64) pass through.
+
+    Cast, step past each hit on the hit triangle's plane (float64) and cast again until every
+    ray leaves the mesh; a ray that meets the same triangle again (float32 rounding) steps twice
+    as far. Returns ``(ray, triangle)`` index arrays, one row per hit.
+    """
+    tri = np.asarray(m.vertices, np.float64)[np.asarray(m.faces, np.int64)]
+    tri = tri - center
+    v0 = tri[:, 0]
+    nrm = np.cross(tri[:, 1] - v0, tri[:, 2] - v0)
+    o = np.array(orig, np.float64)
+    step = np.full(len(o), base)
+    last = np.full(len(o), -1, np.int64)
+    live = np.arange(len(o))
+    out_r, out_f = [], []
+    for _ in range(100):
+        if not len(live):
+            break
+        q = scene.run(o[live].astype(np.float32), d[live].astype(np.float32))
+        hit = q >= 0
+        r, f = live[hit], q[hit].astype(np.int64)
+        dupe = last[r] == f
+        last[r] = f
+        ok_r, ok_f = r[~dupe], f[~dupe]
+        den = (d[ok_r] * nrm[ok_f]).sum(1)
+        fine = den != 0
+        ok_r, ok_f = ok_r[fine], ok_f[fine]
+        out_r.append(ok_r)
+        out_f.append(ok_f)
+        t = ((v0[ok_f] - o[ok_r]) * nrm[ok_f]).sum(1) / den[fine]
+        o[ok_r] += (t + base)[:, None] * d[ok_r]
+        step[ok_r] = base
+        stuck = r[dupe]
+        step[stuck] *= 2.0
+        o[stuck] += step[stuck, None] * d[stuck]
+        live = np.concatenate([ok_r, stuck])
+    if not out_r:
+        z = np.zeros(0, np.int64)
+        return z, z
+    return np.concatenate(out_r), np.concatenate(out_f)
+
+
 def embree_available() -> bool:
-    """True when trimesh can use Embree (the ``embreex`` package is installed)."""
+    """True when Embree can be used (the ``embreex`` package is installed)."""
     try:
-        from trimesh.ray.ray_pyembree import RayMeshIntersector  # noqa: F401
+        from embreex import rtcore_scene  # noqa: F401
+        from embreex.mesh_construction import TriangleMesh  # noqa: F401
     except ImportError:
         return False
     return True
@@ -538,6 +601,7 @@ def select_entries(
     dirs: Tensor | None = None,
     cos_min: float | None = None,
     edge: Tensor | None = None,
+    target: Tensor | None = None,
 ) -> Selected:
     """The first valid entry of each group of rays (the rays of one frame share one line).
 
@@ -563,6 +627,8 @@ def select_entries(
         edge: ``(H,)`` bool, the hit lies on a triangle's edge or vertex, where the normal is
             a cone the sum of the hit triangles' normals may not represent: such entries pass
             the friction-cone test.
+        target: ``(G,)`` per group, a line parameter (NaN: none): the valid entry nearest it is
+            reported instead of the first (a prior on where the contact is).
     """
     dev = hits.t.device
     g = group[hits.ray]
@@ -617,7 +683,16 @@ def select_entries(
         new[1:] = (vg[1:] != vg[:-1]) | ((vt[1:] - vt[:-1]) > merge)
     candidates = torch.zeros(G, dtype=torch.int64, device=dev)
     candidates.index_add_(0, vg, new.to(torch.int64))
-    firsts = vi[(torch.searchsorted(vg, vg) == torch.arange(len(vi), device=dev))]
+    pick = torch.ones(len(vi), dtype=torch.bool, device=dev)
+    if target is not None and len(vi):
+        # the entry nearest the target parameter (ties and groups without one: the first)
+        tg = target[vg]
+        key = torch.where(torch.isnan(tg), torch.zeros_like(vt), (vt - tg).abs())
+        best = torch.full((G,), math.inf, dtype=key.dtype, device=dev)
+        best = best.scatter_reduce(0, vg, key, "amin")
+        pick = key <= best[vg]
+    vi_p, vg_p = vi[pick], vg[pick]
+    firsts = vi_p[(torch.searchsorted(vg_p, vg_p) == torch.arange(len(vi_p), device=dev))]
     found = torch.zeros(G, dtype=torch.bool, device=dev)
     ray = torch.zeros(G, dtype=torch.int64, device=dev)
     tri = torch.zeros(G, dtype=torch.int64, device=dev)
@@ -710,7 +785,7 @@ class Localizer:
             nearest edge point of a triangle facing the force if it passes within this
             distance, m (status bit 128); 0 disables it.
         ray: ray casting backend, one of :data:`RAY_BACKENDS`: ``"torch"`` (tree traversal in
-            torch, any device), ``"brute"`` (every triangle), ``"embree"`` (trimesh + embreex,
+            torch, any device), ``"brute"`` (every triangle), ``"embree"`` (embreex,
             computed on the CPU); ``"auto"``: Embree for a CPU model when ``embreex`` is
             installed (about 10x the torch traversal there), else torch.
         backend: backend of the line program (:mod:`torchcontact.kernels`).
@@ -841,6 +916,8 @@ class Localizer:
         base: BaseMotion | None = None,
         ft_covariance: Mapping[str, Tensor] | None = None,
         chunk_size: int | None = 65536,
+        prior: Mapping[str, tuple[Tensor, ...]] | None = None,
+        hold_distance: float = 0.0,
     ) -> dict[str, Localization]:
         """Localize the contact of every frame in each sensor's region.
 
@@ -854,6 +931,16 @@ class Localizer:
             ft_covariance: sensor name -> ``(6, 6)`` or ``(*B, 6, 6)`` covariance of its reading
                 noise: fills ``covariance`` and ``position_std``.
             chunk_size: frames per eager call of the line program (kernels take any batch).
+            prior: sensor name -> ``(link (*B,), position (*B, 3))``, where each frame's contact
+                is expected: an index into :attr:`links` (-1: no prior) and a point in that
+                link's frame, m (e.g. the previous frame's ``link`` and ``position``). A frame
+                whose line enters the links at several points reports the one nearest the prior
+                point (status bit 256, ``PRIOR``, instead of 16, ``AMBIGUOUS``); other frames
+                are unchanged. For a sequence of frames, :meth:`localize_sequence` finds the
+                priors itself. An optional third tensor ``(*B, 3)``: the outward normal there.
+            hold_distance: with ``prior``: a frame whose line passes within this distance of
+                its prior point (m) but that reports another link or no point reports the prior
+                point (bit 256); 0 (default): never.
 
         Returns:
             localizing sensor name -> :class:`Localization` with ``(*B, ...)`` fields.
@@ -876,6 +963,10 @@ class Localizer:
         extra = [s for s in ft if s not in names]
         if extra:
             raise InputError(f"ft has readings of unknown or unused sensors {extra}")
+        unknown_prior = [s for s in (prior or {}) if s not in self.sensor_names]
+        if unknown_prior:
+            raise InputError(f"prior names sensors {unknown_prior} that localize no contact"
+                             f" (localizing: {list(self.sensor_names)})")  # fmt: skip
 
         def per_frame(name: str, x: Tensor, trailing: tuple[int, ...]) -> Tensor:
             shape = f"(*B, {', '.join(map(str, trailing))})"
@@ -883,7 +974,7 @@ class Localizer:
             if x.shape[: x.dim() - len(trailing)] != batch:
                 raise InputError(f"{name} must be {shape} with B={tuple(batch)}, got"
                                  f" {tuple(x.shape)}")  # fmt: skip
-            return flatten_batch(x, batch, len(trailing)).reshape(n, -1)
+            return flatten_batch(x, batch, len(trailing)).reshape(n, math.prod(trailing))
 
         tensors = {k: per_frame(k, x, (nv,)) for k, x in (("q", q), ("qd", qd), ("qdd", qdd))}
         for i, s in enumerate(names):
@@ -911,12 +1002,155 @@ class Localizer:
                 c = ft_covariance[s]
                 check_input(f"ft_covariance[{s!r}]", c, (6, 6), model, "(6, 6) or (*B, 6, 6)")
                 cov = c.expand(*batch, 6, 6).reshape(n, 6, 6)
+            pr = None
+            if prior is not None and s in prior:
+                pl, *rest = prior[s]
+                shapes = [tuple(x.shape) for x in rest]
+                if tuple(pl.shape) != tuple(batch) or shapes not in (
+                    [(*batch, 3)],
+                    [(*batch, 3)] * 2,
+                ):
+                    raise InputError(
+                        f"prior[{s!r}] must be (link (*B,), position (*B, 3)[, normal (*B, 3)])"
+                        f" with B={tuple(batch)}, got {[tuple(pl.shape), *shapes]}"
+                    )
+                pr = (pl.reshape(n), *(x.reshape(n, 3) for x in rest))
             loc = self.localize_wrench(
-                b, R_all[:, slots], p_all[:, slots], s, status=status0, covariance=cov
-            )
+                b, R_all[:, slots], p_all[:, slots], s, status=status0, covariance=cov, prior=pr,
+                hold_distance=hold_distance,
+            )  # fmt: skip
             result[s] = Localization(*(None if v is None else v.reshape((*batch, *v.shape[1:]))
                                        for v in loc))  # fmt: skip
         return result
+
+    def localize_sequence(
+        self,
+        q: Tensor,
+        qd: Tensor,
+        qdd: Tensor,
+        ft: Mapping[str, Tensor],
+        *,
+        starts: Tensor | None = None,
+        skip: Mapping[str, Tensor] | None = None,
+        base: BaseMotion | None = None,
+        ft_covariance: Mapping[str, Tensor] | None = None,
+        chunk_size: int | None = 65536,
+        hold_distance: float = 0.0,
+    ) -> dict[str, Localization]:
+        """Localize consecutive frames, resolving ambiguous ones by their neighbours' contacts.
+
+        A contact persists over consecutive frames: an ambiguous frame (the line enters the
+        links at several points) takes the candidate nearest the contact of the nearest
+        unambiguous frame (status 0) of the same run of contact, before or after it
+        (:func:`temporal_prior`); such frames get status bit 256 (``PRIOR``) instead of 16. A
+        run is a stretch of consecutive frames above the force threshold within one time
+        segment. Two passes, both batched: every frame, then the ambiguous frames with their
+        priors (:meth:`localize` with ``prior``).
+
+        Args:
+            q: ``(N, nv)`` joint positions of consecutive frames; ``qd``, ``qdd`` likewise.
+            qd: ``(N, nv)``.
+            qdd: ``(N, nv)``.
+            ft: sensor name -> ``(N, 6)`` reading.
+            starts: ``(N,)`` bool, True where a time segment starts (a gap in the stamps; see
+                :func:`torchcontact.logs.derive.time_segments`); None: one segment.
+            skip: sensor name -> ``(N,)`` bool, frames whose result is not used (e.g. with skin
+                contacts in the region): they end runs and are no prior.
+            base: as :meth:`localize`.
+            ft_covariance: as :meth:`localize`.
+            chunk_size: as :meth:`localize`.
+            hold_distance: also hold the contact through the run's other frames: a frame of a
+                run with a prior whose line passes within this distance (m) of the prior point
+                but that reports another link, or none (noise moved the line off the link),
+                reports the prior point (bit 256); 0 (default): only ambiguous frames change.
+
+        Returns:
+            localizing sensor name -> :class:`Localization` with ``(N, ...)`` fields.
+
+        Raises:
+            InputError: as :meth:`localize`; a batch that is not ``(N, nv)``; ``starts`` or
+                ``skip`` not ``(N,)``.
+        """
+        if q.dim() != 2:
+            raise InputError(f"q must be (N, {self.model.nv}) for a sequence, got {tuple(q.shape)}")
+        n = q.shape[0]
+        checks = [("starts", starts), *((f"skip[{k!r}]", v) for k, v in (skip or {}).items())]
+        for name, x in checks:
+            if x is not None and tuple(x.shape) != (n,):
+                raise InputError(f"{name} must be ({n},) bool, got {tuple(x.shape)}")
+        res = self.localize(q, qd, qdd, ft, base=base, ft_covariance=ft_covariance,
+                            chunk_size=chunk_size)  # fmt: skip
+        codes, priors, lone = {}, {}, {}
+        for s, r in res.items():
+            code = r.status
+            if skip is not None and s in skip:
+                code = torch.where(skip[s].to(code.device), code | int(LocalizeStatus.SKIN_CONTACT),
+                                   code)  # fmt: skip
+            codes[s] = code
+            priors[s] = temporal_prior(code, r.link, r.position, starts, r.normal,
+                                       every=hold_distance > 0)  # fmt: skip
+            # ambiguous frames of runs without an unambiguous frame: their last entry too
+            in_run = _runs(code, starts)[0]
+            amb = in_run & ((code & _AMBIGUOUS) != 0) & (priors[s][0] < 0) & (r.link >= 0)
+            f = r.force / r.force.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+            lone[s] = (torch.where(amb, r.link, -1),
+                       torch.where(amb[:, None], r.position + 1e3 * f, math.nan))  # fmt: skip
+        last = self._localize_with(q, qd, qdd, ft, lone, res, base, ft_covariance, chunk_size)
+        for s, r in res.items():  # runs whose other hypothesis is the one that stays put
+            lk, pp, pn = priors[s]
+            amb = torch.nonzero(lone[s][0] >= 0).reshape(-1)
+            if not len(amb):
+                continue
+            run = _runs(codes[s], starts)[1][amb]
+            la = last[s]
+            take_a, take_b = stationary_choice(run, r.link[amb], r.position[amb], la.link[amb],
+                                               la.position[amb],
+                                               floor=self.merge_distance)  # fmt: skip
+            pick = torch.where(take_b[:, None], la.position[amb], r.position[amb])
+            lk, pp = lk.clone(), pp.clone()
+            lk[amb] = torch.where(take_a | take_b, torch.where(take_b, la.link[amb],
+                                                               r.link[amb]), -1)  # fmt: skip
+            pp[amb] = torch.where((take_a | take_b)[:, None], pick, math.nan)
+            pn = pn.clone()
+            pn[amb] = torch.where(take_b[:, None], la.normal[amb], r.normal[amb])
+            priors[s] = (lk, pp, pn)
+        return self._localize_with(q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size,
+                                   hold_distance)  # fmt: skip
+
+    def _localize_with(self, q, qd, qdd, ft, priors, res, base, ft_covariance, chunk_size,
+                       hold_distance=0.0):  # fmt: skip
+        """``res`` with the frames that have a prior (link >= 0) localized again with it."""
+        n = q.shape[0]
+        need = torch.zeros(n, dtype=torch.bool, device=q.device)
+        for pl, *_ in priors.values():
+            need |= (pl >= 0).to(need.device)
+        idx = torch.nonzero(need).reshape(-1)
+        if not len(idx):
+            return res
+        sub_base = None if base is None else BaseMotion(*(x[idx] for x in base))
+        sub_cov = None
+        if ft_covariance is not None:
+            sub_cov = {k: c if c.dim() == 2 else c[idx] for k, c in ft_covariance.items()}
+        sub = self.localize(
+            q[idx], qd[idx], qdd[idx], {k: v[idx] for k, v in ft.items()}, base=sub_base,
+            ft_covariance=sub_cov, chunk_size=chunk_size,
+            prior={s: tuple(x[idx] for x in pr) for s, pr in priors.items()},
+            hold_distance=hold_distance,
+        )  # fmt: skip
+        out = {}
+        for s, r in res.items():
+            used = torch.nonzero(priors[s][0][idx] >= 0).reshape(-1)
+            where = idx[used]
+            fields = []
+            for full, part in zip(r, sub[s], strict=True):
+                if full is None:
+                    fields.append(None)
+                    continue
+                full = full.clone()
+                full[where] = part[used]
+                fields.append(full)
+            out[s] = Localization(*fields)
+        return out
 
     def localize_wrench(
         self,
@@ -927,6 +1161,8 @@ class Localizer:
         *,
         status: Tensor | None = None,
         covariance: Tensor | None = None,
+        prior: tuple[Tensor, ...] | None = None,
+        hold_distance: float = 0.0,
     ) -> Localization:
         """Stages 2-5 for one sensor: localize from its region's ``b`` and the links' poses.
 
@@ -939,6 +1175,13 @@ class Localizer:
             sensor: the sensor's name.
             status: ``(N,)`` int64 status bits already set (frames with bit 1 are not cast).
             covariance: ``(N, 6, 6)`` covariance of the wrench (sensor frame), or None.
+            prior: ``(link (N,), position (N, 3))``: per frame, where the contact is expected
+                (an index into :attr:`links`, -1 for none, and a point in that link's frame, m):
+                an ambiguous frame reports the entry nearest it (status bit 256 instead of 16).
+                A third tensor ``(N, 3)``, the outward normal there (link frame), is optional.
+            hold_distance: with a prior, a frame whose line passes within this distance of the
+                prior point (m) but reports another link, or no point, reports the prior point
+                itself (the contact held; bit 256, the bits 4, 8, 16, 64, 128 cleared); 0: never.
 
         Returns:
             :class:`Localization` with ``(N, ...)`` fields; ``link`` indexes :attr:`links`.
@@ -979,9 +1222,17 @@ class Localizer:
         scale = 1.0 + float(a.abs().max()) if len(frames) else 1.0
         dedup = max(1e-9, 1e3 * eps) * scale
         cos_min = None if self.friction is None else 1.0 / math.sqrt(1.0 + self.friction**2)
-        edge = _on_edge(ts, orig, dirs, hits, max(1e-9, 1e3 * eps))
+        # edges and vertices pass the friction-cone test; only entries are tested there
+        edge = torch.zeros_like(hits.entering)
+        e_in = torch.nonzero(hits.entering).reshape(-1)
+        sub = Hits(*(x[e_in] for x in hits))
+        edge[e_in] = _on_edge(ts, orig, dirs, sub, max(1e-9, 1e3 * eps))
+        target = None
+        if prior is not None:
+            target, p_local, p_ok, p_s = self._prior_parameter(prior, frames, slots, Rl, pl, a, u)
         sel = select_entries(hits, group, len(frames), self.merge_distance, dedup,
-                             ts.normal[hits.tri], dirs[hits.ray], cos_min, edge)  # fmt: skip
+                             ts.normal[hits.tri], dirs[hits.ray], cos_min, edge,
+                             target)  # fmt: skip
         nan = float("nan")
         link = torch.full((n,), -1, dtype=torch.int64, device=dev)
         position = wrench.new_full((n, 3), nan)
@@ -994,7 +1245,12 @@ class Localizer:
         pull = frames[sel.any_hit & ~sel.found]
         code[pull] |= _PULLING
         candidates[frames] = sel.candidates
-        code[frames[sel.candidates > 1]] |= _AMBIGUOUS
+        if target is None:
+            code[frames[sel.candidates > 1]] |= _AMBIGUOUS
+        else:  # the prior chose among the candidates
+            resolved = ~torch.isnan(target)
+            code[frames[(sel.candidates > 1) & ~resolved]] |= _AMBIGUOUS
+            code[frames[(sel.candidates > 1) & resolved]] |= _PRIOR
         code[frames[sel.outside_cone]] |= _OUTSIDE_CONE
         found, ray_sel = sel.found.clone(), sel.ray.clone()
         pt_sel = orig[ray_sel] + sel.t.unsqueeze(-1) * dirs[ray_sel]
@@ -1017,6 +1273,24 @@ class Localizer:
             code[frames[gone[~close]]] |= _MISS
         else:
             code[frames[gone]] |= _MISS
+        if prior is not None and hold_distance > 0 and len(frames):
+            # the contact held: the line passes the prior point within the distance, but the
+            # frame reports another link or nothing
+            off = p_s - a[frames]
+            off = off - (off * u[frames]).sum(-1, keepdim=True) * u[frames]
+            ray_p = torch.arange(len(frames), device=dev) * L + p_local
+            hold = p_ok & (off.norm(dim=-1) <= hold_distance)
+            hold &= ~found | (ray_link[ray_sel] != ray_link[ray_p])
+            h = torch.nonzero(hold).reshape(-1)
+            found[h] = True
+            ray_sel[h] = ray_p[h]
+            pt_sel[h] = prior[1].to(device=dev, dtype=dtype)[frames[h]]
+            if nrm_sel is not None:
+                nrm_sel[h] = (prior[2].to(device=dev, dtype=dtype)[frames[h]] if len(prior) > 2
+                              else nan)  # fmt: skip
+            held = frames[h]
+            code[held] = (code[held] & ~(_MISS | _PULLING | _AMBIGUOUS | _OUTSIDE_CONE | _SNAPPED)
+                          ) | _PRIOR  # fmt: skip
         fr_found = frames[found]
         rays = ray_sel[found]
         li = ray_link[rays]
@@ -1044,6 +1318,205 @@ class Localizer:
             std = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0).sqrt()
         return Localization(link, position, normal, force, moment_residual, candidates, code,
                             wrench_out, cov, std)  # fmt: skip
+
+    def _prior_parameter(
+        self,
+        prior: tuple[Tensor, Tensor],
+        frames: Tensor,
+        slots: Sequence[int],
+        R: Tensor,
+        p: Tensor,
+        a: Tensor,
+        u: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(n',)`` the line parameter nearest each live frame's prior point (NaN: no prior).
+
+        Also returns the prior link's index among ``slots``, whether the frame has a prior, and
+        the prior point in the sensor frame ``(n', 3)``.
+
+        The prior point, in its link's frame, is posed in the sensor frame by the frame's own
+        pose of that link (``R``, ``p``: ``(n', L, ...)`` of the live ``frames``); the line
+        parameter is the same in every link's frame (``point = a + t u``, sensor frame), so the
+        candidate nearest the prior point is the one whose parameter is nearest this.
+        """
+        link, pos = prior[0], prior[1]
+        n = a.shape[0]
+        if link.shape != (n,) or pos.shape != (n, 3):
+            raise InputError(f"prior must be (link (N,), position (N, 3)) with N={n}, got"
+                             f" {tuple(link.shape)} and {tuple(pos.shape)}")  # fmt: skip
+        dev = a.device
+        local_of = torch.full((len(self.links) + 1,), -1, dtype=torch.int64, device=dev)
+        local_of[torch.as_tensor(slots, device=dev)] = torch.arange(len(slots), device=dev)
+        lk = link.to(device=dev, dtype=torch.int64)[frames]
+        ok = (lk >= 0) & (lk < len(self.links))
+        local = local_of[torch.where(ok, lk, len(self.links))]
+        ok &= local >= 0  # a link of this sensor's region
+        pp = pos.to(device=dev, dtype=a.dtype)[frames]
+        ok &= torch.isfinite(pp).all(-1)
+        li = local.clamp_min(0)
+        ar = torch.arange(len(frames), device=dev)
+        p_s = torch.einsum("nij,nj->ni", R[ar, li], torch.where(ok[:, None], pp, 0.0)) + p[ar, li]
+        t = ((p_s - a[frames]) * u[frames]).sum(-1)
+        return torch.where(ok, t, torch.full_like(t, math.nan)), li, ok, p_s
+
+
+def _runs(status: Tensor, starts: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """``(in_run, first, last)`` ``(N,)``: the frames in a run of contact, its first and last.
+
+    A run: consecutive frames without the bits 1, 2, 32, cut at time segment starts.
+    """
+    n = status.shape[0]
+    dev = status.device
+    idx = torch.arange(n, device=dev)
+    in_run = (status & (_NONFINITE | _NO_CONTACT | int(LocalizeStatus.SKIN_CONTACT))) == 0
+    seg = torch.zeros(n, dtype=torch.bool, device=dev) if starts is None else starts.to(dev)
+    prev_in = torch.zeros(n, dtype=torch.bool, device=dev)
+    next_in = torch.zeros(n, dtype=torch.bool, device=dev)
+    if n > 1:
+        prev_in[1:] = in_run[:-1] & ~seg[1:]
+        next_in[:-1] = in_run[1:] & ~seg[1:]
+    if n == 0:
+        return in_run, idx, idx
+    run_lo = torch.cummax(torch.where(in_run & ~prev_in, idx, -1), 0).values
+    run_hi = torch.flip(torch.cummin(torch.flip(torch.where(in_run & ~next_in, idx, n), [0]),
+                                     0).values, [0])  # fmt: skip
+    return in_run, run_lo, run_hi
+
+
+def stationary_choice(
+    run: Tensor,
+    link_a: Tensor,
+    pos_a: Tensor,
+    link_b: Tensor,
+    pos_b: Tensor,
+    ratio: float = 0.5,
+    floor: float = 1e-3,
+) -> tuple[Tensor, Tensor]:
+    """Which of two hypotheses of each run's contact keeps its point fixed on its link.
+
+    A contact that lasts stays at one point of its link (no sliding), while the line of action
+    moves with the arm: the wrong one of two candidates (the first and the last entry of an
+    ambiguous line) wanders over the other link's surface. Per run, the root-mean-square spread
+    of each hypothesis's points (link frame) about their mean is compared; a hypothesis whose
+    link changes within the run is out.
+
+    Args:
+        run: ``(K,)`` int64 run key of each frame (e.g. the index of its run's first frame).
+        link_a: ``(K,)`` int64 link of hypothesis A per frame; ``pos_a`` ``(K, 3)`` its point.
+        pos_a: ``(K, 3)`` m, link frame.
+        link_b: ``(K,)`` int64 link of hypothesis B; ``pos_b`` ``(K, 3)``.
+        pos_b: ``(K, 3)`` m.
+        ratio: a hypothesis wins when its spread is below ``ratio`` times the other's...
+        floor: ... and the other's is above ``floor``, m (two points that both stay put, as on
+            a robot at rest, decide nothing).
+
+    Returns:
+        ``(take_a, take_b)`` ``(K,)`` bool per frame: its run chose A, or B (neither: undecided;
+        runs of fewer than 3 frames are undecided).
+
+    Example:
+        >>> run = torch.zeros(4, dtype=torch.int64)
+        >>> a = torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0], [0.03, 0, 0]])
+        >>> b = torch.tensor([[0.0, 0.1, 0]]).expand(4, 3) + 1e-4
+        >>> stationary_choice(run, torch.zeros(4, dtype=torch.int64), a,
+        ...                   torch.ones(4, dtype=torch.int64), b)[1].tolist()
+        [True, True, True, True]
+    """
+    K = run.shape[0]
+    dev = run.device
+    if K == 0:
+        z = torch.zeros(0, dtype=torch.bool, device=dev)
+        return z, z
+    keys, inv = torch.unique(run, return_inverse=True)
+    G = len(keys)
+    cnt = torch.zeros(G, dtype=pos_a.dtype, device=dev).index_add_(0, inv, torch.ones_like(
+        pos_a[:, 0]))  # fmt: skip
+
+    def spread(link: Tensor, pos: Tensor) -> Tensor:
+        lo = torch.full((G,), link.numel() + 1, dtype=link.dtype, device=dev)
+        lo = lo.scatter_reduce(0, inv, link, "amin")
+        hi = torch.full((G,), -1, dtype=link.dtype, device=dev).scatter_reduce(0, inv, link, "amax")
+        mean = torch.zeros(G, 3, dtype=pos.dtype, device=dev).index_add_(0, inv, pos)
+        mean = mean / cnt[:, None]
+        sq = ((pos - mean[inv]) ** 2).sum(-1)
+        var = torch.zeros(G, dtype=pos.dtype, device=dev).index_add_(0, inv, sq) / cnt
+        bad = (lo != hi) | (lo < 0) | ~torch.isfinite(var)
+        return torch.where(bad, math.inf, var.sqrt())
+
+    sa, sb = spread(link_a, pos_a), spread(link_b, pos_b)
+    enough = cnt >= 3
+    pick_a = enough & torch.isfinite(sa) & (sa < ratio * sb) & (sb > floor)
+    pick_b = enough & torch.isfinite(sb) & (sb < ratio * sa) & (sa > floor)
+    return pick_a[inv], pick_b[inv]
+
+
+def temporal_prior(
+    status: Tensor,
+    link: Tensor,
+    position: Tensor,
+    starts: Tensor | None = None,
+    normal: Tensor | None = None,
+    every: bool = False,
+) -> tuple[Tensor, ...]:
+    """For each ambiguous frame of a sequence, the contact of its nearest unambiguous neighbour.
+
+    A contact persists while it lasts: within a *run* (consecutive frames whose status has none
+    of the bits 1, 2, 32: a force above the threshold, finite input, no skin contact; cut at
+    time segment starts), an ambiguous frame (bit 16) takes as its prior the link and point of
+    the nearest frame with status 0 of the same run (the earlier one on a tie) on the link that
+    at least two thirds of the run's status-0 frames are on (noise near a silhouette flips a few
+    frames to the other link; a run without such a majority gets no prior). Vectorised with
+    running maxima and minima of frame indices and per-run votes, no loop over frames.
+
+    Args:
+        status: ``(N,)`` int64 localization status bits (:data:`LOCALIZE_STATUS`).
+        link: ``(N,)`` int64 link index (-1 none).
+        position: ``(N, 3)`` contact point in the link's frame, m.
+        starts: ``(N,)`` bool, True where a time segment starts; None: one segment.
+        normal: ``(N, 3)`` outward normals (link frame): the prior's normal is returned too.
+        every: a prior for every frame of a run but its anchors (the status-0 frames on the
+            majority link), not only for the ambiguous ones (``hold_distance``).
+
+    Returns:
+        ``(prior_link (N,), prior_position (N, 3)[, prior_normal (N, 3)])``: -1 and NaN where a
+        frame is not ambiguous or its run has no unambiguous frame; the
+        :meth:`Localizer.localize` ``prior`` format.
+
+    Example:
+        >>> st = torch.tensor([0, 16, 16, 2, 16, 0])
+        >>> lk = torch.tensor([1, 0, 0, -1, 0, 1])
+        >>> pos = torch.arange(18.0).reshape(6, 3)
+        >>> pl, pp = temporal_prior(st, lk, pos)
+        >>> pl.tolist(), pp[1].tolist(), pp[4].tolist()
+        ([-1, 1, 1, -1, 1, -1], [0.0, 1.0, 2.0], [15.0, 16.0, 17.0])
+    """
+    n = status.shape[0]
+    idx = torch.arange(n, device=status.device)
+    in_run, run_lo, run_hi = _runs(status, starts)
+    anchor = in_run & (status == 0) & (link >= 0)
+    if n:  # only the anchors on the link most of the run's anchors are on (noise flips a few)
+        L = int(link.max().clamp_min(0)) + 1
+        votes = torch.zeros(n, L, dtype=torch.int64, device=idx.device)
+        votes.index_put_((run_lo[anchor], link[anchor]), torch.ones_like(link[anchor]),
+                         accumulate=True)  # fmt: skip
+        best, top = votes.max(1)
+        clear = 3 * best >= 2 * votes.sum(1)  # two thirds of the run's anchors on one link
+        rl = run_lo.clamp_min(0)
+        anchor &= (link == top[rl]) & clear[rl]
+    before = torch.cummax(torch.where(anchor, idx, -1), 0).values
+    after = torch.flip(torch.cummin(torch.flip(torch.where(anchor, idx, n), [0]), 0).values, [0])
+    ok_b = before >= run_lo
+    ok_a = (after <= run_hi) & (after < n)
+    take_b = ok_b & (~ok_a | (idx - before <= after - idx))
+    src = torch.where(take_b, before, after)
+    use = in_run & (~anchor if every else (status & _AMBIGUOUS) != 0) & (ok_b | ok_a)
+    src = torch.where(use, src, 0).clamp(0, max(n - 1, 0))
+    prior_link = torch.where(use, link[src], -1) if n else link.clone()
+    prior_pos = torch.where(use[:, None], position[src], math.nan) if n else position.clone()
+    if normal is None:
+        return prior_link, prior_pos
+    prior_n = torch.where(use[:, None], normal[src], math.nan) if n else normal.clone()
+    return prior_link, prior_pos, prior_n
 
 
 def _point_covariance(f: Tensor, m: Tensor, s: Tensor, n: Tensor, sigma: Tensor) -> Tensor:
@@ -1126,6 +1599,8 @@ def localize_chunk(
     base: Mapping[str, np.ndarray] | None = None,
     ft_covariance: Mapping[str, np.ndarray] | None = None,
     accept_ambiguous: bool = False,
+    starts: np.ndarray | None = None,
+    temporal: bool = False,
 ) -> LocalizedChunk:
     """Localize the contacts of a decoded log chunk and add them as ``force`` records.
 
@@ -1148,6 +1623,11 @@ def localize_chunk(
         ft_covariance: sensor -> ``(6, 6)`` reading noise covariance (fills the position std).
         accept_ambiguous: also add the first candidate of ambiguous frames (status 16); frames
             flagged outside the friction cone (64) or snapped (128) are always added.
+        starts: ``(N,)`` bool, True where a time segment starts (with ``temporal``; None: the
+            chunk is one segment).
+        temporal: resolve ambiguous frames by their neighbours' contacts
+            (:meth:`Localizer.localize_sequence`; frames with skin contacts in the region end
+            runs); such frames (status 256) are added.
 
     Returns:
         :class:`LocalizedChunk`.
@@ -1168,8 +1648,6 @@ def localize_chunk(
     cov = None
     if ft_covariance:
         cov = {s: t(c) for s, c in ft_covariance.items()}
-    res = localizer.localize(t(q), t(qd), t(qdd), {s: t(v) for s, v in ft.items()}, base=bm,
-                             ft_covariance=cov)  # fmt: skip
     recs: ContactRecords = records  # type: ignore[assignment]
     # the region of each input record's link (-1: outside, or not a frame)
     region = localizer.em.region_of_body
@@ -1177,14 +1655,26 @@ def localize_chunk(
     rec_region = np.array([region[model.frame(n).body] if isinstance(n, str) and n in
                            model.frames else -1 for n in ln], np.int64)[lc]  # fmt: skip
     names = localizer.estimator_sensors
+    skins = {}
+    for s in localizer.sensor_names:
+        skins[s] = np.zeros(N, bool)
+        skins[s][recs.frame[rec_region == names.index(s)]] = True
+    args = (t(q), t(qd), t(qdd), {s: t(v) for s, v in ft.items()})
+    if temporal:
+        st = None if starts is None else torch.as_tensor(np.asarray(starts, bool))
+        res = localizer.localize_sequence(
+            *args, starts=st, skip={s: torch.as_tensor(v) for s, v in skins.items()}, base=bm,
+            ft_covariance=cov,
+        )  # fmt: skip
+    else:
+        res = localizer.localize(*args, base=bm, ft_covariance=cov)
     columns: dict[str, object] = {}
     add_frame, add_link, add_pos, add_nrm = [], [], [], []
     link_names = np.array([*localizer.links, None], dtype=object)
     for s in localizer.sensor_names:
         r = res[s]
         code = r.status.cpu().numpy().astype(np.int64)
-        skin = np.zeros(N, bool)
-        skin[recs.frame[rec_region == names.index(s)]] = True
+        skin = skins[s]
         code = np.where(skin, code | int(LocalizeStatus.SKIN_CONTACT), code)
         link = r.link.cpu().numpy()
         pos = r.position.detach().cpu().double().numpy()

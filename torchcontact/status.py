@@ -123,8 +123,8 @@ class LocalizeStatus(enum.IntFlag):
     """The status bits of a contact localization; 0 means one contact was found.
 
     Set in :class:`torchcontact.localize.Localization` and the ``localize_status_code.<sensor>``
-    log column. Frames with a bit other than ``AMBIGUOUS``, ``OUTSIDE_CONE`` and ``NEAR_MISS``
-    set have no contact point.
+    log column. Frames with a bit other than ``AMBIGUOUS``, ``OUTSIDE_CONE``, ``NEAR_MISS`` and
+    ``PRIOR`` set have no contact point.
     """
 
     #: a non-finite F/T reading, joint state or base motion
@@ -143,6 +143,8 @@ class LocalizeStatus(enum.IntFlag):
     OUTSIDE_CONE = 64
     #: the line passes beside the links
     NEAR_MISS = 128
+    #: ambiguous, resolved by a prior (the previous contact): the entry nearest it is reported
+    PRIOR = 256
 
 
 _LOCALIZE_TEXT = {
@@ -160,6 +162,8 @@ _LOCALIZE_TEXT = {
     " cone (the first entry is reported)",
     LocalizeStatus.NEAR_MISS: "near miss: the line passes beside the links; the nearest edge"
     " point is reported",
+    LocalizeStatus.PRIOR: "resolved by the prior: the line enters the links at several points;"
+    " the one nearest the contact of a neighbouring frame (or the given prior) is reported",
 }
 
 #: Per-frame status bits of a contact localization: bit -> text (see :class:`LocalizeStatus`).

@@ -220,6 +220,10 @@ class LogLocalize:
         ft_std: ``(6,)`` F/T noise standard deviations ``[N; N m]`` of every localizing sensor
             (fills ``localize_position_std``), or None (NaN).
         ray: the localizer's ray-casting backend (:data:`torchcontact.localize.RAY_BACKENDS`).
+        temporal: resolve ambiguous frames by the contact of their neighbours in the same run
+            of contact (:meth:`~torchcontact.localize.Localizer.localize_sequence`), within each
+            chunk's time segments (a run that crosses a chunk boundary is resolved on each side
+            apart).
 
     Raises:
         InputError: a threshold < 0, an ``ft_std`` that is not 6 numbers >= 0.
@@ -234,6 +238,7 @@ class LogLocalize:
         accept_ambiguous: bool = False,
         ft_std: Sequence[float] | None = None,
         ray: str = "auto",
+        temporal: bool = False,
     ) -> None:
         if not force_threshold >= 0:
             raise InputError(f"--localize-threshold must be >= 0 N, got {force_threshold}")
@@ -248,6 +253,7 @@ class LogLocalize:
         self.accept_ambiguous = bool(accept_ambiguous)
         self.ft_std = ft_std
         self.ray = ray
+        self.temporal = bool(temporal)
         self._localizers: dict[tuple, Any] = {}
 
     @classmethod
@@ -319,6 +325,7 @@ class LogLocalize:
             "accept_ambiguous": self.accept_ambiguous,
             "ft_std": self.ft_std,
             "ray": self.ray,
+            "temporal": self.temporal,
         }
 
 
@@ -831,6 +838,7 @@ class LogEstimator:
             loc, d.q, d.qd, d.qdd, ft, d.records,
             base=d.base or None, ft_covariance=opts.covariance(loc.sensor_names),
             accept_ambiguous=opts.accept_ambiguous,
+            starts=d.starts if opts.temporal else None, temporal=opts.temporal,
         )  # fmt: skip
         records, source = lc.records, lc.source  # by frame; source -1: a localized record
         mine_rows = source < 0

@@ -123,6 +123,7 @@ def _localize(args: argparse.Namespace) -> dict[str, Any] | None:
     """``--localize`` and its options -> the options of a run's LogLocalize, or None."""
     given = [n for n in ("localize_ft_std",) if getattr(args, n) is not None]
     given += ["localize_ambiguous"] if args.localize_ambiguous else []
+    given += ["localize_temporal"] if args.localize_temporal else []
     given += ["localize_threshold"] if args.localize_threshold != 1.0 else []
     if args.localize is None:
         if given:
@@ -151,6 +152,7 @@ def _localize(args: argparse.Namespace) -> dict[str, Any] | None:
         "force_threshold": args.localize_threshold,
         "accept_ambiguous": args.localize_ambiguous,
         "ft_std": std,
+        "temporal": args.localize_temporal,
     }
 
 
@@ -651,6 +653,13 @@ def add_parser(subparsers: Any) -> None:
         help="also estimate the first candidate where the line of action enters the links at"
         " several points (status bit 16; default: those frames are estimated contact-free)"
         " (--localize)",
+    )
+    est.add_argument(
+        "--localize-temporal",
+        action="store_true",
+        help="resolve ambiguous frames by the contact of the nearest unambiguous frame of the"
+        " same run of contact (consecutive frames above the threshold in one time segment;"
+        " status bit 256) (--localize)",
     )
     est.add_argument(
         "--localize-ft-std",
