@@ -33,14 +33,23 @@ _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 PART_NODES = 1000
 
 PRELUDE = r"""
-#include <cmath>
-#include <cstdint>
+#include <stdint.h>
 typedef TC_T T;
 typedef T V __attribute__((vector_size(TC_VBYTES)));
 enum { W = TC_VBYTES / sizeof(T) };
 typedef decltype(V{} < V{}) M;
 static inline V splat(T c) { return V{} + c; }
-static inline V vsqrt(V x) { V r; for (int i = 0; i < W; ++i) r[i] = std::sqrt(x[i]); return r; }
+// libm by its builtins (<cmath> alone takes 0.2 s of every compile), float or double as std::
+static inline T tc_sqrt(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_sqrtf(x); else return __builtin_sqrt(x);
+}
+static inline T tc_sin(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_sinf(x); else return __builtin_sin(x);
+}
+static inline T tc_cos(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_cosf(x); else return __builtin_cos(x);
+}
+static inline V vsqrt(V x) { V r; for (int i = 0; i < W; ++i) r[i] = tc_sqrt(x[i]); return r; }
 typedef TC_I I __attribute__((vector_size(TC_VBYTES)));
 // sin and cos of every lane: x = r + k pi/2 with |r| <= pi/4 (Cody-Waite reduction in three
 // exactly representable parts of pi/2, fused multiply-adds), Taylor polynomials of r (terms up
@@ -61,12 +70,12 @@ static inline void vsincos(V x, V* s, V* c) {
   *s = ((q & 2) != 0) ? -sn : sn;
   *c = (((q + 1) & 2) != 0) ? -cs : cs;
   bool big = false;
-  for (int l = 0; l < W; ++l) big |= !(std::fabs(x[l]) <= (T)TC_SC_LIMIT);
+  for (int l = 0; l < W; ++l) big |= !(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT);
   if (__builtin_expect(big, 0)) {
     for (int l = 0; l < W; ++l) {
-      if (!(std::fabs(x[l]) <= (T)TC_SC_LIMIT)) {
-        (*s)[l] = std::sin(x[l]);
-        (*c)[l] = std::cos(x[l]);
+      if (!(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT)) {
+        (*s)[l] = tc_sin(x[l]);
+        (*c)[l] = tc_cos(x[l]);
       }
     }
   }
@@ -144,9 +153,9 @@ def _sincos_constants(dtype: str) -> dict[str, str]:
 
 def _const(c: float, dtype: str) -> str:
     if c != c:  # NaN
-        return "splat(NAN)"
+        return 'splat(__builtin_nan(""))'
     if c in (float("inf"), float("-inf")):
-        return f"splat({'-' if c < 0 else ''}INFINITY)"
+        return f"splat({'-' if c < 0 else ''}__builtin_inf())"
     return f"splat(({dtype}){float(c)!r})"
 
 
