@@ -29,7 +29,8 @@ from torchcontact.kernels._store import PARTS_MARK
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
-#: Nodes per generated function (:func:`emit`): a program larger than this is cut into parts.
+#: Nodes per generated function (:func:`emit`): a program larger than this is cut into parts
+#: (``benchmarks/kernel_build.py``: build time against kernel speed).
 PART_NODES = 1000
 
 PRELUDE = r"""
@@ -254,10 +255,13 @@ def emit(
 
     The program's code is cut into functions of about ``part_nodes`` nodes each (``noinline``,
     called one after the other; a loop with its body stays in one). A value one part computes
-    and a later one reads passes through an array on the stack. Compile time grows faster than
-    linearly with a function's size (register allocation and the combiner over one huge
-    function), so parts build several times faster than one function, at the same speed of the
-    kernel (measured in ``docs/kernel_cache.md``).
+    and a later one reads passes through an array on the stack; inputs are loaded by each part
+    that reads them. GCC's time grows faster than linearly with a function's size (the
+    combiner and register allocation over one huge function), so the parts build in about half
+    the compiler's time, and as several translation units at once where compile slots are free
+    (:data:`GROUPS`, :func:`torchcontact.kernels._store.build`); the kernel runs about 15%
+    slower (measured in ``docs/kernel_cache.md``). Rounding may differ from one function's:
+    a product and the sum that reads it in another part are not fused into one multiply-add.
 
     Args:
         trace: the traced program; its ``inputs`` fix the input order.

@@ -10,7 +10,8 @@ Layout under ``<cache>/kernels/`` (``<cache>`` is :func:`torchcontact.kernels.ca
   none, and the record, renamed last, is the entry's commit point.
 * ``index/<key hash>.json``: program key -> entry name (and the source's sha256), so a process
   finds a cached kernel from the program's key without tracing the program again.
-* ``.slots/slot-<i>``: the compile slots (:func:`build_slot`).
+* ``.slots/slot-<i>``: the compile slots (:func:`build_slot`); a build of a source cut into
+  parts holds every slot free at once (up to one per part) and runs one compiler per slot.
 
 Checked before use (ccache and Bazel's disk cache do the same): a library whose size or sha256
 differs from its record is a damaged entry, never loaded; :mod:`torchcontact.kernels` removes
@@ -385,7 +386,14 @@ def build(entry: Entry, jobs: int | None = None, flags: tuple[str, ...] = CFLAGS
 
     Holds the entry's build lock (one builder per entry: a second one waits, then finds the
     entry built), then a compile slot while the compiler runs. The compiler writes
-    ``<name>.so.<pid>.tmp``; :meth:`Entry.publish` renames it and writes the record.
+    ``<name>.so.<pid>.tmp``; :meth:`Entry.publish` renames it and writes the record (with
+    ``units``, the compilers the build ran at once).
+
+    A source cut into parts (:data:`PARTS_MARK`) also takes the slots that are free at once, up
+    to one per part, and compiles one translation unit per slot held, all at once (object files
+    ``<name>.so.<pid>.tmp.<unit>.o``, then linked): on a machine with several slots a large
+    kernel builds in a fraction of the time, and never with more compilers than
+    :func:`build_jobs` across the cache's processes.
 
     Args:
         entry: the entry (its source written).
