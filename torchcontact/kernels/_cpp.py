@@ -25,18 +25,32 @@ from collections.abc import Callable
 from typing import Any
 
 from torchcontact._scalar import Sym, Trace, loop_deps
+from torchcontact.kernels._store import PARTS_MARK
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
+#: Nodes per generated function (:func:`emit`): a program larger than this is cut into parts
+#: (``benchmarks/kernel_build.py``: build time against kernel speed).
+PART_NODES = 1000
+
 PRELUDE = r"""
-#include <cmath>
-#include <cstdint>
+#include <stdint.h>
 typedef TC_T T;
 typedef T V __attribute__((vector_size(TC_VBYTES)));
 enum { W = TC_VBYTES / sizeof(T) };
 typedef decltype(V{} < V{}) M;
 static inline V splat(T c) { return V{} + c; }
-static inline V vsqrt(V x) { V r; for (int i = 0; i < W; ++i) r[i] = std::sqrt(x[i]); return r; }
+// libm by its builtins (<cmath> alone takes 0.2 s of every compile), float or double as std::
+static inline T tc_sqrt(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_sqrtf(x); else return __builtin_sqrt(x);
+}
+static inline T tc_sin(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_sinf(x); else return __builtin_sin(x);
+}
+static inline T tc_cos(T x) {
+  if constexpr (sizeof(T) == 4) return __builtin_cosf(x); else return __builtin_cos(x);
+}
+static inline V vsqrt(V x) { V r; for (int i = 0; i < W; ++i) r[i] = tc_sqrt(x[i]); return r; }
 typedef TC_I I __attribute__((vector_size(TC_VBYTES)));
 // sin and cos of every lane: x = r + k pi/2 with |r| <= pi/4 (Cody-Waite reduction in three
 // exactly representable parts of pi/2, fused multiply-adds), Taylor polynomials of r (terms up
@@ -57,12 +71,12 @@ static inline void vsincos(V x, V* s, V* c) {
   *s = ((q & 2) != 0) ? -sn : sn;
   *c = (((q + 1) & 2) != 0) ? -cs : cs;
   bool big = false;
-  for (int l = 0; l < W; ++l) big |= !(std::fabs(x[l]) <= (T)TC_SC_LIMIT);
+  for (int l = 0; l < W; ++l) big |= !(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT);
   if (__builtin_expect(big, 0)) {
     for (int l = 0; l < W; ++l) {
-      if (!(std::fabs(x[l]) <= (T)TC_SC_LIMIT)) {
-        (*s)[l] = std::sin(x[l]);
-        (*c)[l] = std::cos(x[l]);
+      if (!(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT)) {
+        (*s)[l] = tc_sin(x[l]);
+        (*c)[l] = tc_cos(x[l]);
       }
     }
   }
@@ -80,6 +94,22 @@ static inline void store(T* p, int64_t s, int j, V x) { TC_STORE }
 
 # pi/2 to 60 digits (a mathematical constant), split for the Cody-Waite reduction
 _HALF_PI = "1.57079632679489661923132169163975144209858469968755291048747"
+
+
+#: The source compiles as one translation unit, or as ``TC_GROUPS`` units compiled in
+#: parallel (``-DTC_GROUPS=G -DTC_GROUP=g``, then linked): unit ``g`` defines the parts ``k``
+#: with ``k % G == g``, unit 0 also the entry point (:func:`torchcontact.kernels._store.build`).
+GROUPS = r"""
+#ifndef TC_GROUPS
+#define TC_PART static
+#define TC_HAS(k) 1
+#define TC_HAS_MAIN 1
+#else
+#define TC_PART __attribute__((visibility("hidden")))
+#define TC_HAS(k) ((k) % TC_GROUPS == TC_GROUP)
+#define TC_HAS_MAIN (TC_GROUP == 0)
+#endif
+"""
 
 
 def _sincos_constants(dtype: str) -> dict[str, str]:
@@ -124,9 +154,9 @@ def _sincos_constants(dtype: str) -> dict[str, str]:
 
 def _const(c: float, dtype: str) -> str:
     if c != c:  # NaN
-        return "splat(NAN)"
+        return 'splat(__builtin_nan(""))'
     if c in (float("inf"), float("-inf")):
-        return f"splat({'-' if c < 0 else ''}INFINITY)"
+        return f"splat({'-' if c < 0 else ''}__builtin_inf())"
     return f"splat(({dtype}){float(c)!r})"
 
 
@@ -219,8 +249,19 @@ def emit(
     dtype: str,
     vbytes: int = 32,
     symbol: str = "tc_kernel",
+    part_nodes: int | None = None,
 ) -> str:
     """C++ source of one kernel.
+
+    The program's code is cut into functions of about ``part_nodes`` nodes each (``noinline``,
+    called one after the other; a loop with its body stays in one). A value one part computes
+    and a later one reads passes through an array on the stack; inputs are loaded by each part
+    that reads them. GCC's time grows faster than linearly with a function's size (the
+    combiner and register allocation over one huge function), so the parts build in about half
+    the compiler's time, and as several translation units at once where compile slots are free
+    (:data:`GROUPS`, :func:`torchcontact.kernels._store.build`); the kernel runs about 15%
+    slower (measured in ``docs/kernel_cache.md``). Rounding may differ from one function's:
+    a product and the sum that reads it in another part are not fused into one multiply-add.
 
     Args:
         trace: the traced program; its ``inputs`` fix the input order.
@@ -228,28 +269,35 @@ def emit(
         dtype: ``"double"`` or ``"float"``.
         vbytes: bytes per vector value (lanes ``= vbytes / sizeof(T)``).
         symbol: name of the exported C function.
+        part_nodes: nodes per function (default :data:`PART_NODES`; 0: one function).
 
     Returns:
         The source. The function is ``void symbol(int64_t n, const T* const* in, const int64_t*
         in_stride, T* const* out, const int64_t* out_stride)`` with one pointer and row stride
         (elements) per input array and per output array, in declaration order.
     """
+    if part_nodes is None:
+        part_nodes = PART_NODES
     flat_out = [x for xs in outputs.values() for x in xs]
     nodes = live_nodes(trace, flat_out)
     bodies = loop_bodies(nodes)
     deferred = {b.index for body in bodies.values() for b in body}
-    name = {}
+    name: dict[int, str] = {}
     consts: dict[float, str] = {}
     lines: list[str] = []
     sincos: dict[str, tuple[str, str]] = {}
     in_index = {k: i for i, k in enumerate(trace.inputs)}
+    used: set = set()  # the current part's references: symbol indices and constant names
+    masks = {s.index for s in nodes if s.mask}
 
     def ref(a) -> str:
         if isinstance(a, Sym):
+            used.add(a.index)
             return name[a.index]
         key = float(a)
         if key not in consts:
             consts[key] = f"c{len(consts)}"
+        used.add(consts[key])
         return consts[key]
 
     def emit_node(s: Sym) -> None:
@@ -296,21 +344,70 @@ def emit(
         else:  # pragma: no cover - every op of _scalar is handled above
             raise ValueError(f"no C++ for op {s.op!r}")
 
+    # the parts: runs of nodes in trace order, a loop (with its body) whole
+    parts: list[list[Sym]] = [[]]
+    size = 0
     for s in nodes:
         if s.index in deferred or s.op == "carry":
             continue
-        if s.op == "loop":
-            name.update((c.index, f"t{c.index}") for c in s.args[0].carries)
-            emit_loop(s, bodies[s.index], lines, ref, emit_node, sincos, "V", "all_lanes({})")
-            continue
-        emit_node(s)
-
-    stores = []
-    for k, xs in enumerate(outputs.values()):
-        for j, x in enumerate(xs):
-            stores.append(f"  store(out[{k}], out_stride[{k}], {j}, {ref(x)});")
-    const_lines = [f"  const V {n} = {_const(c, dtype)};" for c, n in consts.items()]
-    body = "\n".join(const_lines + lines + stores)
+        if part_nodes and size >= part_nodes:
+            parts.append([])
+            size = 0
+        parts[-1].append(s)
+        size += 1 + len(bodies.get(s.index, ()))
+    emitted = []  # per part: its lines, the references it reads, the symbols it defines
+    for k, part in enumerate(parts):
+        lines, known = [], set(name)
+        used.clear()
+        sincos.clear()  # a sine's variables are local to its part
+        for s in part:
+            if s.op == "loop":
+                name.update((c.index, f"t{c.index}") for c in s.args[0].carries)
+                emit_loop(s, bodies[s.index], lines, ref, emit_node, sincos, "V", "all_lanes({})")
+            else:
+                emit_node(s)
+        if k == len(parts) - 1:
+            for a, xs in enumerate(outputs.values()):
+                lines.extend(f"  store(out[{a}], out_stride[{a}], {j}, {ref(x)});"
+                             for j, x in enumerate(xs))  # fmt: skip
+        emitted.append((lines, set(used), set(name) - known))
+    # a value crossing parts: stored by the part defining it, read by the parts using it
+    # (an input is loaded again by each part that reads it)
+    inputs = {s.index: s for s in nodes if s.op == "in"}
+    slot: dict[int, str] = {}
+    for _, refs, defs in emitted:
+        for i in sorted(r for r in refs if isinstance(r, int) and r not in defs):
+            if i not in slot and i not in inputs:
+                kind = "sm" if i in masks else "sv"
+                slot[i] = f"{kind}[{sum(1 for v in slot.values() if v.startswith(kind))}]"
+    n_sv = sum(1 for v in slot.values() if v.startswith("sv"))
+    n_sm = len(slot) - n_sv
+    const_name = {n: c for c, n in consts.items()}
+    funcs: list[str] = []
+    calls: list[str] = []
+    decls: list[str] = []
+    for k, (lines_k, refs, defs) in enumerate(emitted):
+        head = [
+            f"  const V {n} = {_const(const_name[n], dtype)};"
+            for n in sorted((r for r in refs if isinstance(r, str)), key=lambda n: int(n[1:]))
+        ]
+        for i in sorted(r for r in refs if isinstance(r, int) and r not in defs):
+            if i in inputs:
+                arr, j = inputs[i].args
+                a = in_index[arr]
+                head.append(f"  const V {name[i]} = load(in[{a}], in_stride[{a}], {j});")
+            else:
+                head.append(f"  const {'M' if i in masks else 'V'} {name[i]} = {slot[i]};")
+        tail = [f"  {slot[i]} = {name[i]};" for i in sorted(defs) if i in slot]
+        fn = f"{symbol}_part{k}"
+        sig = (f"TC_PART __attribute__((noinline)) void {fn}(const T* const* in, const int64_t*"
+               " in_stride, T* const* out, const int64_t* out_stride, V* sv, M* sm)")  # fmt: skip
+        decls.append(sig + ";")
+        funcs.append(f"#if TC_HAS({k})\n{sig} {{\n" + "\n".join(head + lines_k + tail)
+                     + "\n}\n#endif\n")  # fmt: skip
+        calls.append(f"  {fn}(in, in_stride, out, out_stride, sv, sm);")
+    calls = [f"  V sv[{max(n_sv, 1)}];", f"  M sm[{max(n_sm, 1)}];", *calls]
+    body = "\n".join(calls)
     lanes = vbytes // (8 if dtype == "double" else 4)
     prelude = PRELUDE
     for k, val in _sincos_constants(dtype).items():
@@ -336,7 +433,12 @@ def emit(
         f" out[{a}][(f0 + r) * out_stride[{a}] + c] = o{a}[r * {k} + c];"
         for a, k in enumerate(n_out)
     )
-    return f"""{prelude}
+    return f"""{PARTS_MARK}{len(funcs)}
+{prelude}
+{GROUPS}
+{chr(10).join(decls)}
+{"".join(funcs)}
+#if TC_HAS_MAIN
 static inline void block(const T* const* in, const int64_t* in_stride, T* const* out,
                          const int64_t* out_stride) {{
 {body}
@@ -364,4 +466,5 @@ extern "C" void {symbol}(int64_t n, const T* const* in, const int64_t* in_stride
 {unpad}
   }}
 }}
+#endif
 """
