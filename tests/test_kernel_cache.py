@@ -287,6 +287,27 @@ def test_a_cache_hit_does_not_trace_the_program(cache):
     assert json.loads(index[0].read_text()) == rec  # rewritten
 
 
+def test_the_cached_backend_uses_a_built_kernel_and_never_starts_a_build(cache):
+    """``backend="cached"`` (a log's noise estimate): eager while the kernel is not built, and
+    no build started (it would hold the compile slot the run's own kernel needs next)."""
+    from torchcontact.kernels.runner import run_program
+
+    prog = dynamics.program(_pendulum(0.64), "id", False, False)
+    q = torch.linspace(-3, 3, N, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    eager = kernels.run(prog, x, "eager")
+    for run in (lambda: kernels.run(prog, x, "cached"), lambda: run_program(prog, x, "cached")):
+        out = run()
+        assert not kernels.background_builds() and not (cache / "cc.log").exists()
+        torch.testing.assert_close(out, eager, rtol=0, atol=0)  # eager: the same numbers
+    assert kernels.compiled(prog, torch.float64, wait=False, build=False) is None
+    kernels.compiled(prog, torch.float64)  # built now
+    calls = (cache / "cc.log").read_text().count("start")
+    out = kernels.run(prog, x, "cached")
+    torch.testing.assert_close(out, eager, rtol=1e-12, atol=1e-12)  # the kernel's
+    assert kernels._ready(prog, q) and (cache / "cc.log").read_text().count("start") == calls
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (nvcc)")
 def test_cuda_entry_is_checked_published_and_healed(cache):
     """CUDA entries: recorded after an nvcc build in a private folder; a truncated and an

@@ -65,8 +65,10 @@ __all__ = [
     "wait_for_builds",
 ]
 
-#: Accepted ``backend`` arguments.
-BACKENDS = ("auto", "eager", "cpu", "cuda")
+#: Accepted ``backend`` arguments. ``"cached"``: the kernel when it is built already (loaded or
+#: in the disk cache), else eager, and never a build (a short side computation, such as a log's
+#: contact-free noise estimate, must not take the compile slot from the run's own kernel).
+BACKENDS = ("auto", "eager", "cpu", "cuda", "cached")
 
 #: Batches at least this large start a background build under ``backend="auto"``.
 AUTO_BUILD_MIN_FRAMES = 2048
@@ -396,7 +398,11 @@ def _heal(ckey: str, entry: _store.Entry, why: str, wait: bool) -> bool:
 
 
 def compiled(
-    program: Program, dtype: torch.dtype, device: torch.device | str = "cpu", wait: bool = True
+    program: Program,
+    dtype: torch.dtype,
+    device: torch.device | str = "cpu",
+    wait: bool = True,
+    build: bool = True,
 ) -> Callable | None:
     """The compiled kernel of ``program`` for ``dtype`` on ``device``.
 
@@ -412,6 +418,8 @@ def compiled(
             False, return the kernel if it is loaded or in the disk cache, else start a background
             build (a detached process for CPU kernels, bounded by the cache's compile slots) and
             return None.
+        build: with ``wait=False``, False returns None for a kernel not built yet instead of
+            starting its build (a damaged entry is still healed).
 
     Returns:
         ``call(tensors: dict[str, (N, k) Tensor]) -> dict[str, (N, k) Tensor]`` or None.
@@ -443,16 +451,18 @@ def compiled(
         pending.join()
         return compiled(program, dtype, device, wait)
     if device.type == "cuda":
-        return _compiled_cuda(program, dtype, ckey, wait)
+        return _compiled_cuda(program, dtype, ckey, wait) if wait or build else None
     try:
-        return _compiled_cpu(program, dtype, ckey, wait)
+        return _compiled_cpu(program, dtype, ckey, wait, build)
     except OSError as e:  # an unwritable or full cache: eager, never a crash
         where = f"{e.filename}: " if e.filename else ""
         msg = f"kernel cache {cache_dir() / 'kernels'}: {where}{e.strerror or e}"
         return _finish(ckey, _failing(msg), raise_=wait)
 
 
-def _compiled_cpu(program: Program, dtype: torch.dtype, ckey: str, wait: bool) -> Callable | None:
+def _compiled_cpu(
+    program: Program, dtype: torch.dtype, ckey: str, wait: bool, build: bool = True
+) -> Callable | None:
     """The CPU kernel from the cache: checked, healed, built now or by a detached process."""
     entry, (state, why) = _cpu_entry(program, dtype)
     if state == "ok":
@@ -465,6 +475,8 @@ def _compiled_cpu(program: Program, dtype: torch.dtype, ckey: str, wait: bool) -
         return _finish(ckey, _failing(why), raise_=wait)
     if wait:
         return _finish(ckey, lambda: _build_now(entry, program, dtype), raise_=True)
+    if not build:
+        return None
     with _lock:  # one builder per kernel, also when several threads ask at once
         if ckey not in _building and ckey not in _loaded:
             proc = _store.spawn_build(entry)
@@ -586,7 +598,8 @@ def run(
         program: the program.
         tensors: input name -> ``(N, k)`` tensor (one dtype and device).
         backend: ``"auto"`` (compiled if ready, else eager while it builds), ``"eager"``,
-            ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure).
+            ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure),
+            ``"cached"`` (compiled if built already, else eager; no build).
 
     Returns:
         Output name -> ``(N, k)`` tensor.
@@ -602,6 +615,11 @@ def run(
         return compiled(program, first.dtype, first.device, wait=True)(tensors)
     if first.dtype not in _DTYPES or first.device.type not in ("cpu", "cuda"):
         return run_eager(program, tensors)
+    if backend == "cached":
+        k = None if first.requires_grad or _tracing() else compiled(
+            program, first.dtype, first.device, wait=False, build=False
+        )  # fmt: skip
+        return run_eager(program, tensors) if k is None else k(tensors)
     k = compiled(program, first.dtype, first.device, wait=False) if (
         first.shape[0] >= AUTO_BUILD_MIN_FRAMES or _ready(program, first)
     ) else None  # fmt: skip

@@ -198,7 +198,9 @@ def contact_free_noise(
 
             kw["base"] = BaseMotion(*(torch.as_tensor(d.base[k][rows], dtype=model.dtype)
                                       for k in ("omega", "domega", "proper_acc")))  # fmt: skip
-        pred = est.predict_ft(t["q"], t["qd"], t["qdd"], none, **kw)
+        # the kernel only if built already: a build of its own would hold the compile slot the
+        # run's estimator kernel needs next (a first run would wait for two builds in a row)
+        pred = est.predict_ft(t["q"], t["qd"], t["qdd"], none, backend="cached", **kw)
         r = np.full((d.n, 6 * len(sensors)), np.nan)
         r[rows] = np.concatenate(
             [d.ft[s][rows] - pred[s].detach().cpu().numpy() for s in sensors], 1
