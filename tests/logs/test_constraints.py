@@ -55,7 +55,9 @@ def test_cli_keeps_pushing_forces_inside_their_cones(cone_log, tmp_path, capsys)
     assert (est["status_code"].to_numpy() == 0).all()
     assert est["converged.base_ft"].to_numpy(zero_copy_only=False).all()
     its = est["iterations.base_ft"].to_numpy(zero_copy_only=False)
-    assert its.max() <= 25 and its.max() > 0
+    from torchcontact.constrained import RESTART_AT
+
+    assert its.max() <= 25 + RESTART_AT and its.max() > 0  # the budget, with its restart
     nullity = est["nullity.base_ft"].to_numpy()
     assert (nullity == est["unknowns.base_ft"].to_numpy() - est["rank.base_ft"].to_numpy()).all()
     assert (nullity == 1).any()  # two forces: the pseudo-inverse alone cannot tell them apart
