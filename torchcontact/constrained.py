@@ -260,7 +260,9 @@ class FrictionCones:
             kernels and eager torch stop when every frame has stopped). Measured on held-out
             iCub frames with one to four contacts in float64: the MAP objective's frames stop
             after at most 13 iterations (7.8 on average), the min-norm objective's after at
-            most 23 (12.4); with four contacts in float32 (min-norm) 7 to 16 (10).
+            most 23 (12.4); with four contacts in float32 (min-norm) 7 to 16 (10). With the
+            MAP objective a frame still going at :data:`RESTART_AT` restarts once with this
+            budget again (``iterations + RESTART_AT`` in all, when ``iterations`` exceeds it).
         eps: regularisation ``eps`` of ``|A x - b|^2 + eps |x|^2`` (default
             :data:`DEFAULT_EPS` of the model's dtype).
         tol: tolerance of the ``converged`` flag on a stopped frame's relative KKT residuals
