@@ -613,19 +613,29 @@ def run(
         if first.device.type != backend:
             raise ValueError(f"backend {backend!r} needs inputs on {backend}, got {first.device}")
         return compiled(program, first.dtype, first.device, wait=True)(tensors)
-    if first.dtype not in _DTYPES or first.device.type not in ("cpu", "cuda"):
-        return run_eager(program, tensors)
-    if backend == "cached":
-        k = None if first.requires_grad or _tracing() else compiled(
-            program, first.dtype, first.device, wait=False, build=False
-        )  # fmt: skip
-        return run_eager(program, tensors) if k is None else k(tensors)
-    k = compiled(program, first.dtype, first.device, wait=False) if (
-        first.shape[0] >= AUTO_BUILD_MIN_FRAMES or _ready(program, first)
-    ) else None  # fmt: skip
+    k = _usable_kernel(program, first, backend)
     if k is None:
         return run_eager(program, tensors)
     return k(tensors)
+
+
+def _usable_kernel(program: Program, like: Tensor, backend: str) -> Callable | None:
+    """The compiled kernel ``backend`` ``"auto"`` or ``"cached"`` runs ``program`` with, or None.
+
+    None (run eagerly) for inputs that need gradients, while tracing, and for a dtype or device
+    without kernels. ``"auto"`` asks for the kernel of a batch of at least
+    :data:`AUTO_BUILD_MIN_FRAMES` frames (starting its background build) or of a kernel already
+    loaded; ``"cached"`` takes it only when built already and never starts a build.
+    """
+    if like.requires_grad or _tracing():
+        return None
+    if like.dtype not in _DTYPES or like.device.type not in ("cpu", "cuda"):
+        return None
+    if backend == "cached":
+        return compiled(program, like.dtype, like.device, wait=False, build=False)
+    if like.shape[0] >= AUTO_BUILD_MIN_FRAMES or _ready(program, like):
+        return compiled(program, like.dtype, like.device, wait=False)
+    return None
 
 
 def _ready(program: Program, like: Tensor) -> bool:

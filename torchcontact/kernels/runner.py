@@ -64,21 +64,8 @@ def run_program(
     first = next(iter(tensors.values()))
     if backend in ("cpu", "cuda"):
         return kernels.run(program, tensors, backend)
-    if backend == "cached":  # the kernel if built already; never a build
-        if first.requires_grad or in_tracing() or first.dtype not in (torch.float32, torch.float64):
-            return run_chunked(lambda t: kernels.run_eager(program, t), tensors, chunk_size)
-        k = kernels.compiled(program, first.dtype, first.device, wait=False, build=False)
-        if k is not None:
-            return k(dict(tensors))
-        return run_chunked(lambda t: kernels.run_eager(program, t), tensors, chunk_size)
-    if backend == "auto" and not first.requires_grad and not in_tracing():
-        k = None
-        if first.shape[0] >= kernels.AUTO_BUILD_MIN_FRAMES or kernels._ready(program, first):
-            if first.dtype in (torch.float32, torch.float64) and first.device.type in (
-                "cpu",
-                "cuda",
-            ):
-                k = kernels.compiled(program, first.dtype, first.device, wait=False)
+    if backend in ("auto", "cached"):
+        k = kernels._usable_kernel(program, first, backend)
         if k is not None:
             return k(dict(tensors))
     return run_chunked(lambda t: kernels.run_eager(program, t), tensors, chunk_size)
