@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from torchcontact.errors import LogError
 from torchcontact.logs.format import (
     PartsWriter,
+    encoded_part_table,
     fixed_list,
     read_encoded_part,
     write_encoded_part,
@@ -71,6 +72,15 @@ def test_refusals(tmp_path):
     bad.write_bytes(b"not parquet at all")
     with pytest.raises(LogError, match="bad.parquet: unreadable part"):
         read_encoded_part(bad)
+    # a damaged page: its checksum names the file when the driver reads the part's columns
+    write_encoded_part([tab], bad, tab.schema)
+    data = bytearray(bad.read_bytes())
+    col = pq.ParquetFile(bad).metadata.row_group(0).column(1)  # ft: 50 x 6 doubles
+    data[col.data_page_offset + col.total_compressed_size - 8] ^= 0xFF  # its page's values
+    bad.write_bytes(bytes(data))
+    part, buffer = read_encoded_part(bad)  # the footer is intact
+    with pytest.raises(LogError, match="bad.parquet: unreadable part"):
+        encoded_part_table(buffer, bad)
 
 
 def test_a_run_appending_parts_tallies_as_one_encoding_tables(tmp_path):

@@ -1371,8 +1371,8 @@ def read_encoded_part(path: str | Path) -> tuple[EncodedPart, Any]:
     """The :class:`EncodedPart` of a file :func:`write_encoded_part` wrote, and its bytes.
 
     Returns:
-        ``(part, buffer)``: the part to append, and the whole file as a pyarrow buffer (to read
-        columns of it, e.g. ``pq.read_table(pa.BufferReader(buffer), columns=...)``).
+        ``(part, buffer)``: the part to append (its column chunks a view of the file's bytes,
+        not a copy), and the whole file as a pyarrow buffer (:func:`encoded_part_table`).
 
     Raises:
         LogError: the file is not a whole Parquet file.
@@ -1383,11 +1383,33 @@ def read_encoded_part(path: str | Path) -> tuple[EncodedPart, Any]:
 
     try:
         data = Path(path).read_bytes()
-        chunks, footer = split_file(data)
+        chunks, footer = split_file(memoryview(data))
         rows = footer_rows(bytes(footer))
     except (OSError, FooterError) as exc:
         raise LogError(f"{path}: unreadable part of a run ({exc})") from None
     return EncodedPart(chunks, bytes(footer), rows), pa.py_buffer(data)
+
+
+def encoded_part_table(buffer: Any, path: str | Path, columns: Sequence[str] | None = None) -> Any:
+    """Columns of a part's file from its bytes (:func:`read_encoded_part`), checksums verified.
+
+    Args:
+        buffer: the file's bytes (a pyarrow buffer).
+        path: the file, for messages.
+        columns: the columns to read (default: every column).
+
+    Raises:
+        LogError: the part is damaged.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(
+            pa.BufferReader(buffer), columns=columns, page_checksum_verification=True
+        )
+    except (OSError, pa.ArrowException) as exc:
+        raise LogError(f"{path}: unreadable part of a run ({exc})") from None
 
 
 def write_table(table: Any, path: str | Path, row_group_size: int | None = None) -> Path:

@@ -16,9 +16,9 @@ both:
    records what the run is (:meth:`Run.start`). ``--resume`` keeps the recorded units of an
    interrupted run with the same inputs and options: ``OUT.tmp`` is cut after the last one and
    the run appends after it. The data are written once, never a second copy.
-   A unit estimated out of order (a Ray worker's) waits in ``OUT.partial/part-<k>.arrow`` (Arrow
-   IPC) until its turn; journals of earlier versions (every unit an ``.arrow`` part) are read
-   the same way.
+   A unit estimated out of order (a Ray worker's) waits in ``OUT.partial/part-<k>.parquet``
+   (already encoded: its bytes are appended as they are) until its turn; journals of earlier
+   versions (every unit an Arrow IPC ``.arrow`` part) are read and encoded then.
 3. **Failures leave the ground clean**: a run that fails before recording any unit removes
    ``OUT.partial``, ``OUT.progress.json`` and ``OUT.tmp``; otherwise the message says how many
    units are kept for ``--resume``. An I/O error (a full disk, a read-only folder) names the path.
@@ -36,7 +36,7 @@ import re
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,6 +49,7 @@ from torchcontact.logs.format import (
     PartIndex,
     PartsWriter,
     encode_part,
+    encoded_part_table,
     read_encoded_part,
     read_journal,
     read_part,
@@ -210,30 +211,25 @@ def _atomic_json(path: Path, data: dict) -> None:
 
 
 # ---------------------------------------------------------------------- tallies
-def _part_table(data: Any, tally: _Tally | None = None) -> Any:
-    """A worker's Parquet part (its bytes): every column, or only those ``tally`` reads.
+def _part_table(
+    path: Path, tally: _Tally | None = None, names: Sequence[str] = ()
+) -> tuple[Any, Any]:
+    """A worker's Parquet part: ``(its EncodedPart, its table)``.
+
+    The table has every column, or with ``tally`` only the columns of ``names`` (the output's)
+    that it reads.
 
     The status texts are read only for a part with a frame whose code needs them: decoding them
     cost 1.5 us per frame in the Ray driver, more than the rest of its work.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    def read(columns: list[str] | None) -> Any:
-        try:
-            return pq.read_table(
-                pa.BufferReader(data), columns=columns, page_checksum_verification=True
-            )
-        except (OSError, pa.ArrowException) as exc:
-            raise LogError(f"a Ray worker's part is unreadable ({exc})") from None
-
+    part, data = read_encoded_part(path)
     if tally is None:
-        return read(None)
-    names = pq.read_schema(pa.BufferReader(data)).names
-    tab = read(tally.columns(names))
+        return part, encoded_part_table(data, path)
+    tab = encoded_part_table(data, path, tally.columns(names))
     if tally.needs_texts(tab):
-        tab = read([*tab.column_names, *(n for n in ("status", "status_detail") if n in names)])
-    return tab
+        texts = [n for n in ("status", "status_detail") if n in names]
+        tab = encoded_part_table(data, path, [*tab.column_names, *texts])
+    return part, tab
 
 
 @dataclass
@@ -535,7 +531,7 @@ class Run:
         part = self.part(k)
         if part.is_file():
             if part.suffix == ".parquet":
-                return _part_table(read_encoded_part(part)[1])
+                return _part_table(part)[1]
             return read_journal(part)
         return read_part(self.tmp, read_part_index(self.index(k)))
 
@@ -744,8 +740,9 @@ class _OrderedSink:
 
     A unit is recorded in the journal (:func:`~torchcontact.logs.format.write_part_index`) once
     its bytes are in ``OUT.tmp``. Units recorded before (a resume) are read back for the summary's
-    tally; units the engine journalled itself (Ray) are read from their Arrow part when their turn
-    comes; at most one estimated table waits in memory besides the queue.
+    tally; units the engine journalled itself (a Ray worker's Parquet part) are appended from
+    their file when their turn comes; at most one estimated table waits in memory besides the
+    queue.
     """
 
     def __init__(self, run: Run, writer: PartsWriter, tally: _Tally, bar: Any) -> None:
@@ -831,8 +828,7 @@ class _OrderedSink:
             held = self._held.pop(k, None)
             waiting = held is None  # journalled by the engine (or an earlier version)
             if waiting and run.part(k).suffix == ".parquet":  # a Ray worker encoded it
-                part, data = read_encoded_part(run.part(k))
-                tab = _part_table(data, self.tally)
+                part, tab = _part_table(run.part(k), self.tally, self.writer.schema.names)
             elif waiting:
                 tab = read_journal(run.part(k))
                 part = encode_part(tab, self.writer.schema)
