@@ -253,9 +253,9 @@ def _unit_tasks(
     """Run ``_estimate_units`` on each unit of ``todo``, ``workers`` tasks in flight at once.
 
     Plain Ray tasks, not Ray Data: a unit is a coarse task with a side effect (its journal
-    part), and Ray Data's streaming executor ramped its concurrency up slowly and capped it
-    below ``workers`` (16 workers ran no faster than 1 on a 16-core machine). Yields each
-    task's result as it finishes (any order; the run writes the units in order).
+    part), and Ray Data's streaming executor ramped its concurrency up slowly (16 tasks of 1 s
+    with 8 workers on 8 CPUs: 10.9 s, against 7.0 s as plain tasks). Yields each task's result
+    as it finishes (any order; the run writes the units in order).
     """
     job = {
         "units": run.units,
