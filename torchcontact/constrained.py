@@ -605,7 +605,7 @@ class _Problem(NamedTuple):
 #: alpha``: halfway from ``mu`` to ``nu``).
 ALPHA0 = 0.5
 
-#: The MAP objective: a cold-started frame still going after this many iterations restarts once
+#: The MAP objective: a frame still going after this many iterations from its start restarts once
 #: from the duals at the cones' centres (the min-norm start), with a budget of its own. From
 #: the central path's complementarity a frame whose estimate lies far outside a cone crawls (its
 #: duals must grow by orders of magnitude): on random iCub readings (500 frames, two force
