@@ -32,6 +32,7 @@ import sys
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -98,6 +99,38 @@ def _read_unit(pf: Any, columns: list[str], lo: int, hi: int, source: str) -> An
 #: Per worker process: (path, robot, LogEstimator arguments, job) -> (LogEstimator, file).
 #: Ray reuses worker processes across tasks, so the model is built once per process and config.
 _WORKER_CACHE: dict[str, tuple[LogEstimator, Any]] = {}
+#: Per worker process: the robot model of (robot, dtype, device), built by :func:`_warm_worker`
+#: ahead of the units, or by the first unit.
+_MODEL_CACHE: dict[str, Any] = {}
+
+
+def _worker_model(robot: dict, job: dict) -> tuple[RobotSpec, Any]:
+    """The robot's spec and model in this worker process (built once per robot, dtype, device)."""
+    key = json.dumps([robot["robot"], robot["ft_sensors"], job["dtype"], job["device"]])
+    spec = RobotSpec(robot["robot"], ft_sensor_specs(robot["ft_sensors"]))
+    if key not in _MODEL_CACHE:
+        if job["threads"]:
+            torch.set_num_threads(job["threads"])
+        _MODEL_CACHE.clear()
+        _MODEL_CACHE[key] = load_robot(spec, getattr(torch, job["dtype"]), job["device"])
+    return spec, _MODEL_CACHE[key]
+
+
+def _warm_worker(robot: dict, job: dict) -> str | None:
+    """Ray task sent as Ray starts: a worker process builds the robot model before any unit.
+
+    It runs while the driver still reads the log, so that the process has imported torchcontact
+    and built the model by the time its first unit arrives.
+
+    Returns:
+        None, or the error's text: a failure here is the first unit's to report (it builds the
+        model again and raises), not this task's.
+    """
+    try:
+        _worker_model(robot, job)
+    except Exception as exc:  # noqa: BLE001 - reported by the unit that needs the model
+        return f"{type(exc).__name__}: {exc}"
+    return None
 
 
 def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
@@ -105,8 +138,7 @@ def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
     if key not in _WORKER_CACHE:
         if job["threads"]:
             torch.set_num_threads(job["threads"])
-        spec = RobotSpec(robot["robot"], ft_sensor_specs(robot["ft_sensors"]))
-        model = load_robot(spec, getattr(torch, job["dtype"]), job["device"])
+        spec, model = _worker_model(robot, job)
         if model.identity.sha256 != robot["identity"]:  # another URDF on this node
             driver = RobotIdentity.from_json(robot["identity_entries"])
             raise LogError(
@@ -180,17 +212,43 @@ def _ensure_ray(num_cpus: int | None) -> Any:
         # workers import the same torchcontact as this process
         root = str(Path(__file__).resolve().parents[2])
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
-        kwargs: dict[str, Any] = dict(
-            include_dashboard=False,
-            log_to_driver=False,
-            logging_level=logging.ERROR,
-            runtime_env={"env_vars": {"PYTHONPATH": path}},
-        )
+        kwargs: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.ERROR)
         if os.environ.get("RAY_ADDRESS"):  # a running cluster: it has its own resources
-            kwargs.pop("include_dashboard")
-            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs)
+            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs,
+                     runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
         else:
-            ray.init(num_cpus=num_cpus, **kwargs)
+            # a local instance inherits this environment: no runtime_env, so that the worker
+            # processes Ray starts with it (before any task) run the tasks
+            before = os.environ.get("PYTHONPATH")
+            os.environ["PYTHONPATH"] = path
+            try:
+                ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
+            finally:
+                if before is None:
+                    del os.environ["PYTHONPATH"]
+                else:
+                    os.environ["PYTHONPATH"] = before
+    return ray
+
+
+def _start_ray(
+    num_cpus: int | None, robot: dict, job: dict, workers: int, task_options: dict
+) -> Any:
+    """Start (or join) Ray and send each of ``workers`` worker processes a :func:`_warm_worker`.
+
+    Called while the noise scan runs on another thread: the worker processes import torchcontact
+    and build the robot model beside the driver's own work. On the caller's thread, which must
+    live as long as Ray: a local instance's processes die with the thread that started them.
+
+    Returns:
+        The ``ray`` module.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+        ray = _ensure_ray(num_cpus)
+        warm = ray.remote(_warm_worker).options(**task_options)
+        for _ in range(workers):
+            warm.remote(robot, job)
     return ray
 
 
@@ -236,6 +294,29 @@ def worker_args(le: LogEstimator, path: str | Path) -> dict[str, Any]:
     }
 
 
+def _robot_arg(robot: RobotSpec, model: Any) -> dict[str, Any]:
+    """The robot as the driver has it, for the workers (:func:`_worker_state`).
+
+    The URDF with the declared ``--ft-sensor`` sensors, and the model's identity, which each
+    worker's model must have.
+    """
+    return {
+        "robot": robot.robot,
+        "ft_sensors": [str(s) for s in robot.ft_sensors],
+        "identity": model.identity.sha256,
+        "identity_entries": model.identity.to_json(),
+    }
+
+
+def _task_options(worker_cpus: float, device: str) -> dict[str, Any]:
+    """Ray options of a worker's task: its CPUs, a GPU for CUDA, spread over the nodes."""
+    return dict(
+        num_cpus=worker_cpus,
+        num_gpus=1 if device.startswith("cuda") else 0,
+        scheduling_strategy="SPREAD",  # over the nodes, as a cluster's user expects
+    )
+
+
 def _unit_tasks(
     ray: Any,
     todo: list[int],
@@ -266,20 +347,11 @@ def _unit_tasks(
         "schema": le.output_schema(),  # the driver's: every part has the output's schema
         **options,
     }
-    # the robot as the driver has it: the URDF with the declared --ft-sensor sensors, and the
-    # model's identity, which each worker's model must have
-    robot_arg = {
-        "robot": robot.robot,
-        "ft_sensors": [str(s) for s in robot.ft_sensors],
-        "identity": model.identity.sha256,
-        "identity_entries": model.identity.to_json(),
-    }
-    config = ray.put((str(Path(path).resolve()), robot_arg, worker_args(le, path), job))
+    config = ray.put((str(Path(path).resolve()), _robot_arg(robot, model), worker_args(le, path),
+                      job))  # fmt: skip
     task = ray.remote(_estimate_units).options(
-        num_cpus=worker_cpus,
-        num_gpus=1 if options["device"].startswith("cuda") else 0,
+        **_task_options(worker_cpus, options["device"]),
         max_retries=TASK_RETRIES,  # a dead worker process: its unit again (not user errors)
-        scheduling_strategy="SPREAD",  # over the nodes, as a cluster's user expects
     )
     queue = list(reversed(todo))
     pending: list[Any] = []
@@ -383,7 +455,15 @@ def estimate_file_ray(
         localize = run_localize(localize, model, robot)
         pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
                                         constraints, localize=localize)  # fmt: skip
-        log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
+        # the log is usable: Ray starts, and its workers build the model, during the noise scan
+        with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-noise") as pool:
+            noise = pool.submit(log_noise, pf, le, columns, half_window, ft_noise, unweighted,
+                                str(path))  # fmt: skip
+            ray = _start_ray(num_cpus, _robot_arg(spec, model),
+                             {"threads": threads, "device": device,
+                              "dtype": str(dtype).removeprefix("torch.")},
+                             workers, _task_options(worker_cpus, device))  # fmt: skip
+            noise.result()
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
@@ -400,7 +480,6 @@ def estimate_file_ray(
                 return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-                ray = _ensure_ray(num_cpus)
                 results = _unit_tasks(ray, todo, path, spec, model, le, run, columns, res,
                                       workers, worker_cpus, options)  # fmt: skip
                 try:
