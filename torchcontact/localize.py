@@ -1720,15 +1720,17 @@ def localize_chunk(
 
 
 # ------------------------------------------------------------------------------ ONNX (prototype)
-def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int = 17):
+def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int | None = None):
     """An ONNX graph that localizes one frame's contact on one link (stages 2-4, float32).
 
-    The piece of the single-frame step graph that localization needs, built with onnx's helper
-    API: every triangle is tested at once (Moller-Trumbore as tensor ops over the ``(F, 3)``
-    vertex constants), and the hit of smallest line parameter among those entering the surface
-    is the contact (the first hit along the line from far behind is always an entry into the
-    mesh, so no ordering of the other hits is needed; the graph does not count ambiguous
-    entries). Suited to a convex or small mesh: the cost grows with the face count.
+    The piece of the single-frame step graph that localization needs
+    (:func:`torchcontact.onnx.step.localize.emit_line_hit`, which ``export estimator
+    --localize LINK`` wires into the step graph): every triangle is tested at once
+    (Moller-Trumbore's determinants as one ``Gemm`` on the line's Plücker coordinates), and the
+    hit of smallest line parameter among those entering the surface is the contact (the first
+    hit along the line from far behind is always an entry into the mesh, so no ordering of the
+    other hits is needed; the graph does not count ambiguous entries). The node count does not
+    depend on the mesh; the cost grows with the face count.
 
     Inputs: ``wrench`` ``(6,)`` the region's ``b`` (sensor frame), ``R_sensor_link`` ``(3, 3)``,
     ``p_sensor_link`` ``(3,)``. Outputs: ``position`` ``(3,)`` and ``normal`` ``(3,)`` (link
@@ -1738,7 +1740,7 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int = 
     Args:
         mesh: the link's collision mesh.
         force_threshold: N.
-        opset: ONNX opset.
+        opset: ONNX opset (None: :data:`torchcontact.onnx.builder.OPSET`, the lowest it takes).
 
     Returns:
         An ``onnx.ModelProto``.
@@ -1748,99 +1750,33 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int = 
     """
     try:
         import onnx
-        from onnx import TensorProto, helper, numpy_helper
+        from onnx import TensorProto
     except ImportError:
         raise MissingExtraError("onnx", "export") from None
-    tri = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces, np.int64)]
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    nrm = np.cross(e1, e2)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-    consts = {
-        "V0": v0, "E1": e1, "E2": e2, "NRM": nrm,
-        "i120": np.array([1, 2, 0]), "i201": np.array([2, 0, 1]),
-        "s03": np.array([0]), "s36": np.array([3]), "e03": np.array([3]), "e36": np.array([6]),
-        "minus1": np.array([-1]),
-        "zero": np.array(0.0), "one": np.array(1.0), "eps": np.array(1e-12),
-        "thr2": np.array(force_threshold**2), "inf": np.array(np.inf), "nan": np.array(np.nan),
-        "bit2": np.array([2]), "bit4": np.array([4]), "nobit": np.array([0]),
-        "shape13": np.array([1, 3]), "shape3": np.array([3]),
-    }  # fmt: skip
-    inits = []
-    for k, v in consts.items():
-        arr = np.asarray(v)
-        arr = arr.astype(np.int64) if arr.dtype.kind == "i" else arr.astype(np.float32)
-        inits.append(numpy_helper.from_array(arr, k))
-    nodes = []
-    count = [0]
+    from torchcontact.onnx.builder import GraphBuilder
+    from torchcontact.onnx.step.localize import emit_line_hit
 
-    def op(kind: str, *ins: str, **attrs) -> str:
-        count[0] += 1
-        out = f"{kind.lower()}_{count[0]}"
-        nodes.append(helper.make_node(kind, list(ins), [out], **attrs))
-        return out
-
-    def cross(a: str, b: str, axis: int) -> str:
-        """``a x b`` along ``axis`` (Gather of the cyclic permutations)."""
-        a1, a2 = op("Gather", a, "i120", axis=axis), op("Gather", a, "i201", axis=axis)
-        b1, b2 = op("Gather", b, "i120", axis=axis), op("Gather", b, "i201", axis=axis)
-        return op("Sub", op("Mul", a1, b2), op("Mul", a2, b1))
-
-    def dot(a: str, b: str) -> str:  # over the last axis, kept
-        return op("ReduceSum", op("Mul", a, b), "minus1", keepdims=1)
-
-    f = op("Slice", "wrench", "s03", "e03")
-    m = op("Slice", "wrench", "s36", "e36")
-    fn2 = op("ReduceSum", op("Mul", f, f), keepdims=1)
-    live = op("Not", op("Less", fn2, "thr2"))
-    safe = op("Where", live, fn2, "one")
-    a = op("Div", cross(f, m, 0), safe)
-    u = op("Div", f, op("Sqrt", safe))
-    # the line in the link frame: R^T (a - p), R^T u (as row vectors: x R)
-    o = op("Reshape", op("MatMul", op("Reshape", op("Sub", a, "p_sensor_link"), "shape13"),
-                         "R_sensor_link"), "shape13")  # fmt: skip
-    d = op("Reshape", op("MatMul", op("Reshape", u, "shape13"), "R_sensor_link"), "shape13")
-    # Moller-Trumbore against every face at once: (F, 3) broadcasts with (1, 3)
-    pvec = cross(op("Expand", d, op("Shape", "E2")), "E2", 1)
-    det = dot("E1", pvec)
-    entering = op("Greater", det, "eps")  # d . n < 0
-    inv = op("Div", "one", op("Where", entering, det, "one"))
-    tvec = op("Sub", o, "V0")
-    uu = op("Mul", dot(tvec, pvec), inv)
-    qvec = cross(tvec, "E1", 1)
-    vv = op("Mul", dot(op("Expand", d, op("Shape", "E1")), qvec), inv)
-    tt = op("Mul", dot("E2", qvec), inv)
-    inside = op("And", op("And", op("Not", op("Less", uu, "zero")), op("Not", op("Less", vv,
-                "zero"))), op("Not", op("Greater", op("Add", uu, vv), "one")))  # fmt: skip
-    ok = op("And", entering, inside)
-    tm = op("Reshape", op("Where", ok, tt, "inf"), "minus1")
-    idx = op("ArgMin", tm, axis=0, keepdims=1)
-    tbest = op("Gather", tm, idx, axis=0)
-    found = op("And", live, op("Less", tbest, "inf"))
-    point = op("Add", op("Reshape", o, "shape3"), op("Mul", op("Reshape", d, "shape3"), tbest))
-    normal = op("Reshape", op("Gather", "NRM", idx, axis=0), "shape3")
-    nodes.append(helper.make_node("Where", [found, point, "nan"], ["position"]))
-    nodes.append(helper.make_node("Where", [found, normal, "nan"], ["normal"]))
-    fl = op("Reshape", op("MatMul", op("Reshape", f, "shape13"), "R_sensor_link"), "shape3")
-    nodes.append(helper.make_node("Identity", [fl], ["force"]))
-    m_along = op("Abs", op("ReduceSum", op("Mul", u, m), keepdims=1))
-    m_norm = op("Sqrt", op("ReduceSum", op("Mul", m, m), keepdims=1))  # no force: all of m
-    nodes.append(helper.make_node("Where", [live, m_along, m_norm], ["moment_residual"]))
-    weak = op("Where", live, "nobit", "bit2")
-    miss = op("Where", op("Or", found, op("Not", live)), "nobit", "bit4")
-    nodes.append(helper.make_node("Add", [weak, miss], ["status"]))  # disjoint bits
-    fl32 = TensorProto.FLOAT
-    graph = helper.make_graph(
-        nodes, f"localize_{mesh.link}",
-        [helper.make_tensor_value_info("wrench", fl32, [6]),
-         helper.make_tensor_value_info("R_sensor_link", fl32, [3, 3]),
-         helper.make_tensor_value_info("p_sensor_link", fl32, [3])],
-        [helper.make_tensor_value_info("position", fl32, [3]),
-         helper.make_tensor_value_info("normal", fl32, [3]),
-         helper.make_tensor_value_info("force", fl32, [3]),
-         helper.make_tensor_value_info("moment_residual", fl32, [1]),
-         helper.make_tensor_value_info("status", TensorProto.INT64, [1])],
-        initializer=inits,
-    )  # fmt: skip
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
+    gb = GraphBuilder(np.float32, f"localize_{mesh.link}")
+    w = gb.op("Reshape", gb.input("wrench", [6]), gb.i([1, 6]))
+    R = gb.input("R_sensor_link", [3, 3])
+    p = gb.op("Reshape", gb.input("p_sensor_link", [3]), gb.i([1, 3]))
+    hit = emit_line_hit(gb, mesh, w, R, p, force_threshold)
+    nan, shape3 = gb.f(np.nan), gb.i([3])
+    nrm = mesh.face_normals()
+    normal = gb.op("Reshape", gb.op("Gather", gb.f(nrm), hit.face, axis=0), shape3)
+    gb.op("Reshape", gb.op("Where", hit.found, hit.point_link, nan), shape3, out="position")
+    gb.op("Reshape", gb.op("Where", hit.found, normal, nan), shape3, out="normal")
+    gb.op("Reshape", gb.op("MatMul", hit.f, R), shape3, out="force")
+    m_along = gb.op("Abs", gb.op("ReduceSum", gb.op("Mul", hit.u, hit.m), keepdims=0))
+    m_norm = gb.op("Sqrt", gb.op("ReduceSumSquare", hit.m, keepdims=0))  # no force: all of m
+    gb.op("Reshape", gb.op("Where", hit.live, m_along, m_norm), gb.i([1]), out="moment_residual")
+    gb.op("Reshape", gb.op("Cast", hit.status, to=TensorProto.INT64), gb.i([1]), out="status")
+    for name, shape in (("position", [3]), ("normal", [3]), ("force", [3]),
+                        ("moment_residual", [1])):  # fmt: skip
+        gb.output(name, shape)
+    gb.output("status", [1], np.int64)
+    model = gb.model()
+    if opset is not None:
+        model.opset_import[0].version = opset
     onnx.checker.check_model(model)
     return model

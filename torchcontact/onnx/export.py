@@ -53,6 +53,7 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -125,6 +126,10 @@ def export_estimator(
     constraints: FrictionCones | None = None,
     online: bool | Mapping[str, str] = False,
     ft_noise: Mapping[str, Sequence[float] | str] | Sequence[str] | None = None,
+    localize: str | None = None,
+    meshes: Any = None,
+    localize_threshold: float = 1.0,
+    localize_max_faces: int | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -177,6 +182,17 @@ def export_estimator(
             as :meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` with
             ``ft_covariance = diag(std^2)`` (constants in the graphs; metadata ``ft_noise``).
             None: the paper's unweighted ``pinv(A) b``.
+        localize: a link with a ``force`` slot: the single-frame graph localizes the contact
+            on it from its region's ``b`` and its collision mesh in steps whose input has no
+            active slot in that region, and uses it as the slot's contact (outputs
+            ``localize_status``, ``localize_position``; metadata ``localize``;
+            :mod:`torchcontact.onnx.step.localize`). The batched graph is unchanged.
+        meshes: with ``localize``, the robot's collision meshes
+            (:func:`torchcontact.meshes.load_meshes`) or a mapping link -> ``LinkMesh``.
+        localize_threshold: with ``localize``, the force below which a step has no contact, N.
+        localize_max_faces: with ``localize``, above this many faces the graph carries the
+            mesh's convex hull (None:
+            :data:`~torchcontact.onnx.step.localize.DEFAULT_MAX_FACES`).
 
     Returns:
         The metadata written into the files' ``metadata_props``.
@@ -222,6 +238,15 @@ def export_estimator(
     est = ContactEstimator(
         m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin, ft_range=ft_range
     )
+    loc = None
+    if localize is not None:
+        from torchcontact.onnx.step.localize import DEFAULT_MAX_FACES, localize_link
+
+        if constraints is not None or not step_graph:
+            raise InputError("localize: the localization is the single-frame graph's (step_graph;"
+                             " not with constraints)")  # fmt: skip
+        loc = localize_link(m, est.layout((), ()), links, kinds, localize, meshes,
+                            localize_threshold, localize_max_faces or DEFAULT_MAX_FACES)  # fmt: skip
     em = est.layout(tuple(links), tuple(kinds))
     res = load_residual_graphs(residual, m, est.sensor_names)
     noise = None
@@ -321,7 +346,22 @@ def export_estimator(
             meta[Key.ONLINE] = [lay.to_json(m.body_names) for lay in layouts]
             meta[Key.SLOT_REGIONS] = [sl.region for sl in em.slots]
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords,
-                                         online=layouts, noise=noise)  # fmt: skip
+                                         online=layouts, noise=noise, localize=loc)  # fmt: skip
+        if loc is not None:
+            meta[Key.LOCALIZE] = {
+                "link": loc.link,
+                "slot": list(links).index(loc.link),
+                "force_threshold": loc.force_threshold,
+                "mesh": loc.mesh_choice,
+                "faces": len(loc.mesh.faces),
+                "outputs": {
+                    "localize_status": "bits of torchcontact.status.LocalizeStatus (2 no"
+                    " contact, 4 no intersection, 32 skin contact in the region); NaN where"
+                    " the step's status is not 0",
+                    "localize_position": "the localized contact point, link frame, m; NaN"
+                    " where not used",
+                },
+            }
         meta[Key.STEP_INPUTS] = lin.as_dict()
         meta[Key.STEP_OUTPUTS] = lout.as_dict()
         graphs.append((sm, step, "step"))

@@ -35,6 +35,7 @@ from torchcontact.estimation.layout import EstimationModel
 from torchcontact.onnx.builder import GraphBuilder, fold_linear_chains
 from torchcontact.onnx.format import StepLayout
 from torchcontact.onnx.step import corrections, inputs, kinematics, outputs, regions, solve
+from torchcontact.onnx.step import localize as localize_stage
 from torchcontact.onnx.step import online as online_stage
 from torchcontact.onnx.step.context import Flags, StepContext
 
@@ -81,6 +82,7 @@ def build_step_graph(
     coords: Sequence[int] | None = None,
     online: Sequence = (),
     noise: Sequence[Sequence[float]] | None = None,
+    localize: localize_stage.LocalizeLink | None = None,
 ):
     """The single-frame graph of a layout.
 
@@ -101,6 +103,9 @@ def build_step_graph(
         noise: per sensor 6 standard deviations ``[N; N m]``: each sensor's rows whitened by
             them, constants of the graph (:mod:`~torchcontact.onnx.step.solve`); None: the
             unweighted ``pinv(A) b``.
+        localize: localize the contact of one link's ``force`` slot from its region's ``b``
+            in steps without skin contact there (:mod:`~torchcontact.onnx.step.localize`;
+            outputs ``localize_status``, ``localize_position``); None: no localization.
 
     Returns:
         ``(model, input layout, output layout)``: the graph has one input ``x`` ``(1, F)`` and
@@ -109,21 +114,24 @@ def build_step_graph(
     ctx = context(em, Flags(moving_base, torque_rows, with_cov), dtype, residuals, coords,
                   online, noise)  # fmt: skip
     x = ctx.gb.input("x", [1, ctx.lay.size])
-    v = stages(ctx, x, residuals)
+    v = stages(ctx, x, residuals, localize)
     lay_out = outputs.pack(ctx, v["fm"], v["tau"], v["rank"], v["resid"], v["actK"],
-                           v["status"], v["e"], v["idx"], v["states"], v["more"])  # fmt: skip
+                           v["status"], v["e"], v["idx"], v["states"], v["more"],
+                           v["localized"])  # fmt: skip
     fold_linear_chains(ctx.gb)  # products of the model's constant matrices, taken once
     return ctx.gb.model(), ctx.lay, lay_out
 
 
-def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
+def stages(ctx: StepContext, x: str, residuals: Sequence = (),
+           localize: localize_stage.LocalizeLink | None = None) -> dict:  # fmt: skip
     """Emit every stage on the packed input ``x``; returns the graph values by stage.
 
     Keys: ``status`` (the inputs' bits), ``T``, ``TP`` (poses), ``VA`` (motion), ``f0`` (body
     wrenches), ``W0`` (readings, root frame), ``Fb`` (transmitted wrenches), ``b``, ``G`` (per
     region), ``y``, ``rank``, ``resid`` (per region), ``fm`` (contact wrenches), ``tau``,
     ``ft_model`` and ``regressors`` (online graphs, else None), and what packing the output
-    needs (``e``, ``idx``, ``actK``, ``states``, ``more``). The stage tests read them;
+    needs (``e``, ``idx``, ``actK``, ``states``, ``more``, ``localized``: the localization's
+    outputs, empty without ``localize``). The stage tests read them;
     :func:`build_step_graph` packs the output from them.
     """
     from torchcontact.onnx.batched import chain_corrections
@@ -189,7 +197,11 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
         known_s = regions.known_wrenches(ctx, Cg, e, idx, chk.actK)
         Fb = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, known_s), Fb, alpha=-1.0)
     b_all = regions.region_b(ctx, TP, Fb, S0, e, idx, ws_corr)
-    gr = regions.grams(ctx, Cg, e, idx, chk.actK, s_rows, pairs)
+    actK, localized = chk.actK, []
+    if localize is not None:  # LINK's force slot at the point b's line enters its mesh
+        loc = localize_stage.stage(ctx, localize, TP, b_all, Cg, actK)
+        Cg, actK, localized = loc.Cg, loc.actK, loc.outputs
+    gr = regions.grams(ctx, Cg, e, idx, actK, s_rows, pairs)
     # ---- 4. solve, region by region
     ys, ranks, resids = [], [], []
     ncols = 7 if ctx.flags.covariance else 1
@@ -200,7 +212,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
             ranks.append(gb.f([[0.0]]))
             resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
             continue
-        possible = solve.full_rank_possible(ctx, reg, R, chk.actK)
+        possible = solve.full_rank_possible(ctx, reg, R, actK)
         y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
                                      ctx.whitening(r, R), possible)  # fmt: skip
         ys.append(y)
@@ -209,13 +221,14 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
         res = gb.op("Sub", b_all[r], gb.op("MatMul", gr.G[r], y1))
         resids.append(gb.op("ReduceSumSquare", res, keepdims=1))
     # ---- 5. contact wrenches, torques, outputs
-    fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, chk.actK, known)
+    fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)
     F_tot = Fb
     if ctx.K:  # the estimated (and known) contacts' wrenches leave the transmitted ones
         ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
         F_tot = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, ws), Fb, alpha=-1.0)
     tau = outputs.torques(ctx, S0, F_tot)
     return dict(status=chk.status, T=T, TP=TP, VA=VA, f0=f0, W0=W0, Fb=Fb, b=b_all, G=gr.G,
-                y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=chk.actK,
+                y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=actK,
                 states=wiring.states, ft_model=ft_model,
-                regressors=None if onl is None else onl.regressors, more=more)  # fmt: skip
+                regressors=None if onl is None else onl.regressors, more=more,
+                localized=localized)  # fmt: skip
