@@ -1760,7 +1760,7 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int | 
     w = gb.op("Reshape", gb.input("wrench", [6]), gb.i([1, 6]))
     R = gb.input("R_sensor_link", [3, 3])
     p = gb.op("Reshape", gb.input("p_sensor_link", [3]), gb.i([1, 3]))
-    hit = emit_line_hit(gb, mesh, w, R, p, force_threshold)
+    hit = emit_line_hit(gb, mesh, w, R, p, force_threshold, with_face=True)
     nan, shape3 = gb.f(np.nan), gb.i([3])
     nrm = mesh.face_normals()
     normal = gb.op("Reshape", gb.op("Gather", gb.f(nrm), hit.face, axis=0), shape3)

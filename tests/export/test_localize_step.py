@@ -119,22 +119,6 @@ def test_step_graph_localizes_like_the_localizer_and_the_estimator(arm, tmp_path
     assert np.abs(want.force[used][:, 1]).max() > 5.0
 
 
-def test_without_localize_the_step_graph_is_unchanged(arm, tmp_path):
-    import onnx
-
-    mesh = _box_mesh(arm)
-    a, b = tmp_path / "a.onnx", tmp_path / "b.onnx"
-    export_estimator(arm, None, LINKS, KINDS, a)
-    export_estimator(arm, None, LINKS, KINDS, b, localize=LINK, meshes={LINK: mesh})
-    ga = onnx.load(str(a.with_name("a.step.onnx")))
-    gb = onnx.load(str(b.with_name("b.step.onnx")))
-    ops = [n.op_type for n in ga.graph.node]
-    assert "localize" not in {p.key for p in ga.metadata_props}
-    # the graph with localization: the same stages with its nodes inserted
-    assert len(gb.graph.node) > len(ops)
-    assert [n.op_type for n in gb.graph.node][: len(ops) // 4] == ops[: len(ops) // 4]
-
-
 def test_a_large_mesh_is_replaced_by_its_convex_hull(arm, tmp_path):
     from torchcontact.onnx.step.localize import localize_link
 

@@ -245,8 +245,9 @@ def export_estimator(
         if constraints is not None or not step_graph:
             raise InputError("localize: the localization is the single-frame graph's (step_graph;"
                              " not with constraints)")  # fmt: skip
+        max_faces = localize_max_faces or DEFAULT_MAX_FACES
         loc = localize_link(m, est.layout((), ()), links, kinds, localize, meshes,
-                            localize_threshold, localize_max_faces or DEFAULT_MAX_FACES)  # fmt: skip
+                            localize_threshold, max_faces)  # fmt: skip
     em = est.layout(tuple(links), tuple(kinds))
     res = load_residual_graphs(residual, m, est.sensor_names)
     noise = None

@@ -72,7 +72,7 @@ class LineHit(NamedTuple):
             ``found``).
         point_link: ``(1, 3)`` the same in the link frame.
         t: ``(1, 1)`` the line parameter of the entry (inf where none).
-        face: ``(1, 1)`` int64 index of the entered triangle.
+        face: ``(1, 1)`` int64 index of the entered triangle (``with_face``; else ``""``).
         live: ``(1, 1)`` bool: the force is above the threshold.
         f: ``(1, 3)`` force, sensor frame; ``m``: ``(1, 3)`` moment, sensor frame.
         u: ``(1, 3)`` unit force direction, sensor frame.
@@ -105,7 +105,8 @@ def localize_link(model, em, links: Sequence[str], kinds: Sequence[str], link: s
     Args:
         model: the robot (:class:`~torchcontact.RobotModel`).
         em: an estimation model of the sensors (its regions; any slots).
-        links: the layout's slot links; ``kinds``: their kinds.
+        links: the layout's slot links.
+        kinds: their kinds.
         link: the candidate link.
         meshes: the robot's collision meshes (:func:`torchcontact.meshes.load_meshes`) or a
             mapping link -> :class:`~torchcontact.meshes.LinkMesh`.
@@ -194,7 +195,7 @@ def _cross(gb: GraphBuilder, a: str, b: str) -> str:
 
 
 def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
-                  force_threshold: float) -> LineHit:  # fmt: skip
+                  force_threshold: float, with_face: bool = False) -> LineHit:  # fmt: skip
     """Emit the localization of one frame's contact on one link (about 40 nodes, any mesh).
 
     Args:
@@ -205,6 +206,7 @@ def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
         R: ``(3, 3)`` ``R_sensor_link``.
         p: ``(1, 3)`` ``p_sensor_link`` (m).
         force_threshold: N.
+        with_face: also the index of the entered triangle (``face``; else ``""``).
 
     Returns:
         The :class:`LineHit` values.
@@ -235,8 +237,11 @@ def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
                     gb.op("Greater", gb.op("Add", uu, vv), gb.f(1.0)))  # fmt: skip
     ok = gb.op("And", entering, gb.op("Not", outside))
     tm = gb.op("Where", ok, gb.op("Mul", dt, inv), gb.f(np.inf))  # (1, F)
-    face = gb.op("ArgMin", tm, axis=1, keepdims=1)
-    t = gb.op("GatherElements", tm, face, axis=1)
+    if with_face:  # the entered triangle (its normal)
+        face = gb.op("ArgMin", tm, axis=1, keepdims=1)
+        t = gb.op("GatherElements", tm, face, axis=1)
+    else:
+        face, t = "", gb.op("ReduceMin", tm, axis1, keepdims=1)
     found = gb.op("And", live, gb.op("Less", t, gb.f(np.inf)))
     t0 = gb.op("Where", found, t, zero)  # finite where unused
     point_sensor = gb.op("Add", a, gb.op("Mul", u, t0))
@@ -324,8 +329,8 @@ def stage(ctx: StepContext, spec: LocalizeLink, TP: str, b_all: list[str], Cg: s
     onek = np.zeros((ctx.K, 1), dtype=bool)
     onek[k, 0] = True
     actK = gb.op("Where", gb.op("And", gb.const(onek), use), gb.f(1.0), actK)
-    status = gb.op("Add", hit.status,
-                   gb.op("Where", skin, gb.f(float(LocalizeStatus.SKIN_CONTACT)), gb.f(0.0)))
+    skin_bit = gb.op("Where", skin, gb.f(float(LocalizeStatus.SKIN_CONTACT)), gb.f(0.0))
+    status = gb.op("Add", hit.status, skin_bit)
     position = gb.op("Where", use, hit.point_link, gb.f(np.nan))
     outputs = [([("localize_status", (1,))], status), ([("localize_position", (3,))], position)]
     return Localized(Cg, actK, outputs)

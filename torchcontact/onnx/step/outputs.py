@@ -209,7 +209,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     # a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
     nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
     n_est = out.size
-    for fields, value in localized:
+    for fields, _value in localized:
         for name, shape in fields:
             out.add(name, shape)
     if localized:
