@@ -149,6 +149,15 @@ def estimator_summary(path: str, step: str, meta: dict[str, str]) -> str:
         f"  outputs {', '.join(m['outputs'])}",
         f"  {m['dtype']}, opset {m['opset']}"
         + (f"; {', '.join(options)}" if options else ""),
+        *(
+            [
+                f"  step graph localizes {loc['link']} (slot {loc['slot']}, above"
+                f" {loc['force_threshold']:g} N) on its {loc['mesh']}; step outputs"
+                " localize_status, localize_position"
+            ]
+            if isinstance(loc := m.get("localize"), dict)
+            else []
+        ),
         "  all metadata: --json",
     ]  # fmt: skip
     return "\n".join(lines)

@@ -28,7 +28,10 @@ same metadata, run with onnxruntime alone through :mod:`torchcontact.runtime`:
 * ``<name>.step.onnx``, the **single-frame** graph (:mod:`torchcontact.onnx.step`): the same
   function for one frame as a few hundred nodes vectorised over bodies and slots (latency), with
   one packed input ``x (1, F)`` and one packed output ``out (1, O)`` whose layouts are in the
-  metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]).
+  metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]). With ``localize``
+  it also localizes the contact of one link's ``force`` slot from its sensor's wrench and
+  collision mesh (:mod:`torchcontact.onnx.step.localize`; outputs ``localize_status``,
+  ``localize_position``).
 
 :func:`export_residual_checkpoint` writes a correction stack (:mod:`torchcontact.residual`:
 offset, re-identified inertial parameters, learned layer) as one graph from raw joint state to
