@@ -154,3 +154,22 @@ def test_cli_refuses_bad_localize_links(tmp_path, capsys, argv, message):
     assert code == 2, err
     assert err[-1].startswith("error:") and message in err[-1]
     assert not (tmp_path / "e.onnx").exists()
+
+
+def test_a_localized_contact_is_not_contact_free_for_the_bias_tracker(arm, tmp_path):
+    from torchcontact.runtime import EstimatorRuntime
+
+    mesh = _box_mesh(arm)
+    q, qd, qdd, ft, positions, _ = _frames(arm, mesh, 6)
+    rts = {}
+    for name, kw in (("plain", {}), ("loc", dict(localize=LINK, meshes={LINK: mesh}))):
+        export_estimator(arm, None, LINKS, KINDS, tmp_path / f"{name}.onnx", online=True, **kw)
+        rts[name] = EstimatorRuntime(tmp_path / f"{name}.step.onnx", robot=arm, track_bias=True)
+    for i in (0, 1):  # a push on LINK's mesh (localized), then a force below the threshold
+        x = {"q": q[i].numpy(), "qd": qd[i].numpy(), "qdd": qdd[i].numpy(),
+             "ft": ft["base_ft"][i].numpy()[None], "positions": positions[i],
+             "active": np.zeros(2)}  # fmt: skip
+        plain, loc = rts["plain"].step(x, t=0.01 * i), rts["loc"].step(x, t=0.01 * i)
+        assert plain["bias"].updated[0]  # no slot active: the plain step takes it as free
+        assert loc["localize_status"] == (0 if i == 0 else 2)
+        assert loc["bias"].updated[0] == (i == 1)  # the localized contact is a contact

@@ -352,9 +352,12 @@ def export_estimator(
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords,
                                          online=layouts, noise=noise, localize=loc)  # fmt: skip
         if loc is not None:
+            k = next(i for i, s in enumerate(em.slots) if (s.link, s.kind) == (loc.link, "force"))
             meta[Key.LOCALIZE] = {
                 "link": loc.link,
-                "slot": list(links).index(loc.link),
+                "slot": k,
+                "region": em.slots[k].region,
+                "sensor": est.sensor_names[em.slots[k].region],
                 "force_threshold": loc.force_threshold,
                 "mesh": loc.mesh_choice,
                 "faces": len(loc.mesh.faces),

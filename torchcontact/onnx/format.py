@@ -209,8 +209,8 @@ class Key:
     ONLINE = "online"
     #: per contact slot the index of the sensor whose region it lies in (with ``online``)
     SLOT_REGIONS = "slot_regions"
-    #: step graphs exported with ``localize``: ``{link, slot, force_threshold, mesh, faces,
-    #: outputs}`` (:mod:`torchcontact.onnx.step.localize`); absent: no localization
+    #: step graphs exported with ``localize``: ``{link, slot, region, sensor, force_threshold,
+    #: mesh, faces, outputs}`` (:mod:`torchcontact.onnx.step.localize`); absent: no localization
     LOCALIZE = "localize"
     VERSION = "torchcontact_version"
     # correction graphs

@@ -441,6 +441,10 @@ class EstimatorRuntime:
                  "localize_status": _LOCSTATUS}  # fmt: skip
         self._plan = [(k, a, b, sh, kinds.get(k, _VIEW)) for k, (a, b, sh) in self._out.items()
                       if k in _OUTPUTS or k == "fm"]  # fmt: skip
+        # a step with localization: the sensor whose region a localized contact lies in (not
+        # contact-free for the bias tracker)
+        loc = self.metadata.get(Key.LOCALIZE)
+        self._loc_region = loc.get("region") if isinstance(loc, dict) else None
 
     def _put(self, name: str, view: np.ndarray, value: Any, default: float | None) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
@@ -573,6 +577,12 @@ class EstimatorRuntime:
                 net = np.asarray(ft, np.float64).reshape(self.S, 6)
             if fres is not None:
                 net = net - np.asarray(fres, np.float64).reshape(self.S, 6)
+            if self._loc_region is not None and res.get("localize_status") == 0:
+                # the localized contact is a contact: its region is not contact-free
+                free = np.ones(self.S, bool) if contact_free is None else contact_free
+                free = np.array(np.broadcast_to(np.asarray(free, bool).reshape(-1), (self.S,)))
+                free[self._loc_region] = False
+                contact_free = free
             ft_model, res["bias"] = onl.after(out, net, res["status"], contact_free, t)
             if self.residuals or given.get("ft_residual") is not None:
                 # corrections made outside the step's model are part of the model's reading
