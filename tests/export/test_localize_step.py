@@ -26,7 +26,8 @@ pytest.importorskip("onnxruntime")
 LINK = "hand"
 LINKS, KINDS = ["forearm", LINK], ["force", "force"]
 THRESHOLD = 2.0
-TOL = {"point": 2e-5, "force": 2e-3}
+#: per graph dtype: points (m), forces and torques (N, N m)
+TOL = {torch.float32: {"point": 2e-5, "force": 2e-3}, torch.float64: {"point": 1e-9, "force": 1e-8}}
 
 
 @pytest.fixture(scope="module")
@@ -68,13 +69,17 @@ def _frames(model, mesh, n, seed=0):
     return q, qd, qdd, ft, positions, active
 
 
-def test_step_graph_localizes_like_the_localizer_and_the_estimator(arm, tmp_path):
+@pytest.mark.parametrize(
+    "options", [{}, {"dtype": torch.float64, "joints": "sensed"}], ids=["float32", "float64-sensed"]
+)
+def test_step_graph_localizes_like_the_localizer_and_the_estimator(arm, tmp_path, options):
     from torchcontact.runtime import EstimatorRuntime
 
     mesh = _box_mesh(arm)
     out = tmp_path / "est.onnx"
-    meta = export_estimator(arm, None, LINKS, KINDS, out, localize=LINK,
-                                      meshes={LINK: mesh}, localize_threshold=THRESHOLD)  # fmt: skip
+    meta = export_estimator(arm, None, LINKS, KINDS, out, localize=LINK, meshes={LINK: mesh},
+                            localize_threshold=THRESHOLD, **options)  # fmt: skip
+    tol = TOL[options.get("dtype", torch.float32)]
     loc_meta = json.loads(meta["localize"])
     assert loc_meta["link"] == LINK and loc_meta["mesh"] == "collision mesh (12 faces)"
     n = 24
@@ -103,12 +108,12 @@ def test_step_graph_localizes_like_the_localizer_and_the_estimator(arm, tmp_path
         statuses.append(status)
         assert status == (int(ref.status[i]) & ~16) | (32 if skin[i] else 0)
         if used[i]:
-            np.testing.assert_allclose(got["localize_position"], ref.position[i], atol=TOL["point"])
+            np.testing.assert_allclose(got["localize_position"], ref.position[i], atol=tol["point"])
         else:
             assert np.isnan(got["localize_position"]).all()
-        np.testing.assert_allclose(got["force"], want.force[i], atol=TOL["force"])
-        np.testing.assert_allclose(got["moment"], want.moment[i], atol=TOL["force"])
-        np.testing.assert_allclose(got["joint_torques"], want.joint_torques[i], atol=TOL["force"])
+        np.testing.assert_allclose(got["force"], want.force[i], atol=tol["force"])
+        np.testing.assert_allclose(got["moment"], want.moment[i], atol=tol["force"])
+        np.testing.assert_allclose(got["joint_torques"], want.joint_torques[i], atol=tol["force"])
         assert got["rank"][0] == want.rank["base_ft"][i]
         assert got["unknowns"][0] == want.unknowns["base_ft"][i]
         np.testing.assert_allclose(got["residual"][0], want.residual["base_ft"][i], atol=1e-3)
