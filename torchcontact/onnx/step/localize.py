@@ -4,10 +4,11 @@ Intrinsic contact sensing for one candidate link (:mod:`torchcontact.localize`, 
 pure force explains the region's ``b`` (the contact wrench in the sensor frame about its origin)
 only on its line of action ``r = a + s u``, ``a = (f x m) / |f|^2``, ``u = f / |f|``; the contact
 is where that line enters the link's mesh. Here every triangle is tested at once with one
-``Gemm``: Moller-Trumbore's four determinants are linear in the line's Plücker coordinates
-``[d, o x d, o]`` (link frame), so the ``(9, 4 F)`` matrix of a mesh of ``F`` faces is a
-constant of the graph, and the entry of smallest line parameter is the contact (the first hit
-from far behind is always an entry; ambiguity is not counted).
+``Gemm``: Moller-Trumbore's determinants are linear in the line's Plücker coordinates
+``[d, o x d, o]`` (link frame), so the ``(9, 5 F)`` matrix of a mesh of ``F`` faces is a
+constant of the graph; an entering hit (``det > 0``) lies in its triangle when three of them
+are >= 0, and the entry of smallest line parameter is the contact (the first hit from far
+behind is always an entry; ambiguity is not counted).
 
 In the step graph (:func:`stage`), the localized point becomes the contact point of LINK's
 ``force`` slot in a step whose input has no active slot in LINK's region (no skin contact
