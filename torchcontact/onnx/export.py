@@ -354,6 +354,7 @@ def export_estimator(
         if loc is not None:
             k = next(i for i, s in enumerate(em.slots) if (s.link, s.kind) == (loc.link, "force"))
             meta[Key.LOCALIZE] = {
+                "graph": "step (the batched graph does not localize)",
                 "link": loc.link,
                 "slot": k,
                 "region": em.slots[k].region,
