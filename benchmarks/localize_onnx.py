@@ -1,8 +1,8 @@
 """Localization in the single-frame ONNX runtime: latency of the one-link graph and of the step.
 
-:func:`torchcontact.localize.onnx_single_link` builds stages 2-4 of the localization for one
-candidate link as an ONNX graph (every face tested at once). This script runs it with onnxruntime,
-one frame per call as the live loop does, on the iCub's l_hand collision mesh, its convex hull
+:func:`torchcontact.onnx.step.localize.onnx_single_link` builds stages 2-4 of the localization
+for one candidate link as an ONNX graph (every face tested at once). This script runs it with
+onnxruntime, one frame per call as the live loop does, on the iCub's l_hand collision mesh, its convex hull
 and a 12-face box, checks its point against ``Localizer`` (float64, same frames), and times it
 against the torch path's per-call latency (``Localizer.localize_wrench`` for one frame) in the
 same process.
@@ -31,8 +31,9 @@ from _meta import metadata  # noqa: E402
 from robots import ROBOTS  # noqa: E402
 
 import torchcontact as tc  # noqa: E402
-from torchcontact.localize import Localizer, onnx_single_link  # noqa: E402
+from torchcontact.localize import Localizer  # noqa: E402
 from torchcontact.meshes import LinkMesh, load_meshes  # noqa: E402
+from torchcontact.onnx.step.localize import onnx_single_link  # noqa: E402
 
 
 def frames(mesh: LinkMesh, n: int, rng):

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchcontact import spatial as sp
-from torchcontact.errors import InputError
+from torchcontact.errors import InputError, MissingExtraError
 from torchcontact.meshes import LinkMesh, RobotMeshes
 from torchcontact.onnx.builder import GraphBuilder, Operand, bilinear
 from torchcontact.onnx.step.context import StepContext
@@ -39,6 +39,7 @@ __all__ = [
     "emit_line_hit",
     "link_pose",
     "localize_link",
+    "onnx_single_link",
     "stage",
 ]
 
@@ -332,3 +333,62 @@ def stage(ctx: StepContext, spec: LocalizeLink, TP: str, b_all: list[str], Cg: s
     position = gb.op("Where", use, hit.point_link, gb.f(np.nan))
     outputs = [([("localize_status", (1,))], status), ([("localize_position", (3,))], position)]
     return Localized(Cg, actK, outputs)
+
+
+def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int | None = None):
+    """An ONNX graph that localizes one frame's contact on one link (stages 2-4, float32).
+
+    The piece of the single-frame step graph that localization needs (:func:`emit_line_hit`,
+    which ``export estimator --localize LINK`` wires into the step graph by :func:`stage`):
+    every triangle is tested at once (Moller-Trumbore's determinants as one ``Gemm`` on the
+    line's Plücker coordinates), and the hit of smallest line parameter among those entering
+    the surface is the contact (the first hit along the line from far behind is always an entry
+    into the mesh, so no ordering of the other hits is needed; the graph does not count
+    ambiguous entries). The node count does not depend on the mesh; the cost grows with the face
+    count.
+
+    Inputs: ``wrench`` ``(6,)`` the region's ``b`` (sensor frame), ``R_sensor_link`` ``(3, 3)``,
+    ``p_sensor_link`` ``(3,)``. Outputs: ``position`` ``(3,)`` and ``normal`` ``(3,)`` (link
+    frame, NaN without contact), ``force`` ``(3,)`` (link frame), ``moment_residual`` ``(1,)`` and
+    ``status`` ``(1,)`` int64 (bits 2 and 4 of :data:`~torchcontact.status.LOCALIZE_STATUS`).
+
+    Args:
+        mesh: the link's collision mesh.
+        force_threshold: N.
+        opset: ONNX opset (None: :data:`torchcontact.onnx.builder.OPSET`, the lowest it takes).
+
+    Returns:
+        An ``onnx.ModelProto``.
+
+    Raises:
+        MissingExtraError: onnx is not installed (extra ``export``).
+    """
+    try:
+        import onnx
+        from onnx import TensorProto
+    except ImportError:
+        raise MissingExtraError("onnx", "export") from None
+    gb = GraphBuilder(np.float32, f"localize_{mesh.link}")
+    w = gb.op("Reshape", gb.input("wrench", [6]), gb.i([1, 6]))
+    R = gb.input("R_sensor_link", [3, 3])
+    p = gb.op("Reshape", gb.input("p_sensor_link", [3]), gb.i([1, 3]))
+    hit = emit_line_hit(gb, mesh, w, R, p, force_threshold, with_face=True)
+    nan, shape3 = gb.f(np.nan), gb.i([3])
+    nrm = mesh.face_normals()
+    normal = gb.op("Reshape", gb.op("Gather", gb.f(nrm), hit.face, axis=0), shape3)
+    gb.op("Reshape", gb.op("Where", hit.found, hit.point_link, nan), shape3, out="position")
+    gb.op("Reshape", gb.op("Where", hit.found, normal, nan), shape3, out="normal")
+    gb.op("Reshape", gb.op("MatMul", hit.f, R), shape3, out="force")
+    m_along = gb.op("Abs", gb.op("ReduceSum", gb.op("Mul", hit.u, hit.m), keepdims=0))
+    m_norm = gb.op("Sqrt", gb.op("ReduceSumSquare", hit.m, keepdims=0))  # no force: all of m
+    gb.op("Reshape", gb.op("Where", hit.live, m_along, m_norm), gb.i([1]), out="moment_residual")
+    gb.op("Reshape", gb.op("Cast", hit.status, to=TensorProto.INT64), gb.i([1]), out="status")
+    for name, shape in (("position", [3]), ("normal", [3]), ("force", [3]),
+                        ("moment_residual", [1])):  # fmt: skip
+        gb.output(name, shape)
+    gb.output("status", [1], np.int64)
+    model = gb.model()
+    if opset is not None:
+        model.opset_import[0].version = opset
+    onnx.checker.check_model(model)
+    return model
