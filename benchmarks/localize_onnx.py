@@ -2,10 +2,10 @@
 
 :func:`torchcontact.onnx.step.localize.onnx_single_link` builds stages 2-4 of the localization
 for one candidate link as an ONNX graph (every face tested at once). This script runs it with
-onnxruntime, one frame per call as the live loop does, on the iCub's l_hand collision mesh, its convex hull
-and a 12-face box, checks its point against ``Localizer`` (float64, same frames), and times it
-against the torch path's per-call latency (``Localizer.localize_wrench`` for one frame) in the
-same process.
+onnxruntime, one frame per call as the live loop does, on the iCub's l_hand collision mesh, its
+convex hull and a 12-face box, checks its point against ``Localizer`` (float64, same frames),
+and times it against the torch path's per-call latency (``Localizer.localize_wrench`` for one
+frame) in the same process.
 
 The second table is what ``export estimator --localize l_hand`` adds to the iCub left arm's
 single-frame estimator (sensor l_arm_ft, slots l_hand:force and l_forearm:force): p50 of
