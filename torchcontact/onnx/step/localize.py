@@ -76,7 +76,7 @@ class LineHit(NamedTuple):
         t: ``(1, 1)`` the line parameter of the entry (inf where none).
         face: ``(1, 1)`` int64 index of the entered triangle (``with_face``; else ``""``).
         live: ``(1, 1)`` bool: the force is above the threshold.
-        f: ``(1, 3)`` force, sensor frame; ``m``: ``(1, 3)`` moment, sensor frame.
+        f: ``(1, 3)`` force, sensor frame.
         u: ``(1, 3)`` unit force direction, sensor frame.
         status: ``(1, 1)`` float bits 2 (no contact) and 4 (no intersection) of
             :class:`~torchcontact.status.LocalizeStatus`.
@@ -89,7 +89,6 @@ class LineHit(NamedTuple):
     face: str
     live: str
     f: str
-    m: str
     u: str
     status: str
 
@@ -190,14 +189,6 @@ def _plucker_matrix(mesh: LinkMesh) -> tuple[np.ndarray, np.ndarray]:
     return W, c
 
 
-def _cross(gb: GraphBuilder, a: str, b: str) -> str:
-    """``a x b`` of two ``(1, 3)`` rows."""
-    i120, i201 = gb.i([1, 2, 0]), gb.i([2, 0, 1])
-    a1, a2 = gb.op("Gather", a, i120, axis=1), gb.op("Gather", a, i201, axis=1)
-    b1, b2 = gb.op("Gather", b, i120, axis=1), gb.op("Gather", b, i201, axis=1)
-    return gb.op("Sub", gb.op("Mul", a1, b2), gb.op("Mul", a2, b1))
-
-
 def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
                   force_threshold: float, with_face: bool = False) -> LineHit:  # fmt: skip
     """Emit the localization of one frame's contact on one link (about 45 nodes, any mesh).
@@ -217,17 +208,26 @@ def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
     """
     axis1 = gb.i([1])
     f = gb.op("Slice", wrench, gb.i([0]), gb.i([3]), axis1)
-    m = gb.op("Slice", wrench, gb.i([3]), gb.i([6]), axis1)
     # the line of action: a = f x m / |f|^2, u = f / |f| (sensor frame)
     fn2 = gb.op("ReduceSumSquare", f, axis1, keepdims=1)
     live = gb.op("GreaterOrEqual", fn2, gb.f(force_threshold**2))
     safe = gb.op("Where", live, fn2, gb.f(1.0))
-    a = gb.op("Div", _cross(gb, f, m), safe)
+    fxm = bilinear(gb, Operand(wrench, 6), None, 1,
+                   lambda _r, w, _b: sp.v_cross(tuple(w[0:3]), tuple(w[3:6])), 3, one=False,
+                   hint="fxm")  # fmt: skip
+    a = gb.op("Div", fxm, safe)
     u = gb.op("Div", f, gb.op("Sqrt", safe))
-    # in the link frame (row vectors: x R = (R^T x)^T): origin o, direction d, moment o x d
+    # in the link frame (row vectors: x R = (R^T x)^T): origin o, direction d; the Plücker
+    # coordinates [d, o x d, o]
     o = gb.op("MatMul", gb.op("Sub", a, p), R)
     d = gb.op("MatMul", u, R)
-    X = gb.op("Concat", d, _cross(gb, o, d), o, axis=1)
+    od1 = gb.op("Concat", o, d, gb.f([[1.0]]), axis=1)
+
+    def plucker(_r: int, v: list, _b: list) -> list:
+        o_, d_ = tuple(v[0:3]), tuple(v[3:6])
+        return [*d_, *sp.v_cross(o_, d_), *o_]
+
+    X = bilinear(gb, Operand(od1, 7, one=6), None, 1, plucker, 9, one=False, hint="plucker")
     # Moller-Trumbore against every face: one Gemm; entering (det > 0), inside (three signs)
     W, c = _plucker_matrix(mesh)
     F = len(mesh.faces)
@@ -249,7 +249,7 @@ def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
     bits = gb.op("Where", live, gb.f(float(LocalizeStatus.NO_INTERSECTION)),
                  gb.f(float(LocalizeStatus.NO_CONTACT)))  # fmt: skip
     status = gb.op("Where", found, zero, bits)
-    return LineHit(found, point_sensor, point_link, t, face, live, f, m, u, status)
+    return LineHit(found, point_sensor, point_link, t, face, live, f, u, status)
 
 
 def link_pose(ctx: StepContext, TP: str, k: int) -> str:
@@ -379,8 +379,9 @@ def onnx_single_link(mesh: LinkMesh, force_threshold: float = 1.0, opset: int | 
     gb.op("Reshape", gb.op("Where", hit.found, hit.point_link, nan), shape3, out="position")
     gb.op("Reshape", gb.op("Where", hit.found, normal, nan), shape3, out="normal")
     gb.op("Reshape", gb.op("MatMul", hit.f, R), shape3, out="force")
-    m_along = gb.op("Abs", gb.op("ReduceSum", gb.op("Mul", hit.u, hit.m), keepdims=0))
-    m_norm = gb.op("Sqrt", gb.op("ReduceSumSquare", hit.m, keepdims=0))  # no force: all of m
+    m = gb.op("Slice", w, gb.i([3]), gb.i([6]), gb.i([1]))
+    m_along = gb.op("Abs", gb.op("ReduceSum", gb.op("Mul", hit.u, m), keepdims=0))
+    m_norm = gb.op("Sqrt", gb.op("ReduceSumSquare", m, keepdims=0))  # no force: all of m
     gb.op("Reshape", gb.op("Where", hit.live, m_along, m_norm), gb.i([1]), out="moment_residual")
     gb.op("Reshape", gb.op("Cast", hit.status, to=TensorProto.INT64), gb.i([1]), out="status")
     for name, shape in (("position", [3]), ("normal", [3]), ("force", [3]),
