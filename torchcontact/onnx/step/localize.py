@@ -191,7 +191,7 @@ def _plucker_matrix(mesh: LinkMesh) -> tuple[np.ndarray, np.ndarray]:
 
 def emit_line_hit(gb: GraphBuilder, mesh: LinkMesh, wrench: str, R: str, p: str,
                   force_threshold: float, with_face: bool = False) -> LineHit:  # fmt: skip
-    """Emit the localization of one frame's contact on one link (about 45 nodes, any mesh).
+    """Emit the localization of one frame's contact on one link (about 40 nodes, any mesh).
 
     Args:
         gb: the graph.
