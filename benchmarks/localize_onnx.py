@@ -1,11 +1,16 @@
-"""Localization in the single-frame ONNX runtime: latency of the one-link graph.
+"""Localization in the single-frame ONNX runtime: latency of the one-link graph and of the step.
 
-:func:`torchcontact.localize.onnx_single_link` builds stages 2-4 of the localization for one
-candidate link as an ONNX graph (every face tested at once). This script runs it with onnxruntime,
-one frame per call as the live loop does, on the iCub's l_hand collision mesh, its convex hull
-and a 12-face box, checks its point against ``Localizer`` (float64, same frames), and times it
-against the torch path's per-call latency (``Localizer.localize_wrench`` for one frame) in the
-same process.
+:func:`torchcontact.onnx.step.localize.onnx_single_link` builds stages 2-4 of the localization
+for one candidate link as an ONNX graph (every face tested at once). This script runs it with
+onnxruntime, one frame per call as the live loop does, on the iCub's l_hand collision mesh, its
+convex hull and a 12-face box, checks its point against ``Localizer`` (float64, same frames),
+and times it against the torch path's per-call latency (``Localizer.localize_wrench`` for one
+frame) in the same process.
+
+The second table is what ``export estimator --localize l_hand`` adds to the iCub left arm's
+single-frame estimator (sensor l_arm_ft, slots l_hand:force and l_forearm:force): p50 of
+:meth:`EstimatorRuntime.step` with and without the localization, the two runtimes called in
+turn in one process (so load affects both alike), on frames whose contact is localized.
 
 Run: ``python benchmarks/localize_onnx.py [--calls 2000]``.
 """
@@ -26,8 +31,9 @@ from _meta import metadata  # noqa: E402
 from robots import ROBOTS  # noqa: E402
 
 import torchcontact as tc  # noqa: E402
-from torchcontact.localize import Localizer, onnx_single_link  # noqa: E402
+from torchcontact.localize import Localizer  # noqa: E402
 from torchcontact.meshes import LinkMesh, load_meshes  # noqa: E402
+from torchcontact.onnx.step.localize import onnx_single_link  # noqa: E402
 
 
 def frames(mesh: LinkMesh, n: int, rng):
@@ -111,6 +117,68 @@ def main():
             f"| {name} | {len(mesh.faces)} | {len(graph.graph.node)} | {p50:.0f} | {p99:.0f} |"
             f" {t50:.0f} | {t50 / p50:.1f}x | {err:.1e} |"
         )
+    step_latency(model, path, cases, args.calls, rng)
+
+
+def step_latency(model, path: str, cases: dict, calls: int, rng) -> None:
+    """p50 of the iCub left arm's step with and without ``--localize l_hand``, in turn."""
+    import tempfile
+
+    import onnx
+
+    from torchcontact.export import export_estimator
+    from torchcontact.runtime import EstimatorRuntime
+
+    links, kinds = ["l_forearm", "l_hand"], ["force", "force"]
+    est = tc.ContactEstimator(model, ["l_arm_ft"])
+    mesh = cases["iCub l_hand collision mesh"]
+    n = 64
+    q = torch.zeros(n, model.nv, dtype=torch.float64)
+    tri = mesh.vertices[mesh.faces]
+    k = rng.integers(len(tri), size=n)
+    pts = np.einsum("nk,nki->ni", rng.dirichlet([1, 1, 1], size=n), tri[k])
+    nrm = np.cross(tri[k, 1] - tri[k, 0], tri[k, 2] - tri[k, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    f = -(nrm + 0.3 * rng.normal(size=(n, 3))) * 5
+    w = torch.as_tensor(np.c_[f, np.zeros((n, 3))])[:, None]
+    c = tc.Contacts(["l_hand"], ["known"], torch.as_tensor(pts)[:, None], wrenches=w)
+    ft = est.predict_ft(q, q, q, c)["l_arm_ft"].numpy()
+    print()
+    print("| step graph (iCub left arm, l_arm_ft) | faces | nodes | step p50 (us) | p99 (us) |"
+          " p50 / without | frames localized |")  # fmt: skip
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    with tempfile.TemporaryDirectory() as d:
+        runtimes = {}
+        plain = f"{d}/plain.onnx"
+        export_estimator(model, ["l_arm_ft"], links, kinds, plain, joints="sensed")
+        runtimes["without --localize"] = (plain, None)
+        for name, m in cases.items():
+            out = f"{d}/{len(runtimes)}.onnx"
+            export_estimator(model, ["l_arm_ft"], links, kinds, out, joints="sensed",
+                             localize="l_hand", meshes={"l_hand": m},
+                             localize_max_faces=10_000)  # fmt: skip
+            runtimes[f"--localize l_hand: {name}"] = (out, m)
+        rts = {k: EstimatorRuntime(p.replace(".onnx", ".step.onnx"), robot=model)
+               for k, (p, _) in runtimes.items()}  # fmt: skip
+        feeds = [{"q": q[i].numpy(), "qd": q[i].numpy(), "qdd": q[i].numpy(),
+                  "ft": ft[i][None], "positions": np.zeros((2, 3)), "active": np.zeros(2)}
+                 for i in range(n)]  # fmt: skip
+        found = {k: sum(rt.step(x).get("localize_status", 1) == 0 for x in feeds)
+                 for k, rt in rts.items()}  # fmt: skip
+        lat = {k: [] for k in rts}
+        for c_ in range(calls):
+            x = feeds[c_ % n]
+            for k, rt in rts.items():  # in turn: the load falls on every graph alike
+                t0 = time.perf_counter()
+                rt.step(x)
+                lat[k].append(time.perf_counter() - t0)
+        base = np.percentile(lat["without --localize"], 50)
+        for k, (p, m) in runtimes.items():
+            nodes = len(onnx.load(p.replace(".onnx", ".step.onnx")).graph.node)
+            p50, p99 = np.percentile(lat[k], 50), np.percentile(lat[k], 99)
+            loc = f"{found[k]}/{n}" if m is not None else "-"
+            print(f"| {k} | {len(m.faces) if m is not None else '-'} | {nodes} |"
+                  f" {p50 * 1e6:.0f} | {p99 * 1e6:.0f} | {p50 / base:.2f} | {loc} |")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -47,7 +47,12 @@ def _estimator(args: argparse.Namespace) -> int:
     from torchcontact.errors import TorchContactError
     from torchcontact.export import DEFAULT_OPSET, export_estimator, step_graph_path
 
+    localize_options = args.localize_threshold != 1.0 or args.localize_max_faces is not None
+    if args.localize is None and localize_options:
+        raise InputError("--localize-threshold and --localize-max-faces go with --localize")
     if args.format == "c":
+        if args.localize is not None:
+            raise InputError("--localize: the localization is in the ONNX step graph only")
         return _estimator_c(args)
     if args.payload_link and not args.online:
         raise InputError("--payload-link goes with --online (or --format c)")
@@ -57,6 +62,13 @@ def _estimator(args: argparse.Namespace) -> int:
 
     model = load_robot(robot)
     links, kinds = _slots(args)
+    meshes = None
+    if args.localize is not None:
+        from torchcontact.meshes import load_meshes
+
+        if args.localize in model.frames:  # else export_estimator names the unknown link
+            meshes = load_meshes(model, robot, "collision",
+                                 links=[args.localize])  # fmt: skip
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]
     opset = args.opset or DEFAULT_OPSET
     joints = args.joints
@@ -89,6 +101,10 @@ def _estimator(args: argparse.Namespace) -> int:
                 constraints=cones,
                 online=_payload_links(args) or bool(args.online),
                 ft_noise=args.ft_noise,
+                localize=args.localize,
+                meshes=meshes,
+                localize_threshold=args.localize_threshold,
+                localize_max_faces=args.localize_max_faces,
             )
     except TorchContactError:
         raise
@@ -133,6 +149,15 @@ def estimator_summary(path: str, step: str, meta: dict[str, str]) -> str:
         f"  outputs {', '.join(m['outputs'])}",
         f"  {m['dtype']}, opset {m['opset']}"
         + (f"; {', '.join(options)}" if options else ""),
+        *(
+            [
+                f"  step graph localizes {loc['link']} (slot {loc['slot']}, above"
+                f" {loc['force_threshold']:g} N) on its {loc['mesh']}; step outputs"
+                " localize_status, localize_position"
+            ]
+            if isinstance(loc := m.get("localize"), dict)
+            else []
+        ),
         "  all metadata: --json",
     ]  # fmt: skip
     return "\n".join(lines)
@@ -380,6 +405,28 @@ def main(argv: list[str] | None = None, prog: str = "python -m export") -> int:
         action="append",
         help="with --online or --format c: SENSOR=LINK where payloads attach (repeat; default:"
         " the deepest link of the sensor's subtree)",
+    )
+    e.add_argument(
+        "--localize",
+        metavar="LINK",
+        default=None,
+        help="the step graph localizes a contact on LINK (which needs a --slot LINK:force) from"
+        " its sensor's wrench and LINK's collision mesh, and uses it as that slot's contact in"
+        " steps with no active slot in the sensor's region (outputs localize_status,"
+        " localize_position; default: none; docs/localize.md)",
+    )
+    e.add_argument(
+        "--localize-threshold",
+        type=float,
+        default=1.0,
+        help="with --localize: below this force (N) a step has no contact (default 1)",
+    )
+    e.add_argument(
+        "--localize-max-faces",
+        type=int,
+        default=None,
+        help="with --localize: above this many faces the graph carries the collision mesh's"
+        " convex hull (default 1000; the graph's cost grows with the faces)",
     )
     e.add_argument(
         "--out",

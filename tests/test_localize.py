@@ -426,7 +426,7 @@ def test_near_miss_snaps_to_the_nearest_edge_and_cone_fallback(arm):
 
 def test_single_link_onnx_graph_matches_the_localizer(arm):
     ort = pytest.importorskip("onnxruntime")
-    from torchcontact.localize import onnx_single_link
+    from torchcontact.onnx.step.localize import onnx_single_link
 
     v, f = _l_prism()
     c = np.array([0.3, 0.1, 0.5])

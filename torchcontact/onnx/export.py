@@ -28,7 +28,10 @@ same metadata, run with onnxruntime alone through :mod:`torchcontact.runtime`:
 * ``<name>.step.onnx``, the **single-frame** graph (:mod:`torchcontact.onnx.step`): the same
   function for one frame as a few hundred nodes vectorised over bodies and slots (latency), with
   one packed input ``x (1, F)`` and one packed output ``out (1, O)`` whose layouts are in the
-  metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]).
+  metadata (``step_inputs``, ``step_outputs``: field -> [offset, shape]). With ``localize``
+  it also localizes the contact of one link's ``force`` slot from its sensor's wrench and
+  collision mesh (:mod:`torchcontact.onnx.step.localize`; outputs ``localize_status``,
+  ``localize_position``).
 
 :func:`export_residual_checkpoint` writes a correction stack (:mod:`torchcontact.residual`:
 offset, re-identified inertial parameters, learned layer) as one graph from raw joint state to
@@ -53,6 +56,7 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -125,6 +129,10 @@ def export_estimator(
     constraints: FrictionCones | None = None,
     online: bool | Mapping[str, str] = False,
     ft_noise: Mapping[str, Sequence[float] | str] | Sequence[str] | None = None,
+    localize: str | None = None,
+    meshes: Any = None,
+    localize_threshold: float = 1.0,
+    localize_max_faces: int | None = None,
 ) -> dict[str, str]:
     """Export the estimator of a robot, sensors and contact-slot layout as ONNX graphs.
 
@@ -177,6 +185,17 @@ def export_estimator(
             as :meth:`ContactEstimator.estimate <torchcontact.ContactEstimator.estimate>` with
             ``ft_covariance = diag(std^2)`` (constants in the graphs; metadata ``ft_noise``).
             None: the paper's unweighted ``pinv(A) b``.
+        localize: a link with a ``force`` slot: the single-frame graph localizes the contact
+            on it from its region's ``b`` and its collision mesh in steps whose input has no
+            active slot in that region, and uses it as the slot's contact (outputs
+            ``localize_status``, ``localize_position``; metadata ``localize``;
+            :mod:`torchcontact.onnx.step.localize`). The batched graph is unchanged.
+        meshes: with ``localize``, the robot's collision meshes
+            (:func:`torchcontact.meshes.load_meshes`) or a mapping link -> ``LinkMesh``.
+        localize_threshold: with ``localize``, the force below which a step has no contact, N.
+        localize_max_faces: with ``localize``, above this many faces the graph carries the
+            mesh's convex hull (None:
+            :data:`~torchcontact.onnx.step.localize.DEFAULT_MAX_FACES`).
 
     Returns:
         The metadata written into the files' ``metadata_props``.
@@ -222,6 +241,16 @@ def export_estimator(
     est = ContactEstimator(
         m, sensors, rank_rtol=rank_rtol, velocity_margin=velocity_margin, ft_range=ft_range
     )
+    loc = None
+    if localize is not None:
+        from torchcontact.onnx.step.localize import DEFAULT_MAX_FACES, localize_link
+
+        if constraints is not None or not step_graph:
+            raise InputError("localize: the localization is the single-frame graph's (step_graph;"
+                             " not with constraints)")  # fmt: skip
+        max_faces = localize_max_faces or DEFAULT_MAX_FACES
+        loc = localize_link(m, est.layout((), ()), links, kinds, localize, meshes,
+                            localize_threshold, max_faces)  # fmt: skip
     em = est.layout(tuple(links), tuple(kinds))
     res = load_residual_graphs(residual, m, est.sensor_names)
     noise = None
@@ -321,7 +350,26 @@ def export_estimator(
             meta[Key.ONLINE] = [lay.to_json(m.body_names) for lay in layouts]
             meta[Key.SLOT_REGIONS] = [sl.region for sl in em.slots]
         sm, lin, lout = build_step_graph(em, *flags, dtype=npd, residuals=res, coords=coords,
-                                         online=layouts, noise=noise)  # fmt: skip
+                                         online=layouts, noise=noise, localize=loc)  # fmt: skip
+        if loc is not None:
+            k = next(i for i, s in enumerate(em.slots) if (s.link, s.kind) == (loc.link, "force"))
+            meta[Key.LOCALIZE] = {
+                "graph": "step (the batched graph does not localize)",
+                "link": loc.link,
+                "slot": k,
+                "region": em.slots[k].region,
+                "sensor": est.sensor_names[em.slots[k].region],
+                "force_threshold": loc.force_threshold,
+                "mesh": loc.mesh_choice,
+                "faces": len(loc.mesh.faces),
+                "outputs": {
+                    "localize_status": "bits of torchcontact.status.LocalizeStatus (2 no"
+                    " contact, 4 no intersection, 32 skin contact in the region); NaN where"
+                    " the step's status is not 0",
+                    "localize_position": "the localized contact point, link frame, m; NaN"
+                    " where not used",
+                },
+            }
         meta[Key.STEP_INPUTS] = lin.as_dict()
         meta[Key.STEP_OUTPUTS] = lout.as_dict()
         graphs.append((sm, step, "step"))

@@ -209,6 +209,10 @@ class Key:
     ONLINE = "online"
     #: per contact slot the index of the sensor whose region it lies in (with ``online``)
     SLOT_REGIONS = "slot_regions"
+    #: estimators exported with ``localize`` (the step graph localizes; the key is in both
+    #: graphs' metadata): ``{graph, link, slot, region, sensor, force_threshold, mesh, faces,
+    #: outputs}`` (:mod:`torchcontact.onnx.step.localize`); absent: no localization
+    LOCALIZE = "localize"
     VERSION = "torchcontact_version"
     # correction graphs
     SENSOR = "sensor"

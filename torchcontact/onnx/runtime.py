@@ -142,10 +142,11 @@ _SLOT_DATA = frozenset(("directions", "wrenches", "extra"))
 #: How :meth:`EstimatorRuntime.step` fills a field of the packed input.
 _PLAIN, _FT, _MASK, _EXTRA, _STATE = range(5)
 #: How :meth:`EstimatorRuntime.step` reads a field of the packed output.
-_VIEW, _FM, _INT, _STATUS, _TAU = range(5)
-#: The outputs every step returns (``fm`` of the ONNX step holds ``force`` and ``moment``).
+_VIEW, _FM, _INT, _STATUS, _TAU, _LOCSTATUS = range(6)
+#: The outputs every step returns (``fm`` of the ONNX step holds ``force`` and ``moment``),
+#: and a step exported with ``localize`` the localization's.
 _OUTPUTS = frozenset(("force", "moment", "joint_torques", "rank", "unknowns", "residual",
-                      "status", "covariance"))  # fmt: skip
+                      "status", "covariance", "localize_status", "localize_position"))  # fmt: skip
 
 
 def _given(inputs: Any, args: tuple, named: Mapping[str, Any]) -> dict[str, Any]:
@@ -436,9 +437,14 @@ class EstimatorRuntime:
         )
         # how _decode reads each output field
         kinds = {"fm": _FM, "rank": _INT, "unknowns": _INT, "status": _STATUS,
-                 "joint_torques": _VIEW if self._tau_idx is None else _TAU}  # fmt: skip
+                 "joint_torques": _VIEW if self._tau_idx is None else _TAU,
+                 "localize_status": _LOCSTATUS}  # fmt: skip
         self._plan = [(k, a, b, sh, kinds.get(k, _VIEW)) for k, (a, b, sh) in self._out.items()
                       if k in _OUTPUTS or k == "fm"]  # fmt: skip
+        # a step with localization: the sensor whose region a localized contact lies in (not
+        # contact-free for the bias tracker)
+        loc = self.metadata.get(Key.LOCALIZE)
+        self._loc_region = loc.get("region") if isinstance(loc, dict) else None
 
     def _put(self, name: str, view: np.ndarray, value: Any, default: float | None) -> None:
         """Write one input field of the packed vector (``default`` when ``value`` is None)."""
@@ -493,7 +499,11 @@ class EstimatorRuntime:
             ``ft_model (S, 6)`` (the contact-free reading the model predicts, every correction
             but the offset) and ``bias``, the
             :class:`~torchcontact.online.bias.BiasState` after the frame (offsets, their
-            uncertainty, time since the last update).
+            uncertainty, time since the last update). A step exported with ``localize``
+            (``--localize LINK``) adds ``localize_status`` (int, bits of
+            :class:`~torchcontact.status.LocalizeStatus`; -1 where ``status`` is not 0) and
+            ``localize_position (3,)`` (the contact point LINK's slot was given, link frame,
+            m; NaN where the localization was not used).
 
         Raises:
             InputError: a wrong shape, an unknown input, a missing required input or extra
@@ -567,6 +577,12 @@ class EstimatorRuntime:
                 net = np.asarray(ft, np.float64).reshape(self.S, 6)
             if fres is not None:
                 net = net - np.asarray(fres, np.float64).reshape(self.S, 6)
+            if self._loc_region is not None and res.get("localize_status") == 0:
+                # the localized contact is a contact: its region is not contact-free
+                free = np.ones(self.S, bool) if contact_free is None else contact_free
+                free = np.array(np.broadcast_to(np.asarray(free, bool).reshape(-1), (self.S,)))
+                free[self._loc_region] = False
+                contact_free = free
             ft_model, res["bias"] = onl.after(out, net, res["status"], contact_free, t)
             if self.residuals or given.get("ft_residual") is not None:
                 # corrections made outside the step's model are part of the model's reading
@@ -588,6 +604,8 @@ class EstimatorRuntime:
                 res[name] = v.astype(np.int64)
             elif kind == _STATUS:
                 res[name] = int(v[0])
+            elif kind == _LOCSTATUS:  # NaN where the step's status is not 0: -1
+                res[name] = int(v[0]) if v[0] == v[0] else -1
             else:  # only some joints' torques: the others are NaN
                 full = np.full(self.nv, np.nan, out.dtype)
                 full[self._tau_idx] = v

@@ -154,7 +154,8 @@ def _covariance(ctx: StepContext, fm: str, e: str, idx: dict) -> str:
     return gb.op("Reshape", cov, gb.i([1, 36 * K]))
 
 
-def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=()) -> StepLayout:
+def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
+         localized=()) -> StepLayout:  # fmt: skip
     """The packed output ``out (1, O)``: estimates, status; NaN where the status is not 0.
 
     Args:
@@ -171,6 +172,8 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=()) 
             corrections.
         more: further outputs ``[([(field, shape)], (1, n) value)]``, NaN where the status is
             not 0 (the online graph's ``ft_model`` and regressors).
+        localized: the localization's outputs, as ``more`` (after ``unknowns``; NaN where the
+            status is not 0; their own NaN, no localized contact, sets no status bit).
 
     Returns:
         The output layout (the graph output ``out`` is declared).
@@ -205,6 +208,12 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=()) 
     vals = gb.op("Concat", *pieces, axis=1)
     # a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
     nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
+    n_est = out.size
+    for fields, _value in localized:
+        for name, shape in fields:
+            out.add(name, shape)
+    if localized:
+        vals = gb.op("Concat", vals, *(value for _, value in localized), axis=1)
     bit = float(Status.OUTPUT_NONFINITE)
     status = gb.op(
         "Add", status_in, gb.op("Mul", gb.op("Where", nonfin, gb.f(bit), gb.f(0.0)), okf)
@@ -215,6 +224,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=()) 
     always[0, [t0 + c for c in range(ctx.nv) if c not in ctx.coords]] = np.nan
     bad = always.copy()
     bad[0, :n_mask] = np.nan
+    bad[0, n_est:] = np.nan
     pen = gb.op("Where", gb.op("Greater", status, gb.f(0.0)), gb.f(bad), gb.f(always))
     out.add("status", (1,))
     for sensor, shape, _h in states:
