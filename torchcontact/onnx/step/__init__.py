@@ -145,11 +145,14 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
         x = gb.op("Sub", x, total)
     # ---- 1. inputs: checks, status bits, affine entries
     ea, idx = inputs.plan(ctx)
+    corrections.feature_entries(ctx, wiring, native, ea)  # the learned layers' angles
     idx.update(one=ea.one, zero=ea.zero, n_entries=len(ea.cols))
     chk = inputs.check(ctx, x, ea, idx)
     e = chk.e
     # ---- 2. poses, motion, body wrenches
-    T = kinematics.poses(ctx, e, idx, ea.zero)
+    ce = gb.op("Cos", e)  # the joint angles' cos and sin (and the learned layers' features)
+    wiring.angles(ce, idx["n_entries"])
+    T = kinematics.poses(ctx, e, idx, ea.zero, ce)
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
     VA = kinematics.motion(ctx, TP, e, idx, base)

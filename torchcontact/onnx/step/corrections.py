@@ -13,6 +13,7 @@ thousands of the stack's own forward pass).
 from __future__ import annotations
 
 import base64
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +32,14 @@ from torchcontact.onnx.step.forms import (
 )
 from torchcontact.onnx.step.kinematics import bodies_to_root
 
-__all__ = ["NativeStack", "Wiring", "fold_affine_ends", "native_corrections", "native_stack"]
+__all__ = [
+    "NativeStack",
+    "Wiring",
+    "feature_entries",
+    "fold_affine_ends",
+    "native_corrections",
+    "native_stack",
+]
 
 
 class Wiring:
@@ -40,18 +48,36 @@ class Wiring:
     def __init__(self, ctx: StepContext, x: str) -> None:
         self.ctx, self.x = ctx, x
         self.states: list[tuple[str, tuple[int, ...], str]] = []
+        #: the cosines of the affine entries, ``(1, E)`` (:meth:`angles`), and per native stack
+        #: the ``(cos, sin)`` entries of its angle features (:func:`feature_entries`)
+        self.cos_e: str | None = None
+        self.n_entries = 0
+        self.angle_entries: dict[int, list[tuple[int, int]]] = {}
+
+    def angles(self, ce: str, n_entries: int) -> None:
+        """Give the learned layers the cosines of the affine entries ``ce`` (``(E,)``).
+
+        The kinematics computes them (poses); the angle features are entries of them
+        (:func:`feature_entries`), so no ``Sin``/``Cos`` of their own.
+        """
+        if self.angle_entries:
+            self.cos_e = self.ctx.gb.op("Reshape", ce, self.ctx.gb.i([1, n_entries]))
+        self.n_entries = n_entries
+
+    def position(self, kind: str, key: str) -> int:
+        """The column of ``x`` of ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)``."""
+        lay = self.ctx.lay
+        if kind == "extra":
+            return lay.index("extra", self.ctx.extra.index(key))
+        return lay.index(kind, self.ctx.full.model.joint_names.index(key))
 
     def select(self, cols) -> str:
         """Columns ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)`` of ``x``, ``(1, n)``."""
-        lay, names = self.ctx.lay, self.ctx.full.model.joint_names
-        extra = self.ctx.extra
 
         def position(kind: str, key: str) -> int:
-            if kind == "extra":
-                return lay.index("extra", extra.index(key))
-            return lay.index(kind, names.index(key))
+            return self.position(kind, key)
 
-        position.size = lay.size  # type: ignore[attr-defined]
+        position.size = self.ctx.lay.size  # type: ignore[attr-defined]
         return self.ctx.gb.op("MatMul", self.x, self.ctx.gb.f(selection(cols, position)))
 
     def state_in(self, rg, to: int) -> str:
@@ -176,6 +202,30 @@ def _not_native(ctx: StepContext, rg) -> None:
     return None
 
 
+def feature_entries(ctx: StepContext, wiring: Wiring, stacks: dict, ea) -> None:
+    """Register the learned layers' angle features as entries of the affine plan.
+
+    ``cos q`` is the entry ``q``, ``sin q`` the entry ``q - pi/2`` (the poses' own trick): the
+    pose stage's one ``Cos`` of every entry then holds them, and the features of a stack are one
+    ``Concat`` of those cosines, ``x`` and the nominal wrench, whose selection folds into the
+    learned layer's first ``Gemm`` (:func:`_learned`).
+
+    Args:
+        ctx: the graph.
+        wiring: where the entries are recorded (``angle_entries``).
+        stacks: ``{r: (ResidualGraph, NativeStack)}``.
+        ea: the affine plan (:func:`torchcontact.onnx.step.inputs.plan`), before ``check``.
+    """
+    for r, (_rg, st) in stacks.items():
+        if st.learned is None or not st.sincos:
+            continue
+        ent = []
+        for kind, key in st.columns[: st.n_angles]:
+            j = wiring.position(kind, key)
+            ent.append((ea.entry({j: 1.0}), ea.entry({j: 1.0}, -math.pi / 2)))
+        wiring.angle_entries[r] = ent
+
+
 def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[str, str | None]:
     """The sensors' wrenches ``W0`` with the native stacks subtracted, and ``ws_corr``.
 
@@ -271,33 +321,49 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
              shift: np.ndarray | None = None) -> tuple[str, bool]:  # fmt: skip
     """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
 
+    The raw features ``v = [sin q, cos q, other columns, nominal]`` are ``u S`` with
+    ``u = [cos e, x, nominal]`` (one ``Concat``; the angles are entries of the poses' cosines,
+    :func:`feature_entries`) and a constant 0/1 ``S``; ``S`` and the feature order ``perm`` fold
+    into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the column
+    selection did before (a non-finite entry of ``x`` reaches the output, and the status).
+
     Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)`` to add) is in it
     (folded into its last bias).
     """
     gb = ctx.gb
     to = onnx_type(rg.dtype)
-    parts = []
-    if st.columns:
-        xs = wiring.select(st.columns)
-        if st.sincos:
-            na = st.n_angles
-            q = gb.op("Slice", xs, gb.i([0]), gb.i([na]), gb.i([1]))
-            rest = gb.op("Slice", xs, gb.i([na]), gb.i([len(st.columns)]), gb.i([1]))
-            parts += [gb.op("Sin", q), gb.op("Cos", q), rest]
-        else:
-            parts.append(xs)
+    same = np.dtype(rg.dtype) == ctx.dtype
+    na = st.n_angles if st.sincos else 0
+    rest = st.columns[na:]
+    E, F = wiring.n_entries, ctx.lay.size
+    parts, rows, offsets = [], 0, {}
+    for name, value, width, used in (("cos", wiring.cos_e, E, na > 0),
+                                     ("x", wiring.x, F, bool(rest)),
+                                     ("nominal", nominal, 6, bool(st.nominal))):  # fmt: skip
+        if used:
+            parts.append(value)
+            offsets[name] = rows
+            rows += width
+    V = 2 * na + len(rest) + 6 * bool(st.nominal)
+    S = np.zeros((rows, V))
+    for a, (c, s_) in enumerate(wiring.angle_entries.get(r, [])):
+        S[offsets["cos"] + s_, a] = 1.0  # sin q = cos(q - pi/2)
+        S[offsets["cos"] + c, na + a] = 1.0
+    for j, (kind, key) in enumerate(rest):
+        S[offsets["x"] + wiring.position(kind, key), 2 * na + j] = 1.0
     if st.nominal:
-        parts.append(nominal)
-    v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
-    learned, folded, shifted = fold_affine_ends(st.learned, st.perm, shift)
-    feats = v if folded else gb.op("MatMul", v, gb.f(st.perm))
-    feeds = {"features": gb.op("Cast", feats, to=to)}
+        S[offsets["nominal"] : rows, V - 6 :] = np.eye(6)
+    pre = S if st.perm is None else S @ np.asarray(st.perm, np.float64)
+    u = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
+    learned, folded, shifted = fold_affine_ends(st.learned, pre, shift)
+    feats = u if folded else gb.op("MatMul", u, gb.f(pre))
+    feeds = {"features": feats if same else gb.op("Cast", feats, to=to)}
     if rg.state_shape:
         feeds["h_in"] = wiring.state_in(rg, to)
     outs = inline(gb, learned, f"res{r}/", feeds)
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
-    return gb.cast(outs["residual"]), shifted
+    return (outs["residual"] if same else gb.cast(outs["residual"])), shifted
 
 
 def fold_affine_ends(model, pre: np.ndarray | None = None, shift: np.ndarray | None = None):

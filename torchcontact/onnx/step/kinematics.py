@@ -61,7 +61,7 @@ def _joint_pose(ctx: StepContext, i: int, a: list) -> sp.Pose:
     return b.C, b.p
 
 
-def poses(ctx: StepContext, e: str, idx: dict, zero: int) -> str:
+def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None) -> str:
     """``T_root_i`` of every body: ``(nb, 13)`` rows ``[R (row-major), p, 1]``.
 
     Args:
@@ -69,10 +69,11 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int) -> str:
         e: the affine entries.
         idx: their indices (:func:`~torchcontact.onnx.step.inputs.plan`).
         zero: the index of a constant 0 entry (``cos 0 = 1``).
+        ce: ``Cos(e)`` when computed already (None: computed here).
     """
     gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
     has_pri = any(b.kind == "prismatic" for b in tree.bodies)
-    ce = gb.op("Cos", e)
+    ce = gb.op("Cos", e) if ce is None else ce
     E = int(idx["n_entries"])
     src = gb.op("Concat", ce, e, axis=0) if has_pri else ce
     index = np.array([[idx["cos"][i], idx["sin"][i], E + idx["disp"][i], zero] for i in range(nb)])
