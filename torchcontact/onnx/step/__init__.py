@@ -156,16 +156,20 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
     VA = kinematics.motion(ctx, TP, e, idx, base)
-    f0, VAb = kinematics.body_wrenches(ctx, TP, VA)
-    W0 = kinematics.readings_root(ctx, TP, e, idx)
-    ws_corr, onl = None, None
+    # the native stacks' inertial changes: more columns of the body wrenches' two stages
+    deltas = [st.delta for _rg, st in native.values() if st.delta]
+    f0, VAb, F = kinematics.body_wrenches(ctx, TP, VA, deltas)
+    ws_corr, onl, cres = None, None, []
     if ctx.online:  # offsets and inertial changes as inputs: the model's reading, Y theta
         onl = online_stage.model_terms(ctx, e, idx, TP, VAb, f0)
-        W0, ws_corr = gb.op("Sub", W0, onl.delta_root), onl.ws_corr
-    if native:
-        W0, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, W0)
+        ws_corr = onl.ws_corr
+    if native:  # the corrections come off the readings before these move to the root frame
+        cres, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, F)
         if ws_n is not None:
             ws_corr = ws_n if ws_corr is None else gb.op("Add", ws_corr, ws_n)
+    W0 = kinematics.readings_root(ctx, TP, e, idx, cres)
+    if onl is not None:
+        W0 = gb.op("Sub", W0, onl.delta_root)
     ft_model, more = None, []
     if onl is not None:  # ft_model: every correction but the offset (learned, chained)
         ft_model = onl.ft_model

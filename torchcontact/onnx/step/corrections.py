@@ -25,12 +25,10 @@ from torchcontact.onnx.step.context import StepContext
 from torchcontact.onnx.step.forms import (
     TP_ONE,
     force_to_child,
-    force_to_parent,
     signed,
     split,
     tp,
 )
-from torchcontact.onnx.step.kinematics import bodies_to_root
 
 __all__ = [
     "NativeStack",
@@ -226,15 +224,19 @@ def feature_entries(ctx: StepContext, wiring: Wiring, stacks: dict, ea) -> None:
         wiring.angle_entries[r] = ent
 
 
-def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[str, str | None]:
-    """The sensors' wrenches ``W0`` with the native stacks subtracted, and ``ws_corr``.
+def native_corrections(
+    ctx, wiring: Wiring, stacks, TP, VAb, f0, F: str | None = None
+) -> tuple[list[tuple[int, str]], str | None]:
+    """The native stacks' corrections ``c`` per region, and ``ws_corr``.
 
     A correction ``c`` (sensor frame and measure direction) is subtracted twice over: from the
     region's ``b`` (``sign c``, sensor frame: ``ws_corr``, ``(S, 6)``) and from the wrench the
-    reading transmits towards the root (``sign X_root_sensor c``: the returned ``W0``). Its
-    inertial layer ``Y delta`` is the subtree's Newton-Euler wrenches with the parameter change
-    ``delta`` as inertias, summed and moved to the sensor frame; the nominal-wrench feature is the
-    same with the nominal body wrenches ``f0``.
+    reading transmits towards the root (the returned ``(region, c)``, for
+    :func:`~torchcontact.onnx.step.kinematics.readings_root`). Its inertial layer ``Y delta`` is
+    the subtree's Newton-Euler wrenches with the parameter change ``delta`` as inertias (the
+    columns of ``F`` after the nominal ones, in the order of ``stacks`` that have one), summed
+    and moved to the sensor frame; the nominal-wrench feature is the same with the nominal body
+    wrenches ``f0``.
 
     Args:
         ctx: the graph.
@@ -242,26 +244,32 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         stacks: ``{r: (ResidualGraph, NativeStack)}``.
         TP: pose features.
         VAb: ``[v, a, 1]`` in each body frame.
-        f0: body wrenches, root frame.
-        W0: the readings' wrenches, root frame, ``(S, 6)``.
+        f0: body wrenches, root frame, ``(nb, 6)``.
+        F: ``[f0, f_delta...]`` (:func:`~torchcontact.onnx.step.kinematics.body_wrenches` with
+            the stacks' ``delta``), or None when no stack has one.
     """
     gb, nb, S = ctx.gb, ctx.nb, ctx.S
-    W, ws_corr = W0, None
+    cres, ws_corr = [], None
+    n_delta = sum(1 for _rg, st in stacks.values() if st.delta)
+    j = 0  # the next inertial change's block of F
     for r, (rg, st) in stacks.items():
         reg = ctx.em.regions[st.region]
         pick = gb.f(np.isin(np.arange(nb), st.subtree)[None, :].astype(float))
-        sums = []  # root-frame subtree sums to move to the sensor frame
-        if st.nominal:
-            sums.append(gb.op("MatMul", pick, f0))
-        if st.delta:
-            sums.append(gb.op("MatMul", pick, _delta_wrenches(ctx, TP, VAb, st.delta)))
+        blocks = ([0] if st.nominal else []) + ([1 + j] if st.delta else [])
+        j += bool(st.delta)
         in_sensor = []
-        if sums:
-            k = len(sums)
+        if blocks:
+            # root-frame subtree sums of the nominal and changed wrenches, one row each
+            if st.delta:
+                sums = gb.op("Reshape", gb.op("MatMul", pick, F), gb.i([1 + n_delta, 6]))
+                if blocks != list(range(1 + n_delta)):
+                    sums = gb.op("Gather", sums, gb.i(blocks), axis=0)
+            else:
+                sums = gb.op("MatMul", pick, f0)
+            k = len(blocks)
+
             # (the stages below are products of pose features and wrench entries only: the
             # operands need no 1 column)
-            stacked = sums[0] if k == 1 else gb.op("Concat", *sums, axis=0)
-
             def to_sensor(_i, t: list, w: list, reg=reg) -> list:
                 R, _, pR, _ = tp(t)
                 out = signed(
@@ -270,9 +278,9 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
                 return [*out[0], *out[1]]  # fmt: skip
 
             ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
-                          Operand(stacked, 6), k, to_sensor, 6, one=False,
+                          Operand(sums, 6), k, to_sensor, 6, one=False,
                           hint=f"ysum{r}")  # fmt: skip
-            in_sensor = [gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)]
+            in_sensor = [gb.op("Slice", ws, gb.i([i]), gb.i([i + 1]), gb.i([0])) for i in range(k)]
         # the offset goes into the learned layer's last bias when that computes in this dtype
         shift = st.offset if np.dtype(rg.dtype) == ctx.dtype else None
         if st.learned is not None:
@@ -290,31 +298,8 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         col[st.region, 0] = 1.0
         d = gb.op("MatMul", gb.f(col * reg.sign), c)
         ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
-
-        def to_root(_i, t: list, cs: list, reg=reg) -> list:
-            R, _, pR, _ = tp(t)
-            w = force_to_parent(R, pR, sp.force_to_parent(reg.T_child_sensor, signed(reg.sign, cs)))
-            return [*w[0], *w[1]]
-
-        w = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
-                     Operand(c, 6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
-        W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
-    return W, ws_corr
-
-
-def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
-    """``(nb, 6)`` root-frame wrenches of the bodies with inertias ``delta`` (0 elsewhere)."""
-
-    def apply(i: int, va: list, _b: list) -> list:
-        if i not in delta:
-            return [0.0] * 6
-        m, h, Io = delta[i]
-        v, a = split(va[0:6]), split(va[6:12])
-        f = sp.body_wrench_params(m, sp.const_vec(h), sp.const_mat(Io), v, a)
-        return [*f[0], *f[1]]
-
-    fd = bilinear(ctx.gb, Operand(VAb, 13, one=12), None, ctx.nb, apply, 6, hint="fdelta")
-    return bodies_to_root(ctx, TP, fd, "fdelta_root")
+        cres.append((st.region, c))
+    return cres, ws_corr
 
 
 def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack,

@@ -18,6 +18,8 @@ code; :mod:`torchcontact.estimation.stages` ``forward`` is the same function per
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from torchcontact import spatial as sp
@@ -27,6 +29,7 @@ from torchcontact.onnx.step.context import StepContext
 from torchcontact.onnx.step.forms import (
     T_ONE,
     TP_ONE,
+    const_force_map,
     flat,
     force_to_parent,
     motion_to_child,
@@ -179,12 +182,23 @@ def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None
     return gb.op("Gemm", gb.f(anc), cross, ancVA)
 
 
-def body_wrenches(ctx: StepContext, TP: str, VA: str) -> tuple[str, str]:
+def body_wrenches(ctx: StepContext, TP: str, VA: str,
+                  deltas: Sequence[dict] = ()) -> tuple[str, str, str | None]:  # fmt: skip
     """Body wrenches ``I_i a_i + v_i x* I_i v_i`` and the motion in each body frame.
 
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        VA: ``[v, a, 1]`` root frame (:func:`motion`).
+        deltas: inertial changes (per correction stack, pruned body index -> ``(m, h,
+            I_origin)``, internal frame): their Newton-Euler wrenches are computed in the same
+            two stages, as more columns (the same monomials of the motion).
+
     Returns:
-        ``(f0, VAb)``: the wrenches in the root frame ``(nb, 6)``, and ``[v, a, 1]`` in each
-        body frame ``(nb, 13)`` (what the inertial corrections apply their inertias to).
+        ``(f0, VAb, F)``: the wrenches in the root frame ``(nb, 6)``, ``[v, a, 1]`` in each
+        body frame ``(nb, 13)`` (what the inertial corrections apply their inertias to), and
+        with ``deltas`` ``F = [f0, f_delta_1, ...]`` ``(nb, 6 (1 + len(deltas)))`` (root frame;
+        0 on bodies a change does not touch), else None.
     """
     gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
 
@@ -202,22 +216,48 @@ def body_wrenches(ctx: StepContext, TP: str, VA: str) -> tuple[str, str]:
         v, a = split(va[0:6]), split(va[6:12])
         Ia = sp.inertia_apply(b.mass, b.com, b.inertia, a)
         vxIv = sp.motion_cross_force(v, sp.inertia_apply(b.mass, b.com, b.inertia, v))
-        return [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+        out = [*sp.v_add(Ia[0], vxIv[0]), *sp.v_add(Ia[1], vxIv[1])]
+        for delta in deltas:  # the inertial changes' wrenches (sp.body_wrench_params)
+            if i not in delta:
+                out += [0.0] * 6
+                continue
+            m, h, Io = delta[i]
+            f = sp.body_wrench_params(m, sp.const_vec(h), sp.const_mat(Io), v, a)
+            out += [*f[0], *f[1]]
+        return out
 
-    fb = bilinear(gb, Operand(VAb, 13, one=12), None, nb, newton_euler, 6, hint="fb")
-    return bodies_to_root(ctx, TP, fb, "f0"), VAb
+    n = 6 * (1 + len(deltas))
+    fb = bilinear(gb, Operand(VAb, 13, one=12), None, nb, newton_euler, n, hint="fb")
+    F = bodies_to_root(ctx, TP, fb, "f0", 1 + len(deltas))
+    if not deltas:
+        return F, VAb, None
+    return gb.op("Slice", F, gb.i([0]), gb.i([6]), gb.i([1])), VAb, F
 
 
-def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str) -> str:
-    """Per-body wrenches in their body frames ``(nb, 7)`` (a 1 column last), in the root frame."""
+def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) -> str:
+    """Per-body wrenches in their body frames, in the root frame.
+
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        fb: ``(nb, 6 m + 1)``: ``m`` wrenches per body, body frame, a 1 column last.
+        hint: the value names' hint.
+        m: wrenches per body.
+
+    Returns:
+        ``(nb, 6 m)`` root frame.
+    """
 
     def to_root(_i: int, t: list, f: list) -> list:
         R, _, pR, _ = tp(t)
-        w = force_to_parent(R, pR, split(f[0:6]))
-        return [*w[0], *w[1]]
+        out = []
+        for j in range(m):
+            w = force_to_parent(R, pR, split(f[6 * j : 6 * j + 6]))
+            out += [*w[0], *w[1]]
+        return out
 
-    return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), Operand(fb, 7, one=6), ctx.nb, to_root,
-                    6, one=False, hint=hint)  # fmt: skip
+    return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), Operand(fb, 6 * m + 1, one=6 * m),
+                    ctx.nb, to_root, 6 * m, one=False, hint=hint)  # fmt: skip
 
 
 def wrench_to_root(ctx: StepContext, child: int, t: list | None, w: sp.Force) -> sp.Force:
@@ -229,14 +269,41 @@ def wrench_to_root(ctx: StepContext, child: int, t: list | None, w: sp.Force) ->
     return force_to_parent(R, pR, w)
 
 
-def readings_root(ctx: StepContext, TP: str, e: str, idx: dict) -> str:
-    """Each sensor's wrench on its region, root frame about the root origin, ``(S, 6)``."""
-    childs = [reg.child for reg in ctx.em.regions]
+def readings_root(ctx: StepContext, TP: str, e: str, idx: dict,
+                  corrections: Sequence[tuple[int, str]] = ()) -> str:  # fmt: skip
+    """Each sensor's wrench on its region, root frame about the root origin, ``(S, 6)``.
+
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        e: the affine entries.
+        idx: their indices.
+        corrections: ``(region, c)`` with ``c`` ``(1, 6)`` a correction to subtract from that
+            sensor's reading (sensor frame, measure direction: :mod:`.corrections`); it is taken
+            from the reading in the child body's frame, before the one move to the root frame.
+    """
+    gb, S = ctx.gb, ctx.S
+    regs = ctx.em.regions
+    childs = [reg.child for reg in regs]
 
     def to_root(r: int, t: list, w: list) -> list:
         out = wrench_to_root(ctx, childs[r], t, split(w[0:6]))
         return [*out[0], *out[1]]
 
-    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs),
-                    Operand(e, 7, "vec", one=6, index=np.array(idx["W_c"])), ctx.S, to_root, 6,
-                    one=False, hint="w0")  # fmt: skip
+    pose = Operand(TP, 25, "nd", one=TP_ONE, row_of=childs)
+    if not corrections:
+        return bilinear(gb, pose, Operand(e, 7, "vec", one=6, index=np.array(idx["W_c"])), S,
+                        to_root, 6, one=False, hint="w0")  # fmt: skip
+    W = gb.op("Gather", e, gb.i(np.array(idx["W_c"])), axis=0)  # (S, 7) child frame, 1 last
+    for r, c in corrections:
+        # sign Ad(T_child_sensor) c, as the row c A (the reading's own map, inputs.plan)
+        Ad = const_force_map(lambda f, T=regs[r].T_child_sensor: sp.force_to_parent(T, f))
+        A = np.zeros((6, 7))
+        A[:, :6] = regs[r].sign * Ad.T
+        if S == 1:
+            W = gb.op("Gemm", c, gb.f(A), W, alpha=-1.0)
+        else:
+            col = np.zeros((S, 1))
+            col[r, 0] = 1.0
+            W = gb.op("Gemm", gb.f(col), gb.op("MatMul", c, gb.f(A)), W, alpha=-1.0)
+    return bilinear(gb, pose, Operand(W, 7, one=6), S, to_root, 6, one=False, hint="w0")
