@@ -165,11 +165,8 @@ def _det_road(ctx: StepContext, R: int) -> bool:
 
 
 def _minor_index(R: int) -> np.ndarray:
-    """``GatherND`` indices of every ``(R-1)``-minor, ``(R * R, R - 1, R - 1, 2)``.
-
-    Entry ``i R + j`` is the minor of ``A`` without row ``j`` and column ``i`` (the ``(i, j)``
-    entry of the adjugate, unsigned).
-    """
+    """``GatherND`` indices ``(R * R, R - 1, R - 1, 2)``: entry ``i R + j`` is the minor of
+    ``A`` without row ``j`` and column ``i`` (the ``(i, j)`` entry of the adjugate, unsigned)."""
     idx = np.zeros((R * R, R - 1, R - 1, 2), dtype=np.int64)
     for i in range(R):
         for j in range(R):
