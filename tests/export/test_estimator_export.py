@@ -223,14 +223,10 @@ def test_graphs_load_and_use_no_linear_algebra(exports, dtype):
                     out |= ops(a.g)
         return out
 
-    # the float32 step graph's full-rank road inverts G as adjugate over determinant
-    # (onnx.step.solve._adjugate): Det and GatherND, which onnxruntime runs in float32 only
-    inverse = {"Det", "GatherND"}
     for p in (path, step):
         m = onnx.load(str(p))
         onnx.checker.check_model(m)
-        ok = allowed | (inverse if p == step and dtype == np.float32 else set())
-        assert ops(m.graph) <= ok, ops(m.graph) - ok
+        assert ops(m.graph) <= allowed, ops(m.graph) - allowed
         ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
 
 

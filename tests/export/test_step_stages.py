@@ -287,57 +287,6 @@ def test_solve_full_rank_sweep_and_pivoted_branches():
             _close(Gv @ yv[:, 0], Gv @ np.array(y_ref), f"case {i}: G y", scale * _cond(Gv, y_ref))
 
 
-def test_solve_float32_adjugate_road_equals_the_sweep():
-    """A float32 graph's full-rank road (``solve._adjugate``: ``G^-1`` as adjugate over
-    determinant) against the sweep on the same float32 ``G`` and against ``solve_program``.
-
-    The same cases as above: the two roads' full-rank tests agree, and where they pass ``y``
-    equals ``G^-1 b`` to float32 rounding (``1e-5`` of the largest entries times the
-    conditioning: the sweep's own float32 error is of that order).
-    """
-    from torchcontact.onnx.step import solve
-
-    lay = LAYOUTS["icub"]
-    full_em = tc.ContactEstimator(robot_model(lay["robot"]), lay["sensors"]).layout(
-        lay["links"], lay["kinds"]
-    )
-    ctx = step.context(full_em, Flags(), np.float32)
-    gb, R = ctx.gb, 6
-    assert solve._det_road(ctx, R)
-    G, b = gb.input("G", [R, R]), gb.input("b", [R, 1])
-    d0 = gb.op("GatherElements", G, gb.i(np.arange(R)[:, None]), axis=1)
-    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
-    outs = []
-    for road in (solve._adjugate, solve._sweep):
-        full, solve_full = road(ctx, G, b, R, d0, tol)
-        outs += [full, solve_full()]
-    for k, out in enumerate(outs):
-        gb.output(out, None, bool if k % 2 == 0 else None)
-    ops = {n.op_type for n in gb.nodes}
-    assert {"Det", "GatherND"} <= ops
-    sess = ort.InferenceSession(gb.model().SerializeToString(), providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(3)
-    A = rng.normal(size=(R, 15))
-    scaled = np.diag([1e2, 1e2, 1e2, 1e-1, 1e-1, 1e-1])
-    tiny = A.copy()
-    tiny[5] = tiny[0] + 1e-9 * tiny[5]  # below the rank rule in any precision
-    cases = [(A @ A.T, True), (scaled @ A @ A.T @ scaled, True), (np.zeros((R, R)), False),
-             (tiny @ tiny.T, False)]  # fmt: skip
-    for i, (Gv, fast) in enumerate(cases):
-        bv = rng.normal(size=(R, 1))
-        f_adj, y_adj, f_sw, y_sw = sess.run(
-            None, {"G": Gv.astype(np.float32), "b": bv.astype(np.float32)}
-        )
-        assert bool(f_adj.item()) == bool(f_sw.item()) == fast, f"case {i}"
-        if not fast:
-            continue
-        y_ref = np.linalg.solve(Gv, bv)[:, 0]
-        scale = float(np.abs(Gv).max()) * float(np.abs(y_ref).max()) * _cond(Gv, y_ref)
-        for name, y in (("adjugate", y_adj), ("sweep", y_sw)):
-            err = float(np.abs(Gv @ y[:, 0].astype(float) - Gv @ y_ref).max())
-            assert err <= 1e-5 * scale, f"case {i}, {name}: {err:.3g} > {1e-5 * scale:.3g}"
-
-
 def test_learned_layer_folding():
     """``fold_affine_ends``: the feature map, normalisation and output scaling folded into the
     MLP's first and last ``Gemm`` (4 nodes fewer in the network, and the feature map's ``MatMul``

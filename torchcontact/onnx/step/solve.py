@@ -145,7 +145,7 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
         return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
 
     def sweep() -> list[str]:
-        full, solve_full = (_adjugate if _det_road(ctx, R) else _sweep)(ctx, G, rhs, R, d0, tol)
+        full, solve_full = _sweep(ctx, G, rhs, R, d0, tol)
         fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
         return gb.op("If", full, n_out=2, then_branch=fast,
                      else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
@@ -153,60 +153,6 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     y, rank = gb.op("If", possible, n_out=2, then_branch=gb.branch(sweep, "sweep"),
                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
     return y, rank
-
-
-def _det_road(ctx: StepContext, R: int) -> bool:
-    """Whether the full-rank road is the adjugate (:func:`_adjugate`) rather than the sweep.
-
-    onnxruntime's ``Det`` runs in float32 only (1.32: no float64 kernel), so a float64 graph,
-    and the float64 elimination of a whitened float32 graph, keep the sweep.
-    """
-    return ctx.dtype == np.dtype(np.float32) and R >= 2
-
-
-def _minor_index(R: int) -> np.ndarray:
-    """``GatherND`` indices ``(R * R, R - 1, R - 1, 2)``: entry ``i R + j`` is the minor of
-    ``A`` without row ``j`` and column ``i`` (the ``(i, j)`` entry of the adjugate, unsigned)."""
-    idx = np.zeros((R * R, R - 1, R - 1, 2), dtype=np.int64)
-    for i in range(R):
-        for j in range(R):
-            rws = [r for r in range(R) if r != j]
-            cls = [c for c in range(R) if c != i]
-            idx[i * R + j, :, :, 0] = np.array(rws)[:, None]
-            idx[i * R + j, :, :, 1] = np.array(cls)[None, :]
-    return idx
-
-
-def _adjugate(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str):
-    """The full-rank road of a float32 graph: ``G^-1`` as adjugate over determinant.
-
-    The same test and result as :func:`_sweep` (``(full, solve)``), in about 15 nodes instead
-    of 5 per pivot: on the Jacobi-scaled ``A = D G D`` with its rows and columns signed,
-    ``A~ = S A S`` (``S = diag((-1)^i)``), every unsigned ``(R-1)``-minor of ``A~`` is a signed
-    cofactor of ``A``, so one ``GatherND`` and one batched ``Det`` give ``adj(A)``, and
-    ``A^-1 = adj(A) / det(A)`` (``det A~ = det A``). ``Det`` factors each minor with partial
-    pivoting (onnxruntime: Eigen's LU).
-    """
-    gb = ctx.gb
-    s = np.array([[(-1.0) ** i] for i in range(R)])
-    sc = gb.op("Sqrt", d0)  # D^-1
-    scs = gb.op("Mul", sc, gb.f(s))
-    At = gb.op("Div", G, gb.op("Gemm", scs, scs, transB=1))  # S D G D S: unit diagonal
-    adj = gb.op("Det", gb.op("GatherND", At, gb.i(_minor_index(R))))  # (R * R,) adj(A)
-    det = gb.op("Det", At)  # () det(A)
-    # the sweep's test: 1 / (G^-1)_ii = d0_i det(A) / adj(A)_ii > tol for every i. ReduceMin
-    # then one comparison: a NaN ratio comes from a NaN det (every ratio NaN: fails) or from
-    # 0 / 0 with det = 0 (the others 0 or NaN: fails), so no NaN is dropped to pass
-    cd = gb.op("Gather", adj, gb.i((np.arange(R) * (R + 1))[:, None]), axis=0)  # (R, 1)
-    ratio = gb.op("Div", gb.op("Mul", d0, det), cd)
-    full = gb.op("Greater", gb.op("ReduceMin", ratio, keepdims=1), tol)  # (1, 1)
-
-    def solve() -> str:  # y = D A^-1 D rhs = D adj(A) D rhs / det(A)
-        u = gb.op("Div", rhs, sc)
-        Ai = gb.op("Reshape", adj, gb.i([R, R]))
-        return gb.op("Div", gb.op("MatMul", Ai, u), gb.op("Mul", sc, det))
-
-    return full, solve
 
 
 def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str):
