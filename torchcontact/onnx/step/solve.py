@@ -22,8 +22,11 @@ giving ``G^-1``. Every pivot the pivoted rule can meet, in any order, is a Schur
 diagonal entry, at least ``1 / (G^-1)_ii``; so when ``1 / (G^-1)_ii > rtol max diag G`` for
 every ``i`` the pivoted elimination would accept all ``R`` pivots and its result is
 ``y = G^-1 rhs``, which is returned. Otherwise (or when the frame cannot have full rank) the
-pivoted elimination runs, in the other branch of an ``If``. A layout that never has full rank
-(two point forces on one sensor) builds the pivoted elimination alone.
+pivoted elimination runs, in the other branch of an ``If``. The sweep itself runs on every
+frame in the main graph (a frame that cannot have full rank discards it): one ``If`` per
+region, not two nested ones (each ``If`` costs onnxruntime a subgraph call, about as much as
+ten plain nodes). A layout that never has full rank (two point forces on one sensor) builds the
+pivoted elimination alone.
 """
 
 from __future__ import annotations
@@ -124,9 +127,10 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
            w6: np.ndarray | None = None, possible: str | None = None):  # fmt: skip
     """:func:`solve_region` on (whitened) ``G``, ``b``; ``w6``: the unit right sides' whitening.
 
-    With ``possible`` (:func:`full_rank_possible`), a frame that may have full rank tries an
-    unpivoted sweep first: when it proves every pivot of any order accepted, ``y = G^-1 rhs``
-    from it (:func:`_sweep`); any other frame runs the pivoted elimination (:func:`_pivoted`).
+    With ``possible`` (:func:`full_rank_possible`), the unpivoted sweep runs first: on a frame
+    that may have full rank and where it proves every pivot of any order accepted,
+    ``y = G^-1 rhs`` from it (:func:`_sweep`); any other frame runs the pivoted elimination
+    (:func:`_pivoted`), in the other branch of the one ``If``.
     """
     gb = ctx.gb
     rhs = b
@@ -144,13 +148,12 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     def pivoted() -> list[str]:
         return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
 
-    def sweep() -> list[str]:
-        full, solve_full = _sweep(ctx, G, rhs, R, d0, tol)
-        fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
-        return gb.op("If", full, n_out=2, then_branch=fast,
-                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
-
-    y, rank = gb.op("If", possible, n_out=2, then_branch=gb.branch(sweep, "sweep"),
+    # the sweep runs on every frame, in the main graph (on a frame that cannot have full rank
+    # its values are discarded): one If instead of two nested ones, each of which costs
+    # onnxruntime a subgraph call per frame
+    full, solve_full = _sweep(ctx, G, rhs, R, d0, tol)
+    fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
+    y, rank = gb.op("If", gb.op("And", possible, full), n_out=2, then_branch=fast,
                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
     return y, rank
 
