@@ -257,46 +257,49 @@ def native_corrections(
         pick = gb.f(np.isin(np.arange(nb), st.subtree)[None, :].astype(float))
         blocks = ([0] if st.nominal else []) + ([1 + j] if st.delta else [])
         j += bool(st.delta)
-        in_sensor = []
+        ws, k = None, len(blocks)
         if blocks:
-            # root-frame subtree sums of the nominal and changed wrenches, one row each
+            # root-frame subtree sums of the nominal and changed wrenches, one row
             if st.delta:
-                sums = gb.op("Reshape", gb.op("MatMul", pick, F), gb.i([1 + n_delta, 6]))
-                if blocks != list(range(1 + n_delta)):
-                    sums = gb.op("Gather", sums, gb.i(blocks), axis=0)
+                sums, width = gb.op("MatMul", pick, F), 6 * (1 + n_delta)
             else:
-                sums = gb.op("MatMul", pick, f0)
-            k = len(blocks)
+                sums, width = gb.op("MatMul", pick, f0), 6
 
-            # (the stages below are products of pose features and wrench entries only: the
-            # operands need no 1 column)
-            def to_sensor(_i, t: list, w: list, reg=reg) -> list:
+            # in the sensor frame, [nominal, changed] as one row (the stages below are products
+            # of pose features and wrench entries only: the operands need no 1 column)
+            def to_sensor(_i, t: list, w: list, reg=reg, blocks=blocks) -> list:
                 R, _, pR, _ = tp(t)
-                out = signed(
-                    reg.sign, sp.force_to_child(reg.T_child_sensor, force_to_child(R, pR, split(w)))
-                )
-                return [*out[0], *out[1]]  # fmt: skip
+                out = []
+                for bl in blocks:
+                    f = force_to_child(R, pR, split(w[6 * bl : 6 * bl + 6]))
+                    f = signed(reg.sign, sp.force_to_child(reg.T_child_sensor, f))
+                    out += [*f[0], *f[1]]
+                return out
 
-            ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
-                          Operand(sums, 6), k, to_sensor, 6, one=False,
+            ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
+                          Operand(sums, width), 1, to_sensor, 6 * k, one=False,
                           hint=f"ysum{r}")  # fmt: skip
-            in_sensor = [gb.op("Slice", ws, gb.i([i]), gb.i([i + 1]), gb.i([0])) for i in range(k)]
         # the offset goes into the learned layer's last bias when that computes in this dtype
         shift = st.offset if np.dtype(rg.dtype) == ctx.dtype else None
-        if st.learned is not None:
-            out, shifted = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st,
-                                    shift)  # fmt: skip
-        offset = None if st.learned is not None and shifted else st.offset
-        c = gb.f(offset[None, :]) if offset is not None else None
-        if st.delta:
-            c = in_sensor[-1] if c is None else gb.op("Add", c, in_sensor[-1])
-        if st.learned is not None:
-            c = out if c is None else gb.op("Add", c, out)
+        c, shifted = None, False
+        if st.learned is not None:  # its nominal-wrench feature: the first 6 columns of ws
+            c, shifted = _learned(ctx, wiring, (ws, 6 * k) if st.nominal else None, r, rg, st,
+                                  shift)  # fmt: skip
+        if st.offset is not None and not shifted:
+            off = gb.f(st.offset[None, :])
+            c = off if c is None else gb.op("Add", c, off)
+        if st.delta:  # plus the inertial layer, the last 6 columns of ws
+            last = np.zeros((6 * k, 6))
+            last[6 * (k - 1) :, :] = np.eye(6)
+            c = gb.op("MatMul", ws, gb.f(last)) if c is None else gb.op("Gemm", ws, gb.f(last), c)
         if c is None:
             continue
-        col = np.zeros((S, 1))
-        col[st.region, 0] = 1.0
-        d = gb.op("MatMul", gb.f(col * reg.sign), c)
+        if S == 1 and reg.sign == 1.0:
+            d = c
+        else:
+            col = np.zeros((S, 1))
+            col[st.region, 0] = 1.0
+            d = gb.op("MatMul", gb.f(col * reg.sign), c)
         ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
         cres.append((st.region, c))
     return cres, ws_corr
@@ -312,8 +315,9 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the column
     selection did before (a non-finite entry of ``x`` reaches the output, and the status).
 
-    Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)`` to add) is in it
-    (folded into its last bias).
+    ``nominal``: ``(value, width)``, a row whose first 6 columns are the nominal wrench in the
+    sensor frame, or None. Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)``
+    to add) is in it (folded into its last bias).
     """
     gb = ctx.gb
     to = onnx_type(rg.dtype)
@@ -322,9 +326,10 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     rest = st.columns[na:]
     E, F = wiring.n_entries, ctx.lay.size
     parts, rows, offsets = [], 0, {}
+    nom, n_nom = nominal if nominal is not None else (None, 0)
     for name, value, width, used in (("cos", wiring.cos_e, E, na > 0),
                                      ("x", wiring.x, F, bool(rest)),
-                                     ("nominal", nominal, 6, bool(st.nominal))):  # fmt: skip
+                                     ("nominal", nom, n_nom, bool(st.nominal))):  # fmt: skip
         if used:
             parts.append(value)
             offsets[name] = rows
@@ -337,7 +342,7 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     for j, (kind, key) in enumerate(rest):
         S[offsets["x"] + wiring.position(kind, key), 2 * na + j] = 1.0
     if st.nominal:
-        S[offsets["nominal"] : rows, V - 6 :] = np.eye(6)
+        S[offsets["nominal"] : offsets["nominal"] + 6, V - 6 :] = np.eye(6)
     pre = S if st.perm is None else S @ np.asarray(st.perm, np.float64)
     u = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
     learned, folded, shifted = fold_affine_ends(st.learned, pre, shift)
