@@ -27,13 +27,11 @@ from torchcontact._scalar import mul
 from torchcontact.onnx.builder import Operand, bilinear
 from torchcontact.onnx.step.context import StepContext
 from torchcontact.onnx.step.forms import (
-    T_ONE,
     TP_ONE,
     const_force_map,
     flat,
     force_to_parent,
     motion_to_child,
-    rows,
     skew,
     split,
     tp,
@@ -65,7 +63,13 @@ def _joint_pose(ctx: StepContext, i: int, a: list) -> sp.Pose:
 
 
 def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None) -> str:
-    """``T_root_i`` of every body: ``(nb, 13)`` rows ``[R (row-major), p, 1]``.
+    """``T_root_i`` of every body as homogeneous matrices, ``(nb, 16)`` rows (4 x 4 row-major).
+
+    Each joint transform ``T_parent_i`` is affine in ``(cos, sin, displacement)`` of its joint:
+    one ``Gather`` of those and one batched ``MatMul`` by per-body constant maps give all of
+    them, ``(nb, 4, 4)``. The poses are prefix products along the tree by pointer doubling,
+    ``T_i <- T_{a(i)} T_i`` with ``a(i)`` the ``2^k``-th ancestor (the root is its own parent,
+    the identity): each step one ``Gather`` of the ancestors' rows and one batched ``MatMul``.
 
     Args:
         ctx: the graph.
@@ -79,44 +83,48 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
     ce = gb.op("Cos", e) if ce is None else ce
     E = int(idx["n_entries"])
     src = gb.op("Concat", ce, e, axis=0) if has_pri else ce
-    index = np.array([[idx["cos"][i], idx["sin"][i], E + idx["disp"][i], zero] for i in range(nb)])
-    # the first doubling step directly from the angles: T_parent(i) T_i, bilinear in the
-    # (cos, sin) of the body and of its parent (the root's transform is the identity)
+    # (without prismatic joints the displacement column is any finite entry: its map is 0)
+    disp = [E + idx["disp"][i] if has_pri else zero for i in range(nb)]
+    index = np.array([[idx["cos"][i], idx["sin"][i], disp[i], zero] for i in range(nb)])
+    # the joint transforms: [cos, sin, d, 1] (1, 4) times a (4, 16) map per body
+    Cx = np.zeros((nb, 4, 16))
+    for i in range(nb):
+        base = _homogeneous(_joint_pose(ctx, i, [0.0, 0.0, 0.0]))
+        Cx[i, 3] = base
+        for j in range(3):
+            Cx[i, j] = _homogeneous(_joint_pose(ctx, i, [float(j == k) for k in range(3)])) - base
+    g = gb.op("Gather", src, gb.i(index[:, None, :]), axis=0)  # (nb, 1, 4)
+    X = gb.op("Reshape", gb.op("MatMul", g, gb.f(Cx)), gb.i([nb, 4, 4]))
+    # pointer doubling: T_parent(i) T_i first, then 2^k-th ancestors
     par = [max(b.parent, 0) for b in tree.bodies]
-
-    def two(i: int, a: list, b: list) -> list:
-        R, p = sp.pose_compose(_joint_pose(ctx, par[i] if i else 0, a), _joint_pose(ctx, i, b))
-        return [*flat(R), *p]
-
-    T = bilinear(gb, Operand(src, 4, "vec", one=3, index=index[par]),
-                 Operand(src, 4, "vec", one=3, index=index), nb, two, 12, hint="pose")  # fmt: skip
-    # further doubling: T_i <- T_{a(i)} T_i with a(i) the 2^k-th ancestor (or the root)
-    depth = ctx.depths()
+    T = gb.op("MatMul", gb.op("Gather", X, gb.i(par), axis=0), X)
+    depth = max(ctx.depths())
     anc = [par[par[i]] for i in range(nb)]
     hop = 2
-    while hop < max(depth):
-
-        def compose(_i: int, ta: list, tb: list) -> list:
-            R, p = sp.pose_compose(
-                (rows(ta[0:9]), tuple(ta[9:12])), (rows(tb[0:9]), tuple(tb[9:12]))
-            )
-            return [*flat(R), *p]
-
-        T = bilinear(gb, Operand(T, 13, "nd", one=T_ONE, row_of=list(anc)),
-                     Operand(T, 13, one=T_ONE), nb, compose, 12, hint="pose")  # fmt: skip
+    while hop < depth:
+        T = gb.op("MatMul", gb.op("Gather", T, gb.i(anc), axis=0), T)
         anc = [anc[anc[i]] for i in range(nb)]
         hop *= 2
-    return T
+    return gb.op("Reshape", T, gb.i([nb, 16]))
+
+
+def _homogeneous(pose: sp.Pose) -> np.ndarray:
+    """The 16 row-major entries of a pose's 4 x 4 homogeneous matrix (float constants)."""
+    R, p = pose
+    H = np.eye(4)
+    H[:3, :3] = np.array([[float(v) for v in row] for row in R])
+    H[:3, 3] = [float(v) for v in p]
+    return H.reshape(16)
 
 
 def pose_features(ctx: StepContext, T: str) -> str:
-    """``[R, p, pR, -R^T p, 1]`` of every pose row, ``(nb, 25)``."""
+    """``[R, p, pR, -R^T p, 1]`` of every pose (:func:`poses`), ``(nb, 25)``."""
 
     def features(_i: int, t: list, _b: list) -> list:
-        R, p = rows(t[0:9]), tuple(t[9:12])
+        R, p = (tuple(t[0:3]), tuple(t[4:7]), tuple(t[8:11])), (t[3], t[7], t[11])
         return [*flat(R), *p, *flat(sp.m_mul(skew(p), R)), *sp.v_neg(sp.mT_vec(R, p))]
 
-    return bilinear(ctx.gb, Operand(T, 13, one=T_ONE), None, ctx.nb, features, 24, hint="tp")
+    return bilinear(ctx.gb, Operand(T, 16, one=15), None, ctx.nb, features, 24, hint="tp")
 
 
 def subspace(ctx: StepContext, i: int, t: list) -> tuple:
