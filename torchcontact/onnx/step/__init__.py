@@ -155,7 +155,8 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     T = kinematics.poses(ctx, e, idx, ea.zero, ce)
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
-    VA = kinematics.motion(ctx, TP, e, idx, base)
+    S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame
+    VA = kinematics.motion(ctx, TP, e, idx, base, S0)
     # the native stacks' inertial changes: more columns of the body wrenches' two stages
     deltas = [st.delta for _rg, st in native.values() if st.delta]
     f0, VAb, F = kinematics.body_wrenches(ctx, TP, VA, deltas)
@@ -187,7 +188,6 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = ()) -> dict:
     # ---- 3. regions: transmitted wrenches, slot geometry, known contacts, b, Gram matrices
     Fb = regions.transmitted(ctx, f0, W0)
     Cg = regions.slot_geometry(ctx, TP, e, idx)
-    S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame
     s_rows, pairs = (regions.torque_row_coefs(ctx, TP, S0, e, idx) if ctx.flags.torque_rows
                      else (None, []))  # fmt: skip
     DB = gb.f(ctx.cut @ ctx.slot_bodies)

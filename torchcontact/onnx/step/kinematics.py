@@ -147,7 +147,8 @@ def subspaces(ctx: StepContext, TP: str) -> str:
                     hint="s0")  # fmt: skip
 
 
-def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None) -> str:
+def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None,
+           S0: str | None = None) -> str:  # fmt: skip
     """``[v, a, 1]`` of every body, ``(nb, 13)``, root frame about the root origin.
 
     Args:
@@ -156,17 +157,28 @@ def motion(ctx: StepContext, TP: str, e: str, idx: dict, base: np.ndarray | None
         e: the affine entries.
         idx: their indices.
         base: ``(1, 13)`` constant ``[v0, a0, 1]`` of a fixed base, or None (``idx["base"]``).
+        S0: the motion subspaces (:func:`subspaces`) when computed already: the joint rates'
+            terms ``[S qd, S qdd]`` are then one product with the rates' entries.
     """
     gb, tree, nb = ctx.gb, ctx.em.tree, ctx.nb
-    index = np.array([[idx["qd"][i], idx["qdd"][i], idx["one"]] for i in range(nb)])
+    if S0 is not None:
+        # [S qd; S qdd; 0] (the root's and fixed bodies' rates are the entry 0)
+        idx13 = np.array([[idx["qd"][i]] * 6 + [idx["qdd"][i]] * 6 + [idx["zero"]]
+                          for i in range(nb)])  # fmt: skip
+        D = np.zeros((6, 13))
+        D[:, :6] = D[:, 6:12] = np.eye(6)
+        rates = gb.op("Gather", e, gb.i(idx13), axis=0)
+        VA = gb.op("Mul", gb.op("MatMul", S0, gb.f(D)), rates)
+    else:
+        index = np.array([[idx["qd"][i], idx["qdd"][i], idx["one"]] for i in range(nb)])
 
-    def joint_rates(i: int, t: list, rate: list) -> list:
-        # [S qd; S qdd] (fixed bodies and the root have rates 0)
-        Sv = subspace(ctx, i, t)
-        return [mul(s, rate[0]) for s in Sv] + [mul(s, rate[1]) for s in Sv] + [0.0]
+        def joint_rates(i: int, t: list, rate: list) -> list:
+            # [S qd; S qdd] (fixed bodies and the root have rates 0)
+            Sv = subspace(ctx, i, t)
+            return [mul(s, rate[0]) for s in Sv] + [mul(s, rate[1]) for s in Sv] + [0.0]
 
-    VA = bilinear(gb, Operand(TP, 25, one=TP_ONE), Operand(e, 3, "vec", one=2, index=index),
-                  nb, joint_rates, 13, one=False, hint="rates")  # fmt: skip
+        VA = bilinear(gb, Operand(TP, 25, one=TP_ONE), Operand(e, 3, "vec", one=2, index=index),
+                      nb, joint_rates, 13, one=False, hint="rates")  # fmt: skip
     anc = np.zeros((nb, nb))
     for i in range(nb):
         j = i
