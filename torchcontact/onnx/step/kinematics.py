@@ -6,14 +6,15 @@ and 5), the tree folded into constant matrices:
 * **poses**: each joint transform ``T_parent_i = C_i Rz(q_i)`` is linear in ``(cos q_i, sin
   q_i)``; poses in the root frame are prefix products along the tree, by pointer doubling
   (``T_i <- T_{a_k(i)} T_i`` with ``a_k`` the ``2^k``-th ancestor): ``log2`` of the depth
-  compositions of all bodies at once;
+  compositions of all bodies at once, each a batched product of 4 x 4 homogeneous matrices;
 * **motion**: with motion subspaces ``S_i`` in the root frame, ``v_i = v_0 + sum_{j<=i} S_j
   qd_j`` and ``a_i = a_0 + sum_{j<=i} (S_j qdd_j + v_j x S_j qd_j)``: two products with the
   constant ancestor matrix;
 * **body wrenches** ``I_i a_i + v_i x* I_i v_i`` in each body frame, moved to the root frame.
 
-Each stage is a :func:`~torchcontact.onnx.builder.bilinear` trace of :mod:`torchcontact.spatial`
-code; :mod:`torchcontact.estimation.stages` ``forward`` is the same function per body.
+Each stage but the poses is a :func:`~torchcontact.onnx.builder.bilinear` trace of
+:mod:`torchcontact.spatial` code (the poses' per-body maps are evaluated from it);
+:mod:`torchcontact.estimation.stages` ``forward`` is the same function per body.
 """
 
 from __future__ import annotations
