@@ -46,7 +46,7 @@ class Wiring:
     def __init__(self, ctx: StepContext, x: str) -> None:
         self.ctx, self.x = ctx, x
         self.states: list[tuple[str, tuple[int, ...], str]] = []
-        #: the cosines of the affine entries, ``(1, E)`` (:meth:`angles`), and per native stack
+        #: the cosines of the affine entries, ``(E,)`` (:meth:`angles`), and per native stack
         #: the ``(cos, sin)`` entries of its angle features (:func:`feature_entries`)
         self.cos_e: str | None = None
         self.n_entries = 0
@@ -58,9 +58,7 @@ class Wiring:
         The kinematics computes them (poses); the angle features are entries of them
         (:func:`feature_entries`), so no ``Sin``/``Cos`` of their own.
         """
-        if self.angle_entries:
-            self.cos_e = self.ctx.gb.op("Reshape", ce, self.ctx.gb.i([1, n_entries]))
-        self.n_entries = n_entries
+        self.cos_e, self.n_entries = ce, n_entries
 
     def position(self, kind: str, key: str) -> int:
         """The column of ``x`` of ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)``."""
@@ -310,10 +308,10 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
 
     The raw features ``v = [sin q, cos q, other columns, nominal]`` are ``u S`` with
-    ``u = [cos e, x, nominal]`` (one ``Concat``; the angles are entries of the poses' cosines,
-    :func:`feature_entries`) and a constant 0/1 ``S``; ``S`` and the feature order ``perm`` fold
-    into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the column
-    selection did before (a non-finite entry of ``x`` reaches the output, and the status).
+    ``u = [sin q, cos q, x, nominal]`` (one ``Concat``; the angles one ``Gather`` of the poses'
+    cosines, :func:`feature_entries`) and a constant 0/1 ``S``; ``S`` and the feature order
+    ``perm`` fold into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the
+    column selection did before (a non-finite entry of ``x`` reaches the output, and the status).
 
     ``nominal``: ``(value, width)``, a row whose first 6 columns are the nominal wrench in the
     sensor frame, or None. Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)``
@@ -324,10 +322,14 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     same = np.dtype(rg.dtype) == ctx.dtype
     na = st.n_angles if st.sincos else 0
     rest = st.columns[na:]
-    E, F = wiring.n_entries, ctx.lay.size
-    parts, rows, offsets = [], 0, {}
+    F = ctx.lay.size
     nom, n_nom = nominal if nominal is not None else (None, 0)
-    for name, value, width, used in (("cos", wiring.cos_e, E, na > 0),
+    # the angles' [sin, cos] as one row gathered from the entries' cosines
+    ents = wiring.angle_entries.get(r, [])
+    trig = [s_ for _c, s_ in ents] + [c for c, _s in ents]
+    angles = gb.op("Gather", wiring.cos_e, gb.i([trig]), axis=0) if na else None
+    parts, rows, offsets = [], 0, {}
+    for name, value, width, used in (("trig", angles, 2 * na, na > 0),
                                      ("x", wiring.x, F, bool(rest)),
                                      ("nominal", nom, n_nom, bool(st.nominal))):  # fmt: skip
         if used:
@@ -336,9 +338,8 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
             rows += width
     V = 2 * na + len(rest) + 6 * bool(st.nominal)
     S = np.zeros((rows, V))
-    for a, (c, s_) in enumerate(wiring.angle_entries.get(r, [])):
-        S[offsets["cos"] + s_, a] = 1.0  # sin q = cos(q - pi/2)
-        S[offsets["cos"] + c, na + a] = 1.0
+    if na:  # sin q = cos(q - pi/2), cos q
+        S[offsets["trig"] : offsets["trig"] + 2 * na, : 2 * na] = np.eye(2 * na)
     for j, (kind, key) in enumerate(rest):
         S[offsets["x"] + wiring.position(kind, key), 2 * na + j] = 1.0
     if st.nominal:
