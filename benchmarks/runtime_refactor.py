@@ -10,7 +10,9 @@ and the two versions interleaved in rounds (a noisy moment hurts both alike). Re
 p99 of ``step()`` and of the bare ``session.run`` per version, and the ratios new / old; the
 last configuration (a learned correction) is issue 23's ONNX-step goal (p99 <= 0.7x today's).
 Step nodes: those a full-rank frame runs (the main graph's and the ``If`` branches it takes, the
-solve's sweep; every slot is active here).
+solve's sweep; every slot is active here), as written and after onnxruntime's optimisation (what
+runs). Latency follows the second count, not exactly: an ``If`` costs about ten plain nodes,
+onnxruntime's ``Det`` and large ``Gather`` index sets more than one.
 The cost of the online options is the extra row: this tree's graph exported ``online``, bias
 tracked.
 
@@ -100,6 +102,19 @@ def step_nodes(path: Path) -> int:
     return count(onnx.load(str(path)).graph)
 
 
+def optimized_nodes(path: Path) -> int:
+    """:func:`step_nodes` of the graph onnxruntime runs: after its optimisation (the runtime's
+    level, ``ORT_ENABLE_ALL``: identities, casts to the same type and repeated subexpressions
+    removed, ``x * sigmoid(x)`` fused)."""
+    out = path.with_name(path.stem + ".opt.onnx")
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.optimized_model_filepath = str(out)
+    so.log_severity_level = 3
+    ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    return step_nodes(out)
+
+
 def _raw(rt):
     """The bare single-frame graph call of a runtime of either version."""
     backend = getattr(rt, "backend", None)
@@ -154,8 +169,9 @@ def main() -> None:
             a, b = rt_old.step(*legacy, **kw), rt_new.step(f)
             np.testing.assert_allclose(a["force"], b["force"], rtol=1e-4, atol=1e-4)
 
-            nodes = [step_nodes(p.with_name(p.name.replace(".onnx", ".step.onnx")))
+            steps = [p.with_name(p.name.replace(".onnx", ".step.onnx"))
                      for p in (d / f"old-{i}.onnx", path)]  # fmt: skip
+            nodes = [step_nodes(p) for p in steps] + [optimized_nodes(p) for p in steps]
             runs[name] = {
                 "old step": lambda rt=rt_old, a=legacy, kw=kw: rt.step(*a, **kw),
                 "new step": lambda rt=rt_new, f=f: rt.step(f),
@@ -194,17 +210,17 @@ def main() -> None:
                         fn()
                         times[name][k].append(time.perf_counter_ns() - t0)
     print(f"\nsingle-frame latency against {args.against}, {args.calls:,} calls each (µs)\n")
-    print("| graph | step nodes old / new | step() p50 old / new (ratio) | p99 old / new (ratio) |"
-          " session.run p50 old / new (ratio) |")  # fmt: skip
+    print("| graph | step nodes old / new (optimised) | step() p50 old / new (ratio) |"
+          " p99 old / new (ratio) | session.run p50 old / new (ratio) |")  # fmt: skip
     print("|---|---|---|---|---|")
     for name, t in times.items():
         p = {k: np.percentile(np.asarray(v) / 1e3, [50, 99]) for k, v in t.items()}
         so, sn, ro, rn = p["old step"], p["new step"], p["old run"], p["new run"]
-        n_old, n_new = runs[name]["nodes"]
+        n_old, n_new, o_old, o_new = runs[name]["nodes"]
         step = f"{so[0]:.0f} / {sn[0]:.0f} ({sn[0] / so[0]:.2f})"
         run = f"{ro[0]:.0f} / {rn[0]:.0f} ({rn[0] / ro[0]:.2f})"
         p99 = f"{so[1]:.0f} / {sn[1]:.0f} ({sn[1] / so[1]:.2f})"
-        print(f"| {name} | {n_old} / {n_new} | {step} | {p99} | {run} |")
+        print(f"| {name} | {n_old} / {n_new} ({o_old} / {o_new}) | {step} | {p99} | {run} |")
         if "online step" in p:
             on, rn_on = p["online step"], p["online run"]
             print(f"| {name}, online, bias tracked (this tree) | - / {runs[name]['online nodes']}"

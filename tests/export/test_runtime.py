@@ -294,3 +294,54 @@ def test_residual_for_another_robot_or_sensor_is_refused(exports, residuals, tmp
         )
     with pytest.raises(ModelMismatchError, match="already holds"):
         EstimatorRuntime(exports.path("tcarm", residual=str(graph)), residual=graph)
+
+
+def test_two_sensors_stacks_built_natively_equal_the_chained_graphs(tmp_path):
+    """Two sensors, each with a stack (offset, inertial layer, MLP), built natively in the step
+    graph (one Newton-Euler stage for the nominal and both changed inertias, each correction
+    taken off its reading before the move to the root frame) against the same stacks' graphs
+    chained by the runtime; float64, covariance, every slot kind (``tcarm2``), to the stack
+    graphs' float32 rounding. Fixed base: a stack's own graph models a fixed base (it has no
+    base-motion inputs), the native build uses the graph's base motion."""
+    from torchcontact.export import export_estimator, export_residual_checkpoint, step_graph_path
+    from torchcontact.residual import ResidualCorrection
+    from torchcontact.runtime import EstimatorRuntime
+
+    model = robot_model("tcarm2")
+    lay = LAYOUTS["tcarm2"]
+    names = model.body_names
+    graphs = []
+    for s, (sensor, bodies) in enumerate(
+        (("base_ft", (names[-1], names[-3])), ("tool_ft", (names[-1],)))
+    ):
+        c = ResidualCorrection.load(
+            correction_checkpoint(tmp_path / f"c{s}", model, sensor, "mlp", seed=4 + s), model
+        )
+        g = torch.Generator().manual_seed(9 + s)
+        ckpt = ResidualCorrection(
+            model, sensor, offset=c.offset, inertial_bodies=bodies, learned=c.learned,
+            delta=torch.randn(10 * len(bodies), generator=g).double() * 0.3, features=c.features,
+        ).save(tmp_path / f"stack{s}")  # fmt: skip
+        export_residual_checkpoint(ckpt, tmp_path / f"stack{s}.onnx", model)
+        graphs.append(str(tmp_path / f"stack{s}.onnx"))
+    paths = []
+    for name, res in (("inside", graphs), ("plain", None)):
+        paths.append(tmp_path / f"{name}.onnx")
+        export_estimator(model, None, lay["links"], lay["kinds"], paths[-1], covariance=True,
+                         residual=res)  # fmt: skip
+    ops = [n.op_type for n in onnx.load(str(step_graph_path(paths[0]))).graph.node]
+    assert len(ops) < 600  # built natively
+    inside = EstimatorRuntime(paths[0], robot=model)
+    chained = EstimatorRuntime(paths[1], robot=model, residual=graphs)
+    x = scene("tcarm2", 6, seed=11)
+    keys = ("positions", "active", "directions", "wrenches", "ft_cov", "ft_residual")
+    for i in range(6):
+        kw = {k: x[k][i] for k in keys}
+        extra = {"temperature": 25.0 + i}
+        a, b = (
+            rt.step(x["q"][i], x["qd"][i], x["qdd"][i], x["ft"][i], **kw, extra=extra)
+            for rt in (inside, chained)
+        )
+        assert not np.allclose(a["force"], 0.0)
+        for k in ("force", "joint_torques", "covariance"):
+            np.testing.assert_allclose(a[k], b[k], atol=LEARNED_FLOAT32 * 10, rtol=0, err_msg=k)

@@ -155,24 +155,32 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         x = gb.op("Sub", x, total)
     # ---- 1. inputs: checks, status bits, affine entries
     ea, idx = inputs.plan(ctx)
+    corrections.feature_entries(ctx, wiring, native, ea)  # the learned layers' angles
     idx.update(one=ea.one, zero=ea.zero, n_entries=len(ea.cols))
     chk = inputs.check(ctx, x, ea, idx)
     e = chk.e
     # ---- 2. poses, motion, body wrenches
-    T = kinematics.poses(ctx, e, idx, ea.zero)
+    ce = gb.op("Cos", e)  # the joint angles' cos and sin (and the learned layers' features)
+    wiring.angles(ce, idx["n_entries"])
+    T = kinematics.poses(ctx, e, idx, ea.zero, ce)
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
-    VA = kinematics.motion(ctx, TP, e, idx, base)
-    f0, VAb = kinematics.body_wrenches(ctx, TP, VA)
-    W0 = kinematics.readings_root(ctx, TP, e, idx)
-    ws_corr, onl = None, None
+    S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame
+    VA = kinematics.motion(ctx, TP, e, idx, base, S0)
+    # the native stacks' inertial changes: more columns of the body wrenches' two stages
+    deltas = [st.delta for _rg, st in native.values() if st.delta]
+    f0, VAb, F = kinematics.body_wrenches(ctx, TP, VA, deltas)
+    ws_corr, onl, cres = None, None, []
     if ctx.online:  # offsets and inertial changes as inputs: the model's reading, Y theta
         onl = online_stage.model_terms(ctx, e, idx, TP, VAb, f0)
-        W0, ws_corr = gb.op("Sub", W0, onl.delta_root), onl.ws_corr
-    if native:
-        W0, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, W0)
+        ws_corr = onl.ws_corr
+    if native:  # the corrections come off the readings before these move to the root frame
+        cres, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, F)
         if ws_n is not None:
             ws_corr = ws_n if ws_corr is None else gb.op("Add", ws_corr, ws_n)
+    W0 = kinematics.readings_root(ctx, TP, e, idx, cres)
+    if onl is not None:
+        W0 = gb.op("Sub", W0, onl.delta_root)
     ft_model, more = None, []
     if onl is not None:  # ft_model: every correction but the offset (learned, chained)
         ft_model = onl.ft_model
@@ -190,7 +198,6 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     # ---- 3. regions: transmitted wrenches, slot geometry, known contacts, b, Gram matrices
     Fb = regions.transmitted(ctx, f0, W0)
     Cg = regions.slot_geometry(ctx, TP, e, idx)
-    S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame
     s_rows, pairs = (regions.torque_row_coefs(ctx, TP, S0, e, idx) if ctx.flags.torque_rows
                      else (None, []))  # fmt: skip
     DB = gb.f(ctx.cut @ ctx.slot_bodies)

@@ -13,6 +13,7 @@ thousands of the stack's own forward pass).
 from __future__ import annotations
 
 import base64
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,14 +25,19 @@ from torchcontact.onnx.step.context import StepContext
 from torchcontact.onnx.step.forms import (
     TP_ONE,
     force_to_child,
-    force_to_parent,
     signed,
     split,
     tp,
 )
-from torchcontact.onnx.step.kinematics import bodies_to_root
 
-__all__ = ["NativeStack", "Wiring", "fold_affine_ends", "native_corrections", "native_stack"]
+__all__ = [
+    "NativeStack",
+    "Wiring",
+    "feature_entries",
+    "fold_affine_ends",
+    "native_corrections",
+    "native_stack",
+]
 
 
 class Wiring:
@@ -40,18 +46,34 @@ class Wiring:
     def __init__(self, ctx: StepContext, x: str) -> None:
         self.ctx, self.x = ctx, x
         self.states: list[tuple[str, tuple[int, ...], str]] = []
+        #: the cosines of the affine entries, ``(E,)`` (:meth:`angles`), and per native stack
+        #: the ``(cos, sin)`` entries of its angle features (:func:`feature_entries`)
+        self.cos_e: str | None = None
+        self.n_entries = 0
+        self.angle_entries: dict[int, list[tuple[int, int]]] = {}
+
+    def angles(self, ce: str, n_entries: int) -> None:
+        """Give the learned layers the cosines of the affine entries ``ce`` (``(E,)``).
+
+        The kinematics computes them (poses); the angle features are entries of them
+        (:func:`feature_entries`), so no ``Sin``/``Cos`` of their own.
+        """
+        self.cos_e, self.n_entries = ce, n_entries
+
+    def position(self, kind: str, key: str) -> int:
+        """The column of ``x`` of ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)``."""
+        lay = self.ctx.lay
+        if kind == "extra":
+            return lay.index("extra", self.ctx.extra.index(key))
+        return lay.index(kind, self.ctx.full.model.joint_names.index(key))
 
     def select(self, cols) -> str:
         """Columns ``("q" | "qd" | "qdd", joint)`` or ``("extra", name)`` of ``x``, ``(1, n)``."""
-        lay, names = self.ctx.lay, self.ctx.full.model.joint_names
-        extra = self.ctx.extra
 
         def position(kind: str, key: str) -> int:
-            if kind == "extra":
-                return lay.index("extra", extra.index(key))
-            return lay.index(kind, names.index(key))
+            return self.position(kind, key)
 
-        position.size = lay.size  # type: ignore[attr-defined]
+        position.size = self.ctx.lay.size  # type: ignore[attr-defined]
         return self.ctx.gb.op("MatMul", self.x, self.ctx.gb.f(selection(cols, position)))
 
     def state_in(self, rg, to: int) -> str:
@@ -176,15 +198,43 @@ def _not_native(ctx: StepContext, rg) -> None:
     return None
 
 
-def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[str, str | None]:
-    """The sensors' wrenches ``W0`` with the native stacks subtracted, and ``ws_corr``.
+def feature_entries(ctx: StepContext, wiring: Wiring, stacks: dict, ea) -> None:
+    """Register the learned layers' angle features as entries of the affine plan.
+
+    ``cos q`` is the entry ``q``, ``sin q`` the entry ``q - pi/2`` (the poses' own trick): the
+    pose stage's one ``Cos`` of every entry then holds them, and the features of a stack are one
+    ``Concat`` of those cosines, ``x`` and the nominal wrench, whose selection folds into the
+    learned layer's first ``Gemm`` (:func:`_learned`).
+
+    Args:
+        ctx: the graph.
+        wiring: where the entries are recorded (``angle_entries``).
+        stacks: ``{r: (ResidualGraph, NativeStack)}``.
+        ea: the affine plan (:func:`torchcontact.onnx.step.inputs.plan`), before ``check``.
+    """
+    for r, (_rg, st) in stacks.items():
+        if st.learned is None or not st.sincos:
+            continue
+        ent = []
+        for kind, key in st.columns[: st.n_angles]:
+            j = wiring.position(kind, key)
+            ent.append((ea.entry({j: 1.0}), ea.entry({j: 1.0}, -math.pi / 2)))
+        wiring.angle_entries[r] = ent
+
+
+def native_corrections(
+    ctx, wiring: Wiring, stacks, TP, VAb, f0, F: str | None = None
+) -> tuple[list[tuple[int, str]], str | None]:
+    """The native stacks' corrections ``c`` per region, and ``ws_corr``.
 
     A correction ``c`` (sensor frame and measure direction) is subtracted twice over: from the
     region's ``b`` (``sign c``, sensor frame: ``ws_corr``, ``(S, 6)``) and from the wrench the
-    reading transmits towards the root (``sign X_root_sensor c``: the returned ``W0``). Its
-    inertial layer ``Y delta`` is the subtree's Newton-Euler wrenches with the parameter change
-    ``delta`` as inertias, summed and moved to the sensor frame; the nominal-wrench feature is the
-    same with the nominal body wrenches ``f0``.
+    reading transmits towards the root (the returned ``(region, c)``, for
+    :func:`~torchcontact.onnx.step.kinematics.readings_root`). Its inertial layer ``Y delta`` is
+    the subtree's Newton-Euler wrenches with the parameter change ``delta`` as inertias (the
+    columns of ``F`` after the nominal ones, in the order of ``stacks`` that have one), summed
+    and moved to the sensor frame; the nominal-wrench feature is the same with the nominal body
+    wrenches ``f0``.
 
     Args:
         ctx: the graph.
@@ -192,112 +242,119 @@ def native_corrections(ctx, wiring: Wiring, stacks, TP, VAb, f0, W0) -> tuple[st
         stacks: ``{r: (ResidualGraph, NativeStack)}``.
         TP: pose features.
         VAb: ``[v, a, 1]`` in each body frame.
-        f0: body wrenches, root frame.
-        W0: the readings' wrenches, root frame, ``(S, 6)``.
+        f0: body wrenches, root frame, ``(nb, 6)``.
+        F: ``[f0, f_delta...]`` (:func:`~torchcontact.onnx.step.kinematics.body_wrenches` with
+            the stacks' ``delta``), or None when no stack has one.
     """
     gb, nb, S = ctx.gb, ctx.nb, ctx.S
-    W, ws_corr = W0, None
+    cres, ws_corr = [], None
+    n_delta = sum(1 for _rg, st in stacks.values() if st.delta)
+    j = 0  # the next inertial change's block of F
     for r, (rg, st) in stacks.items():
         reg = ctx.em.regions[st.region]
         pick = gb.f(np.isin(np.arange(nb), st.subtree)[None, :].astype(float))
-        sums = []  # root-frame subtree sums to move to the sensor frame
-        if st.nominal:
-            sums.append(gb.op("MatMul", pick, f0))
-        if st.delta:
-            sums.append(gb.op("MatMul", pick, _delta_wrenches(ctx, TP, VAb, st.delta)))
-        in_sensor = []
-        if sums:
-            k = len(sums)
-            # (the stages below are products of pose features and wrench entries only: the
-            # operands need no 1 column)
-            stacked = sums[0] if k == 1 else gb.op("Concat", *sums, axis=0)
+        blocks = ([0] if st.nominal else []) + ([1 + j] if st.delta else [])
+        j += bool(st.delta)
+        ws, k = None, len(blocks)
+        if blocks:
+            # root-frame subtree sums of the nominal and changed wrenches, one row
+            if st.delta:
+                sums, width = gb.op("MatMul", pick, F), 6 * (1 + n_delta)
+            else:
+                sums, width = gb.op("MatMul", pick, f0), 6
 
-            def to_sensor(_i, t: list, w: list, reg=reg) -> list:
+            # in the sensor frame, [nominal, changed] as one row (the stages below are products
+            # of pose features and wrench entries only: the operands need no 1 column)
+            def to_sensor(_i, t: list, w: list, reg=reg, blocks=blocks) -> list:
                 R, _, pR, _ = tp(t)
-                out = signed(
-                    reg.sign, sp.force_to_child(reg.T_child_sensor, force_to_child(R, pR, split(w)))
-                )
-                return [*out[0], *out[1]]  # fmt: skip
+                out = []
+                for bl in blocks:
+                    f = force_to_child(R, pR, split(w[6 * bl : 6 * bl + 6]))
+                    f = signed(reg.sign, sp.force_to_child(reg.T_child_sensor, f))
+                    out += [*f[0], *f[1]]
+                return out
 
-            ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child] * k),
-                          Operand(stacked, 6), k, to_sensor, 6, one=False,
+            ws = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
+                          Operand(sums, width), 1, to_sensor, 6 * k, one=False,
                           hint=f"ysum{r}")  # fmt: skip
-            in_sensor = [gb.op("Slice", ws, gb.i([j]), gb.i([j + 1]), gb.i([0])) for j in range(k)]
         # the offset goes into the learned layer's last bias when that computes in this dtype
         shift = st.offset if np.dtype(rg.dtype) == ctx.dtype else None
-        if st.learned is not None:
-            out, shifted = _learned(ctx, wiring, in_sensor[0] if st.nominal else None, r, rg, st,
-                                    shift)  # fmt: skip
-        offset = None if st.learned is not None and shifted else st.offset
-        c = gb.f(offset[None, :]) if offset is not None else None
-        if st.delta:
-            c = in_sensor[-1] if c is None else gb.op("Add", c, in_sensor[-1])
-        if st.learned is not None:
-            c = out if c is None else gb.op("Add", c, out)
+        c, shifted = None, False
+        if st.learned is not None:  # its nominal-wrench feature: the first 6 columns of ws
+            c, shifted = _learned(ctx, wiring, (ws, 6 * k) if st.nominal else None, r, rg, st,
+                                  shift)  # fmt: skip
+        if st.offset is not None and not shifted:
+            off = gb.f(st.offset[None, :])
+            c = off if c is None else gb.op("Add", c, off)
+        if st.delta:  # plus the inertial layer, the last 6 columns of ws
+            last = np.zeros((6 * k, 6))
+            last[6 * (k - 1) :, :] = np.eye(6)
+            c = gb.op("MatMul", ws, gb.f(last)) if c is None else gb.op("Gemm", ws, gb.f(last), c)
         if c is None:
             continue
-        col = np.zeros((S, 1))
-        col[st.region, 0] = 1.0
-        d = gb.op("MatMul", gb.f(col * reg.sign), c)
+        if S == 1 and reg.sign == 1.0:
+            d = c
+        else:
+            col = np.zeros((S, 1))
+            col[st.region, 0] = 1.0
+            d = gb.op("MatMul", gb.f(col * reg.sign), c)
         ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
-
-        def to_root(_i, t: list, cs: list, reg=reg) -> list:
-            R, _, pR, _ = tp(t)
-            w = force_to_parent(R, pR, sp.force_to_parent(reg.T_child_sensor, signed(reg.sign, cs)))
-            return [*w[0], *w[1]]
-
-        w = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=[reg.child]),
-                     Operand(c, 6), 1, to_root, 6, one=False, hint=f"cres{r}")  # fmt: skip
-        W = gb.op("Sub", W, gb.op("MatMul", gb.f(col), w))
-    return W, ws_corr
-
-
-def _delta_wrenches(ctx: StepContext, TP: str, VAb: str, delta: dict) -> str:
-    """``(nb, 6)`` root-frame wrenches of the bodies with inertias ``delta`` (0 elsewhere)."""
-
-    def apply(i: int, va: list, _b: list) -> list:
-        if i not in delta:
-            return [0.0] * 6
-        m, h, Io = delta[i]
-        v, a = split(va[0:6]), split(va[6:12])
-        f = sp.body_wrench_params(m, sp.const_vec(h), sp.const_mat(Io), v, a)
-        return [*f[0], *f[1]]
-
-    fd = bilinear(ctx.gb, Operand(VAb, 13, one=12), None, ctx.nb, apply, 6, hint="fdelta")
-    return bodies_to_root(ctx, TP, fd, "fdelta_root")
+        cres.append((st.region, c))
+    return cres, ws_corr
 
 
 def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack,
              shift: np.ndarray | None = None) -> tuple[str, bool]:  # fmt: skip
     """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
 
-    Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)`` to add) is in it
-    (folded into its last bias).
+    The raw features ``v = [sin q, cos q, other columns, nominal]`` are ``u S`` with
+    ``u = [sin q, cos q, x, nominal]`` (one ``Concat``; the angles one ``Gather`` of the poses'
+    cosines, :func:`feature_entries`) and a constant 0/1 ``S``; ``S`` and the feature order
+    ``perm`` fold into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the
+    column selection did before (a non-finite entry of ``x`` reaches the output, and the status).
+
+    ``nominal``: ``(value, width)``, a row whose first 6 columns are the nominal wrench in the
+    sensor frame, or None. Returns ``(output, shifted)``: whether ``shift`` (a constant ``(6,)``
+    to add) is in it (folded into its last bias).
     """
     gb = ctx.gb
     to = onnx_type(rg.dtype)
-    parts = []
-    if st.columns:
-        xs = wiring.select(st.columns)
-        if st.sincos:
-            na = st.n_angles
-            q = gb.op("Slice", xs, gb.i([0]), gb.i([na]), gb.i([1]))
-            rest = gb.op("Slice", xs, gb.i([na]), gb.i([len(st.columns)]), gb.i([1]))
-            parts += [gb.op("Sin", q), gb.op("Cos", q), rest]
-        else:
-            parts.append(xs)
+    same = np.dtype(rg.dtype) == ctx.dtype
+    na = st.n_angles if st.sincos else 0
+    rest = st.columns[na:]
+    F = ctx.lay.size
+    nom, n_nom = nominal if nominal is not None else (None, 0)
+    # the angles' [sin, cos] as one row gathered from the entries' cosines
+    ents = wiring.angle_entries.get(r, [])
+    trig = [s_ for _c, s_ in ents] + [c for c, _s in ents]
+    angles = gb.op("Gather", wiring.cos_e, gb.i([trig]), axis=0) if na else None
+    parts, rows, offsets = [], 0, {}
+    for name, value, width, used in (("trig", angles, 2 * na, na > 0),
+                                     ("x", wiring.x, F, bool(rest)),
+                                     ("nominal", nom, n_nom, bool(st.nominal))):  # fmt: skip
+        if used:
+            parts.append(value)
+            offsets[name] = rows
+            rows += width
+    V = 2 * na + len(rest) + 6 * bool(st.nominal)
+    S = np.zeros((rows, V))
+    if na:  # sin q = cos(q - pi/2), cos q
+        S[offsets["trig"] : offsets["trig"] + 2 * na, : 2 * na] = np.eye(2 * na)
+    for j, (kind, key) in enumerate(rest):
+        S[offsets["x"] + wiring.position(kind, key), 2 * na + j] = 1.0
     if st.nominal:
-        parts.append(nominal)
-    v = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
-    learned, folded, shifted = fold_affine_ends(st.learned, st.perm, shift)
-    feats = v if folded else gb.op("MatMul", v, gb.f(st.perm))
-    feeds = {"features": gb.op("Cast", feats, to=to)}
+        S[offsets["nominal"] : offsets["nominal"] + 6, V - 6 :] = np.eye(6)
+    pre = S if st.perm is None else S @ np.asarray(st.perm, np.float64)
+    u = parts[0] if len(parts) == 1 else gb.op("Concat", *parts, axis=1)
+    learned, folded, shifted = fold_affine_ends(st.learned, pre, shift)
+    feats = u if folded else gb.op("MatMul", u, gb.f(pre))
+    feeds = {"features": feats if same else gb.op("Cast", feats, to=to)}
     if rg.state_shape:
         feeds["h_in"] = wiring.state_in(rg, to)
     outs = inline(gb, learned, f"res{r}/", feeds)
     if rg.state_shape:
         wiring.state_out(rg, outs["h_out"])
-    return gb.cast(outs["residual"]), shifted
+    return (outs["residual"] if same else gb.cast(outs["residual"])), shifted
 
 
 def fold_affine_ends(model, pre: np.ndarray | None = None, shift: np.ndarray | None = None):

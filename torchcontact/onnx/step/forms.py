@@ -1,7 +1,8 @@
 """Row forms of the single-frame graph: pose feature rows and bilinear adjoint maps.
 
-A pose ``T = (R, p)`` travels through the graph as a row ``[R (row-major, 9), p (3), 1]``
-(:data:`T_ONE`) and, extended, as ``[R, p, pR = [p]x R, -R^T p, 1]`` (:data:`TP_ONE`), so that
+A pose ``T = (R, p)`` travels through the graph as its homogeneous 4 x 4 matrix, row-major
+(16 entries, the last one 1: :func:`torchcontact.onnx.step.kinematics.poses`) and, extended, as
+``[R, p, pR = [p]x R, -R^T p, 1]`` (:data:`TP_ONE`), so that
 the adjoint maps of :mod:`torchcontact.spatial` become bilinear in (pose row, vector):
 ``R^T (w x p) = (pR)^T w`` and ``R^T (p x f) = -(pR)^T f``.
 """
@@ -16,7 +17,6 @@ from torchcontact import spatial as sp
 from torchcontact._scalar import neg
 
 __all__ = [
-    "T_ONE",
     "TP_ONE",
     "const_force_map",
     "flat",
@@ -30,8 +30,6 @@ __all__ = [
     "tp",
 ]
 
-#: Index of the 1 column of a pose row ``[R, p, 1]`` (13 columns).
-T_ONE = 12
 #: Index of the 1 column of a pose feature row ``[R, p, pR, -R^T p, 1]`` (25 columns).
 TP_ONE = 24
 

@@ -17,13 +17,17 @@ noise factor ``L = W^-1``, the weighted least-squares solution of minimum Euclid
 
 **Full-rank frames** take a shorter road (about 40 nodes instead of 110 on six rows): when the
 frame's active slots can give rank ``R`` (:func:`full_rank_possible`, decided per frame), the
-sweep operator runs unpivoted on the Jacobi-scaled ``G`` (five nodes a pivot, no pivot search),
+sweep operator runs unpivoted on ``G`` (Jacobi-scaled in a noise-weighted graph, whose
+whitened rows spread over decades; five nodes a pivot, no pivot search),
 giving ``G^-1``. Every pivot the pivoted rule can meet, in any order, is a Schur complement's
 diagonal entry, at least ``1 / (G^-1)_ii``; so when ``1 / (G^-1)_ii > rtol max diag G`` for
 every ``i`` the pivoted elimination would accept all ``R`` pivots and its result is
 ``y = G^-1 rhs``, which is returned. Otherwise (or when the frame cannot have full rank) the
-pivoted elimination runs, in the other branch of an ``If``. A layout that never has full rank
-(two point forces on one sensor) builds the pivoted elimination alone.
+pivoted elimination runs, in the other branch of an ``If``. The sweep itself runs on every
+frame in the main graph (a frame that cannot have full rank discards it): one ``If`` per
+region, not two nested ones (each ``If`` costs onnxruntime a subgraph call, as much as
+several plain nodes). A layout that never has full rank (two point forces on one sensor) builds the
+pivoted elimination alone.
 """
 
 from __future__ import annotations
@@ -124,9 +128,10 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
            w6: np.ndarray | None = None, possible: str | None = None):  # fmt: skip
     """:func:`solve_region` on (whitened) ``G``, ``b``; ``w6``: the unit right sides' whitening.
 
-    With ``possible`` (:func:`full_rank_possible`), a frame that may have full rank tries an
-    unpivoted sweep first: when it proves every pivot of any order accepted, ``y = G^-1 rhs``
-    from it (:func:`_sweep`); any other frame runs the pivoted elimination (:func:`_pivoted`).
+    With ``possible`` (:func:`full_rank_possible`), the unpivoted sweep runs first: on a frame
+    that may have full rank and where it proves every pivot of any order accepted,
+    ``y = G^-1 rhs`` from it (:func:`_sweep`); any other frame runs the pivoted elimination
+    (:func:`_pivoted`), in the other branch of the one ``If``.
     """
     gb = ctx.gb
     rhs = b
@@ -144,34 +149,37 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     def pivoted() -> list[str]:
         return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
 
-    def sweep() -> list[str]:
-        full, solve_full = _sweep(ctx, G, rhs, R, d0, tol)
-        fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
-        return gb.op("If", full, n_out=2, then_branch=fast,
-                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
-
-    y, rank = gb.op("If", possible, n_out=2, then_branch=gb.branch(sweep, "sweep"),
+    # the sweep runs on every frame, in the main graph (on a frame that cannot have full rank
+    # its values are discarded): one If instead of two nested ones, each of which costs
+    # onnxruntime a subgraph call per frame
+    full, solve_full = _sweep(ctx, G, rhs, R, d0, tol, jacobi=w6 is not None)
+    fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
+    y, rank = gb.op("If", gb.op("And", possible, full), n_out=2, then_branch=fast,
                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
     return y, rank
 
 
-def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str):
+def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str,
+           jacobi: bool = True):  # fmt: skip
     """The unpivoted sweep: ``(full, solve)``.
 
     ``full``: whether the pivoted rule accepts every pivot whatever the order (a bool);
-    ``solve()`` emits ``y = G^-1 rhs`` (in the branch that uses it), from the sweep operator on
-    the Jacobi-scaled ``G``.
+    ``solve()`` emits ``y = G^-1 rhs``, from the sweep operator on ``G``, Jacobi-scaled with
+    ``jacobi`` (the whitened systems: their rows' scales spread over decades; an unweighted
+    ``G`` is swept as it is, five nodes fewer).
     """
     gb = ctx.gb
     diag = gb.i(np.arange(R)[:, None])
-    # Jacobi scaling first, G' = D G D with D = diag(d0)^-1/2 (unit diagonal: the unpivoted
-    # sweep below is then as accurate as the pivoted elimination on badly scaled, whitened G)
-    sc = gb.op("Sqrt", d0)  # D^-1
-    A = gb.op("Div", G, gb.op("Gemm", sc, sc, transB=1))
+    A = G
+    if jacobi:
+        # Jacobi scaling first, G' = D G D with D = diag(d0)^-1/2 (unit diagonal: the unpivoted
+        # sweep below is then as accurate as the pivoted elimination on badly scaled, whitened G)
+        sc = gb.op("Sqrt", d0)  # D^-1
+        A = gb.op("Div", G, gb.op("Gemm", sc, sc, transB=1))
     # the sweep operator (Goodnight 1979) on every index in order: A <- A - a a^T / d with
     # a = A e_k - e_k, d = A_kk, which is the sweep but for -2 on the swept diagonal entry; those
     # offsets are never read again (column k is read only at step k), so they are added at the
-    # end: the result is 2 I - G'^-1
+    # end: the result is 2 I - G'^-1 (G' = G unscaled)
     eye = np.eye(R)
     for k in range(R):
         c = gb.op("Gather", A, gb.i([k]), axis=1)
@@ -183,10 +191,13 @@ def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str):
     # 1 / (G^-1)_ii (eliminating more only lowers it); 1 / (G^-1)_ii = d0_i / (G'^-1)_ii. NaN
     # (a zero diagonal or pivot met here) fails.
     h = gb.op("Sub", gb.f(2.0), gb.op("GatherElements", A, diag, axis=1))  # (G'^-1)_ii
-    ok = gb.cast(gb.op("Greater", gb.op("Div", d0, h), tol))
+    inv = gb.op("Div", d0 if jacobi else gb.f(1.0), h)
+    ok = gb.cast(gb.op("Greater", inv, tol))
     full = gb.op("Greater", gb.op("ReduceMin", ok, keepdims=0), gb.f(0.5))
 
     def solve() -> str:  # y = D G'^-1 D rhs
+        if not jacobi:
+            return gb.op("Gemm", A, rhs, rhs, alpha=-1.0, beta=2.0)
         u = gb.op("Div", rhs, sc)
         return gb.op("Div", gb.op("Gemm", A, u, u, alpha=-1.0, beta=2.0), sc)
 
