@@ -458,9 +458,11 @@ def mode_table(args, tmp: Path) -> None:
     cold["all"] = [round(x["seconds"], 3) for x in colds]
     inmem = median_run(args, "inmem", log, out, "", warm_env)
     base = None
-    if args.compare_with:  # another checkout (e.g. the commit before), same log, same cache
+    if args.compare_with:  # another checkout (e.g. the commit before), same log
         code = str(Path(args.compare_with).resolve())
-        env = {**warm_env, "PYTHONPATH": code, "TC_BENCH_CODE": code}
+        # its own cache: warm means the kernels that tree builds, not those this one adds
+        env = {**warm_env, "PYTHONPATH": code, "TC_BENCH_CODE": code,
+               "TORCHCONTACT_CACHE": str(tmp / "cache-compare")}  # fmt: skip
         warm_up(args, log, out, env)  # its kernels into the cache
         base = median_run(args, "e2e", log, out, args.device, env)
     second = second_run_during_build(args, log, tmp) if not args.no_race_build else "not run"
@@ -529,7 +531,8 @@ def mode_warm(args, tmp: Path) -> None:
     trees = {"this tree": env}
     if args.compare_with:
         code = str(Path(args.compare_with).resolve())
-        trees[args.compare_with] = {**env, "PYTHONPATH": code, "TC_BENCH_CODE": code}
+        trees[args.compare_with] = {**env, "PYTHONPATH": code, "TC_BENCH_CODE": code,
+                                    "TORCHCONTACT_CACHE": str(tmp / "cache-compare")}  # fmt: skip
         warm_up(args, log, out, trees[args.compare_with])
     floors: list[dict] = []
     got: dict[str, list[dict]] = {k: [] for k in trees}
