@@ -174,12 +174,13 @@ def contact_free_noise(
 
     from torchcontact import kernels
     from torchcontact.contacts import Contacts
+    from torchcontact.errors import KernelBuildError
     from torchcontact.estimation.programs import program
 
     model, est = le.model, le.estimator
     diffs: list[np.ndarray] = []
     have = eager = 0
-    moving = None  # the forward model's program has a moving base or not (known per chunk)
+    moving = prog = built = None  # the forward model's program (moving base or not), its kernel
     for d in chunks:
         free = d.issues.code == 0
         if len(d.records):
@@ -209,7 +210,10 @@ def contact_free_noise(
             moving = bool(d.base)
             # the program predict_ft ran (its layout without slots): built already or not
             prog = program(est.layout([], ()), "predict", moving)
-            built = kernels.compiled(prog, model.dtype, model.device, wait=False, build=False)
+            try:
+                built = kernels.compiled(prog, model.dtype, model.device, wait=False, build=False)
+            except KernelBuildError:  # a dtype or device without kernels: eager, nothing to build
+                built, prog = None, None
         if built is None:
             eager += len(rows)
         r = np.full((d.n, 6 * len(sensors)), np.nan)
@@ -222,7 +226,7 @@ def contact_free_noise(
         have += int(nxt.sum())
         if have >= pairs:
             break
-    if eager >= kernels.AUTO_BUILD_MIN_FRAMES:  # as many frames as "auto" builds a kernel for
+    if prog is not None and eager >= kernels.AUTO_BUILD_MIN_FRAMES:  # as "auto" builds for
         le.wanted_kernels.append(prog)
     if not diffs:
         return {s: (np.full(6, np.nan), 0) for s in sensors}
