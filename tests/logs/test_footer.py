@@ -55,3 +55,17 @@ def test_a_footer_it_cannot_read_is_refused():
         _footer.split_file(b"PAR1 not a file")
     with pytest.raises(_footer.FooterError):
         _footer.join_footers([])
+
+
+def test_more_than_15_parts_and_a_truncated_footer(tmp_path):
+    # 15 or more row groups take the compact protocol's long list header
+    tables = [_table(3, i) for i in range(20)]
+    _file(tables, tmp_path / "one.parquet")
+    w = PartsWriter(tmp_path / "parts.parquet", tables[0].schema)
+    parts = [encode_part(t, t.schema) for t in tables]
+    for p in parts:
+        w.append(p)
+    w.close()
+    assert (tmp_path / "parts.parquet").read_bytes() == (tmp_path / "one.parquet").read_bytes()
+    with pytest.raises(_footer.FooterError, match="truncated"):
+        _footer.join_footers([(4, parts[0].footer), (100, parts[1].footer[:-40])])

@@ -157,3 +157,60 @@ def test_the_run_reuses_the_tables_the_noise_estimate_read(model, noisy_log, tmp
     assert outs[3][0].equals(outs[0][0]) and outs[1000][0].equals(outs[0][0])
     assert outs[0][1][-1] == 0 and outs[3][1][-1] == 3 * 64  # the run reads from the 4th chunk
     assert outs[1000][1] == [0]  # one read of the log, the noise's and the run's
+
+
+def test_a_run_requests_the_forward_model_kernel_its_noise_ran_without(
+    model, noisy_log, tmp_path, monkeypatch
+):
+    # the noise estimate runs its forward model eagerly when the kernel is not built (no build
+    # of its own while the estimator's may be pending); the run requests it once it is done
+    from torchcontact import kernels
+
+    calls = []
+
+    def compiled(program, dtype, device="cpu", wait=True, build=True):
+        calls.append((program.name, wait, build))
+        return None  # nothing is built: every program runs eagerly
+
+    monkeypatch.setattr(kernels, "compiled", compiled)
+    monkeypatch.setattr(kernels, "AUTO_BUILD_MIN_FRAMES", 64)
+    monkeypatch.setattr(kernels, "background_builds", lambda: [])
+    s = estimate_file(noisy_log, model, tmp_path / "a.parquet")
+    assert s["noise"]["weighted"]
+    assert ("predict", False, False) in calls  # looked up, never built, during the run
+    assert calls[-1] == ("predict", False, True)  # requested at the end, once
+    assert calls.count(("predict", False, True)) == 1
+
+    calls.clear()  # a build of this process still going on (the estimator's): none requested
+    monkeypatch.setattr(kernels, "background_builds", lambda: ["tck_estimator_x"])
+    estimate_file(noisy_log, model, tmp_path / "b.parquet")
+    assert ("predict", False, True) not in calls
+
+
+def test_a_resume_keeps_the_recorded_noise_when_only_rounding_differs():
+    from torchcontact.logs.pipeline import recorded_noise
+    from torchcontact.noise import FTNoise, SensorNoise
+
+    class Run:
+        def __init__(self, std):
+            self.noise = FTNoise({"s": SensorNoise("contact-free frames (90 pairs)", std)})
+
+        def set_noise(self, noise):
+            self.noise = noise
+
+    std = tuple(float(v) for v in STD)
+    rounded = [v * (1 + 3e-16) + 1e-18 for v in std]
+    for prev_std, adopted in ((rounded, True), ([v * 1.001 for v in std], False)):
+        le = Run(std)
+        prev = {"noise": {**le.noise.summary(), "sensors": {
+            "s": {"source": "contact-free frames (90 pairs)", "std": prev_std}}}}  # fmt: skip
+        recorded_noise(le, prev)
+        assert list(le.noise.sensors["s"].std) == (prev_std if adopted else list(std))
+    le = Run(std)  # another source: kept
+    prev = {
+        "noise": {**le.noise.summary(), "sensors": {"s": {"source": "--ft-noise", "std": rounded}}}
+    }
+    recorded_noise(le, prev)
+    assert le.noise.sensors["s"].std == std
+    recorded_noise(le, None)  # not a resume
+    assert le.noise.sensors["s"].std == std

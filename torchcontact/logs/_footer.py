@@ -6,7 +6,9 @@ file that pyarrow wrote into its data and its footer; :func:`join_footers` makes
 file whose data are those parts one after the other: the row groups of every part, their byte
 offsets shifted to where the part's data lie, their ordinals renumbered, the row count summed. The
 data bytes are never decoded or encoded again, so a chunk encoded once can be appended to the
-output (and found again after a crash) while the footer is written at the end.
+output (and found again after a crash) while the footer is written at the end. The footers are not
+decoded either: a part's row groups are copied byte by byte but for the fields rewritten, and the
+rest of its footer (its schema and key-value metadata, most of its bytes) is skipped.
 
 Only :mod:`torchcontact.logs.format` uses this module (the log format's one owner). The Thrift
 field numbers are those of the Parquet format's ``parquet.thrift``.
@@ -114,42 +116,110 @@ def _read(buf: bytes, i: int, typ: int) -> tuple[object, int]:
     raise FooterError(f"Thrift type {typ} in a Parquet footer")
 
 
-def _write(out: bytearray, typ: int, v: object) -> None:
+def _skip(buf: bytes, i: int, typ: int) -> int:
+    """The index after a value of type ``typ`` at ``i`` (as :func:`_read`, building nothing)."""
     if typ in (_I16, _I32, _I64):
-        _put_varint(out, _zig(v))  # type: ignore[arg-type]
-    elif typ == _I8:
-        out.append(v)  # type: ignore[arg-type]
-    elif typ in (_TRUE, _FALSE):
-        out.append(1 if v else 2)
-    elif typ == _DOUBLE:
-        out += v  # type: ignore[operator]
-    elif typ == _BINARY:
-        _put_varint(out, len(v))  # type: ignore[arg-type]
-        out += v  # type: ignore[operator]
-    elif typ in (_LIST, _SET):
-        et, items = v  # type: ignore[misc]
-        if len(items) < 15:
-            out.append(len(items) << 4 | et)
-        else:
-            out.append(0xF0 | et)
-            _put_varint(out, len(items))
-        for x in items:
-            _write(out, et, x)
-    elif typ == _STRUCT:
-        last = 0
-        for fid, ft, x in v:  # type: ignore[attr-defined]
-            t = (_TRUE if x else _FALSE) if ft in (_TRUE, _FALSE) else ft
-            if 0 < fid - last <= 15:
-                out.append((fid - last) << 4 | t)
-            else:
-                out.append(t)
-                _put_varint(out, _zig(fid))
+        while buf[i] & 0x80:
+            i += 1
+        return i + 1
+    if typ in (_I8, _TRUE, _FALSE):
+        return i + 1
+    if typ == _DOUBLE:
+        return i + 8
+    if typ == _BINARY:
+        n, i = _varint(buf, i)
+        return i + n
+    if typ in (_LIST, _SET):
+        head = buf[i]
+        i += 1
+        size, et = head >> 4, head & 0x0F
+        if size == 15:
+            size, i = _varint(buf, i)
+        if et in (_I8, _TRUE, _FALSE):
+            return i + size
+        if et == _DOUBLE:
+            return i + 8 * size
+        for _ in range(size):
+            i = _skip(buf, i, et)
+        return i
+    if typ == _STRUCT:
+        while True:
+            head = buf[i]
+            i += 1
+            ft = head & 0x0F
+            if ft == _STOP:
+                return i
+            if not head >> 4:
+                _, i = _varint(buf, i)
             if ft not in (_TRUE, _FALSE):
-                _write(out, ft, x)
-            last = fid
-        out.append(_STOP)
-    else:
-        raise FooterError(f"Thrift type {typ} in a Parquet footer")
+                i = _skip(buf, i, ft)
+    raise FooterError(f"Thrift type {typ} in a Parquet footer")
+
+
+def _copy_shifted(buf: bytes, i: int, out: bytearray, delta: int, shift: dict[int, object]) -> int:
+    """Copy the struct at ``buf[i]`` into ``out`` with some of its fields rewritten.
+
+    ``shift`` maps a field id to ``True`` (an i64 offset: ``delta`` added unless it is 0, unset),
+    to an int (the field's new i16/i32 value), to a dict (a struct: copied with that map) or to a
+    tuple holding one dict (a list of such structs). Every other byte is copied as it is: the
+    result is what re-encoding the shifted struct gives (field headers do not change).
+
+    Returns:
+        The index after the struct.
+    """
+    fid = 0
+    while True:
+        h0 = i
+        head = buf[i]
+        i += 1
+        ft = head & 0x0F
+        if ft == _STOP:
+            out.append(_STOP)
+            return i
+        if head >> 4:
+            fid += head >> 4
+        else:
+            n, i = _varint(buf, i)
+            fid = _unzig(n)
+        how = shift.get(fid) if ft not in (_TRUE, _FALSE) else None
+        if how is None:
+            end = i if ft in (_TRUE, _FALSE) else _skip(buf, i, ft)
+            out += buf[h0:end]
+            i = end
+            continue
+        out += buf[h0:i]
+        if isinstance(how, dict) and ft == _STRUCT:
+            i = _copy_shifted(buf, i, out, delta, how)
+        elif isinstance(how, tuple) and ft == _LIST and buf[i] & 0x0F == _STRUCT:
+            size, j = buf[i] >> 4, i + 1
+            if size == 15:
+                size, j = _varint(buf, j)
+            out += buf[i:j]
+            i = j
+            for _ in range(size):
+                i = _copy_shifted(buf, i, out, delta, how[0])
+        elif ft in (_I16, _I32, _I64) and not isinstance(how, (dict, tuple)):
+            v, i = _read(buf, i, ft)
+            new = (v + delta if v else v) if how is True else how
+            _put_varint(out, _zig(new))  # type: ignore[arg-type]
+        else:
+            raise FooterError(f"field {fid} of a Parquet footer has Thrift type {ft}")
+
+
+#: The fields a part's row group has shifted when it is placed in the joined file.
+_CMD_SHIFT: dict[int, object] = dict.fromkeys(_CMD_OFFSETS, True)
+_CC_SHIFT: dict[int, object] = {
+    _CC_FILE_OFFSET: True,
+    _CC_OFFSET_INDEX: True,
+    _CC_COLUMN_INDEX: True,
+    _CC_META: _CMD_SHIFT,
+}
+
+
+def _row_group_at(buf: bytes, i: int, out: bytearray, delta: int, ordinal: int) -> int:
+    """Copy the RowGroup at ``buf[i]`` shifted by ``delta`` bytes with ``ordinal``."""
+    shift = {_RG_COLUMNS: (_CC_SHIFT,), _RG_FILE_OFFSET: True, _RG_ORDINAL: ordinal}
+    return _copy_shifted(buf, i, out, delta, shift)
 
 
 def _parse(footer: bytes) -> list:
@@ -159,24 +229,11 @@ def _parse(footer: bytes) -> list:
     return fields  # type: ignore[return-value]
 
 
-def _encode(fields: list) -> bytes:
-    out = bytearray()
-    _write(out, _STRUCT, fields)
-    return bytes(out)
-
-
 def _get(fields: list, fid: int) -> object:
     for f, _, v in fields:
         if f == fid:
             return v
     raise FooterError(f"a Parquet footer without field {fid}")
-
-
-def _shifted(fields: list, ids: Iterable[int], delta: int) -> list:
-    # an offset of 0 is unset (data begin at byte 4): pyarrow writes the deprecated
-    # ColumnChunk.file_offset as 0, and a file written at once keeps it so
-    ids = set(ids)
-    return [(f, t, v + delta if f in ids and v else v) for f, t, v in fields]
 
 
 # ---------------------------------------------------------------------- files
@@ -220,6 +277,22 @@ def footer_rows(footer: bytes) -> int:
         raise FooterError("a truncated Parquet footer") from None
 
 
+def _field(buf: bytes, i: int, fid: int) -> tuple[int, int, int]:
+    """The field header at ``buf[i]`` after field ``fid``: ``(field id, type, value start)``.
+
+    The type is ``_STOP`` at the end of a struct.
+    """
+    head = buf[i]
+    i += 1
+    ft = head & 0x0F
+    if ft == _STOP:
+        return fid, ft, i
+    if head >> 4:
+        return fid + (head >> 4), ft, i
+    n, i = _varint(buf, i)
+    return _unzig(n), ft, i
+
+
 def join_footers(parts: Iterable[tuple[int, bytes]]) -> bytes:
     """The footer of a file whose data are the given parts one after the other.
 
@@ -230,42 +303,64 @@ def join_footers(parts: Iterable[tuple[int, bytes]]) -> bytes:
 
     Returns:
         The joined footer (schema, key-value metadata and writer of the first part; every part's
-        row groups; the summed row count).
+        row groups, their offsets shifted and ordinals renumbered; the summed row count). The
+        parts' row groups are copied byte by byte but for the fields rewritten, and the rest of
+        their footers (schema, metadata: most of their bytes) is skipped.
 
     Raises:
         FooterError: no part, or a footer this module cannot read.
     """
-    head: list | None = None
-    groups: list = []
-    rows = 0
-    for start, footer in parts:
-        fmd = _parse(footer)
-        if head is None:
-            head = fmd
-        delta = start - 4
-        rows += _get(fmd, _FMD_NUM_ROWS)  # type: ignore[operator]
-        et, rgs = _get(fmd, _FMD_ROW_GROUPS)  # type: ignore[misc]
-        for rg in rgs:
-            cet, cols = _get(rg, _RG_COLUMNS)  # type: ignore[misc]
-            new_cols = []
-            for cc in cols:
-                cc = _shifted(cc, (_CC_FILE_OFFSET, _CC_OFFSET_INDEX, _CC_COLUMN_INDEX), delta)
-                cc = [
-                    (f, t, _shifted(v, _CMD_OFFSETS, delta) if f == _CC_META else v)
-                    for f, t, v in cc
-                ]
-                new_cols.append(cc)
-            rg = [(f, t, (cet, new_cols) if f == _RG_COLUMNS else v) for f, t, v in rg]
-            rg = _shifted(rg, (_RG_FILE_OFFSET,), delta)
-            rg = [(f, t, len(groups) if f == _RG_ORDINAL else v) for f, t, v in rg]
-            groups.append(rg)
-    if head is None:
-        raise FooterError("no part to join")
-    out = []
-    for f, t, v in head:
-        if f == _FMD_NUM_ROWS:
-            v = rows
-        elif f == _FMD_ROW_GROUPS:
-            v = (_STRUCT, groups)
-        out.append((f, t, v))
-    return _encode(out)
+    first: bytes | None = None
+    groups = bytearray()
+    count = rows = 0
+    try:
+        for start, footer in parts:
+            first = footer if first is None else first
+            delta = start - 4
+            seen = set()
+            fid, ft, i = _field(footer, 0, 0)
+            while ft != _STOP:
+                if fid == _FMD_NUM_ROWS and ft == _I64:
+                    n, i = _read(footer, i, ft)
+                    rows += n  # type: ignore[operator]
+                elif fid == _FMD_ROW_GROUPS and ft == _LIST and footer[i] & 0x0F == _STRUCT:
+                    size, i = footer[i] >> 4, i + 1
+                    if size == 15:
+                        size, i = _varint(footer, i)
+                    for _ in range(size):
+                        i = _row_group_at(footer, i, groups, delta, count)
+                        count += 1
+                elif ft not in (_TRUE, _FALSE):
+                    i = _skip(footer, i, ft)
+                seen.add(fid)
+                fid, ft, i = _field(footer, i, fid)
+            if i != len(footer):
+                raise FooterError("trailing bytes after the Parquet footer")
+            if not {_FMD_NUM_ROWS, _FMD_ROW_GROUPS} <= seen:
+                raise FooterError("a Parquet footer without its row count or row groups")
+        if first is None:
+            raise FooterError("no part to join")
+        # the first part's footer with the row count and the row groups replaced
+        out = bytearray()
+        h0 = 0
+        fid, ft, i = _field(first, 0, 0)
+        while ft != _STOP:
+            end = i if ft in (_TRUE, _FALSE) else _skip(first, i, ft)
+            out += first[h0:i]
+            if fid == _FMD_NUM_ROWS:
+                _put_varint(out, _zig(rows))
+            elif fid == _FMD_ROW_GROUPS:
+                if count < 15:
+                    out.append(count << 4 | _STRUCT)
+                else:
+                    out.append(0xF0 | _STRUCT)
+                    _put_varint(out, count)
+                out += groups
+            else:
+                out += first[i:end]
+            h0 = end
+            fid, ft, i = _field(first, end, fid)
+        out.append(_STOP)
+    except IndexError:
+        raise FooterError("a truncated Parquet footer") from None
+    return bytes(out)

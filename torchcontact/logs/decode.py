@@ -274,12 +274,10 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
         return
     base = len(names) + 1
     pair = codes[0][ok] * base + codes[1][ok]
-    uniq, pid = np.unique(pair, return_inverse=True)
-    # records per (frame, pair), then the most of each pair over the frames
-    fp, count = np.unique(frame[ok] * len(uniq) + pid.reshape(-1), return_counts=True)
-    most = np.zeros(len(uniq), np.int64)
-    np.maximum.at(most, fp % len(uniq), count)
-    for u, m in zip(uniq.tolist(), most.tolist(), strict=True):
+    fr = frame[ok] - frame[0]  # frames of the block from 0 (list_parent_indices ascend)
+    # records per frame of each pair present (a few pairs: counting, not sorting, the records)
+    for u in np.flatnonzero(np.bincount(pair)).tolist():
+        m = int(np.bincount(fr[pair == u]).max())
         pk = (u // base, u % base)
         into[pk] = max(into.get(pk, 0), m)
 

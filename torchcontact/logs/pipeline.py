@@ -382,6 +382,47 @@ def log_noise(
     return NoiseHead(kept, stream if kept and state["whole"] else None)
 
 
+def recorded_noise(le: LogEstimator, previous: Mapping[str, Any] | None) -> None:
+    """A resume weighs the solve by its interrupted run's noise when only rounding differs.
+
+    The contact-free estimate's forward model runs compiled when its kernel is in the cache and
+    eagerly otherwise (:func:`build_wanted_kernels`), whose results differ in the last bits: a
+    run resumed after the kernel was built takes the interrupted run's values (every source and
+    reason the same, the standard deviations within 1e-9 relative), so that its chunks are
+    estimated with the same weights as those kept.
+
+    Args:
+        le: the run's estimator, its noise resolved (:func:`log_noise`).
+        previous: the interrupted run's record (``Run.previous``), or None.
+    """
+    from torchcontact.noise import FTNoise, SensorNoise
+
+    rec = previous.get("noise") if isinstance(previous, Mapping) else None
+    if le.noise is None or not isinstance(rec, dict):
+        return
+    now = le.noise.summary()
+    if rec == now or {k: v for k, v in rec.items() if k != "sensors"} != {
+        k: v for k, v in now.items() if k != "sensors"
+    }:
+        return
+    a, b = rec.get("sensors"), now["sensors"]
+    if not isinstance(a, dict) or a.keys() != b.keys():
+        return
+    for s, n in b.items():
+        r = a[s]
+        if not isinstance(r, dict) or r.get("source") != n["source"]:
+            return
+        if (r.get("std") is None) != (n["std"] is None):
+            return
+        if n["std"] is not None and not (
+            len(r["std"]) == len(n["std"]) and np.allclose(r["std"], n["std"], rtol=1e-9, atol=0)
+        ):
+            return
+    sensors = {s: SensorNoise(r["source"], None if r["std"] is None else tuple(r["std"]))
+               for s, r in a.items()}  # fmt: skip
+    le.set_noise(FTNoise(sensors, rec.get("reason")))
+
+
 @dataclass
 class NoiseHead:
     """The chunks :func:`log_noise` decoded, for the run to take (:func:`with_head`).
@@ -610,6 +651,7 @@ def estimate_file(
                 raise LogError(
                     f"{run.sidecar}: batch_size {batch_size} is invalid; delete it and rerun"
                 )
+        recorded_noise(le, prev)
         ident = run_ident(path, model, le, engine="local", dtype=str(dtype),
                           half_window=half_window, batch_size=batch_size)  # fmt: skip
         # always present (None when off): a resume with or without them must match
@@ -638,7 +680,7 @@ def estimate_file(
                     yield Done(done + k, tab.num_rows, tab)
 
         try:
-            return run.execute(
+            summary = run.execute(
                 produce(),
                 le.output_schema(),
                 progress=show,
@@ -652,6 +694,34 @@ def estimate_file(
         finally:
             if le.smoother is not None:
                 le.smoother.close()
+    build_wanted_kernels(le)
+    return summary
+
+
+def build_wanted_kernels(le: LogEstimator) -> list[str]:
+    """Start the background builds of the kernels a finished run ran eagerly for want of one.
+
+    The contact-free noise estimate runs its forward model with a kernel only when one is built
+    already (``backend="cached"``: a build of its own would hold the compile slot the estimator
+    kernel needs first). Once a run is done and this process builds nothing more (its estimator
+    kernel was in the cache or is built), the forward model's kernel is requested: a detached
+    build (bounded by the cache's compile slots; the CLI says that it goes on), so that later
+    runs on the robot find every kernel they use in the cache.
+
+    Returns:
+        Names of the kernels whose builds were started.
+    """
+    from torchcontact import kernels
+
+    wanted, le.wanted_kernels = le.wanted_kernels, []
+    # CPU kernels only: a CUDA kernel is built in a thread of this process, which is ending
+    if not wanted or le.model.device.type != "cpu" or kernels.background_builds():
+        return []
+    started = []
+    for prog in wanted:
+        if kernels.compiled(prog, le.model.dtype, le.model.device, wait=False) is None:
+            started += [prog.name]
+    return started
 
 
 def derivative_options(method: str, window: int, order: int) -> tuple[int, int] | None:

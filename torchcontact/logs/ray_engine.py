@@ -62,6 +62,7 @@ from torchcontact.logs.pipeline import (
     log_summary,
     output_paths,
     prepare,
+    recorded_noise,
     resolve_device,
     run_ident,
     run_localize,
@@ -466,6 +467,7 @@ def estimate_file_ray(
             noise.result()
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
+        recorded_noise(le, run.previous() if resume else None)
         ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
                           half_window=half_window, batch_size=batch_size,
                           task_rows=task_rows)  # fmt: skip
