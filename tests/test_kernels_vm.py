@@ -177,9 +177,8 @@ def test_vm_float32_rnea_relative_to_float64():
     q, qd, qdd = random_state(model, 70, seed=3)
     x64 = {"q": q, "qd": qd, "qdd": qdd}
     ref = kernels.run_eager(prog, x64)["tau"]
-    got = kernels.vm_kernel(prog, torch.float32, wait=True)(
-        {k: v.float() for k, v in x64.items()}
-    )["tau"]
+    vm = kernels.vm_kernel(prog, torch.float32, wait=True)
+    got = vm({k: v.float() for k, v in x64.items()})["tau"]
     assert got.dtype == torch.float32
     torch.testing.assert_close(got.double(), ref, atol=2e-4 * float(ref.abs().max()), rtol=0)
 

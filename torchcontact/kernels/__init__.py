@@ -12,6 +12,11 @@ three backends:
   split over ``torch.get_num_threads()`` threads.
 * ``"cuda"``: the same graph as a CUDA kernel, one thread per frame
   (:mod:`torchcontact.kernels._cuda`).
+* the **tape VM** (:mod:`torchcontact.kernels._vm`, :func:`vm_kernel`): one C++ interpreter per
+  machine and dtype (a second or two of the compiler, once) runs any program's graph encoded as
+  bytecode, blocks of frames per instruction: several times eager torch's speed, a fraction of
+  the compiled kernel's, without a per-program build. ``auto`` and ``cached`` use it on CPU
+  while a program's kernel is not built (not a ``backend`` value of its own).
 
 Builds are cached on disk (:mod:`torchcontact.kernels._store`) under ``$TORCHCONTACT_CACHE``
 (default ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``), one entry per generated
@@ -22,10 +27,13 @@ its library's size and sha256; a library is checked before it is loaded, and a d
 is removed and rebuilt (never a crash). Libraries are published atomically, one builder per entry
 (a build lock) and at most ``$TORCHCONTACT_BUILD_JOBS`` compilers at once across processes.
 
-``backend="auto"`` uses a compiled kernel when one is loaded or cached, and otherwise runs eagerly
-while the kernel builds in a detached process (large batches only), which goes on after the
-caller exits (:func:`background_note` says so); a build failure or a missing compiler warns once
-and stays eager.
+``backend="auto"`` uses a compiled kernel when one is loaded or cached. Otherwise (large batches
+only) it runs the program on the tape VM while the kernel builds in a detached process at low
+priority (``nice 19``), and switches to the kernel at the first call after the build; the build
+goes on after the caller exits (:func:`background_note` says so). On a machine whose cache has
+no VM yet, the same detached process first builds the VM (eager meanwhile). ``$TORCHCONTACT_VM``
+(:data:`VM_ENV`): ``0`` no VM (eager while the kernel builds), ``only`` the VM and no kernel
+builds. A build failure or a missing compiler warns once and stays eager.
 """
 
 from __future__ import annotations
@@ -62,6 +70,8 @@ __all__ = [
     "cache_dir",
     "compiled",
     "run",
+    "vm_enabled",
+    "vm_kernel",
     "wait_for_builds",
 ]
 
@@ -659,11 +669,11 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
     """The CPU kernel, else the tape VM, that ``"auto"``/``"cached"`` run ``program`` with.
 
     The compiled kernel when it is loaded or in the cache. Otherwise the VM (:func:`vm_kernel`)
-    runs the program: ``"cached"`` when the VM's library is built, ``"auto"`` (from
-    :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) building it once
-    per machine in a thread (eager meanwhile) and, once the VM is there, starting the kernel's
-    build in a detached low-priority process (:data:`KERNEL_BUILD_NICE`) when
-    :data:`BUILD_KERNEL_BEHIND_VM`; the run switches to the kernel at the first call after its
+    runs the program: ``"cached"`` when the VM's library is built; ``"auto"`` (from
+    :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) also building the
+    VM once per machine in a detached process (eager meanwhile, a second or two), which then
+    builds the program's kernel at low priority (:data:`KERNEL_BUILD_NICE`; not with
+    ``$TORCHCONTACT_VM=only``). The run switches to the kernel at the first call after its
     build. None (eager) when neither is usable.
     """
     if backend == "cached":
@@ -680,7 +690,7 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
     vm = vm_kernel(program, dtype, build=True)
     if vm is None and _vm_state(dtype) == "building":
         return None  # eager while the VM builds (its process builds the kernel next)
-    if BUILD_KERNEL_BEHIND_VM or vm is None:
+    if vm is None or _build_behind_vm():
         compiled(program, dtype, "cpu", wait=False)
     return vm
 
@@ -693,12 +703,9 @@ def _ready(program: Program, like: Tensor) -> bool:
 
 # -------------------------------------------------------------------------------------- tape VM
 #: Environment variable: ``0`` turns the tape VM off (``auto`` then runs eagerly while a kernel
-#: builds, as before the VM).
+#: builds, as before the VM); ``only``: the VM runs programs whose kernel is not built and
+#: ``auto`` starts no kernel build; ``1`` (default): the VM, and the kernel built behind it.
 VM_ENV = "TORCHCONTACT_VM"
-#: While the VM runs a program whose kernel is not built, ``auto`` builds the kernel in the
-#: background for later calls and runs (measured in docs/kernel_cache.md: with the build at
-#: low priority, the run that starts it is as fast as without it).
-BUILD_KERNEL_BEHIND_VM = True
 #: ``nice`` increment of a kernel build started while the VM runs the program: the compiler
 #: takes the cores the run leaves idle, not the run's.
 KERNEL_BUILD_NICE = 19
@@ -710,10 +717,28 @@ _vm_calls: dict[str, Callable] = {}  # ckey -> the VM bound to the program's byt
 _vm_code: dict[str, object] = {}  # key hash -> bytecode encoded in this process
 
 
-def _vm_enabled() -> bool:
+def _vm_mode() -> str:
     import os
 
-    return os.environ.get(VM_ENV, "1").strip() != "0"
+    return os.environ.get(VM_ENV, "1").strip().lower()
+
+
+def vm_enabled() -> bool:
+    """True unless ``$TORCHCONTACT_VM`` is ``0``.
+
+    Then ``auto`` runs a program whose kernel is not built on the tape VM (when a compiler can
+    build the VM).
+    """
+    return _vm_mode() != "0"
+
+
+def _build_behind_vm() -> bool:
+    """True unless ``$TORCHCONTACT_VM`` is ``only``.
+
+    While the VM runs a program whose kernel is not built, ``auto`` builds the kernel in the
+    background, at low priority, for later calls and runs (measured in docs/kernel_cache.md).
+    """
+    return _vm_mode() != "only"
 
 
 def _vm_entry(dtype: torch.dtype) -> tuple[_store.Entry, str]:
@@ -809,7 +834,7 @@ def _spawn_vm(dtype: torch.dtype, entry: _store.Entry, then: Program | None) -> 
         if dtype in _vm_builds and not _vm_builds[dtype].done():
             return
     entries, kernel = [entry], None
-    if then is not None and BUILD_KERNEL_BEHIND_VM:
+    if then is not None and _build_behind_vm():
         ckey = f"{then.key}|{dtype}|cpu"
         kentry, (kstate, _) = _cpu_entry(then, dtype)
         with _lock:
@@ -832,8 +857,8 @@ def _vm_fail(dtype: torch.dtype, why: str, raise_: bool = False) -> None:
     if raise_:
         raise KernelBuildError(why)
     if first:
-        warnings.warn(f"the tape VM ({dtype}) is not available: {why}; running eagerly"
-                      " until the program's kernel is built", RuntimeWarning, stacklevel=3)  # fmt: skip
+        msg = f"the tape VM ({dtype}) is not available: {why}; running eagerly"
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
 def _bytecode_path(kh: str) -> Path:
@@ -844,7 +869,7 @@ def _save_bytecode(program: Program, kh: str):
     """Encode ``program``'s trace for the VM and save it beside the index (once per key)."""
     from torchcontact.kernels import _vm
 
-    if not _vm_enabled():
+    if not vm_enabled():
         return None
     bc = _vm_code.get(kh)
     if bc is None:
@@ -857,8 +882,11 @@ def _save_bytecode(program: Program, kh: str):
 
 
 def _bytecode(program: Program, dtype: torch.dtype):
-    """The VM bytecode of ``program``: encoded in this process, saved in the cache (checked), or
-    traced and encoded now (and saved)."""
+    """The VM bytecode of ``program``.
+
+    Encoded in this process, or saved in the cache (checked), or traced and encoded now (and
+    saved).
+    """
     from torchcontact.kernels import _vm
 
     kh = _key_hash(program, dtype)
@@ -886,7 +914,7 @@ def vm_kernel(
         dtype: float32 or float64.
         build: build the VM's library when it is not in the cache, in a detached process
             that then builds the program's own kernel at low priority
-            (:data:`BUILD_KERNEL_BEHIND_VM`); None meanwhile. False returns None then.
+            (not with ``$TORCHCONTACT_VM=only``); None meanwhile. False returns None then.
         wait: build the VM's library now (a second or two) and return the VM.
 
     Returns:
@@ -898,7 +926,7 @@ def vm_kernel(
     """
     from torchcontact.kernels import _vm
 
-    if dtype not in _DTYPES or not _vm_enabled():
+    if dtype not in _DTYPES or not vm_enabled():
         return None
     ckey = f"{program.key}|{dtype}|cpu"
     with _lock:

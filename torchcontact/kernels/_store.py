@@ -454,8 +454,7 @@ def build(entry: Entry, jobs: int | None = None, flags: tuple[str, ...] = CFLAGS
 def spawn_build(
     entry: Entry | list[Entry], jobs: int | None = None, nice: int = 0
 ) -> subprocess.Popen:
-    """Start :func:`build` of ``entry`` (or of several, one after the other) in a detached
-    process; returns it.
+    """Start :func:`build` of ``entry`` (or of several, in order) in a detached process.
 
     The process runs this file by path (the standard library only, no torch), in its own
     session, so the build finishes and fills the cache even when the process that asked for it
@@ -467,6 +466,9 @@ def spawn_build(
         jobs: compile slots (default :func:`build_jobs`).
         nice: priority increment of the kernels' compilers (``os.nice``; 19: they run on the
             CPU time other processes leave), taken after the tape VM's build.
+
+    Returns:
+        The builder process.
     """
     entries = entry if isinstance(entry, list) else [entry]
     cmd = [sys.executable, "-I", str(Path(__file__).resolve()), "build",

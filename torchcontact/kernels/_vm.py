@@ -145,7 +145,11 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
         case DIV: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_DIV) break; }
         case FMA: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMA) break; }
         case FMS: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMS) break; }
-        case NEG: { const V* A = S + (int64_t)x.a * NV; for (int v = 0; v < NV; ++v) D[v] = -A[v]; break; }
+        case NEG: {
+          const V* A = S + (int64_t)x.a * NV;
+          for (int v = 0; v < NV; ++v) D[v] = -A[v];
+          break;
+        }
         case SQRT: {
           T* d = (T*)D;
           const T* a = (const T*)(S + (int64_t)x.a * NV);
@@ -389,7 +393,8 @@ def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
             x = s.args[0]
             a = ref(x)
             vreg[s.index] = v = new_vreg()
-            twin = trig.get(("cos" if op == "sin" else "sin", x.index)) if isinstance(x, Sym) else None
+            other = "cos" if op == "sin" else "sin"
+            twin = trig.get((other, x.index)) if isinstance(x, Sym) else None
             if twin is not None and twin not in vreg:
                 vreg[twin] = w = new_vreg()
                 sn, cs = (v, w) if op == "sin" else (w, v)
