@@ -31,7 +31,8 @@ is removed and rebuilt (never a crash). Libraries are published atomically, one 
 only) it runs the program on the tape VM while the kernel builds in a detached process at low
 priority (``nice 19``), and switches to the kernel at the first call after the build; the build
 goes on after the caller exits (:func:`background_note` says so). On a machine whose cache has
-no VM yet, the same detached process first builds the VM (eager meanwhile). ``$TORCHCONTACT_VM``
+no VM yet, the same detached process first builds the VM (the call waits for it, at most
+:data:`VM_WAIT_S`; eager after that). ``$TORCHCONTACT_VM``
 (:data:`VM_ENV`): ``0`` no VM (eager while the kernel builds), ``only`` the VM and no kernel
 builds. A build failure or a missing compiler warns once and stays eager.
 """
@@ -671,7 +672,7 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
     The compiled kernel when it is loaded or in the cache. Otherwise the VM (:func:`vm_kernel`)
     runs the program: ``"cached"`` when the VM's library is built; ``"auto"`` (from
     :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) also building the
-    VM once per machine in a detached process (eager meanwhile, a second or two), which then
+    VM once per machine in a detached process (waiting for it up to :data:`VM_WAIT_S`), which then
     builds the program's kernel at low priority (:data:`KERNEL_BUILD_NICE`; not with
     ``$TORCHCONTACT_VM=only``). The run switches to the kernel at the first call after its
     build. None (eager) when neither is usable.
@@ -689,7 +690,12 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
         return k
     vm = vm_kernel(program, dtype, build=True)
     if vm is None and _vm_state(dtype) == "building":
-        return None  # eager while the VM builds (its process builds the kernel next)
+        # the VM's build is short: waiting for it leaves the compiler the cores that eager
+        # torch would take (measured faster than running eagerly meanwhile)
+        _wait_for_vm(dtype, VM_WAIT_S)
+        vm = vm_kernel(program, dtype, build=False)
+        if vm is None:
+            return None  # eager while the VM builds (its process builds the kernel next)
     if vm is None or _build_behind_vm():
         compiled(program, dtype, "cpu", wait=False)
     return vm
@@ -709,6 +715,9 @@ VM_ENV = "TORCHCONTACT_VM"
 #: ``nice`` increment of a kernel build started while the VM runs the program: the compiler
 #: takes the cores the run leaves idle, not the run's.
 KERNEL_BUILD_NICE = 19
+#: Seconds ``auto`` waits for the VM's own build (under a second of the compiler) before it runs
+#: a program eagerly instead (a compile slot held by another process's long build, say).
+VM_WAIT_S = 10.0
 
 _vm_fns: dict[torch.dtype, Callable] = {}  # the VM's ctypes function per dtype
 _vm_builds: dict[torch.dtype, _Build] = {}  # the detached process building the VM
@@ -826,6 +835,20 @@ def _vm_function(
     except KernelBuildError as e:
         _vm_fail(dtype, str(e), wait)
     return None
+
+
+def _wait_for_vm(dtype: torch.dtype, timeout: float) -> None:
+    """Wait until the VM's library is published, its builder has ended, or ``timeout`` s."""
+    import time
+
+    entry, _ = _vm_entry(dtype)
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with _lock:
+            b = _vm_builds.get(dtype)
+        if b is None or b.done() or entry.check()[0] == "ok":
+            return
+        time.sleep(0.05)
 
 
 def _spawn_vm(dtype: torch.dtype, entry: _store.Entry, then: Program | None) -> None:
