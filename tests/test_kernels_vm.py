@@ -251,3 +251,21 @@ def test_auto_and_cached_run_the_vm_while_the_kernel_is_not_built(tmp_path, monk
     kernels.run(prog, x, "auto")
     assert kernels._ready(prog, q)  # the compiled kernel, once built
     assert all(e["state"] == "ok" for e in _store.entries(tmp_path / "kernels"))
+
+
+def test_cached_builds_the_vm_once_and_never_a_kernel(tmp_path, monkeypatch):
+    """On a machine without the VM, ``cached`` (a log's noise estimate) builds the VM alone,
+    waits for it and runs on it: no kernel build starts."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    prog = dynamics.program(_pendulum(0.86), "id", False, False)
+    q = torch.linspace(-3, 3, kernels.AUTO_BUILD_MIN_FRAMES, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    out = kernels.run(prog, x, "cached")["tau"]
+    torch.testing.assert_close(out, kernels.run_eager(prog, x)["tau"], atol=VM_VS_EAGER, rtol=0)
+    assert f"{prog.key}|{torch.float64}|cpu" in kernels._vm_calls  # it ran on the VM
+    kernels.wait_for_builds(timeout=120)
+    assert not kernels.background_builds() and not kernels._ready(prog, q)
+    states = {e["name"].split("_")[1]: e["state"] for e in _store.entries(tmp_path / "kernels")}
+    assert states["vm-double"] == "ok" and states.get("rnea", "source only") == "source only"

@@ -77,8 +77,10 @@ __all__ = [
 ]
 
 #: Accepted ``backend`` arguments. ``"cached"``: the kernel when it is built already (loaded or
-#: in the disk cache), else eager, and never a build (a short side computation, such as a log's
-#: contact-free noise estimate, must not take the compile slot from the run's own kernel).
+#: in the disk cache), else the tape VM, else eager, and never a kernel build (a short side
+#: computation, such as a log's contact-free noise estimate, must not take the compile slot from
+#: the run's own kernel); from :data:`AUTO_BUILD_MIN_FRAMES` frames it builds the VM (once per
+#: machine and dtype, under a second of the compiler) when the cache has none.
 BACKENDS = ("auto", "eager", "cpu", "cuda", "cached")
 
 #: Batches at least this large start a background build under ``backend="auto"``.
@@ -625,7 +627,8 @@ def run(
         tensors: input name -> ``(N, k)`` tensor (one dtype and device).
         backend: ``"auto"`` (compiled if ready, else eager while it builds), ``"eager"``,
             ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure),
-            ``"cached"`` (compiled if built already, else eager; no build).
+            ``"cached"`` (compiled if built already, else the tape VM, else eager; no kernel
+            build).
 
     Returns:
         Output name -> ``(N, k)`` tensor.
@@ -651,7 +654,8 @@ def _usable_kernel(program: Program, like: Tensor, backend: str) -> Callable | N
     None (run eagerly) for inputs that need gradients, while tracing, and for a dtype or device
     without kernels. ``"auto"`` asks for the kernel of a batch of at least
     :data:`AUTO_BUILD_MIN_FRAMES` frames (starting its background build) or of a kernel already
-    loaded; ``"cached"`` takes it only when built already and never starts a build.
+    loaded; ``"cached"`` takes it only when built already and never starts a kernel build. On
+    CPU, the tape VM where the kernel is not built (:func:`_usable_cpu`).
     """
     if like.requires_grad or _tracing():
         return None
@@ -670,7 +674,8 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
     """The CPU kernel, else the tape VM, that ``"auto"``/``"cached"`` run ``program`` with.
 
     The compiled kernel when it is loaded or in the cache. Otherwise the VM (:func:`vm_kernel`)
-    runs the program: ``"cached"`` when the VM's library is built; ``"auto"`` (from
+    runs the program: ``"cached"`` (building the VM alone, from :data:`AUTO_BUILD_MIN_FRAMES`
+    frames, when the cache has none); ``"auto"`` (from
     :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) also building the
     VM once per machine in a detached process (waiting for it up to :data:`VM_WAIT_S`), which then
     builds the program's kernel at low priority (:data:`KERNEL_BUILD_NICE`; not with
@@ -679,7 +684,14 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
     """
     if backend == "cached":
         k = compiled(program, dtype, "cpu", wait=False, build=False)
-        return k if k is not None else vm_kernel(program, dtype, build=False)
+        if k is not None or n < AUTO_BUILD_MIN_FRAMES:
+            return k if k is not None else vm_kernel(program, dtype, build=False)
+        # the VM is the machine's, not the program's: a short build, no kernel build after it
+        vm = vm_kernel(program, dtype, build=True, kernel_after=False)
+        if vm is None and _vm_state(dtype) == "building":
+            _wait_for_vm(dtype, VM_WAIT_S)
+            vm = vm_kernel(program, dtype, build=False)
+        return vm
     ckey = f"{program.key}|{dtype}|cpu"
     with _lock:
         known = ckey in _loaded or ckey in _vm_calls
@@ -924,7 +936,11 @@ def _bytecode(program: Program, dtype: torch.dtype):
 
 
 def vm_kernel(
-    program: Program, dtype: torch.dtype, build: bool = True, wait: bool = False
+    program: Program,
+    dtype: torch.dtype,
+    build: bool = True,
+    wait: bool = False,
+    kernel_after: bool = True,
 ) -> Callable | None:
     """``program`` on the tape VM (:mod:`torchcontact.kernels._vm`) for ``dtype`` on CPU.
 
@@ -939,6 +955,8 @@ def vm_kernel(
             that then builds the program's own kernel at low priority
             (not with ``$TORCHCONTACT_VM=only``); None meanwhile. False returns None then.
         wait: build the VM's library now (a second or two) and return the VM.
+        kernel_after: with ``build``, the detached process builds the program's kernel after
+            the VM (False: the VM only).
 
     Returns:
         ``call(tensors: dict[str, (N, k) Tensor]) -> dict[str, (N, k) Tensor]``, or None while
@@ -955,7 +973,7 @@ def vm_kernel(
     with _lock:
         if ckey in _vm_calls:
             return _vm_calls[ckey]
-    fn = _vm_function(dtype, build, wait, then=program)
+    fn = _vm_function(dtype, build, wait, then=program if kernel_after else None)
     if fn is None:
         return None
     try:
