@@ -4,11 +4,13 @@
 work in one process), in rounds; each round runs, one after the other:
 
 * ``warm``: the kernel cache filled (the estimator's kernel built);
-* ``cold, VM + kernel behind``: an empty cache, the default (``$TORCHCONTACT_VM=1``): the VM
-  builds (a second or two, eager meanwhile), runs the log, and the estimator's kernel builds
-  behind it at ``nice 19``; the run switches to it if it is ready before the end;
-* ``cold, ..., VM already built``: the same with the VM's entry copied into the empty cache (a
-  new robot, or a new torchcontact version, on a machine that has run torchcontact before);
+* ``cold, VM, kernel built after the run``: an empty cache, the default
+  (``$TORCHCONTACT_VM=1``): the VM builds (under a second; the run waits for it), runs the log,
+  and the estimator's kernel builds once the run's process exits (detached, ``nice 19``);
+* ``cold, VM (already built), ...``: the same with the VM's entry copied into the empty cache
+  (a new robot, or a new torchcontact version, on a machine that has run torchcontact before);
+* ``cold, VM + kernel built behind it``: ``$TORCHCONTACT_VM=behind``: the kernel builds during
+  the run at ``nice 19`` and the run switches to it at the next chunk after the build;
 * ``cold, VM only``: an empty cache, ``$TORCHCONTACT_VM=only`` (no kernel build);
 * ``cold, eager while building``: an empty cache, ``$TORCHCONTACT_VM=0`` (before the VM).
 
@@ -40,8 +42,9 @@ from pipeline import run_child, write_log  # noqa: E402
 
 VARIANTS = [
     ("warm", None),
-    ("cold, VM + kernel behind (default)", "1"),
-    ("cold, VM + kernel behind, VM already built", "1+vm"),
+    ("cold, VM, kernel built after the run (default)", "1"),
+    ("cold, VM (already built), kernel after the run", "1+vm"),
+    ("cold, VM + kernel built behind it (nice 19)", "behind"),
     ("cold, VM only", "only"),
     ("cold, eager while building (no VM)", "0"),
 ]

@@ -557,6 +557,7 @@ def wait_for_builds(timeout: float | None = None) -> None:
     Args:
         timeout: seconds to wait for each build (None: until it ends).
     """
+    _spawn_deferred()
     with _lock:
         pending = [*_vm_builds.values(), *_building.values()]
     for b in pending:
@@ -564,13 +565,15 @@ def wait_for_builds(timeout: float | None = None) -> None:
 
 
 def background_builds() -> list[str]:
-    """Names of the kernels this process started building that are still being built.
+    """Names of the kernels this process is building, or builds when it exits.
 
-    Their builds are detached processes: they go on, and fill the cache, after this process
-    exits.
+    The latter are the kernels of programs the tape VM ran (:func:`_defer_build`). Their
+    builds are detached processes: they go on, and fill the cache, after this process exits.
     """
     with _lock:
-        return [b.entry.name for b in _building.values() if isinstance(b, _Build) and not b.done()]
+        later = [name for _, _, name in _deferred.values()]
+        return [b.entry.name for b in _building.values()
+                if isinstance(b, _Build) and not b.done()] + later  # fmt: skip
 
 
 def background_note() -> str | None:
@@ -708,8 +711,10 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
         vm = vm_kernel(program, dtype, build=False)
         if vm is None:
             return None  # eager while the VM builds (its process builds the kernel next)
-    if vm is None or _build_behind_vm():
+    if vm is None or _vm_mode() == "behind":
         compiled(program, dtype, "cpu", wait=False)
+    elif _vm_mode() != "only":
+        _defer_build(program, dtype)
     return vm
 
 
@@ -721,8 +726,11 @@ def _ready(program: Program, like: Tensor) -> bool:
 
 # -------------------------------------------------------------------------------------- tape VM
 #: Environment variable: ``0`` turns the tape VM off (``auto`` then runs eagerly while a kernel
-#: builds, as before the VM); ``only``: the VM runs programs whose kernel is not built and
-#: ``auto`` starts no kernel build; ``1`` (default): the VM, and the kernel built behind it.
+#: builds, as before the VM); ``only``: the VM runs programs whose kernel is not built and no
+#: kernel build starts; ``behind``: the VM, and the kernel built during the run at low
+#: priority; ``1`` (default): the VM, and the kernel built once the process exits (detached,
+#: low priority; :func:`background_note` says so), measured faster for the run itself
+#: (docs/kernel_cache.md).
 VM_ENV = "TORCHCONTACT_VM"
 #: ``nice`` increment of a kernel build started while the VM runs the program: the compiler
 #: takes the cores the run leaves idle, not the run's.
@@ -754,12 +762,65 @@ def vm_enabled() -> bool:
 
 
 def _build_behind_vm() -> bool:
-    """True unless ``$TORCHCONTACT_VM`` is ``only``.
+    """True when ``$TORCHCONTACT_VM`` is ``behind``: the kernel builds during the run."""
+    return _vm_mode() == "behind"
 
-    While the VM runs a program whose kernel is not built, ``auto`` builds the kernel in the
-    background, at low priority, for later calls and runs (measured in docs/kernel_cache.md).
+
+#: kernels to build when the process ends: ckey -> (program, dtype, entry name)
+_deferred: dict[str, tuple[Program, torch.dtype, str]] = {}
+_atexit: list[bool] = []
+
+
+def _defer_build(program: Program, dtype: torch.dtype) -> None:
+    """Build ``program``'s kernel once this process ends (or at :func:`wait_for_builds`).
+
+    While the VM runs it, a compiler beside the run costs the run more than the kernel saves
+    it (measured: docs/kernel_cache.md); later runs get the kernel.
     """
-    return _vm_mode() != "only"
+    import atexit
+
+    ckey = f"{program.key}|{dtype}|cpu"
+    with _lock:
+        if ckey in _deferred or ckey in _building or ckey in _loaded or ckey in _failed:
+            return
+    try:
+        name = _cpu_entry(program, dtype)[0].name
+    except OSError:
+        return
+    with _lock:
+        _deferred[ckey] = (program, dtype, name)
+        if not _atexit:
+            _atexit.append(True)
+            atexit.register(_spawn_deferred)
+
+
+def _spawn_deferred() -> None:
+    """Start the deferred kernel builds (at exit, or when a caller waits for the builds).
+
+    One detached process builds them one after the other, at low priority
+    (:data:`KERNEL_BUILD_NICE`).
+    """
+    with _lock:
+        todo = list(_deferred.items())
+        _deferred.clear()
+    entries, loads = [], []
+    for ckey, (program, dtype, _) in todo:
+        try:
+            entry, (state, _) = _cpu_entry(program, dtype)
+        except OSError:
+            continue
+        if state != "ok":
+            entries.append(entry)
+            loads.append((ckey, entry, program, dtype))
+    if not entries:
+        return
+    proc = _store.spawn_build(entries, nice=KERNEL_BUILD_NICE)
+    with _lock:
+        for ckey, entry, program, dtype in loads:
+            _building.setdefault(
+                ckey,
+                _Build(proc, entry, functools.partial(_load_built, entry, program, dtype)),
+            )
 
 
 def _vm_entry(dtype: torch.dtype) -> tuple[_store.Entry, str]:
