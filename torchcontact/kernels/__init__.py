@@ -28,13 +28,14 @@ is removed and rebuilt (never a crash). Libraries are published atomically, one 
 (a build lock) and at most ``$TORCHCONTACT_BUILD_JOBS`` compilers at once across processes.
 
 ``backend="auto"`` uses a compiled kernel when one is loaded or cached. Otherwise (large batches
-only) it runs the program on the tape VM while the kernel builds in a detached process at low
-priority (``nice 19``), and switches to the kernel at the first call after the build; the build
-goes on after the caller exits (:func:`background_note` says so). On a machine whose cache has
-no VM yet, the same detached process first builds the VM (the call waits for it, at most
-:data:`VM_WAIT_S`; eager after that). ``$TORCHCONTACT_VM``
-(:data:`VM_ENV`): ``0`` no VM (eager while the kernel builds), ``only`` the VM and no kernel
-builds. A build failure or a missing compiler warns once and stays eager.
+only) it runs the program on the tape VM, and the kernel is built once the process exits, in a
+detached process at low priority (``nice 19``), for later runs (:func:`background_note` says
+so). On a machine whose cache has no VM yet, a detached process first builds the VM and the call
+waits for it (at most :data:`VM_WAIT_S`; eager after that). ``$TORCHCONTACT_VM``
+(:data:`VM_ENV`): ``behind`` builds the kernel during the run (the run switches to it at the
+first call after the build), ``only`` never builds kernels under ``auto``, ``0`` turns the VM
+off (eager while the kernel builds, as before the VM). A build failure or a missing compiler
+warns once and stays eager.
 """
 
 from __future__ import annotations
