@@ -12,6 +12,11 @@ three backends:
   split over ``torch.get_num_threads()`` threads.
 * ``"cuda"``: the same graph as a CUDA kernel, one thread per frame
   (:mod:`torchcontact.kernels._cuda`).
+* the **tape VM** (:mod:`torchcontact.kernels._vm`, :func:`vm_kernel`): one C++ interpreter per
+  machine and dtype (a second or two of the compiler, once) runs any program's graph encoded as
+  bytecode, blocks of frames per instruction: several times eager torch's speed, a fraction of
+  the compiled kernel's, without a per-program build. ``auto`` and ``cached`` use it on CPU
+  while a program's kernel is not built (not a ``backend`` value of its own).
 
 Builds are cached on disk (:mod:`torchcontact.kernels._store`) under ``$TORCHCONTACT_CACHE``
 (default ``$XDG_CACHE_HOME/torchcontact`` or ``~/.cache/torchcontact``), one entry per generated
@@ -22,10 +27,15 @@ its library's size and sha256; a library is checked before it is loaded, and a d
 is removed and rebuilt (never a crash). Libraries are published atomically, one builder per entry
 (a build lock) and at most ``$TORCHCONTACT_BUILD_JOBS`` compilers at once across processes.
 
-``backend="auto"`` uses a compiled kernel when one is loaded or cached, and otherwise runs eagerly
-while the kernel builds in a detached process (large batches only), which goes on after the
-caller exits (:func:`background_note` says so); a build failure or a missing compiler warns once
-and stays eager.
+``backend="auto"`` uses a compiled kernel when one is loaded or cached. Otherwise (large batches
+only) it runs the program on the tape VM, and the kernel is built once the process exits, in a
+detached process at low priority (``nice 19``), for later runs (:func:`background_note` says
+so). On a machine whose cache has no VM yet, a detached process first builds the VM and the call
+waits for it (at most :data:`VM_WAIT_S`; eager after that). ``$TORCHCONTACT_VM``
+(:data:`VM_ENV`): ``behind`` builds the kernel during the run (the run switches to it at the
+first call after the build), ``only`` never builds kernels under ``auto``, ``0`` turns the VM
+off (eager while the kernel builds, as before the VM). A build failure or a missing compiler
+warns once and stays eager.
 """
 
 from __future__ import annotations
@@ -62,12 +72,16 @@ __all__ = [
     "cache_dir",
     "compiled",
     "run",
+    "vm_enabled",
+    "vm_kernel",
     "wait_for_builds",
 ]
 
 #: Accepted ``backend`` arguments. ``"cached"``: the kernel when it is built already (loaded or
-#: in the disk cache), else eager, and never a build (a short side computation, such as a log's
-#: contact-free noise estimate, must not take the compile slot from the run's own kernel).
+#: in the disk cache), else the tape VM, else eager, and never a kernel build (a short side
+#: computation, such as a log's contact-free noise estimate, must not take the compile slot from
+#: the run's own kernel); from :data:`AUTO_BUILD_MIN_FRAMES` frames it builds the VM (once per
+#: machine and dtype, under a second of the compiler) when the cache has none.
 BACKENDS = ("auto", "eager", "cpu", "cuda", "cached")
 
 #: Batches at least this large start a background build under ``backend="auto"``.
@@ -255,6 +269,7 @@ def _cpu_entry(program: Program, dtype: torch.dtype) -> tuple[_store.Entry, tupl
             if _store.file_digest(entry.source)[1] == rec.get("source_sha256"):
                 return entry, state
     src, h = _source(program, dtype)
+    _save_bytecode(program, kh)  # the VM's code of the same trace: no second trace for it
     program._traced.clear()  # the source is all the cache needs: free the trace's memory
     name, cpp, _ = _paths(program, h)
     _write_source(cpp, src)
@@ -323,10 +338,21 @@ def build_source(name: str, cpp: Path) -> Path:
     return _store.build(_store.Entry(Path(cpp).parent.parent, name, Path(cpp).suffix))
 
 
-def _wrap(fn, program: Program, dtype: torch.dtype) -> Callable:
-    fn.restype = None
-    fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                   ctypes.c_void_p]  # fmt: skip
+def _wrap(fn, program: Program, dtype: torch.dtype, lead: tuple = (), block: int = 16) -> Callable:
+    """``call(tensors) -> outputs`` of a C kernel ``fn(n, in, in_stride, out, out_stride)``.
+
+    Args:
+        fn: the ctypes function (its ``argtypes`` are set here unless ``lead`` is given).
+        program: the program (input and output arrays, in order).
+        dtype: the kernel's dtype.
+        lead: ctypes arguments passed before ``n`` (the VM's bytecode); the caller sets
+            ``fn.argtypes`` and ``fn.restype`` (a non-zero ``int`` result raises MemoryError).
+        block: frames a piece of a threaded call is a multiple of.
+    """
+    if not lead:
+        fn.restype = None
+        fn.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                       ctypes.c_void_p]  # fmt: skip
     names_in, names_out = list(program.inputs), list(program.outputs)
 
     def call(tensors: Mapping[str, Tensor]) -> dict[str, Tensor]:
@@ -340,14 +366,14 @@ def _wrap(fn, program: Program, dtype: torch.dtype) -> Callable:
         outl = [outs[k] for k in names_out]
         nthreads = max(1, torch.get_num_threads())
         if n < 1024 or nthreads == 1:
-            _invoke(fn, 0, n, ins, outl)
+            _invoke(fn, 0, n, ins, outl, lead)
         else:
             # several pieces per thread, taken as threads come free: a thread the OS does not
             # schedule (a busy neighbour on the other core) holds back one piece, not half
             pool = _get_pool(nthreads)
             step = max(512, -(-n // (4 * nthreads)))
-            step = -(-step // 16) * 16  # whole vector blocks per piece
-            futs = [pool.submit(_invoke, fn, s, min(n, s + step), ins, outl)
+            step = -(-step // block) * block  # whole blocks per piece
+            futs = [pool.submit(_invoke, fn, s, min(n, s + step), ins, outl, lead)
                     for s in range(0, n, step)]  # fmt: skip
             for f in futs:
                 f.result()
@@ -364,7 +390,7 @@ def _get_pool(n: int) -> ThreadPoolExecutor:
         return _pool
 
 
-def _invoke(fn, s: int, e: int, ins: list[Tensor], outs: list[Tensor]) -> None:
+def _invoke(fn, s: int, e: int, ins: list[Tensor], outs: list[Tensor], lead: tuple = ()) -> None:
     """Call the kernel on frames ``[s, e)`` (row offsets into each array; ctypes drops the GIL)."""
     if e <= s:
         return
@@ -373,7 +399,8 @@ def _invoke(fn, s: int, e: int, ins: list[Tensor], outs: list[Tensor]) -> None:
     in_s = (ctypes.c_int64 * len(ins))(*[x.stride(0) for x in ins])
     out_p = (ptr * len(outs))(*[x.data_ptr() + s * x.stride(0) * x.element_size() for x in outs])
     out_s = (ctypes.c_int64 * len(outs))(*[x.stride(0) for x in outs])
-    fn(e - s, in_p, in_s, out_p, out_s)
+    if fn(*lead, e - s, in_p, in_s, out_p, out_s):
+        raise MemoryError("the kernel could not allocate its working memory")
 
 
 def _heal(ckey: str, entry: _store.Entry, why: str, wait: bool) -> bool:
@@ -477,9 +504,11 @@ def _compiled_cpu(
         return _finish(ckey, lambda: _build_now(entry, program, dtype), raise_=True)
     if not build:
         return None
+    # the VM runs the program meanwhile: the kernel builds on the cores the run leaves
+    nice = KERNEL_BUILD_NICE if _vm_state(dtype) == "ready" else 0
     with _lock:  # one builder per kernel, also when several threads ask at once
         if ckey not in _building and ckey not in _loaded:
-            proc = _store.spawn_build(entry)
+            proc = _store.spawn_build(entry, nice=nice)
             _building[ckey] = _Build(proc, entry, lambda: _load_built(entry, program, dtype))
     return None
 
@@ -529,20 +558,23 @@ def wait_for_builds(timeout: float | None = None) -> None:
     Args:
         timeout: seconds to wait for each build (None: until it ends).
     """
+    _spawn_deferred()
     with _lock:
-        pending = list(_building.values())
+        pending = [*_vm_builds.values(), *_building.values()]
     for b in pending:
         b.join(timeout)
 
 
 def background_builds() -> list[str]:
-    """Names of the kernels this process started building that are still being built.
+    """Names of the kernels this process is building, or builds when it exits.
 
-    Their builds are detached processes: they go on, and fill the cache, after this process
-    exits.
+    The latter are the kernels of programs the tape VM ran (:func:`_defer_build`). Their
+    builds are detached processes: they go on, and fill the cache, after this process exits.
     """
     with _lock:
-        return [b.entry.name for b in _building.values() if isinstance(b, _Build) and not b.done()]
+        later = [name for _, _, name in _deferred.values()]
+        return [b.entry.name for b in _building.values()
+                if isinstance(b, _Build) and not b.done()] + later  # fmt: skip
 
 
 def background_note() -> str | None:
@@ -599,7 +631,8 @@ def run(
         tensors: input name -> ``(N, k)`` tensor (one dtype and device).
         backend: ``"auto"`` (compiled if ready, else eager while it builds), ``"eager"``,
             ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure),
-            ``"cached"`` (compiled if built already, else eager; no build).
+            ``"cached"`` (compiled if built already, else the tape VM, else eager; no kernel
+            build).
 
     Returns:
         Output name -> ``(N, k)`` tensor.
@@ -625,12 +658,15 @@ def _usable_kernel(program: Program, like: Tensor, backend: str) -> Callable | N
     None (run eagerly) for inputs that need gradients, while tracing, and for a dtype or device
     without kernels. ``"auto"`` asks for the kernel of a batch of at least
     :data:`AUTO_BUILD_MIN_FRAMES` frames (starting its background build) or of a kernel already
-    loaded; ``"cached"`` takes it only when built already and never starts a build.
+    loaded; ``"cached"`` takes it only when built already and never starts a kernel build. On
+    CPU, the tape VM where the kernel is not built (:func:`_usable_cpu`).
     """
     if like.requires_grad or _tracing():
         return None
     if like.dtype not in _DTYPES or like.device.type not in ("cpu", "cuda"):
         return None
+    if like.device.type == "cpu":
+        return _usable_cpu(program, like.dtype, backend, like.shape[0])
     if backend == "cached":
         return compiled(program, like.dtype, like.device, wait=False, build=False)
     if like.shape[0] >= AUTO_BUILD_MIN_FRAMES or _ready(program, like):
@@ -638,9 +674,379 @@ def _usable_kernel(program: Program, like: Tensor, backend: str) -> Callable | N
     return None
 
 
+def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> Callable | None:
+    """The CPU kernel, else the tape VM, that ``"auto"``/``"cached"`` run ``program`` with.
+
+    The compiled kernel when it is loaded or in the cache. Otherwise the VM (:func:`vm_kernel`)
+    runs the program: ``"cached"`` (building the VM alone, from :data:`AUTO_BUILD_MIN_FRAMES`
+    frames, when the cache has none); ``"auto"`` (from
+    :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) also building the
+    VM once per machine in a detached process (waiting for it up to :data:`VM_WAIT_S`), which then
+    builds the program's kernel at low priority (:data:`KERNEL_BUILD_NICE`; not with
+    ``$TORCHCONTACT_VM=only``). The run switches to the kernel at the first call after its
+    build. None (eager) when neither is usable.
+    """
+    if backend == "cached":
+        k = compiled(program, dtype, "cpu", wait=False, build=False)
+        if k is not None or n < AUTO_BUILD_MIN_FRAMES:
+            return k if k is not None else vm_kernel(program, dtype, build=False)
+        # the VM is the machine's, not the program's: a short build, no kernel build after it
+        vm = vm_kernel(program, dtype, build=True, kernel_after=False)
+        if vm is None and _vm_state(dtype) == "building":
+            _wait_for_vm(dtype, VM_WAIT_S)
+            vm = vm_kernel(program, dtype, build=False)
+        return vm
+    ckey = f"{program.key}|{dtype}|cpu"
+    with _lock:
+        known = ckey in _loaded or ckey in _vm_calls
+    if n < AUTO_BUILD_MIN_FRAMES and not known:
+        return None
+    k = compiled(program, dtype, "cpu", wait=False, build=False)
+    if k is not None:
+        return k
+    vm = vm_kernel(program, dtype, build=True)
+    if vm is None and _vm_state(dtype) == "building":
+        # the VM's build is short: waiting for it leaves the compiler the cores that eager
+        # torch would take (measured faster than running eagerly meanwhile)
+        _wait_for_vm(dtype, VM_WAIT_S)
+        vm = vm_kernel(program, dtype, build=False)
+        if vm is None:
+            return None  # eager while the VM builds (its process builds the kernel next)
+    if vm is None or _vm_mode() == "behind":
+        compiled(program, dtype, "cpu", wait=False)
+    elif _vm_mode() != "only":
+        _defer_build(program, dtype)
+    return vm
+
+
 def _ready(program: Program, like: Tensor) -> bool:
+    """True when the compiled kernel of ``program`` is loaded (not only the VM)."""
     with _lock:
         return f"{program.key}|{like.dtype}|{like.device.type}" in _loaded
+
+
+# -------------------------------------------------------------------------------------- tape VM
+#: Environment variable: ``0`` turns the tape VM off (``auto`` then runs eagerly while a kernel
+#: builds, as before the VM); ``only``: the VM runs programs whose kernel is not built and no
+#: kernel build starts; ``behind``: the VM, and the kernel built during the run at low
+#: priority; ``1`` (default): the VM, and the kernel built once the process exits (detached,
+#: low priority; :func:`background_note` says so), measured faster for the run itself
+#: (docs/kernel_cache.md).
+VM_ENV = "TORCHCONTACT_VM"
+#: ``nice`` increment of a kernel build started while the VM runs the program: the compiler
+#: takes the cores the run leaves idle, not the run's.
+KERNEL_BUILD_NICE = 19
+#: Seconds ``auto`` waits for the VM's own build (under a second of the compiler) before it runs
+#: a program eagerly instead (a compile slot held by another process's long build, say).
+VM_WAIT_S = 10.0
+
+_vm_fns: dict[torch.dtype, Callable] = {}  # the VM's ctypes function per dtype
+_vm_builds: dict[torch.dtype, _Build] = {}  # the detached process building the VM
+_vm_failed: dict[torch.dtype, str] = {}
+_vm_calls: dict[str, Callable] = {}  # ckey -> the VM bound to the program's bytecode
+_vm_code: dict[str, object] = {}  # key hash -> bytecode encoded in this process
+
+
+def _vm_mode() -> str:
+    import os
+
+    return os.environ.get(VM_ENV, "1").strip().lower()
+
+
+def vm_enabled() -> bool:
+    """True unless ``$TORCHCONTACT_VM`` is ``0``.
+
+    Then ``auto`` runs a program whose kernel is not built on the tape VM (when a compiler can
+    build the VM).
+    """
+    return _vm_mode() != "0"
+
+
+def _build_behind_vm() -> bool:
+    """True when ``$TORCHCONTACT_VM`` is ``behind``: the kernel builds during the run."""
+    return _vm_mode() == "behind"
+
+
+#: kernels to build when the process ends: ckey -> (program, dtype, entry name)
+_deferred: dict[str, tuple[Program, torch.dtype, str]] = {}
+_atexit: list[bool] = []
+
+
+def _defer_build(program: Program, dtype: torch.dtype) -> None:
+    """Build ``program``'s kernel once this process ends (or at :func:`wait_for_builds`).
+
+    While the VM runs it, a compiler beside the run costs the run more than the kernel saves
+    it (measured: docs/kernel_cache.md); later runs get the kernel.
+    """
+    import atexit
+
+    ckey = f"{program.key}|{dtype}|cpu"
+    with _lock:
+        if ckey in _deferred or ckey in _building or ckey in _loaded or ckey in _failed:
+            return
+    try:
+        name = _cpu_entry(program, dtype)[0].name
+    except OSError:
+        return
+    with _lock:
+        _deferred[ckey] = (program, dtype, name)
+        if not _atexit:
+            _atexit.append(True)
+            atexit.register(_spawn_deferred)
+
+
+def _spawn_deferred() -> None:
+    """Start the deferred kernel builds (at exit, or when a caller waits for the builds).
+
+    One detached process builds them one after the other, at low priority
+    (:data:`KERNEL_BUILD_NICE`).
+    """
+    with _lock:
+        todo = list(_deferred.items())
+        _deferred.clear()
+    entries, loads = [], []
+    for ckey, (program, dtype, _) in todo:
+        try:
+            entry, (state, _) = _cpu_entry(program, dtype)
+        except OSError:
+            continue
+        if state != "ok":
+            entries.append(entry)
+            loads.append((ckey, entry, program, dtype))
+    if not entries:
+        return
+    proc = _store.spawn_build(entries, nice=KERNEL_BUILD_NICE)
+    with _lock:
+        for ckey, entry, program, dtype in loads:
+            _building.setdefault(
+                ckey,
+                _Build(proc, entry, functools.partial(_load_built, entry, program, dtype)),
+            )
+
+
+def _vm_entry(dtype: torch.dtype) -> tuple[_store.Entry, str]:
+    from torchcontact.kernels import _vm
+
+    return _vm.entry(_DTYPES[dtype], _vector_bytes(), _machine_tag())
+
+
+def _vm_state(dtype: torch.dtype) -> str:
+    """``"ready"``, ``"building"``, ``"failed"`` or ``"absent"`` (in this process)."""
+    with _lock:
+        if dtype in _vm_fns:
+            return "ready"
+        if dtype in _vm_failed:
+            return "failed"
+        b = _vm_builds.get(dtype)
+        return "building" if b is not None and not b.done() else "absent"
+
+
+def _vm_function(
+    dtype: torch.dtype, build: bool, wait: bool = False, then: Program | None = None
+) -> Callable | None:
+    """The VM's ctypes function for ``dtype``: loaded, from the cache (checked), or None.
+
+    A library missing from the cache is built by a detached process when ``build`` (None
+    meanwhile; with ``then``, the same process builds that program's kernel next, at low
+    priority), or now when ``wait``. A damaged one is removed and rebuilt (a warning, once);
+    a failed build warns once and the VM stays off for ``dtype`` in this process.
+
+    Raises:
+        KernelBuildError: with ``wait``, the VM cannot be built or loaded.
+    """
+    from torchcontact.kernels import _vm
+
+    with _lock:
+        if dtype in _vm_fns:
+            return _vm_fns[dtype]
+        if dtype in _vm_failed:
+            if wait:
+                raise KernelBuildError(_vm_failed[dtype])
+            return None
+    try:
+        entry, src = _vm_entry(dtype)
+        for _ in range(2):  # a damaged library: healed, then built once more
+            state, why = entry.check()
+            if state == "ok":
+                try:
+                    fn = _vm.load_function(entry)
+                except OSError as e:
+                    state, why = "damaged", str(e)
+                else:
+                    with _lock:
+                        _vm_fns[dtype] = fn
+                    return fn
+            if state == "damaged":
+                if f"vm|{dtype}" in _healed:
+                    raise KernelBuildError(f"the tape VM {entry.dir} is damaged after its rebuild"
+                                           f" ({why})")  # fmt: skip
+                _healed.add(f"vm|{dtype}")
+                warnings.warn(f"kernel cache entry {entry.dir} (the tape VM) is damaged ({why}):"
+                              " removed and rebuilt", RuntimeWarning, stacklevel=4)  # fmt: skip
+                with _store.build_dir_lock(entry.dir, blocking=False) as held:
+                    if held is not None:  # else a builder holds it: it replaces the library
+                        entry.remove_library()
+            with _lock:
+                pending = _vm_builds.get(dtype)
+            if pending is not None and pending.done():  # it ended, and the VM is not there
+                log = ""
+                with contextlib.suppress(OSError):
+                    log = entry.log.read_text().strip()[-1500:]
+                raise KernelBuildError(f"building the tape VM {entry.name} failed: {log}")
+            if pending is not None and not wait:
+                return None
+            if not (build or wait):
+                return None
+            _vm.write_source(entry, src)
+            if not wait:
+                _spawn_vm(dtype, entry, then)
+                return None
+            _vm.build(entry)
+        raise KernelBuildError(f"the tape VM {entry.dir} does not load after its build")
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        _vm_fail(dtype, f"kernel cache {cache_dir() / 'kernels'}: {where}{e.strerror or e}", wait)
+    except KernelBuildError as e:
+        _vm_fail(dtype, str(e), wait)
+    return None
+
+
+def _wait_for_vm(dtype: torch.dtype, timeout: float) -> None:
+    """Wait until the VM's library is published, its builder has ended, or ``timeout`` s."""
+    import time
+
+    entry, _ = _vm_entry(dtype)
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with _lock:
+            b = _vm_builds.get(dtype)
+        if b is None or b.done() or entry.check()[0] == "ok":
+            return
+        time.sleep(0.05)
+
+
+def _spawn_vm(dtype: torch.dtype, entry: _store.Entry, then: Program | None) -> None:
+    """Start the detached build of the VM, and of ``then``'s kernel after it (low priority)."""
+    with _lock:
+        if dtype in _vm_builds and not _vm_builds[dtype].done():
+            return
+    entries, kernel = [entry], None
+    if then is not None and _build_behind_vm():
+        ckey = f"{then.key}|{dtype}|cpu"
+        kentry, (kstate, _) = _cpu_entry(then, dtype)
+        with _lock:
+            free = ckey not in _building and ckey not in _loaded and ckey not in _failed
+        if free and kstate == "absent":
+            entries.append(kentry)
+            kernel = (ckey, kentry, then)
+    proc = _store.spawn_build(entries, nice=KERNEL_BUILD_NICE)
+    with _lock:
+        _vm_builds[dtype] = _Build(proc, entry, lambda: _vm_fns[dtype])
+        if kernel is not None:
+            ckey, kentry, prog = kernel
+            _building[ckey] = _Build(proc, kentry, lambda: _load_built(kentry, prog, dtype))
+
+
+def _vm_fail(dtype: torch.dtype, why: str, raise_: bool = False) -> None:
+    with _lock:
+        first = dtype not in _vm_failed
+        _vm_failed[dtype] = why
+    if raise_:
+        raise KernelBuildError(why)
+    if first:
+        msg = f"the tape VM ({dtype}) is not available: {why}; running eagerly"
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
+
+
+def _bytecode_path(kh: str) -> Path:
+    return cache_dir() / "kernels" / "vmcode" / f"{kh}.bc"
+
+
+def _save_bytecode(program: Program, kh: str):
+    """Encode ``program``'s trace for the VM and save it beside the index (once per key)."""
+    from torchcontact.kernels import _vm
+
+    if not vm_enabled():
+        return None
+    bc = _vm_code.get(kh)
+    if bc is None:
+        tr, out = program.trace()
+        bc = _vm.encode(tr, out)
+        _vm_code[kh] = bc
+    with contextlib.suppress(OSError):
+        bc.save(_bytecode_path(kh))
+    return bc
+
+
+def _bytecode(program: Program, dtype: torch.dtype):
+    """The VM bytecode of ``program``.
+
+    Encoded in this process, or saved in the cache (checked), or traced and encoded now (and
+    saved).
+    """
+    from torchcontact.kernels import _vm
+
+    kh = _key_hash(program, dtype)
+    bc = _vm_code.get(kh)
+    if bc is None:
+        bc = _vm.Bytecode.load(_bytecode_path(kh))
+        if bc is not None:
+            _vm_code[kh] = bc
+    if bc is None:
+        bc = _save_bytecode(program, kh)
+    return bc
+
+
+def vm_kernel(
+    program: Program,
+    dtype: torch.dtype,
+    build: bool = True,
+    wait: bool = False,
+    kernel_after: bool = True,
+) -> Callable | None:
+    """``program`` on the tape VM (:mod:`torchcontact.kernels._vm`) for ``dtype`` on CPU.
+
+    The VM is one interpreter per machine and dtype, in the kernel cache: compiled once (a
+    second or two), it runs any program from its bytecode, which is saved in the cache with the
+    program's key (a later process neither traces nor encodes it again).
+
+    Args:
+        program: the program.
+        dtype: float32 or float64.
+        build: build the VM's library when it is not in the cache, in a detached process
+            that then builds the program's own kernel at low priority
+            (not with ``$TORCHCONTACT_VM=only``); None meanwhile. False returns None then.
+        wait: build the VM's library now (a second or two) and return the VM.
+        kernel_after: with ``build``, the detached process builds the program's kernel after
+            the VM (False: the VM only).
+
+    Returns:
+        ``call(tensors: dict[str, (N, k) Tensor]) -> dict[str, (N, k) Tensor]``, or None while
+        the VM builds, when it cannot be built, or when ``$TORCHCONTACT_VM`` is ``0``.
+
+    Raises:
+        KernelBuildError: with ``wait``, the VM cannot be built.
+    """
+    from torchcontact.kernels import _vm
+
+    if dtype not in _DTYPES or not vm_enabled():
+        return None
+    ckey = f"{program.key}|{dtype}|cpu"
+    with _lock:
+        if ckey in _vm_calls:
+            return _vm_calls[ckey]
+    fn = _vm_function(dtype, build, wait, then=program if kernel_after else None)
+    if fn is None:
+        return None
+    try:
+        bc = _bytecode(program, dtype)
+    except OSError as e:
+        _vm_fail(dtype, f"kernel cache {cache_dir()}: {e}")
+        return None
+    call = _vm.bind(fn, program, dtype, bc)
+    with _lock:
+        _vm_calls[ckey] = call
+    return call
 
 
 def _tracing() -> bool:

@@ -152,6 +152,24 @@ def _sincos_constants(dtype: str) -> dict[str, str]:
     }
 
 
+def emit_prelude(dtype: str, vbytes: int) -> str:
+    """:data:`PRELUDE` for ``dtype`` (``"double"`` or ``"float"``) and ``vbytes``-byte vectors.
+
+    The generated kernels and the tape VM (:mod:`torchcontact.kernels._vm`) share it, so their
+    sines and cosines (``vsincos``) are the same function.
+    """
+    lanes = vbytes // (8 if dtype == "double" else 4)
+    prelude = PRELUDE
+    for k, val in _sincos_constants(dtype).items():
+        prelude = prelude.replace(k, val)
+    return (
+        prelude.replace("TC_T", dtype)
+        .replace("TC_VBYTES", str(vbytes))
+        .replace("TC_LOAD", ", ".join(f"p[{i} * s + j]" for i in range(lanes)))
+        .replace("TC_STORE", " ".join(f"p[{i} * s + j] = x[{i}];" for i in range(lanes)))
+    )
+
+
 def _const(c: float, dtype: str) -> str:
     if c != c:  # NaN
         return 'splat(__builtin_nan(""))'
@@ -408,16 +426,7 @@ def emit(
         calls.append(f"  {fn}(in, in_stride, out, out_stride, sv, sm);")
     calls = [f"  V sv[{max(n_sv, 1)}];", f"  M sm[{max(n_sm, 1)}];", *calls]
     body = "\n".join(calls)
-    lanes = vbytes // (8 if dtype == "double" else 4)
-    prelude = PRELUDE
-    for k, val in _sincos_constants(dtype).items():
-        prelude = prelude.replace(k, val)
-    prelude = (
-        prelude.replace("TC_T", dtype)
-        .replace("TC_VBYTES", str(vbytes))
-        .replace("TC_LOAD", ", ".join(f"p[{i} * s + j]" for i in range(lanes)))
-        .replace("TC_STORE", " ".join(f"p[{i} * s + j] = x[{i}];" for i in range(lanes)))
-    )
+    prelude = emit_prelude(dtype, vbytes)
     n_in = [len(v) for v in trace.inputs.values()]
     n_out = [len(v) for v in outputs.values()]
     # the last, partial block runs on zero-padded copies of its rows

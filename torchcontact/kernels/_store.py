@@ -56,6 +56,11 @@ CFLAGS = (
     "-ffp-contract=fast",
     "-fno-semantic-interposition",
 )
+#: Compiler flags of the tape VM (:mod:`torchcontact.kernels._vm`): the kernels', and its
+#: slots read as vectors of values or of masks (one memory, two types).
+VM_FLAGS = (*CFLAGS, "-fno-strict-aliasing")
+#: Name prefix of the tape VM's entries (``tck_vm-<dtype>_<hash>``).
+VM_PREFIX = "tck_vm-"
 #: Flags every CPU kernel build adds: a position-independent shared library, C++17.
 LINK_FLAGS = ("-std=c++17", "-shared", "-fPIC")
 #: First line of a generated CPU source that is cut into part functions: ``// tc-parts: <n>``.
@@ -446,16 +451,32 @@ def build(entry: Entry, jobs: int | None = None, flags: tuple[str, ...] = CFLAGS
     return entry.library
 
 
-def spawn_build(entry: Entry, jobs: int | None = None) -> subprocess.Popen:
-    """Start :func:`build` of ``entry`` in a detached process; returns it.
+def spawn_build(
+    entry: Entry | list[Entry], jobs: int | None = None, nice: int = 0
+) -> subprocess.Popen:
+    """Start :func:`build` of ``entry`` (or of several, in order) in a detached process.
 
     The process runs this file by path (the standard library only, no torch), in its own
     session, so the build finishes and fills the cache even when the process that asked for it
-    exits first (a short CLI run). Its failures go to ``entry.log``.
+    exits first (a short CLI run). Its failures go to each ``entry.log``.
+
+    Args:
+        entry: the entry (its source written), or entries built in order (the tape VM first,
+            then the kernel the VM runs meanwhile).
+        jobs: compile slots (default :func:`build_jobs`).
+        nice: priority increment of the kernels' compilers (``os.nice``; 19: they run on the
+            CPU time other processes leave), taken after the tape VM's build.
+
+    Returns:
+        The builder process.
     """
-    cmd = [sys.executable, "-I", str(Path(__file__).resolve()), "build", str(entry.dir)]
+    entries = entry if isinstance(entry, list) else [entry]
+    cmd = [sys.executable, "-I", str(Path(__file__).resolve()), "build",
+           *(str(e.dir) for e in entries)]  # fmt: skip
     if jobs is not None:
         cmd += ["--jobs", str(jobs)]
+    if nice and hasattr(os, "nice"):
+        cmd += ["--nice", str(int(nice))]
     return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)  # fmt: skip
 
@@ -583,22 +604,52 @@ def format_info(data: dict) -> str:
     return "\n".join(lines)
 
 
+def lower_priority(nice: int) -> None:
+    """Lower this process's CPU priority by ``nice`` (its compilers inherit it).
+
+    ``os.nice`` alone does not do it for a detached builder on Linux with autogroup scheduling
+    (``/proc/sys/kernel/sched_autogroup_enabled``): the builder's own session is a scheduling
+    group of its own, weighed equally against the run's whatever the nice values inside it.
+    The group's nice (``/proc/self/autogroup``) is lowered too.
+    """
+    with contextlib.suppress(OSError, ValueError):
+        os.nice(nice)
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/autogroup", "w") as f:
+            f.write(str(max(-20, min(19, nice))))
+
+
+def flags_for(entry: Entry) -> tuple[str, ...]:
+    """Compiler flags of an entry: :data:`CFLAGS`, or :data:`VM_FLAGS` for the tape VM's."""
+    return VM_FLAGS if entry.name.startswith(VM_PREFIX) else CFLAGS
+
+
 def main(argv: list[str]) -> int:
-    """The detached builder: ``python _store.py build ENTRY_DIR [--jobs N]``."""
+    """The detached builder: ``python _store.py build ENTRY_DIR... [--jobs N] [--nice N]``.
+
+    Builds the entries in order; ``--nice`` lowers the priority before the first entry that is
+    not the tape VM (the run waits for the VM, not for its kernels).
+    """
     if len(argv) < 2 or argv[0] != "build":
-        print("usage: _store.py build ENTRY_DIR [--jobs N]", file=sys.stderr)
+        print("usage: _store.py build ENTRY_DIR... [--jobs N] [--nice N]", file=sys.stderr)
         return 2
-    d = Path(argv[1])
-    jobs = int(argv[argv.index("--jobs") + 1]) if "--jobs" in argv else None
-    entry = Entry(d.parent, d.name, ".cu" if d.name.startswith("tckc_") else ".cpp")
-    try:
-        build(entry, jobs)
-    except Exception as e:  # noqa: BLE001 - the caller reads the log (stdout is not kept)
-        with contextlib.suppress(OSError):
-            with open(entry.log, "a") as f:
-                f.write(f"\n{e}\n")
-        return 1
-    return 0
+    opts = {argv[i]: argv[i + 1] for i in range(len(argv) - 1) if argv[i].startswith("--")}
+    dirs = [Path(a) for i, a in enumerate(argv[1:], 1)
+            if not a.startswith("--") and not argv[i - 1].startswith("--")]  # fmt: skip
+    jobs = int(opts["--jobs"]) if "--jobs" in opts else None
+    rc = 0
+    for d in dirs:
+        entry = Entry(d.parent, d.name, ".cu" if d.name.startswith("tckc_") else ".cpp")
+        if "--nice" in opts and not d.name.startswith(VM_PREFIX):
+            lower_priority(int(opts.pop("--nice")))
+        try:
+            build(entry, jobs, flags_for(entry))
+        except Exception as e:  # noqa: BLE001 - the caller reads the log (stdout is not kept)
+            with contextlib.suppress(OSError):
+                with open(entry.log, "a") as f:
+                    f.write(f"\n{e}\n")
+            rc = 1
+    return rc
 
 
 if __name__ == "__main__":

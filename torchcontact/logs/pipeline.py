@@ -74,9 +74,12 @@ __all__ = [
 ]
 
 #: Frames to estimate from which the local engine waits for its kernel to be built rather than
-#: estimating eagerly while it builds; None: never. Measured on a 2-core machine (first runs of
-#: the iCub benchmark log, docs/pipeline.md): estimating eagerly while the kernel builds was
-#: faster than waiting at 50 k, 200 k and 1 M frames (15 vs 48 s, 49 vs 62 s, 81 vs 92 s).
+#: estimating while it builds; None: never. Measured on a 2-core machine (first runs of the iCub
+#: benchmark log, docs/pipeline.md): estimating eagerly while the kernel builds was faster than
+#: waiting at 50 k, 200 k and 1 M frames (15 vs 48 s, 49 vs 62 s, 81 vs 92 s). Since the tape VM
+#: (``auto`` runs the program on it, at ~8x eager's speed, and its kernel builds after the run),
+#: there is less still to gain from waiting for a build (docs/kernel_cache.md,
+#: benchmarks/vm_cold.py).
 WAIT_FOR_KERNEL_FRAMES: int | None = None
 
 #: Frames from which Ray tasks wait for the kernel: below, estimating them eagerly costs less

@@ -1,0 +1,271 @@
+"""The tape VM (torchcontact.kernels._vm) against eager torch, and its place in the cache.
+
+The VM runs a program's bytecode instead of the program's own compiled kernel: the same
+operations in the same order, fused multiply-adds where a product is read once (as the
+kernels' ``-ffp-contract=fast``), so it agrees with eager torch to rounding. Programs are the
+estimators the log pipeline runs (iCub, the bundled arm), the cone solver's MAP loop and small
+programs for the edge cases (NaN and inf, partial blocks, float32). The VM's library is built
+once into the user cache (as the kernels in test_kernels.py); the damaged-library test uses a
+temporary cache.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+import pytest
+import torch
+from robots import load_model, random_state
+from test_constrained import _tcarm_pushes
+from test_kernels_loop import _inputs, _newton_sqrt
+
+import torchcontact as tc
+from torchcontact import _scalar as S
+from torchcontact import dynamics, kernels
+from torchcontact.constrained import FrictionCones
+from torchcontact.estimation import estimator as est_mod
+from torchcontact.kernels import _store, _vm
+
+#: VM against eager torch (float64): the kernels' tolerance (test_kernels.py), FMA rounding.
+VM_VS_EAGER = 1e-12
+#: Outputs of the estimator's solve: rank-deficient frames amplify rounding (test_kernels.py).
+SOLVE_VS_EAGER = 1e-9
+
+
+def _programs_of(fn) -> list[tuple[kernels.Program, dict]]:
+    """The programs (and their input tensors) an estimator call runs, run eagerly."""
+    seen = []
+    run = est_mod.run_program
+
+    def spy(prog, tensors, backend, chunk_size):
+        seen.append((prog, {k: v.clone() for k, v in tensors.items()}))
+        return run(prog, tensors, "eager", chunk_size)
+
+    est_mod.run_program = spy
+    try:
+        fn()
+    finally:
+        est_mod.run_program = run
+    return seen
+
+
+def _vm_matches_eager(prog, tensors, atol, exact=("status", "rank", "iterations")) -> None:
+    """The VM's outputs equal eager torch's: NaN patterns, exactly the integer-valued outputs
+    (statuses, ranks, iteration counts), the rest to ``atol`` (relative to 1 + |value|)."""
+    dtype = next(iter(tensors.values())).dtype
+    got = kernels.vm_kernel(prog, dtype, wait=True)(tensors)
+    ref = kernels.run_eager(prog, tensors)
+    assert set(got) == set(ref)
+    for k in ref:
+        assert torch.equal(got[k].isnan(), ref[k].isnan()), k
+        if any(k.startswith(e) for e in exact):
+            assert torch.equal(got[k].nan_to_num(-1), ref[k].nan_to_num(-1)), k
+        d = ((got[k] - ref[k]).abs() / (1 + ref[k].abs())).nan_to_num(0.0)
+        assert float(d.max()) <= atol if d.numel() else True, (k, float(d.max()))
+
+
+def _icub_estimate(n: int):
+    model = load_model("icub")
+    est = tc.ContactEstimator(model)
+    links = ["l_hand", "l_forearm", "l_forearm", "r_hand"]
+    kinds = ["force", "force_dir", "known", "wrench"]
+    q, qd, qdd = random_state(model, n, seed=21)
+    g = torch.Generator().manual_seed(22)
+    pos = torch.randn(n, 4, 3, generator=g, dtype=torch.float64) * 0.05
+    dirs = torch.randn(n, 4, 3, generator=g, dtype=torch.float64)
+    wr = torch.randn(n, 4, 6, generator=g, dtype=torch.float64)
+    active = torch.rand(n, 4, generator=g) > 0.3
+    ft = {s: torch.randn(n, 6, generator=g, dtype=torch.float64) * 20 for s in est.sensor_names}
+    ft["l_arm_ft"][3, 2] = float("nan")  # a bad frame: status 1, NaN outputs
+    ft["r_arm_ft"][70, 0] = float("inf")
+    q[5, 0] = 1e6  # a large angle: sin/cos beyond the fast reduction's range
+    dirs[9, 1] = 0.0  # a zero direction
+    c = tc.Contacts(links, kinds, pos, dirs, wr, active)
+    return lambda: est.estimate(q, qd, qdd, ft, c, backend="eager")
+
+
+def test_vm_equals_eager_on_the_icub_estimator():
+    """The whole-iCub estimator (the log pipeline's program): 130 frames, two full blocks and a
+    partial one, with NaN, inf, a huge angle and a zero direction in them."""
+    progs = _programs_of(_icub_estimate(130))
+    assert [p.name for p, _ in progs] == ["estimator"]
+    prog, tensors = progs[0]
+    out = kernels.vm_kernel(prog, torch.float64, wait=True)(tensors)
+    assert (out["status"][3] != 0) and (out["status"] == 0).sum() > 40
+    _vm_matches_eager(prog, tensors, SOLVE_VS_EAGER)
+
+
+def test_vm_equals_eager_on_the_tcarm_estimator_and_its_map_loop():
+    """The bundled arm's estimator with friction cones: the MAP loop (a jump back over the body,
+    leaving once every frame of the block has stopped) gives eager's statuses, iteration counts
+    and forces; a warm start far from the answer runs out of budget and restarts. In float32
+    the same frames are finite."""
+    est, state, c, kw, _, _ = _tcarm_pushes(24, seed=12, weighted=True)
+    cold = est.estimate(*state, c, constraints=FrictionCones(), backend="eager", **kw)
+    far = (-cold.force, torch.zeros_like(cold.moment))
+    progs = _programs_of(lambda: est.estimate(*state, c, constraints=FrictionCones(),
+                                              warm_start=far, backend="eager", **kw))  # fmt: skip
+    assert any(tr_has_loop(p) for p, _ in progs)
+    for prog, tensors in progs:
+        _vm_matches_eager(prog, tensors, 1e-9)
+        t32 = {k: v.float() for k, v in tensors.items()}
+        out = kernels.vm_kernel(prog, torch.float32, wait=True)(t32)
+        ref = kernels.run_eager(prog, t32)
+        for k in ref:
+            assert torch.equal(out[k].isfinite(), ref[k].isfinite()), k
+
+
+def tr_has_loop(prog: kernels.Program) -> bool:
+    tr, _ = prog.trace()
+    return any(n.op == "loop" for n in tr.nodes)
+
+
+@pytest.mark.parametrize("budget", [0, 1, 8, 40])
+def test_vm_loop_exits_per_block_with_eager_counts(budget):
+    """Newton's sqrt with a carried count (test_kernels_loop.py): exact counts, the root to
+    rounding, a zero-trip loop keeping its initial values."""
+    prog = _newton_sqrt(budget)
+    _vm_matches_eager(prog, _inputs(200), VM_VS_EAGER, exact=("count",))
+
+
+def _edge_program() -> kernels.Program:
+    def fn(d):
+        x, y = d["x"]
+        return {
+            "o": [
+                S.add(S.mul(x, y), S.sin(x)),  # a fused multiply-add, sin and cos of one angle
+                S.sub(S.mul(x, 3.0), S.cos(x)),
+                S.div(x, y),  # 0/0, x/0, inf/inf
+                S.sqrt(y),  # negative: NaN
+                S.select(S.gt(x, y), 1.0, 0.0),  # NaN compares false
+                S.select(S.isfinite(S.div(x, y)), x, -2.0),
+                S.select(S.logical_or(S.gt(x, 0.5), S.logical_not(S.isfinite(y))), y, 7.0),
+                S.neg(x),
+                2.5,  # a constant output
+                y,  # an input as an output
+            ]
+        }
+
+    return kernels.Program("vm_edges", fn, {"x": 2}, {"o": 10}, "vm_edges|1")
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("n", [1, 63, 64, 65, 5000])
+def test_vm_nan_inf_partial_blocks_and_threads(dtype, n):
+    """NaN and inf propagate as in eager torch (no -ffast-math); a last block of 1 to B-1
+    frames; 5000 frames split over threads; float32 and float64."""
+    g = torch.Generator().manual_seed(n)
+    x = torch.randn(n, 2, generator=g, dtype=torch.float64).to(dtype)
+    special = [float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e30]
+    for i, v in enumerate(special):
+        x[(7 * i) % n, i % 2] = v
+    x[n // 2, 0] = 1e7  # beyond vsincos's reduction range: libm's sin/cos
+    tol = VM_VS_EAGER if dtype == torch.float64 else 1e-5
+    with torch.inference_mode():
+        threads = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            _vm_matches_eager(_edge_program(), {"x": x}, tol)
+        finally:
+            torch.set_num_threads(threads)
+
+
+def test_vm_float32_rnea_relative_to_float64():
+    model = load_model("panda")
+    prog = dynamics.program(model, "id", False, False)
+    q, qd, qdd = random_state(model, 70, seed=3)
+    x64 = {"q": q, "qd": qd, "qdd": qdd}
+    ref = kernels.run_eager(prog, x64)["tau"]
+    vm = kernels.vm_kernel(prog, torch.float32, wait=True)
+    got = vm({k: v.float() for k, v in x64.items()})["tau"]
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), ref, atol=2e-4 * float(ref.abs().max()), rtol=0)
+
+
+def _pendulum(length: float) -> tc.RobotModel:
+    return tc.RobotModel.from_urdf(io.StringIO(tc.robots.pendulum_urdf(length=length)))
+
+
+def test_a_damaged_vm_library_is_rebuilt_and_its_bytecode_is_cached(tmp_path, monkeypatch):
+    """A damaged VM library warns, is removed and rebuilt; a program's bytecode is saved with
+    its key, so another process (here: emptied memory) runs it without tracing it; a damaged
+    bytecode file is a miss (traced again)."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    monkeypatch.setattr(kernels, "_healed", set())
+    entry, src = kernels._vm_entry(torch.float64)
+    _vm.write_source(entry, src)
+    _vm.build(entry)
+    good = entry.library.read_bytes()
+    tmp = entry.library.with_name("damaged")
+    tmp.write_bytes(good[: len(good) // 2])  # a half-written library, through a rename
+    tmp.replace(entry.library)
+    prog = dynamics.program(_pendulum(0.83), "id", False, False)
+    q = torch.linspace(-3, 3, 100, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        vm = kernels.vm_kernel(prog, torch.float64, wait=True)
+    assert [w for w in caught if "damaged" in str(w.message)]
+    assert entry.check() == ("ok", "") and entry.library.read_bytes() != good[: len(good) // 2]
+    ref = kernels.run_eager(prog, x)["tau"]
+    torch.testing.assert_close(vm(x)["tau"], ref, atol=VM_VS_EAGER, rtol=0)
+    # the bytecode is in the cache: a process that has not traced the program runs it
+    saved = kernels._bytecode_path(kernels._key_hash(prog, torch.float64))
+    assert _vm.Bytecode.load(saved) is not None
+    fresh = dynamics.program(_pendulum(0.83), "id", False, False)
+    fresh._traced.clear()
+    monkeypatch.setattr(kernels, "_vm_calls", {})
+    monkeypatch.setattr(kernels, "_vm_code", {})
+    monkeypatch.setattr(type(fresh), "trace", lambda self: pytest.fail("traced again"))
+    torch.testing.assert_close(kernels.vm_kernel(fresh, torch.float64)(x)["tau"], ref,
+                               atol=VM_VS_EAGER, rtol=0)  # fmt: skip
+    monkeypatch.undo()
+    # a damaged bytecode file is a miss
+    data = bytearray(saved.read_bytes())
+    data[-3] ^= 0xFF
+    saved.write_bytes(bytes(data))
+    assert _vm.Bytecode.load(saved) is None
+
+
+def test_auto_and_cached_run_the_vm_while_the_kernel_is_not_built(tmp_path, monkeypatch):
+    """With the VM built and a program's kernel not: ``cached`` runs the VM and starts no
+    build; ``auto`` runs the VM and starts the kernel's build (low priority), then switches."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    kernels.vm_kernel(dynamics.program(_pendulum(0.84), "id", False, False), torch.float64,
+                      wait=True)  # fmt: skip
+    prog = dynamics.program(_pendulum(0.85), "id", False, False)
+    q = torch.linspace(-3, 3, kernels.AUTO_BUILD_MIN_FRAMES, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    ref = kernels.run_eager(prog, x)["tau"]
+    ckey = f"{prog.key}|{torch.float64}|cpu"
+    out = kernels.run(prog, x, "cached")["tau"]
+    assert ckey in kernels._vm_calls and not kernels.background_builds()
+    torch.testing.assert_close(out, ref, atol=VM_VS_EAGER, rtol=0)
+    out = kernels.run(prog, x, "auto")["tau"]
+    torch.testing.assert_close(out, ref, atol=VM_VS_EAGER, rtol=0)
+    assert kernels.background_builds() or kernels._ready(prog, q)
+    kernels.wait_for_builds(timeout=300)
+    kernels.run(prog, x, "auto")
+    assert kernels._ready(prog, q)  # the compiled kernel, once built
+    assert all(e["state"] == "ok" for e in _store.entries(tmp_path / "kernels"))
+
+
+def test_cached_builds_the_vm_once_and_never_a_kernel(tmp_path, monkeypatch):
+    """On a machine without the VM, ``cached`` (a log's noise estimate) builds the VM alone,
+    waits for it and runs on it: no kernel build starts."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    prog = dynamics.program(_pendulum(0.86), "id", False, False)
+    q = torch.linspace(-3, 3, kernels.AUTO_BUILD_MIN_FRAMES, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    out = kernels.run(prog, x, "cached")["tau"]
+    torch.testing.assert_close(out, kernels.run_eager(prog, x)["tau"], atol=VM_VS_EAGER, rtol=0)
+    assert f"{prog.key}|{torch.float64}|cpu" in kernels._vm_calls  # it ran on the VM
+    kernels.wait_for_builds(timeout=120)
+    assert not kernels.background_builds() and not kernels._ready(prog, q)
+    states = {e["name"].split("_")[1]: e["state"] for e in _store.entries(tmp_path / "kernels")}
+    assert states["vm-double"] == "ok" and states.get("rnea", "source only") == "source only"

@@ -1,0 +1,646 @@
+"""The tape VM: one compiled interpreter that runs any traced program, built once per machine.
+
+A per-robot kernel (:mod:`torchcontact.kernels._cpp`) is straight-line C++ of one program: fast,
+but tens of compiler-seconds for a whole robot. The VM is a small C++ interpreter (a second or
+two of the compiler, once per machine and dtype, cached in the kernel store like the kernels)
+that runs a program's trace encoded as **bytecode** by :func:`encode`:
+
+* every instruction processes a block of :data:`BLOCK` frames: a *slot* holds one scalar of the
+  program for the block's frames (``BLOCK`` values, ``BLOCK / W`` SIMD vectors), so decoding an
+  instruction costs little next to its work, and the inner loops are vector code;
+* slots are allocated by liveness over the SSA trace (a linear scan: a slot is reused once its
+  value's last reader has run), constants are slots filled once per call;
+* inputs are loaded from the caller's ``(N, k)`` rows just before their first reader, outputs
+  stored right after their writer (so neither lives long);
+* a :func:`torchcontact._scalar.loop` is a jump back over its body's instructions with the
+  carried slots, leaving early once every frame of the block has stopped (the generated
+  kernels' rule, per block of frames instead of per vector);
+* ``sin``/``cos`` are the kernels' ``vsincos`` (the same prelude), IEEE semantics (no
+  ``-ffast-math``): NaN and inf propagate as in eager torch.
+
+The calling convention is the kernels' (``(N, k)`` strided arrays, one pointer and row stride
+per array), with the bytecode in front: ``tc_vm(code, ncode, consts, nconst, nslots, n, in,
+in_stride, out, out_stride)``; :func:`torchcontact.kernels._wrap` splits the frames over threads
+and ctypes releases the GIL. Measured (``benchmarks/vm.py``, docs/kernel_cache.md): the VM runs
+the iCub estimator at a fraction of the compiled kernel's speed but several times eager torch's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from torchcontact._scalar import Sym, Trace, loop_deps
+from torchcontact.kernels import _cpp, _store
+
+__all__ = ["BLOCK", "Bytecode", "encode", "source"]
+
+#: Frames per block: each instruction runs on this many frames (a slot is ``BLOCK`` values).
+#: Measured in ``benchmarks/vm.py`` (iCub estimator, AVX2): 32 and 128 within a few percent of
+#: 64; larger blocks spill the live slots out of L2.
+BLOCK = 64
+
+#: Bump when the bytecode or the interpreter's calling convention changes.
+VERSION = "1"
+
+# opcodes (the C++ enum below has the same numbers)
+OPS = ("load", "store", "mov", "add", "sub", "mul", "div", "neg", "sqrt", "sin", "cos", "sincos",
+       "sel", "gt", "finite", "and", "or", "not", "loop", "endloop", "fma", "fms")  # fmt: skip
+#: Operand flags of an opcode (``8 * op + flags``): operand a, b or c is a constant's index.
+_KFLAG = {"a": 1, "b": 2, "c": 4}
+OP = {name: i for i, name in enumerate(OPS)}
+#: ``endloop``'s stop field: never stop early / always stop after one iteration.
+STOP_NEVER, STOP_ALWAYS = -1, -2
+
+SOURCE = r"""
+#include <stdlib.h>
+enum { B = TC_BLOCK, NV = B / W };
+typedef decltype(M{}[0] + 0) MI;  // one lane of a mask: 0 or all ones
+// opcode = 8 * base + flags: an operand a, b or c with its flag set is a constant (an index
+// into the constants) instead of a slot
+enum { KA = 1, KB = 2, KC = 4 };
+enum {
+  LOAD, STORE, MOV, ADD, SUB, MUL, DIV, NEG, SQRT, SIN, COS, SINCOS, SEL, GT, FINITE, AND, OR,
+  NOT, LOOP, ENDLOOP, FMA, FMS
+};
+struct Ins { int32_t op, d, a, b, c; };
+
+extern "C" int tc_vm_abi(void) { return TC_VM_ABI; }
+extern "C" int64_t tc_vm_block(void) { return B; }
+
+// an operand: the slot's vector v, or the constant splat
+#define OPND(P, F, FLAG) const V* P##s = S + (int64_t)x.F * NV; \
+  const V P##k = splat(K[x.F & ((x.op & FLAG) ? -1 : 0)]); const bool P##c = x.op & FLAG;
+#define GET(P, v) (P##c ? P##k : P##s[v])
+// each case runs its loop in a version per constant pattern, so the compiler vectorises each
+#define LOOP1(EXPR) \
+  if (ac) { for (int v = 0; v < NV; ++v) D[v] = (EXPR(ak)); } \
+  else { for (int v = 0; v < NV; ++v) D[v] = (EXPR(as[v])); }
+#define LOOP2(EXPR) \
+  if (ac) { for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v]); } \
+  else if (bc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk); } \
+  else { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v]); }
+#define LOOP3(EXPR) \
+  if (ac) { for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v], cs[v]); } \
+  else if (bc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v]); } \
+  else if (cc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], ck); } \
+  else { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v]); }
+#define E_ID(a) a
+#define E_ADD(a, b) (a) + (b)
+#define E_SUB(a, b) (a) - (b)
+#define E_MUL(a, b) (a) * (b)
+#define E_DIV(a, b) (a) / (b)
+#define E_FMA(a, b, c) (a) * (b) + (c)
+#define E_FMS(a, b, c) (a) * (b) - (c)
+
+// Runs the bytecode on frames [0, n): blocks of B frames, one instruction at a time on a block.
+// Slot k is S[k * NV .. k * NV + NV) (B values; a mask slot holds MI lanes). Returns 0, or 1
+// when the slots cannot be allocated.
+extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nconst,
+                     int64_t nslots, int64_t n, const T* const* in, const int64_t* in_stride,
+                     T* const* out, const int64_t* out_stride) {
+  (void)nconst;
+  V* S = (V*)aligned_alloc(64, (size_t)(nslots > 0 ? nslots : 1) * NV * sizeof(V));
+  if (!S) return 1;
+  const T zero[1] = {0};
+  if (nconst == 0) K = zero;
+  const Ins* P = (const Ins*)code;
+  for (int64_t f0 = 0; f0 < n; f0 += B) {
+    const int64_t nl = n - f0 < B ? n - f0 : B;
+    int64_t it = 0;
+    for (int64_t pc = 0; pc < ncode; ++pc) {
+      const Ins& x = P[pc];
+      V* D = S + (int64_t)x.d * NV;
+      switch (x.op >> 3) {
+        case LOAD: {  // slot d = column b of input a
+          T* d = (T*)D;
+          const int64_t s = in_stride[x.a];
+          const T* p = in[x.a] + f0 * s + x.b;
+          if (nl == B) {
+            for (int f = 0; f < B; ++f) d[f] = p[f * s];
+          } else {  // the last, partial block: zero-padded
+            for (int f = 0; f < B; ++f) d[f] = f < nl ? p[f * s] : (T)0;
+          }
+          break;
+        }
+        case STORE: {  // column b of output a = slot (or constant) c
+          const int64_t s = out_stride[x.a];
+          T* p = out[x.a] + f0 * s + x.b;
+          if (x.op & KC) {
+            for (int64_t f = 0; f < nl; ++f) p[f * s] = K[x.c];
+          } else {
+            const T* c = (const T*)(S + (int64_t)x.c * NV);
+            for (int64_t f = 0; f < nl; ++f) p[f * s] = c[f];
+          }
+          break;
+        }
+        case MOV: { OPND(a, a, KA) LOOP1(E_ID) break; }
+        case ADD: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_ADD) break; }
+        case SUB: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_SUB) break; }
+        case MUL: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_MUL) break; }
+        case DIV: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_DIV) break; }
+        case FMA: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMA) break; }
+        case FMS: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMS) break; }
+        case NEG: {
+          const V* A = S + (int64_t)x.a * NV;
+          for (int v = 0; v < NV; ++v) D[v] = -A[v];
+          break;
+        }
+        case SQRT: {
+          T* d = (T*)D;
+          const T* a = (const T*)(S + (int64_t)x.a * NV);
+          for (int f = 0; f < B; ++f) d[f] = tc_sqrt(a[f]);
+          break;
+        }
+        case SIN: case COS: case SINCOS: {  // sincos: d = sin a, c = cos a (one reduction)
+          const V* A = S + (int64_t)x.a * NV;
+          V* Cw = S + (int64_t)x.c * NV;
+          const int k = x.op >> 3;
+          for (int v = 0; v < NV; ++v) {
+            V s, c;
+            vsincos(A[v], &s, &c);
+            if (k == COS) D[v] = c; else D[v] = s;
+            if (k == SINCOS) Cw[v] = c;
+          }
+          break;
+        }
+        case SEL: {  // d = mask a ? b : c
+          const M* m = (const M*)(S + (int64_t)x.a * NV);
+          OPND(b, b, KB) OPND(c, c, KC)
+          if (bc && cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : ck; }
+          else if (bc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : cs[v]; }
+          else if (cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bs[v] : ck; }
+          else { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bs[v] : cs[v]; }
+          break;
+        }
+        case GT: {
+          M* d = (M*)D;
+          OPND(a, a, KA) OPND(b, b, KB)
+          if (ac) { for (int v = 0; v < NV; ++v) d[v] = ak > bs[v]; }
+          else if (bc) { for (int v = 0; v < NV; ++v) d[v] = as[v] > bk; }
+          else { for (int v = 0; v < NV; ++v) d[v] = as[v] > bs[v]; }
+          break;
+        }
+        case FINITE: {  // x - x is 0 for finite x, NaN for NaN and +-inf
+          M* d = (M*)D;
+          const V* A = S + (int64_t)x.a * NV;
+          for (int v = 0; v < NV; ++v) { V y = A[v] - A[v]; d[v] = y == y; }
+          break;
+        }
+        case AND: case OR: {
+          M* d = (M*)D;
+          const M* a = (const M*)(S + (int64_t)x.a * NV);
+          const M* b = (const M*)(S + (int64_t)x.b * NV);
+          if ((x.op >> 3) == AND) { for (int v = 0; v < NV; ++v) d[v] = a[v] & b[v]; }
+          else { for (int v = 0; v < NV; ++v) d[v] = a[v] | b[v]; }
+          break;
+        }
+        case NOT: {
+          M* d = (M*)D;
+          const M* a = (const M*)(S + (int64_t)x.a * NV);
+          for (int v = 0; v < NV; ++v) d[v] = ~a[v];
+          break;
+        }
+        case LOOP:  // a: the budget, b: the instruction after the loop
+          it = 0;
+          if (x.a <= 0) pc = x.b - 1;
+          break;
+        case ENDLOOP: {  // a: the stop mask's slot (or -1 never, -2 always), b: the body, c: budget
+          ++it;
+          bool stop = x.a == -2;
+          if (x.a >= 0) {
+            const MI* m = (const MI*)(S + (int64_t)x.a * NV);
+            stop = true;
+            for (int64_t f = 0; f < nl; ++f) stop = stop && m[f];
+          }
+          if (!stop && it < x.c) pc = x.b - 1;
+          break;
+        }
+      }
+    }
+  }
+  free(S);
+  return 0;
+}
+"""
+
+
+def source(dtype: str, vbytes: int, block: int = BLOCK) -> str:
+    """The VM's C++ source for ``dtype`` (``"double"``/``"float"``), ``vbytes``-byte vectors."""
+    lanes = vbytes // (8 if dtype == "double" else 4)
+    if block % lanes:
+        raise ValueError(f"block {block} is not a multiple of {lanes} lanes")
+    body = SOURCE.replace("TC_BLOCK", str(block)).replace("TC_VM_ABI", VERSION)
+    return f"// torchcontact tape VM {VERSION}\n{_cpp.emit_prelude(dtype, vbytes)}{body}"
+
+
+@dataclass(frozen=True)
+class Bytecode:
+    """A program encoded for the VM.
+
+    Attributes:
+        code: ``(ncode, 5)`` int32 instructions ``(op, d, a, b, c)``.
+        consts: ``(nconst,)`` float64 constants, the values of slots ``0 .. nconst - 1``.
+        nslots: slots the program uses (constants included).
+    """
+
+    code: np.ndarray
+    consts: np.ndarray
+    nslots: int
+
+    def to_bytes(self) -> bytes:
+        """A self-checking serialisation: a JSON header line (with the payload's sha256)."""
+        payload = self.code.astype("<i4").tobytes() + self.consts.astype("<f8").tobytes()
+        head = {"vm": VERSION, "ncode": len(self.code), "nconst": len(self.consts),
+                "nslots": self.nslots, "sha256": hashlib.sha256(payload).hexdigest()}  # fmt: skip
+        return json.dumps(head).encode() + b"\n" + payload
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Bytecode | None:
+        """The bytecode of :meth:`to_bytes`, or None when damaged or of another VM version."""
+        try:
+            line, payload = data.split(b"\n", 1)
+            head = json.loads(line)
+            if head.get("vm") != VERSION:
+                return None
+            if hashlib.sha256(payload).hexdigest() != head["sha256"]:
+                return None
+            nc, nk = int(head["ncode"]), int(head["nconst"])
+            if len(payload) != nc * 20 + nk * 8:
+                return None
+            code = np.frombuffer(payload[: nc * 20], "<i4").reshape(nc, 5).astype(np.int32)
+            consts = np.frombuffer(payload[nc * 20 :], "<f8").astype(np.float64)
+            return cls(code, consts, int(head["nslots"]))
+        except (ValueError, KeyError, TypeError):
+            return None
+
+    def save(self, path: Path) -> None:
+        """Write atomically to ``path`` (the kernel store's :func:`write_atomic`)."""
+        from torchcontact.kernels import _store
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _store.write_atomic(path, self.to_bytes())
+
+    @classmethod
+    def load(cls, path: Path) -> Bytecode | None:
+        """Read and check a saved bytecode; None when missing or damaged."""
+        try:
+            return cls.from_bytes(path.read_bytes())
+        except OSError:
+            return None
+
+
+# ------------------------------------------------------------------------------------ encoding
+# Roles of an instruction's fields: which hold slots written (defs) and read (uses).
+_DEFS = {"load": "d", "sincos": "dc", "loop": "", "endloop": "", "store": ""}
+_USES = {"load": "", "store": "c", "mov": "a", "neg": "a", "sqrt": "a", "sin": "a", "cos": "a",
+         "sincos": "a", "finite": "a", "not": "a", "sel": "abc", "loop": "", "endloop": "a",
+         "fma": "abc", "fms": "abc"}  # fmt: skip
+_FIELD = {"d": 1, "a": 2, "b": 3, "c": 4}
+
+
+def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
+    """Encode a traced program as VM bytecode.
+
+    Live nodes (:func:`torchcontact.kernels._cpp.live_nodes`) become instructions in trace
+    order; a loop's body (the nodes that depend on its carried values,
+    :func:`torchcontact.kernels._cpp.loop_bodies`) becomes ``loop``, the body, the parallel copy
+    of the new values into the carried slots, ``endloop``. Values are virtual registers, then
+    slots by a linear scan over their live intervals (a value read inside a loop but defined
+    before it lives to the loop's end).
+
+    Args:
+        trace: the traced program; its ``inputs`` fix the input order.
+        outputs: output name -> scalars (symbols or constants), in the caller's output order.
+
+    Returns:
+        The bytecode.
+    """
+    flat_out = [x for xs in outputs.values() for x in xs]
+    nodes = _cpp.live_nodes(trace, flat_out)
+    bodies = _cpp.loop_bodies(nodes)
+    deferred = {b.index for body in bodies.values() for b in body}
+    in_index = {k: i for i, k in enumerate(trace.inputs)}
+    # where each output column is stored from: node index -> [(array, column)]
+    stores: dict[int, list[tuple[int, int]]] = {}
+    const_out: list[tuple[int, int, float]] = []
+    for a, xs in enumerate(outputs.values()):
+        for j, x in enumerate(xs):
+            if isinstance(x, Sym):
+                stores.setdefault(x.index, []).append((a, j))
+            else:
+                const_out.append((a, j, float(x)))
+    # sine and cosine of one angle: one instruction (one range reduction)
+    trig: dict[tuple[str, int], int] = {}
+    for s in nodes:
+        if s.op in ("sin", "cos") and isinstance(s.args[0], Sym):
+            trig[(s.op, s.args[0].index)] = s.index
+
+    consts: dict[bytes, int] = {}  # constant (by its bits: -0.0 and NaN kept) -> slot
+    const_vals: list[float] = []
+    vreg: dict[int, int] = {}  # node index -> virtual register
+    nvreg = [0]
+    code: list[list] = []  # [op name, d, a, b, c] with virtual registers (consts as ("k", slot))
+
+    def new_vreg() -> int:
+        nvreg[0] += 1
+        return nvreg[0] - 1
+
+    def const(c: float) -> tuple[str, int]:
+        key = np.float64(float(c)).tobytes()
+        if key not in consts:
+            consts[key] = len(const_vals)
+            const_vals.append(float(c))
+        return ("k", consts[key])
+
+    def ref(x):
+        if not isinstance(x, Sym):
+            return const(x)
+        if x.index not in vreg:
+            if x.op != "in":  # pragma: no cover - trace order defines operands first
+                raise ValueError(f"VM encoding: %{x.index} ({x.op}) read before it is defined")
+            arr, j = x.args
+            v = new_vreg()
+            vreg[x.index] = v
+            code.append(["load", v, in_index[arr], j, 0])
+            store_of(x.index)
+        return vreg[x.index]
+
+    def store_of(i: int) -> None:
+        for a, j in stores.get(i, ()):
+            code.append(["store", 0, a, j, vreg[i]])
+
+    def emit(s: Sym) -> None:
+        op = s.op
+        if op == "in":
+            ref(s)
+        elif op in ("add", "sub", "mul", "div", "gt", "and", "or"):
+            a, b = ref(s.args[0]), ref(s.args[1])
+            vreg[s.index] = v = new_vreg()
+            code.append([op, v, a, b, 0])
+        elif op in ("neg", "sqrt", "finite", "not"):
+            a = ref(s.args[0])
+            vreg[s.index] = v = new_vreg()
+            code.append([op, v, a, 0, 0])
+        elif op in ("sin", "cos"):
+            if s.index in vreg:  # defined with its twin by a sincos
+                store_of(s.index)
+                return
+            x = s.args[0]
+            a = ref(x)
+            vreg[s.index] = v = new_vreg()
+            other = "cos" if op == "sin" else "sin"
+            twin = trig.get((other, x.index)) if isinstance(x, Sym) else None
+            if twin is not None and twin not in vreg:
+                vreg[twin] = w = new_vreg()
+                sn, cs = (v, w) if op == "sin" else (w, v)
+                code.append(["sincos", sn, a, 0, cs])
+            else:
+                code.append([op, v, a, 0, 0])
+        elif op == "sel":
+            m, a, b = (ref(x) for x in s.args)
+            vreg[s.index] = v = new_vreg()
+            code.append(["sel", v, m, a, b])
+        elif op == "loopout":
+            lp, k = s.args
+            vreg[s.index] = vreg[lp.args[0].carries[k].index]
+        elif op == "loop":
+            emit_loop(s)
+            return
+        else:  # pragma: no cover - every op of _scalar is handled
+            raise ValueError(f"no VM instruction for op {op!r}")
+        store_of(s.index)
+
+    def emit_loop(s: Sym) -> None:
+        spec = s.args[0]
+        body = bodies[s.index]
+        # inputs the body reads are loaded before the loop (a zero-trip loop reads none)
+        for b in body:
+            for d in loop_deps(b):
+                if d.op == "in":
+                    ref(d)
+        for x in (*spec.new, spec.stop):
+            if isinstance(x, Sym) and x.op == "in":
+                ref(x)
+        for c, x in zip(spec.carries, spec.init, strict=True):
+            a = ref(x)
+            vreg[c.index] = v = new_vreg()
+            code.append(["mov", v, a, 0, 0])
+        start = len(code)
+        code.append(["loop", 0, spec.n, 0, 0])
+        for b in body:
+            emit(b)
+        # parallel copy: every new value first to a temporary, then into the carried slots
+        temps = []
+        for x in spec.new:
+            a = ref(x)
+            t = new_vreg()
+            code.append(["mov", t, a, 0, 0])
+            temps.append(t)
+        for c, t in zip(spec.carries, temps, strict=True):
+            code.append(["mov", vreg[c.index], t, 0, 0])
+        if isinstance(spec.stop, Sym):
+            stop = ref(spec.stop)
+        else:
+            stop = STOP_ALWAYS if spec.stop is True else STOP_NEVER
+        end = len(code)
+        code.append(["endloop", 0, stop, start + 1, spec.n])
+        code[start][3] = end + 1
+
+    for s in nodes:
+        if s.index in deferred or s.op == "carry":
+            continue
+        emit(s)
+    for a, j, c in const_out:
+        code.append(["store", 0, a, j, const(c)])
+    code, loops = _fuse(code)
+    return _allocate(code, loops, const_vals, nvreg[0])
+
+
+def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
+    """Fold a product read once into the sum or difference reading it: ``a * b + c``, ``a * b - c``.
+
+    One instruction instead of two (a fused multiply-add, as the compiled kernels' C++ gets
+    from ``-ffp-contract=fast``: results differ from eager torch by rounding only). Also
+    returns the loops' ``(loop, endloop)`` positions in the new code, with its jumps updated.
+    """
+    uses: dict[int, int] = {}
+    for ins in code:
+        for f in _fields(ins)[1]:
+            r = ins[_FIELD[f]]
+            if isinstance(r, int) and r >= 0:
+                uses[r] = uses.get(r, 0) + 1
+    # a value written twice is a carried slot: never fused
+    defs: dict[int, int] = {}
+    for p, ins in enumerate(code):
+        for f in _fields(ins)[0]:
+            r = ins[_FIELD[f]]
+            defs[r] = -1 if r in defs else p
+    dead = set()
+    for ins in code:
+        if ins[0] not in ("add", "sub"):
+            continue
+        for side in (1, 2) if ins[0] == "add" else (1,):
+            r = ins[1 + side]
+            other = ins[4 - side]
+            if not isinstance(r, int) or uses.get(r) != 1 or defs.get(r, -1) < 0:
+                continue
+            m = code[defs[r]]
+            if m[0] != "mul" or defs[r] in dead:
+                continue
+            if sum(isinstance(x, tuple) for x in (m[2], m[3], other)) > 1:
+                continue  # the interpreter takes one constant operand per instruction
+            ins[:] = ["fma" if ins[0] == "add" else "fms", ins[1], m[2], m[3], other]
+            dead.add(defs[r])
+            break
+    new_pos, out = {}, []
+    for p, ins in enumerate(code):
+        if p not in dead:
+            new_pos[p] = len(out)
+            out.append(ins)
+    loops = []
+    for p, ins in enumerate(out):
+        if ins[0] == "loop":
+            ins[3] = new_pos[ins[3] - 1] + 1  # after the endloop
+            loops.append((p, ins[3] - 1))
+        elif ins[0] == "endloop":
+            ins[3] = new_pos[ins[3] - 1] + 1  # the body's first instruction
+    return out, loops
+
+
+def _fields(ins: list) -> tuple[str, str]:
+    op = ins[0]
+    return _DEFS.get(op, "d"), _USES.get(op, "ab")
+
+
+def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[float],
+              nvreg: int) -> Bytecode:  # fmt: skip
+    """Slots for the virtual registers of ``code`` by a linear scan over their live intervals."""
+    first = [-1] * nvreg
+    last = [-1] * nvreg
+    for p, ins in enumerate(code):
+        defs, uses = _fields(ins)
+        for f in uses:
+            r = ins[_FIELD[f]]
+            if isinstance(r, int) and r >= 0:  # not a constant, not endloop's stop flags
+                last[r] = p
+        for f in defs:
+            r = ins[_FIELD[f]]
+            if first[r] < 0:
+                first[r] = p
+            last[r] = max(last[r], p)  # a write to a carried slot keeps it live
+    # a value defined before a loop and read (or written) inside lives to the loop's end
+    for start, end in loops:
+        for r in range(nvreg):
+            if 0 <= first[r] < start and start <= last[r] < end:
+                last[r] = end
+    free: list[int] = []
+    nslots = 0
+    slot = [-1] * nvreg
+    ending: dict[int, list[int]] = {}
+    for r in range(nvreg):
+        if last[r] >= 0:
+            ending.setdefault(last[r], []).append(r)
+    out = np.zeros((len(code), 5), dtype=np.int32)
+    for p, ins in enumerate(code):
+        defs, uses = _fields(ins)
+        row = [8 * OP[ins[0]], ins[1], ins[2], ins[3], ins[4]]
+        for f in uses:
+            r = ins[_FIELD[f]]
+            if isinstance(r, tuple):  # a constant: its index, flagged in the opcode
+                row[_FIELD[f]] = r[1]
+                row[0] |= _KFLAG[f]
+            elif r >= 0 or ins[0] != "endloop":
+                row[_FIELD[f]] = slot[r]
+        # operands read for the last time free their slots before the results take one (an
+        # instruction reads a vector of each operand before it writes the result's)
+        for r in ending.get(p, ()):
+            if slot[r] >= 0 and first[r] < p:
+                free.append(slot[r])
+        for f in defs:
+            r = ins[_FIELD[f]]
+            if slot[r] < 0:
+                if free:
+                    slot[r] = free.pop()
+                else:
+                    slot[r] = nslots
+                    nslots += 1
+            row[_FIELD[f]] = slot[r]
+        for r in ending.get(p, ()):
+            if first[r] == p:  # written and never read: free at once
+                free.append(slot[r])
+        out[p] = row
+    return Bytecode(out, np.asarray(const_vals, dtype=np.float64), nslots)
+
+
+# ----------------------------------------------------------------------------- the interpreter
+
+
+def entry(dtype: str, vbytes: int, machine: str) -> tuple[_store.Entry, str]:
+    """The VM's cache entry for ``dtype`` and its source (named by the source's hash)."""
+    src = source(dtype, vbytes)
+    h = hashlib.sha256(f"{VERSION}|{machine}|{_store.VM_FLAGS}|{src}".encode()).hexdigest()[:20]
+    return _store.Entry(_store.cache_dir() / "kernels", f"{_store.VM_PREFIX}{dtype}_{h}"), src
+
+
+def write_source(e: _store.Entry, src: str) -> None:
+    """Write the VM's source into its entry (unless it is there already)."""
+    e.dir.mkdir(parents=True, exist_ok=True)
+    try:
+        if e.source.read_text() == src:
+            return
+    except OSError:
+        pass
+    _store.write_atomic(e.source, src)
+
+
+def build(e: _store.Entry) -> Path:
+    """Compile the VM's entry (its source written), publish it atomically; returns the library.
+
+    Raises:
+        KernelBuildError: the compiler is missing or fails.
+    """
+    return _store.build(e, flags=_store.VM_FLAGS)
+
+
+def load_function(e: _store.Entry):
+    """The ``tc_vm`` function of a checked entry's library (ctypes), its ABI checked.
+
+    Raises:
+        OSError: the library does not load, lacks the symbols or has another ABI.
+    """
+    import ctypes
+
+    try:
+        lib = ctypes.CDLL(str(e.library))
+        fn, abi = lib.tc_vm, lib.tc_vm_abi
+    except AttributeError as err:
+        raise OSError(f"{e.library.name} lacks the VM's symbols ({err})") from None
+    abi.restype = ctypes.c_int
+    if str(abi()) != VERSION:
+        raise OSError(f"{e.library.name} is VM {abi()}, expected {VERSION}")
+    p, i64 = ctypes.c_void_p, ctypes.c_int64
+    fn.argtypes = [p, i64, p, i64, i64, i64, p, p, p, p]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def bind(fn, program, dtype, bc: Bytecode):
+    """``call(tensors) -> outputs`` running ``program``'s bytecode ``bc`` on the VM ``fn``."""
+    import ctypes
+
+    import torch
+
+    from torchcontact.kernels import _wrap
+
+    code = np.ascontiguousarray(bc.code, dtype=np.int32)
+    consts = torch.tensor(bc.consts, dtype=torch.float64).to(dtype)
+    lead = (code.ctypes.data_as(ctypes.c_void_p), len(code), ctypes.c_void_p(consts.data_ptr()),
+            len(consts), max(bc.nslots, 1))  # fmt: skip
+    call = _wrap(fn, program, dtype, lead, block=BLOCK)
+    call.keep = (code, consts)  # the arrays the pointers point into live as long as the call
+    return call
