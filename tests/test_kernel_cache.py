@@ -73,7 +73,12 @@ def cache(tmp_path, monkeypatch):
            "TORCHCONTACT_VM": "0"}  # fmt: skip
     for k, v in env.items():
         monkeypatch.setenv(k, v)
-    return tmp_path
+    # the builds earlier tests left for this process's exit (programs the tape VM ran) are not
+    # this test's: they would start under its compiler wrapper at wait_for_builds
+    deferred = dict(kernels._deferred)
+    kernels._deferred.clear()
+    yield tmp_path
+    kernels._deferred.update(deferred)
 
 
 def _damage(library: Path, data: bytes) -> None:

@@ -252,10 +252,21 @@ def _cache_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _background_note() -> None:
-    """One ``note:`` line when kernel builds this command started go on after it."""
+def _background_builds() -> list[str]:
+    """The kernel builds going on now (none when no kernel module is loaded yet)."""
     kernels = sys.modules.get("torchcontact.kernels")  # never imported here for this
-    note = kernels.background_note() if kernels is not None else None
+    return kernels.background_builds() if kernels is not None else []
+
+
+def _background_note(before: list[str]) -> None:
+    """One ``note:`` line when kernel builds this command started go on after it.
+
+    Args:
+        before: :func:`_background_builds` when the command started (a process running
+            several commands, as a test does, names only each command's own).
+    """
+    kernels = sys.modules.get("torchcontact.kernels")
+    note = kernels.background_note(before) if kernels is not None else None
     if note:
         print(note, file=sys.stderr)
 
@@ -280,11 +291,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     first = next((a for a in argv if a != "--debug"), None)
+    before = _background_builds()
     if first in APPS:
         rest = list(argv)
         rest.remove(first)
         rc = guarded(lambda: app_module(first).main(rest, prog=f"torchcontact {first}"), debug)
-        _background_note()
+        _background_note(before)
         return rc
     parser = build_parser(first)
     args = parser.parse_args(argv)
@@ -297,7 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     rc = guarded(lambda: args.func(args), debug)
-    _background_note()
+    _background_note(before)
     return rc
 
 

@@ -48,7 +48,7 @@ import platform
 import subprocess
 import threading
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -572,14 +572,19 @@ def background_builds() -> list[str]:
     builds are detached processes: they go on, and fill the cache, after this process exits.
     """
     with _lock:
-        later = [name for _, _, name in _deferred.values()]
+        later = [entry.name for _, _, entry in _deferred.values()]
         return [b.entry.name for b in _building.values()
                 if isinstance(b, _Build) and not b.done()] + later  # fmt: skip
 
 
-def background_note() -> str | None:
-    """One line saying which kernel builds go on after this process (for a CLI's stderr)."""
-    names = background_builds()
+def background_note(before: Collection[str] = ()) -> str | None:
+    """One line saying which kernel builds go on after this process (for a CLI's stderr).
+
+    Args:
+        before: :func:`background_builds` at the start of a command: only the builds the
+            command added are named.
+    """
+    names = [n for n in background_builds() if n not in set(before)]
     if not names:
         return None
     n = len(names)
@@ -767,8 +772,9 @@ def _build_behind_vm() -> bool:
     return _vm_mode() == "behind"
 
 
-#: kernels to build when the process ends: ckey -> (program, dtype, entry name)
-_deferred: dict[str, tuple[Program, torch.dtype, str]] = {}
+#: kernels to build when the process ends: ckey -> (program, dtype, cache entry), the entry in
+#: the cache the program ran with (a later change of ``$TORCHCONTACT_CACHE`` does not move it)
+_deferred: dict[str, tuple[Program, torch.dtype, _store.Entry]] = {}
 _atexit: list[bool] = []
 
 
@@ -785,11 +791,11 @@ def _defer_build(program: Program, dtype: torch.dtype) -> None:
         if ckey in _deferred or ckey in _building or ckey in _loaded or ckey in _failed:
             return
     try:
-        name = _cpu_entry(program, dtype)[0].name
+        entry = _cpu_entry(program, dtype)[0]
     except OSError:
         return
     with _lock:
-        _deferred[ckey] = (program, dtype, name)
+        _deferred[ckey] = (program, dtype, entry)
         if not _atexit:
             _atexit.append(True)
             atexit.register(_spawn_deferred)
@@ -805,9 +811,9 @@ def _spawn_deferred() -> None:
         todo = list(_deferred.items())
         _deferred.clear()
     entries, loads = [], []
-    for ckey, (program, dtype, _) in todo:
+    for ckey, (program, dtype, entry) in todo:
         try:
-            entry, (state, _) = _cpu_entry(program, dtype)
+            state, _ = entry.check()
         except OSError:
             continue
         if state != "ok":

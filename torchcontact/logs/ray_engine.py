@@ -247,7 +247,9 @@ def _start_ray(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(num_cpus)
-        warm = ray.remote(_warm_worker).options(**task_options)
+        # no CPU or GPU held: a unit never waits behind a warm-up (a worker process still
+        # warming up when a unit arrives leaves it to another process)
+        warm = ray.remote(_warm_worker).options(**{**task_options, "num_cpus": 0, "num_gpus": 0})
         for _ in range(workers):
             warm.remote(robot, job)
     return ray
