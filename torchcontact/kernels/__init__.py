@@ -78,10 +78,11 @@ __all__ = [
 ]
 
 #: Accepted ``backend`` arguments. ``"cached"``: the kernel when it is built already (loaded or
-#: in the disk cache), else the tape VM, else eager, and never a kernel build (a short side
-#: computation, such as a log's contact-free noise estimate, must not take the compile slot from
-#: the run's own kernel); from :data:`AUTO_BUILD_MIN_FRAMES` frames it builds the VM (once per
-#: machine and dtype, under a second of the compiler) when the cache has none.
+#: in the disk cache), else the tape VM, else eager, and never a kernel build during the run (a
+#: short side computation, such as a log's contact-free noise estimate, must not take the
+#: compile slot from the run's own kernel; a program the VM ran gets its kernel built once the
+#: process exits); from :data:`AUTO_BUILD_MIN_FRAMES` frames it builds the VM (once per machine
+#: and dtype, under a second of the compiler) when the cache has none.
 BACKENDS = ("auto", "eager", "cpu", "cuda", "cached")
 
 #: Batches at least this large start a background build under ``backend="auto"``.
@@ -637,7 +638,7 @@ def run(
         backend: ``"auto"`` (compiled if ready, else eager while it builds), ``"eager"``,
             ``"cpu"`` or ``"cuda"`` (build now; :class:`KernelBuildError` on failure),
             ``"cached"`` (compiled if built already, else the tape VM, else eager; no kernel
-            build).
+            build during the run).
 
     Returns:
         Output name -> ``(N, k)`` tensor.
@@ -663,7 +664,8 @@ def _usable_kernel(program: Program, like: Tensor, backend: str) -> Callable | N
     None (run eagerly) for inputs that need gradients, while tracing, and for a dtype or device
     without kernels. ``"auto"`` asks for the kernel of a batch of at least
     :data:`AUTO_BUILD_MIN_FRAMES` frames (starting its background build) or of a kernel already
-    loaded; ``"cached"`` takes it only when built already and never starts a kernel build. On
+    loaded; ``"cached"`` takes it only when built already and starts no kernel build during
+    the run. On
     CPU, the tape VM where the kernel is not built (:func:`_usable_cpu`).
     """
     if like.requires_grad or _tracing():
@@ -684,7 +686,8 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
 
     The compiled kernel when it is loaded or in the cache. Otherwise the VM (:func:`vm_kernel`)
     runs the program: ``"cached"`` (building the VM alone, from :data:`AUTO_BUILD_MIN_FRAMES`
-    frames, when the cache has none); ``"auto"`` (from
+    frames, when the cache has none; the program's kernel builds once the process exits, as
+    :func:`_defer_build` has it, never during the run); ``"auto"`` (from
     :data:`AUTO_BUILD_MIN_FRAMES` frames, or for a program already running) also building the
     VM once per machine in a detached process (waiting for it up to :data:`VM_WAIT_S`), which then
     builds the program's kernel at low priority (:data:`KERNEL_BUILD_NICE`; not with
@@ -700,6 +703,8 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
         if vm is None and _vm_state(dtype) == "building":
             _wait_for_vm(dtype, VM_WAIT_S)
             vm = vm_kernel(program, dtype, build=False)
+        if vm is not None and _vm_mode() != "only":
+            _defer_build(program, dtype)  # after the process: never a compile slot of the run's
         return vm
     ckey = f"{program.key}|{dtype}|cpu"
     with _lock:
@@ -717,7 +722,7 @@ def _usable_cpu(program: Program, dtype: torch.dtype, backend: str, n: int) -> C
         vm = vm_kernel(program, dtype, build=False)
         if vm is None:
             return None  # eager while the VM builds (its process builds the kernel next)
-    if vm is None or _vm_mode() == "behind":
+    if vm is None or _build_behind_vm():
         compiled(program, dtype, "cpu", wait=False)
     elif _vm_mode() != "only":
         _defer_build(program, dtype)

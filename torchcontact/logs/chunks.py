@@ -432,10 +432,6 @@ class LogEstimator:
             cons is not None, self.residual_columns(), self.source,
         )  # fmt: skip
         self._schema = None
-        #: kernels this run ran eagerly for want of a build (the contact-free noise estimate's
-        #: forward model): :func:`~torchcontact.logs.pipeline.build_wanted_kernels` requests
-        #: them once the run is done, for later runs
-        self.wanted_kernels: list[Any] = []
         self.smoother: Any = None  # the bias pass's BiasSmoother
         self._bias_stats: dict[str, Any] = {}
         if self.bias is not None:

@@ -172,15 +172,11 @@ def contact_free_noise(
     """
     import torch
 
-    from torchcontact import kernels
     from torchcontact.contacts import Contacts
-    from torchcontact.errors import KernelBuildError
-    from torchcontact.estimation.programs import program
 
     model, est = le.model, le.estimator
     diffs: list[np.ndarray] = []
-    have = eager = 0
-    moving = prog = built = None  # the forward model's program (moving base or not), its kernel
+    have = 0
     for d in chunks:
         free = d.issues.code == 0
         if len(d.records):
@@ -202,20 +198,10 @@ def contact_free_noise(
 
             kw["base"] = BaseMotion(*(torch.as_tensor(d.base[k][rows], dtype=model.dtype)
                                       for k in ("omega", "domega", "proper_acc")))  # fmt: skip
-        # the kernel only if built already: a build of its own would hold the compile slot the
-        # run's estimator kernel needs next (a first run would wait for two builds in a row);
-        # the run requests it once it is done (pipeline.build_wanted_kernels), for later runs
+        # the kernel only if built already, else the tape VM: a build of its own would hold the
+        # compile slot the run's estimator kernel needs next (a first run would wait for two
+        # builds in a row); its kernel builds once the process exits, for later runs
         pred = est.predict_ft(t["q"], t["qd"], t["qdd"], none, backend="cached", **kw)
-        if moving is None:
-            moving = bool(d.base)
-            # the program predict_ft ran (its layout without slots): built already or not
-            prog = program(est.layout([], ()), "predict", moving)
-            try:
-                built = kernels.compiled(prog, model.dtype, model.device, wait=False, build=False)
-            except KernelBuildError:  # a dtype or device without kernels: eager, nothing to build
-                built, prog = None, None
-        if built is None:
-            eager += len(rows)
         r = np.full((d.n, 6 * len(sensors)), np.nan)
         r[rows] = np.concatenate(
             [d.ft[s][rows] - pred[s].detach().cpu().numpy() for s in sensors], 1
@@ -226,8 +212,6 @@ def contact_free_noise(
         have += int(nxt.sum())
         if have >= pairs:
             break
-    if prog is not None and eager >= kernels.AUTO_BUILD_MIN_FRAMES:  # as "auto" builds for
-        le.wanted_kernels.append(prog)
     if not diffs:
         return {s: (np.full(6, np.nan), 0) for s in sensors}
     dr = np.concatenate(diffs)[:pairs]

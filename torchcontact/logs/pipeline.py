@@ -389,10 +389,10 @@ def recorded_noise(le: LogEstimator, previous: Mapping[str, Any] | None) -> None
     """A resume weighs the solve by its interrupted run's noise when only rounding differs.
 
     The contact-free estimate's forward model runs compiled when its kernel is in the cache and
-    eagerly otherwise (:func:`build_wanted_kernels`), whose results differ in the last bits: a
-    run resumed after the kernel was built takes the interrupted run's values (every source and
-    reason the same, the standard deviations within 1e-9 relative), so that its chunks are
-    estimated with the same weights as those kept.
+    on the tape VM or eagerly otherwise (its kernel builds after the run), which differ in the
+    last bits: a run resumed after the kernel was built takes the interrupted run's values
+    (every source and reason the same, the standard deviations within 1e-9 relative), so that
+    its chunks are estimated with the same weights as those kept.
 
     Args:
         le: the run's estimator, its noise resolved (:func:`log_noise`).
@@ -683,7 +683,7 @@ def estimate_file(
                     yield Done(done + k, tab.num_rows, tab)
 
         try:
-            summary = run.execute(
+            return run.execute(
                 produce(),
                 le.output_schema(),
                 progress=show,
@@ -697,34 +697,6 @@ def estimate_file(
         finally:
             if le.smoother is not None:
                 le.smoother.close()
-    build_wanted_kernels(le)
-    return summary
-
-
-def build_wanted_kernels(le: LogEstimator) -> list[str]:
-    """Start the background builds of the kernels a finished run ran eagerly for want of one.
-
-    The contact-free noise estimate runs its forward model with a kernel only when one is built
-    already (``backend="cached"``: a build of its own would hold the compile slot the estimator
-    kernel needs first). Once a run is done and this process builds nothing more (its estimator
-    kernel was in the cache or is built), the forward model's kernel is requested: a detached
-    build (bounded by the cache's compile slots; the CLI says that it goes on), so that later
-    runs on the robot find every kernel they use in the cache.
-
-    Returns:
-        Names of the kernels whose builds were started.
-    """
-    from torchcontact import kernels
-
-    wanted, le.wanted_kernels = le.wanted_kernels, []
-    # CPU kernels only: a CUDA kernel is built in a thread of this process, which is ending
-    if not wanted or le.model.device.type != "cpu" or kernels.background_builds():
-        return []
-    started = []
-    for prog in wanted:
-        if kernels.compiled(prog, le.model.dtype, le.model.device, wait=False) is None:
-            started += [prog.name]
-    return started
 
 
 def derivative_options(method: str, window: int, order: int) -> tuple[int, int] | None:
