@@ -206,8 +206,8 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     out.add("unknowns", (S,))
     pieces.append(gb.op("Gemm", actK, gb.f(unk), transA=1) if K else gb.f(np.zeros((1, S))))
     vals = gb.op("Concat", *pieces, axis=1)
-    # a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
-    nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
+    # a non-finite output from valid inputs: vals . 0 is NaN exactly for a NaN or inf (one node)
+    nonfin = gb.op("IsNaN", gb.op("MatMul", vals, gb.f(np.zeros((out.size, 1)))))
     n_est = out.size
     for fields, _value in localized:
         for name, shape in fields:
@@ -215,9 +215,8 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     if localized:
         vals = gb.op("Concat", vals, *(value for _, value in localized), axis=1)
     bit = float(Status.OUTPUT_NONFINITE)
-    status = gb.op(
-        "Add", status_in, gb.op("Mul", gb.op("Where", nonfin, gb.f(bit), gb.f(0.0)), okf)
-    )
+    # status_in + bit * okf where nonfin, else status_in (the bit only for valid inputs)
+    status = gb.op("Where", nonfin, gb.op("Gemm", okf, gb.f([[bit]]), status_in), status_in)
     # NaN outputs where the status is not 0; torques the graph does not compute: NaN always
     always = np.zeros((1, out.size))
     t0 = out.fields["joint_torques"][0]
