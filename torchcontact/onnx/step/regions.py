@@ -155,20 +155,25 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
         Fs = sp.force_to_child(regs[r].T_child_sensor, root_to_child(ctx, regs[r].child, t, F))
         return [*Fs[0], *Fs[1]]
 
-    F_nd = Operand(Fb, 6, "nd", row_of=childs)
-    if ctx.all_static(childs):
-        Fsens = bilinear(gb, F_nd, None, ctx.S, lambda r, F, _b: to_sensor(r, None, F), 6,
-                         one=False, hint="fs")  # fmt: skip
-    else:
-        Fsens = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), F_nd, ctx.S,
-                         to_sensor, 6, one=False, hint="fs")  # fmt: skip
+    # the readings (less their corrections) enter as the last product's Gemm bias: b = F_s - W_s
     Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
     if ws_corr is not None:  # natively built corrections
         Ws = gb.op("Sub", Ws, ws_corr)
-    b6 = gb.op("Sub", Fsens, Ws)
+    F_nd = Operand(Fb, 6, "nd", row_of=childs)
+    if ctx.all_static(childs):
+        b6 = bilinear(gb, F_nd, None, ctx.S, lambda r, F, _b: to_sensor(r, None, F), 6,
+                      one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
+    else:
+        b6 = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), F_nd, ctx.S,
+                      to_sensor, 6, one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
+    # per region its (6, 1) column: one Reshape for one region, else rows of b6^T
+    b6T = None if ctx.S == 1 else gb.op("Transpose", b6, perm=[1, 0])
     out = []
     for r, reg in enumerate(regs):
-        b = gb.op("Reshape", gb.op("Gather", b6, gb.i([r]), axis=0), gb.i([6, 1]))
+        if b6T is None:
+            b = gb.op("Reshape", b6, gb.i([6, 1]))
+        else:
+            b = gb.op("Gather", b6T, gb.i([r]), axis=1)
         if ctx.flags.torque_rows and reg.torque_coords:
             b = gb.op("Concat", b, _torque_b(ctx, r, S0, Fb, e, idx), axis=0)
         out.append(b)
