@@ -135,7 +135,7 @@ def slots_to_root(ctx: StepContext, TP: str, ws: str) -> str:
                     ctx.K, to_root, 6, one=False, hint="om0")  # fmt: skip
 
 
-def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
+def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None, ws_terms=()) -> list[str]:
     """Per region, its right side ``b`` as an ``(R, 1)`` column (sensor rows, torque rows).
 
     Args:
@@ -147,6 +147,9 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
         idx: their indices.
         ws_corr: ``(S, 6)`` corrections subtracted from the readings (sensor frame, signed), or
             None.
+        ws_terms: more of them, ``[(col (S, 1), c (1, 6))]`` for ``col c`` each (the native
+            stacks', :func:`~torchcontact.onnx.step.corrections.native_corrections`): one
+            ``Gemm`` each.
     """
     gb, regs = ctx.gb, ctx.em.regions
     childs = [reg.child for reg in regs]
@@ -157,7 +160,9 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
 
     # the readings (less their corrections) enter as the last product's Gemm bias: b = F_s - W_s
     Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
-    if ws_corr is not None:  # natively built corrections
+    for col, c in ws_terms:  # natively built corrections: W_s - col c
+        Ws = gb.op("Gemm", gb.f(-col), c, Ws)
+    if ws_corr is not None:
         Ws = gb.op("Sub", Ws, ws_corr)
     F_nd = Operand(Fb, 6, "nd", row_of=childs)
     if ctx.all_static(childs):
