@@ -230,8 +230,12 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)
     F_tot = Fb
     if ctx.K:  # the estimated (and known) contacts' wrenches leave the transmitted ones
-        ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
-        F_tot = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, ws), Fb, alpha=-1.0)
+        if ctx.flags.covariance or ctx.all_static([em.regions[s.region].child for s in em.slots]):
+            ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
+            om = regions.slots_to_root(ctx, TP, ws)
+        else:  # fm's last 6 columns (sensor frame) picked by the stage's own column selection
+            om = regions.slots_to_root(ctx, TP, fm, first=6)
+        F_tot = gb.op("Gemm", DB, om, Fb, alpha=-1.0)
     tau = outputs.torques(ctx, S0, F_tot)
     return dict(status=chk.status, T=T, TP=TP, VA=VA, f0=f0, W0=W0, Fb=Fb, b=b_all, G=gr.G,
                 y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=actK,

@@ -118,20 +118,30 @@ def known_wrenches(ctx: StepContext, Cg: str, e: str, idx: dict, actK: str) -> s
     return ctx.gb.op("Mul", w, actK)
 
 
-def slots_to_root(ctx: StepContext, TP: str, ws: str) -> str:
-    """Per-slot wrenches given in their sensor frame, in the root frame, ``(K, 6)``."""
+def slots_to_root(ctx: StepContext, TP: str, ws: str, first: int = 0) -> str:
+    """Per-slot wrenches given in their sensor frame, in the root frame, ``(K, 6)``.
+
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        ws: ``(K, first + 6)``, each slot's wrench in columns ``first .. first + 5`` (the
+            stage's column selection picks them: no ``Slice`` of its own).
+        first: the first column of the wrenches.
+    """
     em = ctx.em
     childs = [em.regions[s.region].child for s in em.slots]
+    n = first + 6
 
     def to_root(k: int, t: list | None, w: list) -> list:
         reg = em.regions[em.slots[k].region]
-        o = wrench_to_root(ctx, reg.child, t, sp.force_to_parent(reg.T_child_sensor, split(w)))
+        f = sp.force_to_parent(reg.T_child_sensor, split(w[first:n]))
+        o = wrench_to_root(ctx, reg.child, t, f)
         return [*o[0], *o[1]]
 
     if ctx.all_static(childs):
-        return bilinear(ctx.gb, Operand(ws, 6), None, ctx.K, lambda k, w, _b: to_root(k, None, w),
+        return bilinear(ctx.gb, Operand(ws, n), None, ctx.K, lambda k, w, _b: to_root(k, None, w),
                         6, one=False, hint="om0")  # fmt: skip
-    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), Operand(ws, 6),
+    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), Operand(ws, n),
                     ctx.K, to_root, 6, one=False, hint="om0")  # fmt: skip
 
 
