@@ -221,10 +221,13 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     always = np.zeros((1, out.size))
     t0 = out.fields["joint_torques"][0]
     always[0, [t0 + c for c in range(ctx.nv) if c not in ctx.coords]] = np.nan
-    bad = always.copy()
-    bad[0, :n_mask] = np.nan
-    bad[0, n_est:] = np.nan
-    pen = gb.op("Where", gb.op("Greater", status, gb.f(0.0)), gb.f(bad), gb.f(always))
+    # as arithmetic: sqrt(status * m) with m = -1 where masked (NaN for a status > 0, -0 for 0),
+    # +0 where kept, NaN where always NaN
+    m = always.copy()
+    m[0, :n_mask] = -1.0
+    m[0, n_est:] = -1.0
+    m[np.isnan(always)] = np.nan
+    pen = gb.op("Sqrt", gb.op("Mul", status, gb.f(m)))
     out.add("status", (1,))
     for sensor, shape, _h in states:
         out.add(state_out(sensor), shape)
