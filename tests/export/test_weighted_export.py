@@ -234,7 +234,9 @@ def test_unweighted_export_is_unchanged(exports):
     The digests are of the serialised graphs without their metadata (which holds versions), for
     the float64 ``tcarm`` layout; the batched graph's was taken from main at d499cb6, the step
     graph's after its poses became batched homogeneous products and its joint rates products with
-    the motion subspaces (``onnx.step.kinematics``, issue 23: fewer nodes). A deliberate change of the graphs updates them.
+    the motion subspaces (``onnx.step.kinematics``, issue 23: fewer nodes), then after its status
+    tail and ``b`` took fewer nodes (``onnx.step.outputs``, ``onnx.step.regions``, round 6). A
+    deliberate change of the graphs updates them.
     """
     want = {
         "batched": "fdc8f134055471b288ee1e2348ec0889c34ca4f395c514ddd7ebf3e7f5fb1004",
