@@ -257,6 +257,8 @@ def bilinear(
     n_out: int,
     one: bool = True,
     hint: str = "stage",
+    add: str | None = None,
+    beta: float = 1.0,
 ) -> str:
     """Emit the stage ``out[r] = fn(r, A[r], B[r])`` for every row ``r`` as four to five nodes.
 
@@ -275,10 +277,16 @@ def bilinear(
         n_out: outputs per row.
         one: append a column holding 1 to the result (so it can serve as an operand).
         hint: name prefix of the nodes' values.
+        add: a value of the graph broadcastable to the result, added as ``beta * add`` (the
+            final product's ``Gemm`` bias when the stage has no constant terms: no node of its
+            own), or None.
+        beta: its factor, 1 or -1.
 
     Returns:
-        The ``(rows, n_out [+ 1])`` result.
+        The ``(rows, n_out [+ 1])`` result (plus ``beta * add``).
     """
+    if beta not in (1.0, -1.0):
+        raise ValueError(f"stage {hint}: beta must be 1 or -1, got {beta}")
     same = b is None
     bb = a if same else b
     per_row = []
@@ -362,8 +370,20 @@ def bilinear(
         for t, (m, o) in enumerate(terms):
             W[t, o] = 1.0
             row_coef[:, t] = coef[:, seen[m], o]
+
+    def product(x: str) -> str:
+        """``x W + bias (+ beta add)``."""
+        if add is None:
+            if not np.any(bias):
+                return gb.op("MatMul", x, gb.f(W))
+            return gb.op("Gemm", x, gb.f(W), gb.f(bias))
+        if not np.any(bias):
+            return gb.op("Gemm", x, gb.f(W), add, beta=beta)
+        return gb.op("Add" if beta > 0 else "Sub", gb.op("Gemm", x, gb.f(W), gb.f(bias)), add)
+
     if not terms:
-        return gb.f(np.broadcast_to(bias, (rows, n_cols)).copy())
+        const = gb.f(np.broadcast_to(bias, (rows, n_cols)).copy())
+        return const if add is None else gb.op("Add" if beta > 0 else "Sub", const, add)
     linear = all(len(m) == 1 for m, _ in terms)
     if linear and (same or len({m[0][0] for m, _ in terms}) == 1):
         # a linear stage: gather the symbols, no products
@@ -371,9 +391,7 @@ def bilinear(
         g = gather(src, [m[0] for m, _ in terms])
         if row_coef is not None:
             g = gb.op("Mul", g, gb.f(row_coef))
-        if not np.any(bias):
-            return gb.op("MatMul", g, gb.f(W))
-        return gb.op("Gemm", g, gb.f(W), gb.f(bias))
+        return product(g)
     fa = [factors(m) for m, _ in terms]
 
     ga = gather(a, [x for x, _ in fa])
@@ -381,9 +399,7 @@ def bilinear(
     prod = gb.op("Mul", ga, gbb)
     if row_coef is not None:
         prod = gb.op("Mul", prod, gb.f(row_coef))
-    if not np.any(bias):
-        return gb.op("MatMul", prod, gb.f(W))
-    return gb.op("Gemm", prod, gb.f(W), gb.f(bias))
+    return product(prod)
 
 
 # ------------------------------------------------------------------------------ batched programs

@@ -170,23 +170,20 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     # the native stacks' inertial changes: more columns of the body wrenches' two stages
     deltas = [st.delta for _rg, st in native.values() if st.delta]
     f0, VAb, F = kinematics.body_wrenches(ctx, TP, VA, deltas)
-    ws_corr, onl, cres = None, None, []
+    ws_corr, onl, cres, ws_terms = None, None, [], []
     if ctx.online:  # offsets and inertial changes as inputs: the model's reading, Y theta
         onl = online_stage.model_terms(ctx, e, idx, TP, VAb, f0)
         ws_corr = onl.ws_corr
     if native:  # the corrections come off the readings before these move to the root frame
-        cres, ws_n = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, F)
-        if ws_n is not None:
-            ws_corr = ws_n if ws_corr is None else gb.op("Add", ws_corr, ws_n)
+        cres, ws_terms = corrections.native_corrections(ctx, wiring, native, TP, VAb, f0, F)
     W0 = kinematics.readings_root(ctx, TP, e, idx, cres)
     if onl is not None:
         W0 = gb.op("Sub", W0, onl.delta_root)
     ft_model, more = None, []
     if onl is not None:  # ft_model: every correction but the offset (learned, chained)
         ft_model = onl.ft_model
-        if native and ws_n is not None:  # the learned layers, reading sense (sign ws)
-            signs = np.array([[reg.sign] for reg in em.regions])
-            ft_model = gb.op("Add", ft_model, gb.op("Mul", ws_n, gb.f(signs)))
+        for col, c in ws_terms:  # the learned layers, reading sense (sign sign c = c)
+            ft_model = gb.op("Gemm", gb.f(np.abs(col)), c, ft_model)
         if total is not None:  # inlined correction graphs: their part of ft
             a, b, _ = ctx.lay.span("ft")
             chain_ft = gb.op("Slice", total, gb.i([a]), gb.i([b]), gb.i([1]))
@@ -205,7 +202,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     if known:  # given contact wrenches act like body wrenches: subtract
         known_s = regions.known_wrenches(ctx, Cg, e, idx, chk.actK)
         Fb = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, known_s), Fb, alpha=-1.0)
-    b_all = regions.region_b(ctx, TP, Fb, S0, e, idx, ws_corr)
+    b_all = regions.region_b(ctx, TP, Fb, S0, e, idx, ws_corr, ws_terms)
     actK, localized = chk.actK, []
     if localize is not None:  # LINK's force slot at the point b's line enters its mesh
         loc = localize_stage.stage(ctx, localize, TP, b_all, Cg, actK)
@@ -233,8 +230,12 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)
     F_tot = Fb
     if ctx.K:  # the estimated (and known) contacts' wrenches leave the transmitted ones
-        ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
-        F_tot = gb.op("Gemm", DB, regions.slots_to_root(ctx, TP, ws), Fb, alpha=-1.0)
+        if ctx.flags.covariance or ctx.all_static([em.regions[s.region].child for s in em.slots]):
+            ws = gb.op("Slice", fm, gb.i([0, 6]), gb.i([ctx.K, 12]), gb.i([0, 1]))
+            om = regions.slots_to_root(ctx, TP, ws)
+        else:  # fm's last 6 columns (sensor frame) picked by the stage's own column selection
+            om = regions.slots_to_root(ctx, TP, fm, first=6)
+        F_tot = gb.op("Gemm", DB, om, Fb, alpha=-1.0)
     tau = outputs.torques(ctx, S0, F_tot)
     return dict(status=chk.status, T=T, TP=TP, VA=VA, f0=f0, W0=W0, Fb=Fb, b=b_all, G=gr.G,
                 y=ys, rank=ranks, resid=resids, fm=fm, tau=tau, e=e, idx=idx, actK=actK,

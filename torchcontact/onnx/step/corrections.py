@@ -224,12 +224,14 @@ def feature_entries(ctx: StepContext, wiring: Wiring, stacks: dict, ea) -> None:
 
 def native_corrections(
     ctx, wiring: Wiring, stacks, TP, VAb, f0, F: str | None = None
-) -> tuple[list[tuple[int, str]], str | None]:
-    """The native stacks' corrections ``c`` per region, and ``ws_corr``.
+) -> tuple[list[tuple[int, str]], list[tuple[np.ndarray, str]]]:
+    """The native stacks' corrections ``c`` per region, and the terms of ``ws_corr``.
 
     A correction ``c`` (sensor frame and measure direction) is subtracted twice over: from the
-    region's ``b`` (``sign c``, sensor frame: ``ws_corr``, ``(S, 6)``) and from the wrench the
-    reading transmits towards the root (the returned ``(region, c)``, for
+    region's ``b`` (``sign c``, sensor frame: ``ws_corr = sum_terms col c``, ``(S, 6)``, with
+    ``col`` the ``(S, 1)`` column holding the region's sign in its row; left as terms so that
+    each is one ``Gemm`` where it is used) and from the wrench the reading transmits towards the
+    root (the returned ``(region, c)``, for
     :func:`~torchcontact.onnx.step.kinematics.readings_root`). Its inertial layer ``Y delta`` is
     the subtree's Newton-Euler wrenches with the parameter change ``delta`` as inertias (the
     columns of ``F`` after the nominal ones, in the order of ``stacks`` that have one), summed
@@ -247,7 +249,7 @@ def native_corrections(
             the stacks' ``delta``), or None when no stack has one.
     """
     gb, nb, S = ctx.gb, ctx.nb, ctx.S
-    cres, ws_corr = [], None
+    cres, terms = [], []
     n_delta = sum(1 for _rg, st in stacks.values() if st.delta)
     j = 0  # the next inertial change's block of F
     for r, (rg, st) in stacks.items():
@@ -292,15 +294,11 @@ def native_corrections(
             c = gb.op("MatMul", ws, gb.f(last)) if c is None else gb.op("Gemm", ws, gb.f(last), c)
         if c is None:
             continue
-        if S == 1 and reg.sign == 1.0:
-            d = c
-        else:
-            col = np.zeros((S, 1))
-            col[st.region, 0] = 1.0
-            d = gb.op("MatMul", gb.f(col * reg.sign), c)
-        ws_corr = d if ws_corr is None else gb.op("Add", ws_corr, d)
+        col = np.zeros((S, 1))
+        col[st.region, 0] = reg.sign
+        terms.append((col, c))
         cres.append((st.region, c))
-    return cres, ws_corr
+    return cres, terms
 
 
 def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeStack,

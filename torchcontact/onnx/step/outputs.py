@@ -206,8 +206,8 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     out.add("unknowns", (S,))
     pieces.append(gb.op("Gemm", actK, gb.f(unk), transA=1) if K else gb.f(np.zeros((1, S))))
     vals = gb.op("Concat", *pieces, axis=1)
-    # a non-finite output from valid inputs (0 * x is NaN exactly for NaN and inf)
-    nonfin = gb.op("IsNaN", gb.op("ReduceSum", gb.op("Mul", vals, gb.f(0.0)), keepdims=1))
+    # a non-finite output from valid inputs: vals . 0 is NaN exactly for a NaN or inf (one node)
+    nonfin = gb.op("IsNaN", gb.op("MatMul", vals, gb.f(np.zeros((out.size, 1)))))
     n_est = out.size
     for fields, _value in localized:
         for name, shape in fields:
@@ -215,17 +215,19 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     if localized:
         vals = gb.op("Concat", vals, *(value for _, value in localized), axis=1)
     bit = float(Status.OUTPUT_NONFINITE)
-    status = gb.op(
-        "Add", status_in, gb.op("Mul", gb.op("Where", nonfin, gb.f(bit), gb.f(0.0)), okf)
-    )
+    # status_in + bit * okf where nonfin, else status_in (the bit only for valid inputs)
+    status = gb.op("Where", nonfin, gb.op("Gemm", okf, gb.f([[bit]]), status_in), status_in)
     # NaN outputs where the status is not 0; torques the graph does not compute: NaN always
     always = np.zeros((1, out.size))
     t0 = out.fields["joint_torques"][0]
     always[0, [t0 + c for c in range(ctx.nv) if c not in ctx.coords]] = np.nan
-    bad = always.copy()
-    bad[0, :n_mask] = np.nan
-    bad[0, n_est:] = np.nan
-    pen = gb.op("Where", gb.op("Greater", status, gb.f(0.0)), gb.f(bad), gb.f(always))
+    # as arithmetic: sqrt(status * m) with m = -1 where masked (NaN for a status > 0, -0 for 0),
+    # +0 where kept, NaN where always NaN
+    m = always.copy()
+    m[0, :n_mask] = -1.0
+    m[0, n_est:] = -1.0
+    m[np.isnan(always)] = np.nan
+    pen = gb.op("Sqrt", gb.op("Mul", status, gb.f(m)))
     out.add("status", (1,))
     for sensor, shape, _h in states:
         out.add(state_out(sensor), shape)

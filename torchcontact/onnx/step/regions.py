@@ -118,24 +118,34 @@ def known_wrenches(ctx: StepContext, Cg: str, e: str, idx: dict, actK: str) -> s
     return ctx.gb.op("Mul", w, actK)
 
 
-def slots_to_root(ctx: StepContext, TP: str, ws: str) -> str:
-    """Per-slot wrenches given in their sensor frame, in the root frame, ``(K, 6)``."""
+def slots_to_root(ctx: StepContext, TP: str, ws: str, first: int = 0) -> str:
+    """Per-slot wrenches given in their sensor frame, in the root frame, ``(K, 6)``.
+
+    Args:
+        ctx: the graph.
+        TP: pose features.
+        ws: ``(K, first + 6)``, each slot's wrench in columns ``first .. first + 5`` (the
+            stage's column selection picks them: no ``Slice`` of its own).
+        first: the first column of the wrenches.
+    """
     em = ctx.em
     childs = [em.regions[s.region].child for s in em.slots]
+    n = first + 6
 
     def to_root(k: int, t: list | None, w: list) -> list:
         reg = em.regions[em.slots[k].region]
-        o = wrench_to_root(ctx, reg.child, t, sp.force_to_parent(reg.T_child_sensor, split(w)))
+        f = sp.force_to_parent(reg.T_child_sensor, split(w[first:n]))
+        o = wrench_to_root(ctx, reg.child, t, f)
         return [*o[0], *o[1]]
 
     if ctx.all_static(childs):
-        return bilinear(ctx.gb, Operand(ws, 6), None, ctx.K, lambda k, w, _b: to_root(k, None, w),
+        return bilinear(ctx.gb, Operand(ws, n), None, ctx.K, lambda k, w, _b: to_root(k, None, w),
                         6, one=False, hint="om0")  # fmt: skip
-    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), Operand(ws, 6),
+    return bilinear(ctx.gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), Operand(ws, n),
                     ctx.K, to_root, 6, one=False, hint="om0")  # fmt: skip
 
 
-def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
+def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None, ws_terms=()) -> list[str]:
     """Per region, its right side ``b`` as an ``(R, 1)`` column (sensor rows, torque rows).
 
     Args:
@@ -147,6 +157,9 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
         idx: their indices.
         ws_corr: ``(S, 6)`` corrections subtracted from the readings (sensor frame, signed), or
             None.
+        ws_terms: more of them, ``[(col (S, 1), c (1, 6))]`` for ``col c`` each (the native
+            stacks', :func:`~torchcontact.onnx.step.corrections.native_corrections`): one
+            ``Gemm`` each.
     """
     gb, regs = ctx.gb, ctx.em.regions
     childs = [reg.child for reg in regs]
@@ -155,20 +168,27 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None) -> list[str]:
         Fs = sp.force_to_child(regs[r].T_child_sensor, root_to_child(ctx, regs[r].child, t, F))
         return [*Fs[0], *Fs[1]]
 
+    # the readings (less their corrections) enter as the last product's Gemm bias: b = F_s - W_s
+    Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
+    for col, c in ws_terms:  # natively built corrections: W_s - col c
+        Ws = gb.op("Gemm", gb.f(-col), c, Ws)
+    if ws_corr is not None:
+        Ws = gb.op("Sub", Ws, ws_corr)
     F_nd = Operand(Fb, 6, "nd", row_of=childs)
     if ctx.all_static(childs):
-        Fsens = bilinear(gb, F_nd, None, ctx.S, lambda r, F, _b: to_sensor(r, None, F), 6,
-                         one=False, hint="fs")  # fmt: skip
+        b6 = bilinear(gb, F_nd, None, ctx.S, lambda r, F, _b: to_sensor(r, None, F), 6,
+                      one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
     else:
-        Fsens = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), F_nd, ctx.S,
-                         to_sensor, 6, one=False, hint="fs")  # fmt: skip
-    Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
-    if ws_corr is not None:  # natively built corrections
-        Ws = gb.op("Sub", Ws, ws_corr)
-    b6 = gb.op("Sub", Fsens, Ws)
+        b6 = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), F_nd, ctx.S,
+                      to_sensor, 6, one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
+    # per region its (6, 1) column: one Reshape for one region, else rows of b6^T
+    b6T = None if ctx.S == 1 else gb.op("Transpose", b6, perm=[1, 0])
     out = []
     for r, reg in enumerate(regs):
-        b = gb.op("Reshape", gb.op("Gather", b6, gb.i([r]), axis=0), gb.i([6, 1]))
+        if b6T is None:
+            b = gb.op("Reshape", b6, gb.i([6, 1]))
+        else:
+            b = gb.op("Gather", b6T, gb.i([r]), axis=1)
         if ctx.flags.torque_rows and reg.torque_coords:
             b = gb.op("Concat", b, _torque_b(ctx, r, S0, Fb, e, idx), axis=0)
         out.append(b)
