@@ -234,7 +234,7 @@ def _ensure_ray(num_cpus: int | None) -> Any:
 
 def _start_ray(
     num_cpus: int | None, robot: dict, job: dict, workers: int, task_options: dict
-) -> Any:
+) -> tuple[Any, list[Any]]:
     """Start (or join) Ray and send each of ``workers`` worker processes a :func:`_warm_worker`.
 
     Called while the noise scan runs on another thread: the worker processes import torchcontact
@@ -242,17 +242,16 @@ def _start_ray(
     live as long as Ray: a local instance's processes die with the thread that started them.
 
     Returns:
-        The ``ray`` module.
+        The ``ray`` module, and the warm-up tasks' references (:func:`_unit_tasks` waits for
+        them before it sends the units).
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(num_cpus)
-        # no CPU or GPU held: a unit never waits behind a warm-up (a worker process still
-        # warming up when a unit arrives leaves it to another process)
-        warm = ray.remote(_warm_worker).options(**{**task_options, "num_cpus": 0, "num_gpus": 0})
-        for _ in range(workers):
-            warm.remote(robot, job)
-    return ray
+        # with the units' resources, so that the units find these processes warm (a warm-up
+        # holding no CPU ran in other processes than the units, measured)
+        warm = ray.remote(_warm_worker).options(**task_options)
+        return ray, [warm.remote(robot, job) for _ in range(workers)]
 
 
 def _user_error(exc: BaseException) -> BaseException:
@@ -269,6 +268,10 @@ def _user_error(exc: BaseException) -> BaseException:
         seen = cause
     return exc
 
+
+#: Seconds the units wait for the warm-ups at most (a cluster busy with other jobs may queue
+#: them; the units then go all the same).
+WARM_UP_WAIT_S = 60.0
 
 #: Attempts of a unit whose worker process dies (a killed or crashed worker; the unit's journal
 #: part is written under a temporary name, so a retry starts clean).
@@ -322,6 +325,7 @@ def _task_options(worker_cpus: float, device: str) -> dict[str, Any]:
 
 def _unit_tasks(
     ray: Any,
+    warm: list[Any],
     todo: list[int],
     path: str | Path,
     robot: RobotSpec,
@@ -339,8 +343,11 @@ def _unit_tasks(
     Plain Ray tasks, not Ray Data: a unit is a coarse task with a side effect (its journal
     part), and Ray Data's streaming executor ramped its concurrency up slowly (16 tasks of 1 s
     with 8 workers on 8 CPUs: 10.9 s, against 7.0 s as plain tasks). Yields each task's result
-    as it finishes (any order; the run writes the units in order).
+    as it finishes (any order; the run writes the units in order). The units go once the
+    warm-ups (:func:`_start_ray`) have ended, so that every worker process is ready and free
+    when they are spread over the nodes.
     """
+    ray.wait(warm, num_returns=len(warm), timeout=WARM_UP_WAIT_S)
     job = {
         "units": run.units,
         "columns": columns,
@@ -462,7 +469,7 @@ def estimate_file_ray(
         with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-noise") as pool:
             noise = pool.submit(log_noise, pf, le, columns, half_window, ft_noise, unweighted,
                                 str(path))  # fmt: skip
-            ray = _start_ray(num_cpus, _robot_arg(spec, model),
+            ray, warm = _start_ray(num_cpus, _robot_arg(spec, model),
                              {"threads": threads, "device": device,
                               "dtype": str(dtype).removeprefix("torch.")},
                              workers, _task_options(worker_cpus, device))  # fmt: skip
@@ -484,7 +491,7 @@ def estimate_file_ray(
                 return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-                results = _unit_tasks(ray, todo, path, spec, model, le, run, columns, res,
+                results = _unit_tasks(ray, warm, todo, path, spec, model, le, run, columns, res,
                                       workers, worker_cpus, options)  # fmt: skip
                 try:
                     for r in results:
