@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _meta import metadata  # noqa: E402
 
 
-def capture(tmp: Path):
+def capture(tmp: Path, robot: str = "icub", frames: int = 8192):
     """The estimator program of the benchmark log and the tensors of its first chunk."""
     import pipeline as bp
 
@@ -41,7 +41,7 @@ def capture(tmp: Path):
     from torchcontact.estimation import estimator as est_mod
     from torchcontact.logs import estimate_file
 
-    log = bp.write_log("icub", 8192, tmp / "icub8192.parquet")
+    log = bp.write_log(robot, frames, tmp / f"{robot}{frames}.parquet")
     seen = []
     run = est_mod.run_program
 
@@ -52,9 +52,9 @@ def capture(tmp: Path):
 
     est_mod.run_program = spy
     try:
-        urdf, _, _ = bp.robot_setup("icub")
+        urdf, _, _ = bp.robot_setup(robot)
         model = tc.RobotModel.from_urdf(urdf)
-        estimate_file(log, model, tmp / "out.parquet", batch_size=8192, progress=False)
+        estimate_file(log, model, tmp / "out.parquet", batch_size=frames, progress=False)
     finally:
         est_mod.run_program = run
     return seen[0]

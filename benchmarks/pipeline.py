@@ -62,6 +62,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -336,19 +337,22 @@ def run_child(kind, robot, log, out, extra="", env=None, watch_cache=None) -> di
     return res
 
 
+def cmdlines() -> Iterator[str]:
+    """The command lines of this machine's processes (arguments joined by spaces)."""
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            yield Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+
+
 def _count_compilers(cache: str, stop: threading.Event, peak: list) -> None:
     """Most compiler processes at once whose command line names ``cache``."""
     while not stop.is_set():
-        n = 0
-        for pid in os.listdir("/proc"):
-            if not pid.isdigit():
-                continue
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-            except OSError:
-                continue
-            if cache in cmd and re.search(r"\b(cc1plus|nvcc|cicc)\b", cmd):
-                n += 1
+        n = sum(1 for cmd in cmdlines()
+                if cache in cmd and re.search(r"\b(cc1plus|nvcc|cicc)\b", cmd))  # fmt: skip
         peak[0] = max(peak[0], n)
         time.sleep(0.05)
 
@@ -359,15 +363,7 @@ def _settle(cache: str | Path, timeout: float = 600) -> None:
     deadline = time.monotonic() + timeout
     quiet = 0
     while quiet < 3 and time.monotonic() < deadline:
-        busy = False
-        for pid in os.listdir("/proc"):
-            if not pid.isdigit():
-                continue
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-            except OSError:
-                continue
-            busy |= mark in cmd
+        busy = any(mark in cmd for cmd in cmdlines())
         quiet = 0 if busy else quiet + 1
         time.sleep(0.2)
 

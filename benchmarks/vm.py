@@ -24,33 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _meta import metadata  # noqa: E402
-
-
-def capture(robot: str, tmp: Path, frames: int):
-    """The estimator program of the benchmark log and the tensors of its first chunk."""
-    import pipeline as bp
-
-    import torchcontact as tc
-    from torchcontact.estimation import estimator as est_mod
-    from torchcontact.logs import estimate_file
-
-    log = bp.write_log(robot, frames, tmp / f"{robot}{frames}.parquet")
-    seen = []
-    run = est_mod.run_program
-
-    def spy(prog, tensors, backend, chunk_size):
-        if prog.name == "estimator" and not seen:
-            seen.append((prog, {k: v.clone() for k, v in tensors.items()}))
-        return run(prog, tensors, "eager", chunk_size)
-
-    est_mod.run_program = spy
-    try:
-        urdf, _, _ = bp.robot_setup(robot)
-        model = tc.RobotModel.from_urdf(urdf)
-        estimate_file(log, model, tmp / "out.parquet", batch_size=frames, progress=False)
-    finally:
-        est_mod.run_program = run
-    return seen[0]
+from kernel_build import capture  # noqa: E402
 
 
 def best_time(fn, repeat: int) -> float:
@@ -84,7 +58,7 @@ def main() -> None:
     dtype = getattr(torch, args.dtype)
     tmp = Path(tempfile.mkdtemp(prefix="tc-vm-"))
     os.environ["TORCHCONTACT_CACHE"] = str(tmp / "cache")
-    prog, tensors = capture(args.robot, tmp, args.frames)
+    prog, tensors = capture(tmp, args.robot, args.frames)
     tensors = {k: v.to(dtype) for k, v in tensors.items()}
     n = next(iter(tensors.values())).shape[0]
     tr, out = prog.trace()

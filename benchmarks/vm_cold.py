@@ -38,7 +38,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _meta import metadata  # noqa: E402
-from pipeline import run_child, write_log  # noqa: E402
+from pipeline import cmdlines, run_child, write_log  # noqa: E402
 
 VARIANTS = [
     ("warm", None),
@@ -52,17 +52,9 @@ VARIANTS = [
 
 def compilers(cache: str) -> int:
     """Compiler processes whose command line names ``cache``."""
-    n = 0
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if cache in cmd and re.search(r"\b(cc1plus|_store\.py)\b", cmd):
-            n += 1
-    return n
+    return sum(
+        1 for cmd in cmdlines() if cache in cmd and re.search(r"\b(cc1plus|_store\.py)\b", cmd)
+    )
 
 
 def settle(cache: str, limit: float = 900.0) -> float:

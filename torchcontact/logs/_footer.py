@@ -83,11 +83,7 @@ def _read(buf: bytes, i: int, typ: int) -> tuple[object, int]:
         n, i = _varint(buf, i)
         return buf[i : i + n], i + n
     if typ in (_LIST, _SET):
-        head = buf[i]
-        i += 1
-        size, et = head >> 4, head & 0x0F
-        if size == 15:
-            size, i = _varint(buf, i)
+        size, et, i = _list_head(buf, i)
         items = []
         for _ in range(size):
             v, i = _read(buf, i, et)
@@ -116,6 +112,16 @@ def _read(buf: bytes, i: int, typ: int) -> tuple[object, int]:
     raise FooterError(f"Thrift type {typ} in a Parquet footer")
 
 
+def _list_head(buf: bytes, i: int) -> tuple[int, int, int]:
+    """A list's or set's header at ``i``: its size, its elements' type, the index after it."""
+    head = buf[i]
+    i += 1
+    size, et = head >> 4, head & 0x0F
+    if size == 15:
+        size, i = _varint(buf, i)
+    return size, et, i
+
+
 def _skip(buf: bytes, i: int, typ: int) -> int:
     """The index after a value of type ``typ`` at ``i`` (as :func:`_read`, building nothing)."""
     if typ in (_I16, _I32, _I64):
@@ -130,11 +136,7 @@ def _skip(buf: bytes, i: int, typ: int) -> int:
         n, i = _varint(buf, i)
         return i + n
     if typ in (_LIST, _SET):
-        head = buf[i]
-        i += 1
-        size, et = head >> 4, head & 0x0F
-        if size == 15:
-            size, i = _varint(buf, i)
+        size, et, i = _list_head(buf, i)
         if et in (_I8, _TRUE, _FALSE):
             return i + size
         if et == _DOUBLE:
