@@ -644,33 +644,65 @@ def mode_mem(args, tmp: Path) -> None:
           f"{rows[n1]['maxrss_mb'] / rows[n0]['maxrss_mb']:.2f}")  # fmt: skip
 
 
+def _machine_cpu() -> float:
+    """CPU seconds every process of this machine has used so far (``/proc/stat``): Ray's worker
+    processes are no children of the command that drives them."""
+    f = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = map(int, f[:8])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
 def mode_ray(args, tmp: Path) -> None:
+    """Ray's scaling: the local engine and ``--engine ray`` with each ``--workers`` count.
+
+    The kernel cache is filled on a short log of the same robot first (a warm-up on the whole log
+    would cost a local run of it), so every timed run finds its kernels. Each row gives the wall
+    time and the machine's busy cores during the run (``/proc/stat``: Ray's worker processes
+    included), which bounds what more workers can gain: ``cores / busy cores of 1 worker``.
+    """
     log = write_log(args.robot, args.ray, tmp / f"{args.robot}{args.ray}.parquet")
+    small = write_log(args.robot, 200_000, tmp / f"{args.robot}200000.parquet")
     urdf, _, _ = robot_setup(args.robot)
-    run_child("e2e", args.robot, log, tmp / "out.parquet", args.device)  # fills the kernel cache
-    local = median_run(args, "e2e", log, tmp / "out.parquet", args.device)
+    env = dict(os.environ)
+    env.setdefault("TORCHCONTACT_CACHE", str(tmp / "cache"))
+    warm_up(args, small, tmp / "out.parquet", env)  # the estimator's and the noise's kernels
     print(metadata())
-    print("| engine | seconds | frames/s | vs local |")
-    print("|---|---:|---:|---:|")
-    print(f"| local | {local['seconds']:.1f} | {args.ray / local['seconds']:,.0f} | 1.00 |")
+    print(f"log: {log.name}, {args.ray:,} frames, {log.stat().st_size / 1e6:,.0f} MB;"
+          f" {os.cpu_count()} logical CPUs")  # fmt: skip
+    print("| engine | seconds | frames/s | vs local | busy cores |")
+    print("|---|---:|---:|---:|---:|")
+
+    def timed(run) -> tuple[float, float]:
+        c0, t0 = _machine_cpu(), time.perf_counter()
+        run()
+        t = time.perf_counter() - t0
+        return t, (_machine_cpu() - c0) / t
+
+    local, busy = timed(lambda: run_child("e2e", args.robot, log, tmp / "out.parquet",
+                                          args.device, env))  # fmt: skip
+    (tmp / "out.parquet").unlink(missing_ok=True)
+    print(f"| local | {local:.1f} | {args.ray / local:,.0f} | 1.00 | {busy:.1f} |", flush=True)
     base = None
     for w in args.workers:
+        out = tmp / "ray.parquet"
+        cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(log), "--robot",
+               urdf, "--out", str(out), "--engine", "ray", "--workers", str(w), "--quiet",
+               "--json", "--device", args.device]  # fmt: skip
         t = []
         for _ in range(args.repeat):
-            out = tmp / "ray.parquet"
             out.unlink(missing_ok=True)
-            cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(log), "--robot",
-                   urdf, "--out", str(out), "--engine", "ray", "--workers", str(w), "--quiet",
-                   "--json", "--device", args.device]  # fmt: skip
-            t0 = time.perf_counter()
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            if r.returncode:
-                raise RuntimeError(r.stderr[-2000:])
-            t.append(time.perf_counter() - t0)
-        s = statistics.median(t)
+
+            def one(cmd=cmd) -> None:
+                r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+                if r.returncode:
+                    raise RuntimeError(r.stderr[-2000:])
+
+            t.append(timed(one))
+        s, busy = sorted(t)[len(t) // 2]
         base = base or s
-        print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} |"
-              f" {local['seconds'] / s:.2f} (x{base / s:.1f} vs 1 worker) |")  # fmt: skip
+        print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} | {local / s:.2f}"
+              f" (x{base / s:.1f} vs 1 worker) | {busy:.1f} |", flush=True)  # fmt: skip
+    (tmp / "ray.parquet").unlink(missing_ok=True)
 
 
 def mode_race(args, tmp: Path) -> None:
