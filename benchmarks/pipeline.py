@@ -683,19 +683,24 @@ def mode_ray(args, tmp: Path) -> None:
     (tmp / "out.parquet").unlink(missing_ok=True)
     print(f"| local | {local:.1f} | {args.ray / local:,.0f} | 1.00 | {busy:.1f} |", flush=True)
     base = None
+    spans = []  # (workers, epoch seconds at the command's start and end) of each Ray run
     for w in args.workers:
         out = tmp / "ray.parquet"
-        cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(log), "--robot",
-               urdf, "--out", str(out), "--engine", "ray", "--workers", str(w), "--quiet",
-               "--json", "--device", args.device]  # fmt: skip
+        # the console script's entry (`torchcontact estimate`), which ends the process once the
+        # output is published (no interpreter shutdown)
+        cmd = [sys.executable, "-c", "from torchcontact.cli import console_main; console_main()",
+               "estimate", str(log), "--robot", urdf, "--out", str(out), "--engine", "ray",
+               "--workers", str(w), "--quiet", "--json", "--device", args.device]  # fmt: skip
         t = []
         for _ in range(args.repeat):
             out.unlink(missing_ok=True)
 
-            def one(cmd=cmd) -> None:
+            def one(cmd=cmd, w=w) -> None:
+                e0 = time.time()
                 r = subprocess.run(cmd, capture_output=True, text=True, env=env)
                 if r.returncode:
                     raise RuntimeError(r.stderr[-2000:])
+                spans.append((w, e0, time.time()))
 
             t.append(timed(one))
         s, busy = sorted(t)[len(t) // 2]
@@ -703,6 +708,49 @@ def mode_ray(args, tmp: Path) -> None:
         print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} | {local / s:.2f}"
               f" (x{base / s:.1f} vs 1 worker) | {busy:.1f} |", flush=True)  # fmt: skip
     (tmp / "ray.parquet").unlink(missing_ok=True)
+    if os.environ.get("RAY_ADDRESS"):  # a running cluster keeps its task events
+        units = -(-args.ray // (8 * BATCH))  # the engine's default units
+        code = f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); " \
+            f"import pipeline; pipeline.ray_timelines({spans!r}, {units})"  # fmt: skip
+        subprocess.run([sys.executable, "-c", code], env=env, timeout=120)
+
+
+def ray_timelines(spans, total_units: int) -> None:
+    """Where each Ray run's seconds went, from Ray's task events (``ray.timeline()``).
+
+    ``spans``: ``(workers, start, end)`` of each run, in epoch seconds. Printed, from the
+    command's start: when the driver sent the warm-ups, when the first warm-up ran (worker
+    processes started), the first unit's start, the last unit's end, the run's end; and how busy
+    the workers were between the first unit's start and the last one's end. Of ``total_units``,
+    those whose events reached Ray (a worker ended with the job may not have sent its last ones,
+    so "last unit ends" may be early).
+    """
+    import ray
+
+    ray.init(address=os.environ["RAY_ADDRESS"], logging_level="ERROR", log_to_driver=False)
+    time.sleep(3)  # the workers report their task events every second
+    events = ray.timeline()
+    print("| workers | warm-ups sent | first warm-up runs | first unit | last unit ends |"
+          " run ends | units seen | unit s (median) | workers busy |")  # fmt: skip
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for w, a, b in spans:
+        ev = [e for e in events if a * 1e6 <= e.get("ts", 0) <= b * 1e6]
+
+        def named(suffix, ev=ev, a=a):
+            return [(e["ts"] / 1e6 - a, e.get("dur", 0) / 1e6) for e in ev
+                    if e.get("name", "").endswith(suffix)]  # fmt: skip
+
+        sent = [t for t, _ in named("submit_task")]
+        warm, units = named("_warm_worker"), named("_estimate_units")
+        if not units:
+            print(f"| {w} | no task events |")
+            continue
+        first, last = min(t for t, _ in units), max(t + d for t, d in units)
+        busy = sum(d for _, d in units) / (w * (last - first))
+        print(f"| {w} | {min(sent, default=float('nan')):.2f} |"
+              f" {min((t for t, _ in warm), default=float('nan')):.2f} | {first:.2f} |"
+              f" {last:.2f} | {b - a:.2f} | {len(units)} of {total_units} |"
+              f" {statistics.median(d for _, d in units):.2f} | {busy:.0%} |")  # fmt: skip
 
 
 def mode_race(args, tmp: Path) -> None:

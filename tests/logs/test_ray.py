@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -93,6 +94,33 @@ def test_two_nodes_same_rows_and_summary_as_local(cluster, small_groups, local, 
         assert r[k] == local[k], k
     assert r["derived"] == ["qd", "qdd"]  # derived across the edges of the units
     _same_rows(pq.read_table(r["output"]), pq.read_table(local["output"]))
+
+
+def test_a_task_on_one_cpu_writes_the_part_of_a_task_on_three(cluster, small_groups, tmp_path):
+    """A task that Ray gives one CPU decodes, estimates and encodes in turn; with 2 or more it
+    overlaps them on threads: the same unit's part, byte for byte, either way."""
+    from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
+    from torchcontact.logs.pipeline import load_robot, log_noise, prepare
+    from torchcontact.logs.ray_engine import _estimate_units, plan_units, unit_config
+    from torchcontact.robots import RobotSpec
+
+    spec = RobotSpec.of("tcarm")
+    model = load_robot(spec)
+    pf, le, columns, _ = prepare(small_groups, model, None, None, None, None, None)
+    log_noise(pf, le, columns, DEFAULT_HALF_WINDOW, None, False, str(small_groups))
+    parts = []
+    for cpus in (1, 3):
+        options = dict(batch_size=64, half_window=DEFAULT_HALF_WINDOW, backend="auto", threads=1,
+                       device="cpu", dtype="float64", cpus=cpus)  # fmt: skip
+        partial = tmp_path / f"cpus{cpus}"
+        partial.mkdir()
+        config = unit_config(small_groups, spec, model, le, plan_units(600, 200), columns,
+                             partial, None, options)  # fmt: skip
+        r = _estimate_units([1], config)  # rows 200-399: context on both sides
+        assert r["units"] == [1] and r["rows"] == [200]
+        parts.append((partial / "part-00000001.parquet").read_bytes())
+    assert parts[0] == parts[1]
+    assert pq.read_table(pa.BufferReader(parts[0])).num_rows == 200
 
 
 def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local, tmp_path):

@@ -241,11 +241,13 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     raise InputError(msg)
             from torchcontact.logs.ray_engine import estimate_files_ray
 
-            kwargs.update(workers=args.workers, threads=args.threads)
+            kwargs.update(workers=args.workers, threads=args.threads, worker_cpus=args.worker_cpus)
             summaries = estimate_files_ray(files, robot, args.out, **kwargs)
         else:
             if args.workers != 1:
                 raise InputError("--workers applies to --engine ray only")
+            if args.worker_cpus != 1:
+                raise InputError("--worker-cpus applies to --engine ray only")
             summaries = estimate_files(files, robot, args.out, **kwargs)
     except KeyboardInterrupt:
         print("interrupted: run again with --resume to finish", file=sys.stderr)
@@ -512,6 +514,14 @@ def add_parser(subparsers: Any) -> None:
         "--engine", default="local", choices=["local", "ray"], help="local process or Ray"
     )
     est.add_argument("--workers", type=int, default=1, help="Ray tasks at once (--engine ray)")
+    est.add_argument(
+        "--worker-cpus",
+        type=float,
+        default=1.0,
+        metavar="N",
+        help="CPUs Ray reserves per task (--engine ray); from 2 on a task decodes, estimates and"
+        " encodes on overlapping threads, below 2 in turn (default: 1)",
+    )
     est.add_argument(
         "--residual",
         metavar="CHECKPOINT",

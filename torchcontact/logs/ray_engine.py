@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchcontact.errors import LogError, TorchContactError
+from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.identity import RobotIdentity
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
@@ -105,13 +105,25 @@ _WORKER_CACHE: dict[str, tuple[LogEstimator, Any]] = {}
 _MODEL_CACHE: dict[str, Any] = {}
 
 
+def _worker_threads(job: dict) -> None:
+    """Size this worker process's threads: torch's to ``threads``, pyarrow's CPU pool to ``cpus``.
+
+    ``cpus`` are the CPUs Ray reserved for a task; pyarrow would otherwise start one thread per
+    core of the node in every worker process (16 processes of 16 threads on 16 cores).
+    """
+    import pyarrow as pa
+
+    if job["threads"]:
+        torch.set_num_threads(job["threads"])
+    pa.set_cpu_count(max(1, int(job.get("cpus", 1))))
+
+
 def _worker_model(robot: dict, job: dict) -> tuple[RobotSpec, Any]:
     """The robot's spec and model in this worker process (built once per robot, dtype, device)."""
     key = json.dumps([robot["robot"], robot["ft_sensors"], job["dtype"], job["device"]])
     spec = RobotSpec(robot["robot"], ft_sensor_specs(robot["ft_sensors"]))
     if key not in _MODEL_CACHE:
-        if job["threads"]:
-            torch.set_num_threads(job["threads"])
+        _worker_threads(job)
         _MODEL_CACHE.clear()
         _MODEL_CACHE[key] = load_robot(spec, getattr(torch, job["dtype"]), job["device"])
     return spec, _MODEL_CACHE[key]
@@ -137,8 +149,7 @@ def _warm_worker(robot: dict, job: dict) -> str | None:
 def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
     key = json.dumps([path, robot, le_args, job], sort_keys=True, default=str)
     if key not in _WORKER_CACHE:
-        if job["threads"]:
-            torch.set_num_threads(job["threads"])
+        _worker_threads(job)
         spec, model = _worker_model(robot, job)
         if model.identity.sha256 != robot["identity"]:  # another URDF on this node
             driver = RobotIdentity.from_json(robot["identity_entries"])
@@ -187,16 +198,21 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
             after = stamps_and_positions(tab.slice(stop - lo), le.perm, width, path, stop)
         chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
         decoded = decoded_chunks(le, chunks, h, start, before, after)
-        # as the local engine: decoding on a reader thread, the estimate here, the encoding on
-        # a writer thread (pyarrow and the kernels release the GIL); a unit's first frame
-        # starts cold: units run in parallel and in any order
-        with (
-            background(decoded, name="reader") as ready,
-            background(estimate_stream(le, iter(ready), None, job["backend"]), name="est") as tabs,
-        ):
-            # encoded here, in parallel: the driver appends the part's bytes as they are
-            write_encoded_part(iter(tabs), Path(job["partial"]) / f"part-{int(u):08d}.parquet",
+        part = Path(job["partial"]) / f"part-{int(u):08d}.parquet"
+        # a unit's first frame starts cold: units run in parallel and in any order; the part is
+        # encoded here, in parallel, and the driver appends its bytes as they are
+        if job["cpus"] < 2:  # the one CPU Ray reserved: decode, estimate, encode in turn
+            write_encoded_part(estimate_stream(le, decoded, None, job["backend"]), part,
                                job["schema"])  # fmt: skip
+        else:  # as the local engine: decoding on a reader thread, the estimate on another, the
+            # encoding here (pyarrow and the kernels release the GIL)
+            with (
+                background(decoded, name="reader") as ready,
+                background(
+                    estimate_stream(le, iter(ready), None, job["backend"]), name="est"
+                ) as tabs,  # fmt: skip
+            ):
+                write_encoded_part(iter(tabs), part, job["schema"])
         rows.append(stop - start)
     import ray
 
@@ -323,6 +339,43 @@ def _task_options(worker_cpus: float, device: str) -> dict[str, Any]:
     )
 
 
+def unit_config(
+    path: str | Path,
+    robot: RobotSpec,
+    model: Any,
+    le: LogEstimator,
+    units: Sequence[tuple[int, int]],
+    columns: list[str],
+    partial: Path,
+    res: Any,
+    options: dict,
+) -> tuple:
+    """The one argument every :func:`_estimate_units` task of a run gets (picklable).
+
+    Args:
+        path: the log.
+        robot: the driver's robot spec.
+        model: its model (each worker checks its own model's identity against it).
+        le: the driver's estimator (its arguments, layout, noise and output schema).
+        units: the run's units, ``(start, stop)`` rows each (:func:`plan_units`).
+        columns: the log's columns to read.
+        partial: the folder of the run's parts (``OUT.partial``).
+        res: the residual correction, or None.
+        options: ``batch_size``, ``half_window``, ``backend``, ``threads``, ``device``,
+            ``dtype`` and ``cpus`` (the CPUs Ray reserves per task).
+    """
+    job = {
+        "units": list(units),
+        "columns": columns,
+        "partial": str(Path(partial).resolve()),
+        "residual": None if res is None else res.source,
+        "whole_log_segment": le.decoder.whole_log_segment,
+        "schema": le.output_schema(),  # the driver's: every part has the output's schema
+        **options,
+    }
+    return str(Path(path).resolve()), _robot_arg(robot, model), worker_args(le, path), job
+
+
 def _unit_tasks(
     ray: Any,
     warm: list[Any],
@@ -348,17 +401,8 @@ def _unit_tasks(
     when they are spread over the nodes.
     """
     ray.wait(warm, num_returns=len(warm), timeout=WARM_UP_WAIT_S)
-    job = {
-        "units": run.units,
-        "columns": columns,
-        "partial": str(run.partial.resolve()),
-        "residual": None if res is None else res.source,
-        "whole_log_segment": le.decoder.whole_log_segment,
-        "schema": le.output_schema(),  # the driver's: every part has the output's schema
-        **options,
-    }
-    config = ray.put((str(Path(path).resolve()), _robot_arg(robot, model), worker_args(le, path),
-                      job))  # fmt: skip
+    config = ray.put(unit_config(path, robot, model, le, run.units, columns, run.partial, res,
+                                 options))  # fmt: skip
     task = ray.remote(_estimate_units).options(
         **_task_options(worker_cpus, options["device"]),
         max_retries=TASK_RETRIES,  # a dead worker process: its unit again (not user errors)
@@ -421,7 +465,10 @@ def estimate_file_ray(
         progress: show a progress bar (default: when stderr is a terminal).
         half_window: ``h`` of the Savitzky-Golay differentiator when ``qd``/``qdd`` are derived.
         workers: Ray tasks running at once (each estimates one unit at a time).
-        worker_cpus: CPUs reserved per task.
+        worker_cpus: CPUs Ray reserves per task. Below 2 a task decodes, estimates and encodes
+            its unit in turn on one thread; from 2 on, on three overlapping threads (as the
+            local engine). pyarrow's thread pool in each worker process has ``worker_cpus``
+            threads (at least 1).
         threads: torch threads per task.
         num_cpus: CPUs of a local Ray instance started here (default: all).
         residual: stateless (MLP) residual checkpoint directory, as :func:`estimate_file`; each
@@ -441,7 +488,7 @@ def estimate_file_ray(
         ``nodes``: the Ray nodes that ran the units estimated now.
 
     Raises:
-        InputError: as :func:`estimate_file`, or ``workers`` < 1.
+        InputError: as :func:`estimate_file`, ``workers`` < 1, or ``worker_cpus`` <= 0.
         OutputBusyError: another live process is writing ``out``.
         LogError: as :func:`estimate_file`, or a recurrent (GRU) residual.
     """
@@ -450,6 +497,8 @@ def estimate_file_ray(
     _check_positive(
         batch_size=batch_size, half_window=half_window, workers=workers, task_rows=task_rows
     )
+    if not (isinstance(worker_cpus, (int, float)) and 0 < worker_cpus < float("inf")):
+        raise InputError(f"--worker-cpus must be a number > 0, got {worker_cpus!r}")
     out = Path(out)
     check_outputs([out, *side_paths(out)], [path, robot, residual])
     device = resolve_device(device)
@@ -463,17 +512,22 @@ def estimate_file_ray(
                 " order); use --engine local"
             )
         localize = run_localize(localize, model, robot)
-        pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                        constraints, localize=localize)  # fmt: skip
-        # the log is usable: Ray starts, and its workers build the model, during the noise scan
-        with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-noise") as pool:
-            noise = pool.submit(log_noise, pf, le, columns, half_window, ft_noise, unweighted,
-                                str(path))  # fmt: skip
-            ray, warm = _start_ray(num_cpus, _robot_arg(spec, model),
-                             {"threads": threads, "device": device,
-                              "dtype": str(dtype).removeprefix("torch.")},
-                             workers, _task_options(worker_cpus, device))  # fmt: skip
-            noise.result()
+        job = dict(threads=threads, device=device, dtype=str(dtype).removeprefix("torch."),
+                   cpus=worker_cpus)  # fmt: skip
+
+        def setup() -> tuple:  # the log's scan and noise: read the whole log's cheap columns
+            pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
+                                            constraints, localize=localize)  # fmt: skip
+            log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
+            return pf, le, columns, scan
+
+        # the driver reads the log on a thread while Ray starts here and its worker processes
+        # import torchcontact and build the model (a log of 16 M frames takes seconds to scan)
+        with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-scan") as pool:
+            scanned = pool.submit(setup)
+            ray, warm = _start_ray(num_cpus, _robot_arg(spec, model), job, workers,
+                                   _task_options(worker_cpus, device))  # fmt: skip
+            pf, le, columns, scan = scanned.result()
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         recorded_noise(le, run.previous() if resume else None)
@@ -482,9 +536,8 @@ def estimate_file_ray(
                           task_rows=task_rows)  # fmt: skip
         run.start(ident, plan_units(total, task_rows), resume)
         todo = [u for u in range(len(run.units)) if u not in run.done]
-        options = dict(batch_size=batch_size, half_window=half_window, threads=threads,
-                       device=device, dtype=str(dtype).removeprefix("torch."),
-                       backend=kernel_backend(total, device, shared=True))  # fmt: skip
+        options = dict(batch_size=batch_size, half_window=half_window,
+                       backend=kernel_backend(total, device, shared=True), **job)  # fmt: skip
 
         def produce() -> Iterator[Done]:
             if not todo:
