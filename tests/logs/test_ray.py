@@ -227,6 +227,12 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     out = str(tmp_path / "o.parquet")
     assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--workers", "0"]) == 2
     assert "--workers must be an integer >= 1" in capsys.readouterr().err
+    assert (
+        main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--worker-cpus", "0"]) == 2
+    )
+    assert "--worker-cpus must be a number > 0, got 0.0" in capsys.readouterr().err
+    assert main(["estimate", str(sim_log), "--out", out, "--worker-cpus", "2"]) == 2
+    assert "--worker-cpus applies to --engine ray only" in capsys.readouterr().err
     with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
         estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts
 
