@@ -719,11 +719,11 @@ def ray_timelines(spans, total_units: int) -> None:
     """Where each Ray run's seconds went, from Ray's task events (``ray.timeline()``).
 
     ``spans``: ``(workers, start, end)`` of each run, in epoch seconds. Printed, from the
-    command's start: when the driver sent the warm-ups, when the first warm-up ran (worker
-    processes started), the first unit's start, the last unit's end, the run's end; and how busy
-    the workers were between the first unit's start and the last one's end. Of ``total_units``,
-    those whose events reached Ray (a worker ended with the job may not have sent its last ones,
-    so "last unit ends" may be early).
+    command's start: when the driver sent the first task (the workers' imports, or the model
+    warm-ups), when the first of them ran (a worker process started), the first unit's start,
+    the last unit's end, the run's end; and how busy the workers were between the first unit's
+    start and the last one's end. Of ``total_units``, those whose events reached Ray (a worker
+    ended with the job may not have sent its last ones, so "last unit ends" may be early).
     """
     import ray
 
@@ -741,7 +741,9 @@ def ray_timelines(spans, total_units: int) -> None:
                     if e.get("name", "").endswith(suffix)]  # fmt: skip
 
         sent = [t for t, _ in named("submit_task")]
-        warm, units = named("_warm_worker"), named("_estimate_units")
+        # the CLI's import tasks (before the driver imports torch), then the model warm-ups
+        warm = named("_import_engine") + named("_warm_worker")
+        units = named("_estimate_units")
         if not units:
             print(f"| {w} | no task events |")
             continue

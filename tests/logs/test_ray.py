@@ -85,6 +85,10 @@ def test_two_nodes_same_rows_and_summary_as_local(cluster, small_groups, local, 
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
+    # a first run starts the worker processes: a unit goes where a warm-up has ended, and units
+    # of 200 frames all end on one node while the other's first process still imports torch
+    estimate_file_ray(small_groups, tcarm_path(), tmp_path / "first.parquet", **KW)
+    capfd.readouterr()
     r = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "ray.parquet", **KW)
     err = capfd.readouterr().err
     assert "INFO" not in err and "WARNING" not in err  # no Ray log lines, one progress bar
@@ -224,7 +228,10 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     gru = stack.save(tmp_path / "gru")
     with pytest.raises(LogError, match="cannot use a recurrent"):
         estimate_file_ray(sim_log, tcarm_path(), tmp_path / "o.parquet", residual=gru)
+    from torchcontact.logs import _ray_boot
+
     out = str(tmp_path / "o.parquet")
+    booted = len(_ray_boot._booting)  # runs refused before Ray's start-up start no task
     assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--workers", "0"]) == 2
     assert "--workers must be an integer >= 1" in capsys.readouterr().err
     assert (
@@ -233,6 +240,12 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     assert "--worker-cpus must be a number > 0, got 0.0" in capsys.readouterr().err
     assert main(["estimate", str(sim_log), "--out", out, "--worker-cpus", "2"]) == 2
     assert "--worker-cpus applies to --engine ray only" in capsys.readouterr().err
+    missing = str(tmp_path / "missing.parquet")
+    assert main(["estimate", missing, "--out", out, "--engine", "ray"]) == 1
+    assert "missing.parquet" in capsys.readouterr().err
+    assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--track-bias"]) == 2
+    assert "--track-bias applies to --engine local only" in capsys.readouterr().err
+    assert len(_ray_boot._booting) == booted
     with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
         estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts
 
@@ -255,6 +268,10 @@ def test_a_declared_ft_sensor_reaches_the_workers(cluster, tmp_path, capsys):
     assert main(argv) == 0, capsys.readouterr().err
     r = json.loads(capsys.readouterr().out)
     assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 3 and r["ok_now"] == 300
+    # the CLI started the workers' imports before its own (two import tasks, both ended)
+    from torchcontact.logs import _ray_boot
+
+    assert len(_ray_boot._booting) >= 2 and ray.get(_ray_boot._booting[-2:]) == [None, None]
     _same_rows(pq.read_table(out), pq.read_table(local["output"]))
 
 

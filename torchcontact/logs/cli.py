@@ -182,6 +182,26 @@ def _log_bias(args: argparse.Namespace) -> Any:
     return LogBias(args.bias_time_constant, std, smoother=not args.no_smoother)
 
 
+def _ray_prestart(args: argparse.Namespace) -> None:
+    """``--engine ray``: start Ray and its workers' imports before this process imports torch.
+
+    :func:`torchcontact.logs._ray_boot.prestart`, unless the run is to be refused: an option the
+    Ray engine refuses, or an input that does not exist, gets its error without Ray's start-up
+    first.
+    """
+    if (
+        args.workers < 1
+        or not 0 < args.worker_cpus < float("inf")
+        or args.track_bias
+        or args.derivatives != "centred"
+        or not all(Path(p).exists() or any(c in p for c in "*?[") for p in args.inputs)
+    ):
+        return
+    from torchcontact.logs._ray_boot import prestart
+
+    prestart(args.workers, args.worker_cpus, args.device)
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs.
 
@@ -189,6 +209,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     ``--max-bad`` of its frames have a non-zero status (its output is written all the same),
     and for data errors; 2 for usage errors; 130 when interrupted.
     """
+    if args.engine == "ray":
+        _ray_prestart(args)
     from torchcontact.errors import LogError
     from torchcontact.logs.noise import parse_ft_noise
     from torchcontact.logs.pipeline import estimate_files, expand_inputs

@@ -26,7 +26,6 @@ so a recurrent (GRU) residual, which needs every frame in time order, is refused
 from __future__ import annotations
 
 import json
-import logging
 import os
 import sys
 import time
@@ -41,6 +40,8 @@ import torch
 
 from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.identity import RobotIdentity
+from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
+from torchcontact.logs._ray_boot import task_options as _task_options
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
     LogEstimator,
@@ -220,34 +221,6 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
             "node": ray.get_runtime_context().get_node_id()}  # fmt: skip
 
 
-def _ensure_ray(num_cpus: int | None) -> Any:
-    import ray
-
-    # Ray's INFO/WARNING lines would drown the run's one progress bar: errors only
-    logging.getLogger("ray").setLevel(logging.ERROR)
-    if not ray.is_initialized():
-        # workers import the same torchcontact as this process
-        root = str(Path(__file__).resolve().parents[2])
-        path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
-        kwargs: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.ERROR)
-        if os.environ.get("RAY_ADDRESS"):  # a running cluster: it has its own resources
-            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs,
-                     runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
-        else:
-            # a local instance inherits this environment: no runtime_env, so that the worker
-            # processes Ray starts with it (before any task) run the tasks
-            before = os.environ.get("PYTHONPATH")
-            os.environ["PYTHONPATH"] = path
-            try:
-                ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
-            finally:
-                if before is None:
-                    del os.environ["PYTHONPATH"]
-                else:
-                    os.environ["PYTHONPATH"] = before
-    return ray
-
-
 def _start_ray(
     num_cpus: int | None, robot: dict, job: dict, workers: int, task_options: dict
 ) -> tuple[Any, list[Any]]:
@@ -328,15 +301,6 @@ def _robot_arg(robot: RobotSpec, model: Any) -> dict[str, Any]:
         "identity": model.identity.sha256,
         "identity_entries": model.identity.to_json(),
     }
-
-
-def _task_options(worker_cpus: float, device: str) -> dict[str, Any]:
-    """Ray options of a worker's task: its CPUs, a GPU for CUDA, spread over the nodes."""
-    return dict(
-        num_cpus=worker_cpus,
-        num_gpus=1 if device.startswith("cuda") else 0,
-        scheduling_strategy="SPREAD",  # over the nodes, as a cluster's user expects
-    )
 
 
 def unit_config(
