@@ -209,7 +209,7 @@ def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch
     assert s["resumed_chunks"] == 3 and s["processed_now"] == 0 and s["frames"] == 600
 
 
-def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
+def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys, monkeypatch):
     import torch
 
     from torchcontact._lock import OutputLock
@@ -246,6 +246,11 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys):
     assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray", "--track-bias"]) == 2
     assert "--track-bias applies to --engine local only" in capsys.readouterr().err
     assert len(_ray_boot._booting) == booted
+    with monkeypatch.context() as m:  # an install without the ray extra: its name, at once
+        m.setitem(sys.modules, "ray", None)
+        assert main(["estimate", str(sim_log), "--out", out, "--engine", "ray"]) == 1
+    err = capsys.readouterr().err
+    assert "needs ray, which is not installed: pip install 'torchcontact[ray]'" in err
     with OutputLock(out), pytest.raises(OutputBusyError, match="another process is writing"):
         estimate_file_ray(sim_log, tcarm_path(), out, resume=True)  # before Ray starts
 
