@@ -224,7 +224,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         ys.append(y)
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))
-        res = gb.op("Sub", b_all[r], gb.op("MatMul", gr.G[r], y1))
+        res = gb.op("Gemm", gr.G[r], y1, b_all[r], alpha=-1.0)  # b - G y, one node
         resids.append(gb.op("ReduceSumSquare", res, keepdims=1))
     # ---- 5. contact wrenches, torques, outputs
     fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)

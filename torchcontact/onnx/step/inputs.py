@@ -262,10 +262,11 @@ def _status(ctx: StepContext, x: str, bad: str, act: str, e: str, idx: dict) -> 
             Mb[j, 3] = 1.0
             gate[K + c, j] = 1.0
             ungated[0, j] = 0.0
-    badf = gb.cast(bad)
-    if n_gate:
+    if n_gate:  # the gate where the entry is bad, else 0: one Where (no Cast, no Mul)
         g = gb.op("Gemm", act, gb.f(gate), gb.f(ungated), transA=1)
-        badf = gb.op("Mul", badf, g)
+        badf = gb.op("Where", bad, g, gb.f(0.0))
+    else:
+        badf = gb.cast(bad)
     counts = gb.op("MatMul", badf, gb.f(Mb))
     parts = [counts]
     weights = [float(b) for b in bits]
