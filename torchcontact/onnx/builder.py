@@ -178,14 +178,18 @@ class GraphBuilder:
 class Operand:
     """One factor of a :func:`bilinear` stage: where row ``r``'s symbol ``j`` lives.
 
-    Three layouts (``kind``):
+    Four layouts (``kind``):
 
     * ``"rows"``: ``tensor`` is ``(rows, n)``; symbol ``j`` of every row is column ``j``
       (``one``: the index of a column holding 1, or None);
     * ``"vec"``: ``tensor`` is 1-D; symbol ``j`` of row ``r`` is element ``index[r][j]``
       (``one``: the element holding 1);
     * ``"nd"``: ``tensor`` is ``(m, n)``; symbol ``j`` of row ``r`` is
-      ``tensor[row_of[r], j]`` (``one`` as for ``"rows"``).
+      ``tensor[row_of[r], j]`` (``one`` as for ``"rows"``);
+    * ``"col"``: ``tensor`` is an ``(n, 1)`` column shared by every row: symbol ``j`` is its
+      entry ``j`` (``one`` as for ``"rows"``). Its symbols are selected as one ``(1, m)`` row
+      (one ``Gemm``, no ``Reshape``) that broadcasts over the other operand's rows; it cannot
+      be a stage's only factor.
     """
 
     tensor: str
@@ -201,6 +205,8 @@ class Operand:
             return j
         if self.kind == "vec":
             return int(self.index[r][j])
+        if self.kind == "col":
+            return j
         return (int(self.row_of[r]), j)
 
 
@@ -259,6 +265,7 @@ def bilinear(
     hint: str = "stage",
     add: str | None = None,
     beta: float = 1.0,
+    transpose: bool = False,
 ) -> str:
     """Emit the stage ``out[r] = fn(r, A[r], B[r])`` for every row ``r`` as four to five nodes.
 
@@ -281,6 +288,9 @@ def bilinear(
             final product's ``Gemm`` bias when the stage has no constant terms: no node of its
             own), or None.
         beta: its factor, 1 or -1.
+        transpose: return the result transposed, ``(n_out [+ 1], rows)``, from the same final
+            product (``W^T x^T``: no ``Transpose`` or ``Reshape`` after it; ``add`` then
+            broadcasts to the transposed result). Not for linear stages.
 
     Returns:
         The ``(rows, n_out [+ 1])`` result (plus ``beta * add``).
@@ -328,6 +338,10 @@ def bilinear(
             idx = [[op.position(r, j) for _, j in syms] for r in range(rows)]
             return gb.op("Gather", op.tensor, gb.i(idx), axis=0)
         src = op.tensor
+        if op.kind == "col":  # the column's symbols as one (1, m) row: src^T sel
+            sel = np.zeros((op.n, len(syms)))
+            sel[[j for _, j in syms], np.arange(len(syms))] = 1.0
+            return gb.op("Gemm", src, gb.f(sel), transA=1)
         if op.kind == "nd" and list(op.row_of) != list(range(rows)):
             src = gb.op("Gather", src, gb.i(list(op.row_of)), axis=0)
         cols = [j for _, j in syms]
@@ -373,6 +387,13 @@ def bilinear(
 
     def product(x: str) -> str:
         """``x W + bias (+ beta add)``."""
+        if transpose:  # (x W + bias)^T = W^T x^T + bias^T
+            if add is None:
+                return gb.op("Gemm", gb.f(W.T), x, gb.f(bias.T), transB=1)
+            if not np.any(bias):
+                return gb.op("Gemm", gb.f(W.T), x, add, transB=1, beta=beta)
+            out = gb.op("Gemm", gb.f(W.T), x, gb.f(bias.T), transB=1)
+            return gb.op("Add" if beta > 0 else "Sub", out, add)
         if add is None:
             if not np.any(bias):
                 return gb.op("MatMul", x, gb.f(W))
@@ -381,6 +402,8 @@ def bilinear(
             return gb.op("Gemm", x, gb.f(W), add, beta=beta)
         return gb.op("Add" if beta > 0 else "Sub", gb.op("Gemm", x, gb.f(W), gb.f(bias)), add)
 
+    if transpose and (not terms or all(len(m) == 1 for m, _ in terms)):
+        raise ValueError(f"stage {hint}: a transposed result needs a bilinear stage")
     if not terms:
         const = gb.f(np.broadcast_to(bias, (rows, n_cols)).copy())
         return const if add is None else gb.op("Add" if beta > 0 else "Sub", const, add)
@@ -388,6 +411,8 @@ def bilinear(
     if linear and (same or len({m[0][0] for m, _ in terms}) == 1):
         # a linear stage: gather the symbols, no products
         src = a if same or terms[0][0][0][0] == "a" else bb
+        if src.kind == "col" and rows != 1:
+            raise ValueError(f"stage {hint}: a shared column cannot be the only factor")
         g = gather(src, [m[0] for m, _ in terms])
         if row_coef is not None:
             g = gb.op("Mul", g, gb.f(row_coef))

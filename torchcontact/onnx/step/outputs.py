@@ -82,8 +82,13 @@ def contact_wrenches(ctx, gr: Grams, ys, s_rows, pairs, e, idx, actK, known: boo
     if K == 0:
         return gb.f(np.zeros((0, 12)))
     ncols = 7 if ctx.flags.covariance else 1
-    Y, base, one = _region_vector(ctx, ys, ncols)
-    zsrc = _duals(ctx, Y, base, one, ncols, s_rows, pairs)
+    if ncols == 1 and len(ys) == 1 and ys[0] is not None and s_rows is None:
+        # one region, no torque rows: z = y, the solve's (6, 1) column, read as it is (no
+        # Reshape, no Concat of a 1, no Gather)
+        zsrc = Operand(ys[0], 6, "col")
+    else:
+        Y, base, one = _region_vector(ctx, ys, ncols)
+        zsrc = _duals(ctx, Y, base, one, ncols, s_rows, pairs)
     rws = [(j, k) for j in range(ncols) for k in range(K)]
     slot_of = [k for _, k in rws]
     geo = Operand(gr.geo, gr.n_geo, "nd", one=gr.n_geo - 1, row_of=slot_of)
@@ -93,7 +98,7 @@ def contact_wrenches(ctx, gr: Grams, ys, s_rows, pairs, e, idx, actK, known: boo
         zf, zn = tuple(zz[0:3]), tuple(zz[3:6])
         return [*sp.v_add(zf, sp.v_cross(zn, tuple(g[0:3]))), *zn]
 
-    gz = bilinear(gb, geo, zsrc, len(rws), dual, 6, hint="gz")
+    gz = bilinear(gb, geo, zsrc, len(rws), dual, 6, hint="gz")  # (rows, 7): [g, zn, 1]
 
     def out(n: int, g: list, w: list) -> list:
         # P_k Y_k^T y in the link frame, and A_k x_k (sensor frame)
