@@ -160,9 +160,10 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     chk = inputs.check(ctx, x, ea, idx)
     e = chk.e
     # ---- 2. poses, motion, body wrenches
-    ce = gb.op("Cos", e)  # the joint angles' cos and sin (and the learned layers' features)
+    # the joint angles' cos and sin (and the learned layers' features), a (1, E) row
+    ce = gb.op("Cos", chk.e_row)
     wiring.angles(ce, idx["n_entries"])
-    T = kinematics.poses(ctx, e, idx, ea.zero, ce)
+    T = kinematics.poses(ctx, chk.e_row, idx, ea.zero, ce)
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
     S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame

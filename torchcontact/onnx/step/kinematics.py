@@ -74,7 +74,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
 
     Args:
         ctx: the graph.
-        e: the affine entries.
+        e: the affine entries, a ``(1, E)`` row.
         idx: their indices (:func:`~torchcontact.onnx.step.inputs.plan`).
         zero: the index of a constant 0 entry (``cos 0 = 1``).
         ce: ``Cos(e)`` when computed already (None: computed here).
@@ -83,7 +83,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
     has_pri = any(b.kind == "prismatic" for b in tree.bodies)
     ce = gb.op("Cos", e) if ce is None else ce
     E = int(idx["n_entries"])
-    src = gb.op("Concat", ce, e, axis=0) if has_pri else ce
+    src = gb.op("Concat", ce, e, axis=1) if has_pri else ce
     # (without prismatic joints the displacement column is any finite entry: its map is 0)
     disp = [E + idx["disp"][i] if has_pri else zero for i in range(nb)]
     index = np.array([[idx["cos"][i], idx["sin"][i], disp[i], zero] for i in range(nb)])
@@ -94,7 +94,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
         Cx[i, 3] = base
         for j in range(3):
             Cx[i, j] = _homogeneous(_joint_pose(ctx, i, [float(j == k) for k in range(3)])) - base
-    g = gb.op("Gather", src, gb.i(index[:, None, :]), axis=0)  # (nb, 1, 4)
+    g = gb.op("Gather", src, gb.i(index[:, None, :]), axis=1)  # (1, nb, 1, 4)
     X = gb.op("Reshape", gb.op("MatMul", g, gb.f(Cx)), gb.i([nb, 4, 4]))
     # pointer doubling: T_parent(i) T_i first, then 2^k-th ancestors
     par = [max(b.parent, 0) for b in tree.bodies]
