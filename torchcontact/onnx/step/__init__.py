@@ -130,10 +130,10 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
 
     Keys: ``status`` (the inputs' bits), ``T``, ``TP`` (poses), ``VA`` (motion), ``f0`` (body
     wrenches), ``W0`` (readings, root frame), ``Fb`` (transmitted wrenches), ``b``, ``G`` (per
-    region), ``y``, ``rank``, ``resid`` (per region), ``fm`` (contact wrenches), ``tau``,
-    ``ft_model`` and ``regressors`` (online graphs, else None), and what packing the output
-    needs (``e``, ``idx``, ``actK``, ``states``, ``more``, ``localized``: the localization's
-    outputs, empty without ``localize``). The stage tests read them;
+    region), ``y``, ``rank``, ``resid`` (per region, ``|b - G y|``), ``fm`` (contact
+    wrenches), ``tau``, ``ft_model`` and ``regressors`` (online graphs, else None), and what
+    packing the output needs (``e``, ``idx``, ``actK``, ``states``, ``more``, ``localized``:
+    the localization's outputs, empty without ``localize``). The stage tests read them;
     :func:`build_step_graph` packs the output from them.
     """
     from torchcontact.onnx.batched import chain_corrections
@@ -217,7 +217,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         if all(em.slots[k].kind == "known" for k in reg.slots):
             ys.append(None)
             ranks.append(gb.f([[0.0]]))
-            resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
+            resids.append(gb.op("ReduceL2", b_all[r], keepdims=1))
             continue
         possible = solve.full_rank_possible(ctx, reg, R, actK)
         y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
@@ -226,7 +226,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))
         res = gb.op("Gemm", gr.G[r], y1, b_all[r], alpha=-1.0)  # b - G y, one node
-        resids.append(gb.op("ReduceSumSquare", res, keepdims=1))
+        resids.append(gb.op("ReduceL2", res, keepdims=1))  # |b - G y|: sqrt taken here
     # ---- 5. contact wrenches, torques, outputs
     fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)
     F_tot = Fb

@@ -168,7 +168,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
         fm: :func:`contact_wrenches`.
         tau: :func:`torques`.
         ranks: per region ``(1, 1)``.
-        resids: per region ``(1, 1)`` squared residuals.
+        resids: per region ``(1, 1)`` residual norms.
         actK: ``(K, 1)`` slot activity.
         status_in: ``(1, 1)`` status bits of the inputs.
         e: the affine entries.
@@ -192,7 +192,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     out.add("joint_torques", (ctx.nv,))
     pieces.append(tau)
     out.add("residual", (S,))
-    pieces.append(gb.op("Sqrt", gb.op("Concat", *resids, axis=1) if S > 1 else resids[0]))
+    pieces.append(gb.op("Concat", *resids, axis=1) if S > 1 else resids[0])
     if ctx.flags.covariance:
         out.add("covariance", (K, 6, 6))
         pieces.append(_covariance(ctx, fm, e, idx))
