@@ -144,17 +144,21 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
         rhs = gb.op("Concat", b, gb.f(E6), axis=1)
     if possible is None:
         return _pivoted(ctx, G, rhs, R, r_min, ncols)
-    diag = gb.i(np.arange(R)[:, None])
-    d0 = gb.op("GatherElements", G, diag, axis=1)
-    # the rank rule: a pivot counts above rtol times the largest diagonal of G (the unweighted
-    # sweep compares against the largest diagonal itself, the pivoted branch makes tol)
-    dmax = gb.op("ReduceMax", d0, keepdims=1)
+    # the rank rule: a pivot counts above rtol times the largest diagonal of G
     jacobi = w6 is not None
-    tol = gb.op("Mul", dmax, gb.f([[ctx.em.rank_rtol]])) if jacobi else None
+    if jacobi:  # the diagonal scales the sweep: in the main graph
+        d0 = gb.op("GatherElements", G, gb.i(np.arange(R)[:, None]), axis=1)
+        dmax = gb.op("ReduceMax", d0, keepdims=1)
+        tol = gb.op("Mul", dmax, gb.f([[ctx.em.rank_rtol]]))
+    else:
+        # the unweighted sweep's test compares against the largest entry of G, which is its
+        # largest diagonal entry (G is a Gram matrix: |G_ij| <= sqrt(G_ii G_jj)), with rtol
+        # folded into a constant; the pivoted branch takes the diagonal and tol itself
+        d0, tol = None, None
+        dmax = gb.op("ReduceMax", G, keepdims=1)
 
     def pivoted() -> list[str]:
-        t = tol if tol is not None else gb.op("Mul", dmax, gb.f([[ctx.em.rank_rtol]]))
-        return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, t))
+        return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
 
     # the sweep runs on every frame, in the main graph (on a frame that cannot have full rank
     # its values are discarded): one If instead of two nested ones, each of which costs
@@ -172,7 +176,7 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     return y, rank
 
 
-def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str,
+def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str | None, tol: str,
            jacobi: bool = True):  # fmt: skip
     """The unpivoted sweep: ``(ok, solve)``.
 
