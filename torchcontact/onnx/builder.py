@@ -266,7 +266,8 @@ def bilinear(
     add: str | None = None,
     beta: float = 1.0,
     transpose: bool = False,
-) -> str:
+    parts: Sequence[tuple[int, int]] | None = None,
+) -> str | list[str]:
     """Emit the stage ``out[r] = fn(r, A[r], B[r])`` for every row ``r`` as four to five nodes.
 
     ``fn`` is ordinary scalar physics code (:mod:`torchcontact.spatial`); it must be polynomial of
@@ -291,6 +292,10 @@ def bilinear(
         transpose: return the result transposed, ``(n_out [+ 1], rows)``, from the same final
             product (``W^T x^T``: no ``Transpose`` or ``Reshape`` after it; ``add`` then
             broadcasts to the transposed result). Not for linear stages.
+        parts: column ranges ``[(start, stop)]`` of the result: the stage's final product
+            emitted once per range, from the same terms (a ``Slice`` of the result costs
+            onnxruntime more than a second product); returns the list of those results. Not
+            with ``add`` or ``transpose``.
 
     Returns:
         The ``(rows, n_out [+ 1])`` result (plus ``beta * add``).
@@ -404,6 +409,21 @@ def bilinear(
 
     if transpose and (not terms or all(len(m) == 1 for m, _ in terms)):
         raise ValueError(f"stage {hint}: a transposed result needs a bilinear stage")
+    if parts is not None:
+        if add is not None or transpose or not terms:
+            raise ValueError(f"stage {hint}: parts need a stage without add or transpose")
+        W_all, bias_all = W, bias
+
+        def product(x: str) -> list[str]:  # noqa: F811 - one product per column range
+            out = []
+            for a0, b0 in parts:
+                w, c = W_all[:, a0:b0], bias_all[:, a0:b0]
+                out.append(
+                    gb.op("Gemm", x, gb.f(w), gb.f(c)) if np.any(c)
+                    else gb.op("MatMul", x, gb.f(w))
+                )  # fmt: skip
+            return out
+
     if not terms:
         const = gb.f(np.broadcast_to(bias, (rows, n_cols)).copy())
         return const if add is None else gb.op("Add" if beta > 0 else "Sub", const, add)

@@ -249,13 +249,15 @@ def body_wrenches(ctx: StepContext, TP: str, VA: str,
 
     n = 6 * (1 + len(deltas))
     fb = bilinear(gb, Operand(VAb, 13, one=12), None, nb, newton_euler, n, hint="fb")
-    F = bodies_to_root(ctx, TP, fb, "f0", 1 + len(deltas))
     if not deltas:
-        return F, VAb, None
-    return gb.op("Slice", F, gb.i([0]), gb.i([6]), gb.i([1])), VAb, F
+        return bodies_to_root(ctx, TP, fb, "f0", 1), VAb, None
+    # f0 and F as two products of the stage's terms (no Slice of F)
+    F, f0 = bodies_to_root(ctx, TP, fb, "f0", 1 + len(deltas), parts=[(0, n), (0, 6)])
+    return f0, VAb, F
 
 
-def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) -> str:
+def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1,
+                   parts: Sequence[tuple[int, int]] | None = None) -> str | list[str]:  # fmt: skip
     """Per-body wrenches in their body frames, in the root frame.
 
     Args:
@@ -264,9 +266,11 @@ def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) ->
         fb: ``(nb, 6 m + 1)``: ``m`` wrenches per body, body frame, a 1 column last.
         hint: the value names' hint.
         m: wrenches per body.
+        parts: column ranges of the result to return instead, each its own product
+            (:func:`~torchcontact.onnx.builder.bilinear`).
 
     Returns:
-        ``(nb, 6 m)`` root frame.
+        ``(nb, 6 m)`` root frame (with ``parts``, a list of its column ranges).
     """
 
     def to_root(_i: int, t: list, f: list) -> list:
@@ -278,7 +282,7 @@ def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) ->
         return out
 
     return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), Operand(fb, 6 * m + 1, one=6 * m),
-                    ctx.nb, to_root, 6 * m, one=False, hint=hint)  # fmt: skip
+                    ctx.nb, to_root, 6 * m, one=False, hint=hint, parts=parts)  # fmt: skip
 
 
 def wrench_to_root(ctx: StepContext, child: int, t: list | None, w: sp.Force) -> sp.Force:
