@@ -666,18 +666,22 @@ def inline(gb: GraphBuilder, model, prefix: str, inputs: dict[str, str]) -> dict
     return {o.name: rename[o.name] for o in g.output}
 
 
-def fold_linear_chains(gb: GraphBuilder, keep: Sequence[str] = ()) -> int:
+def fold_linear_chains(gb: GraphBuilder, keep: Sequence[str] = (), max_growth: float = 2.0) -> int:
     """Merge chains of products with constant matrices (the model's constants folded once).
 
     A value used once, ``v = x C1 (+ c1)`` (``MatMul``/``Gemm`` with constant weights), feeding
     ``v C2 (+ c2)`` or ``v * c`` (``c`` one scale per column) becomes one node,
     ``x (C1 C2) (+ c1 C2 + c2)``; likewise ``Cl (Cl1 x)`` on the left. On one frame onnxruntime's
     cost is per node (:mod:`torchcontact.onnx.step`), so each merge saves one. The products are
-    taken in float64 and stored in the graph's dtype.
+    taken in float64 and stored in the graph's dtype. A right-hand merge whose matrix has more
+    than ``max_growth`` times the entries of the two it replaces is not made: the product then
+    costs more than the node (a stage's 138 terms times 54 selected columns measured 1.2 % of
+    the step slower than the two products).
 
     Args:
         gb: the graph, changed in place (its main graph; values read inside subgraphs are kept).
         keep: values that must stay (graph outputs).
+        max_growth: the largest ratio of multiply-adds per row, merged over unmerged.
 
     Returns:
         The number of nodes removed.
@@ -797,6 +801,9 @@ def fold_linear_chains(gb: GraphBuilder, keep: Sequence[str] = ()) -> int:
                     if r2 is None:
                         continue
                     _, C2, c2 = r2
+                    (n1_, n2_), n3_ = C1.shape, C2.shape[1]
+                    if n1_ * n3_ > max_growth * (n1_ * n2_ + n2_ * n3_):
+                        continue  # the merged product would cost more than the node it saves
                     C = C1 @ C2
                     c = None if c1 is None else c1 @ C2
                     if c2 is not None:
