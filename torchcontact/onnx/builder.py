@@ -336,9 +336,18 @@ def bilinear(
             raise ValueError(f"stage {hint}: product of two {s1!r} symbols ({j1}, {j2})")
         return ((s1, j1), (s2, j2)) if s1 == "a" else ((s2, j2), (s1, j1))
 
-    def gather(op: Operand, syms: list[tuple[str, int]]) -> str:
+    def shared(op: Operand) -> bool:
+        """An ``"nd"`` operand reading one and the same row for every row."""
+        return op.kind == "nd" and rows > 1 and len(set(op.row_of)) == 1
+
+    def gather(op: Operand, syms: list[tuple[str, int]], one_row: bool = False) -> str:
         # columns are selected by a constant 0/1 matrix product: several times cheaper in
         # onnxruntime than Gather along axis 1 (and than GatherND) at these sizes
+        if one_row:  # the row once, (1, m): it broadcasts over the other operand's rows
+            src = gb.op("Gather", op.tensor, gb.i([int(op.row_of[0])]), axis=0)
+            sel = np.zeros((op.n, len(syms)))
+            sel[[j for _, j in syms], np.arange(len(syms))] = 1.0
+            return gb.op("MatMul", src, gb.f(sel))
         if op.kind == "vec":
             idx = [[op.position(r, j) for _, j in syms] for r in range(rows)]
             return gb.op("Gather", op.tensor, gb.i(idx), axis=0)
@@ -439,8 +448,12 @@ def bilinear(
         return product(g)
     fa = [factors(m) for m, _ in terms]
 
-    ga = gather(a, [x for x, _ in fa])
-    gbb = gather(a if same else bb, [y for _, y in fa])
+    # an operand reading one row for all (a sensor's pose beside its slots) is gathered once
+    # and broadcast, when the other one has every row
+    a_once = not same and shared(a) and not shared(bb)
+    b_once = not same and shared(bb) and not shared(a)
+    ga = gather(a, [x for x, _ in fa], a_once)
+    gbb = gather(a if same else bb, [y for _, y in fa], b_once)
     prod = gb.op("Mul", ga, gbb)
     if row_coef is not None:
         prod = gb.op("Mul", prod, gb.f(row_coef))
