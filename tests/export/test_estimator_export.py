@@ -210,6 +210,7 @@ def test_graphs_load_and_use_no_linear_algebra(exports, dtype):
         "ReduceMax",
         "ReduceSum",
         "ReduceSumSquare",
+        "ReduceL2",
         "ReduceMin",
         "If",
     }

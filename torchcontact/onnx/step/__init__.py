@@ -130,10 +130,10 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
 
     Keys: ``status`` (the inputs' bits), ``T``, ``TP`` (poses), ``VA`` (motion), ``f0`` (body
     wrenches), ``W0`` (readings, root frame), ``Fb`` (transmitted wrenches), ``b``, ``G`` (per
-    region), ``y``, ``rank``, ``resid`` (per region), ``fm`` (contact wrenches), ``tau``,
-    ``ft_model`` and ``regressors`` (online graphs, else None), and what packing the output
-    needs (``e``, ``idx``, ``actK``, ``states``, ``more``, ``localized``: the localization's
-    outputs, empty without ``localize``). The stage tests read them;
+    region), ``y``, ``rank``, ``resid`` (per region, ``|b - G y|``), ``fm`` (contact
+    wrenches), ``tau``, ``ft_model`` and ``regressors`` (online graphs, else None), and what
+    packing the output needs (``e``, ``idx``, ``actK``, ``states``, ``more``, ``localized``:
+    the localization's outputs, empty without ``localize``). The stage tests read them;
     :func:`build_step_graph` packs the output from them.
     """
     from torchcontact.onnx.batched import chain_corrections
@@ -160,9 +160,10 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
     chk = inputs.check(ctx, x, ea, idx)
     e = chk.e
     # ---- 2. poses, motion, body wrenches
-    ce = gb.op("Cos", e)  # the joint angles' cos and sin (and the learned layers' features)
+    # the joint angles' cos and sin (and the learned layers' features), a (1, E) row
+    ce = gb.op("Cos", chk.e_row)
     wiring.angles(ce, idx["n_entries"])
-    T = kinematics.poses(ctx, e, idx, ea.zero, ce)
+    T = kinematics.poses(ctx, chk.e_row, idx, ea.zero, ce)
     TP = kinematics.pose_features(ctx, T)
     base = None if ctx.flags.moving_base else np.array([[ea.value(k) for k in idx["base"]]])
     S0 = kinematics.subspaces(ctx, TP)  # (nb, 6) motion subspaces, root frame
@@ -216,7 +217,7 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         if all(em.slots[k].kind == "known" for k in reg.slots):
             ys.append(None)
             ranks.append(gb.f([[0.0]]))
-            resids.append(gb.op("ReduceSumSquare", b_all[r], keepdims=1))
+            resids.append(gb.op("ReduceL2", b_all[r], keepdims=1))
             continue
         possible = solve.full_rank_possible(ctx, reg, R, actK)
         y, rank = solve.solve_region(ctx, gr.G[r], b_all[r], R, solve.min_rank(ctx, reg), ncols,
@@ -224,8 +225,8 @@ def stages(ctx: StepContext, x: str, residuals: Sequence = (),
         ys.append(y)
         ranks.append(rank)
         y1 = y if ncols == 1 else gb.op("Slice", y, gb.i([0]), gb.i([1]), gb.i([1]))
-        res = gb.op("Sub", b_all[r], gb.op("MatMul", gr.G[r], y1))
-        resids.append(gb.op("ReduceSumSquare", res, keepdims=1))
+        res = gb.op("Gemm", gr.G[r], y1, b_all[r], alpha=-1.0)  # b - G y, one node
+        resids.append(gb.op("ReduceL2", res, keepdims=1))  # |b - G y|: sqrt taken here
     # ---- 5. contact wrenches, torques, outputs
     fm = outputs.contact_wrenches(ctx, gr, ys, s_rows, pairs, e, idx, actK, known)
     F_tot = Fb

@@ -46,14 +46,14 @@ class Wiring:
     def __init__(self, ctx: StepContext, x: str) -> None:
         self.ctx, self.x = ctx, x
         self.states: list[tuple[str, tuple[int, ...], str]] = []
-        #: the cosines of the affine entries, ``(E,)`` (:meth:`angles`), and per native stack
+        #: the cosines of the affine entries, ``(1, E)`` (:meth:`angles`), and per native stack
         #: the ``(cos, sin)`` entries of its angle features (:func:`feature_entries`)
         self.cos_e: str | None = None
         self.n_entries = 0
         self.angle_entries: dict[int, list[tuple[int, int]]] = {}
 
     def angles(self, ce: str, n_entries: int) -> None:
-        """Give the learned layers the cosines of the affine entries ``ce`` (``(E,)``).
+        """Give the learned layers the cosines of the affine entries ``ce`` (a ``(1, E)`` row).
 
         The kinematics computes them (poses); the angle features are entries of them
         (:func:`feature_entries`), so no ``Sin``/``Cos`` of their own.
@@ -306,8 +306,9 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     """The learned layer's output ``(1, 6)`` (graph dtype) on features built from ``x``.
 
     The raw features ``v = [sin q, cos q, other columns, nominal]`` are ``u S`` with
-    ``u = [sin q, cos q, x, nominal]`` (one ``Concat``; the angles one ``Gather`` of the poses'
-    cosines, :func:`feature_entries`) and a constant 0/1 ``S``; ``S`` and the feature order
+    ``u = [cos e, x, nominal]`` (one ``Concat``; ``cos e`` the row of the poses' cosines of
+    every affine entry, which holds the angles' sin and cos, :func:`feature_entries`) and a
+    constant 0/1 ``S``; ``S`` and the feature order
     ``perm`` fold into the first ``Gemm`` (:func:`fold_affine_ends`). ``x`` enters whole, as the
     column selection did before (a non-finite entry of ``x`` reaches the output, and the status).
 
@@ -322,12 +323,12 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     rest = st.columns[na:]
     F = ctx.lay.size
     nom, n_nom = nominal if nominal is not None else (None, 0)
-    # the angles' [sin, cos] as one row gathered from the entries' cosines
+    # the angles' [sin, cos]: entries of the row of the entries' cosines, which enters whole
+    # (its selection folds into the first Gemm: no Gather)
     ents = wiring.angle_entries.get(r, [])
     trig = [s_ for _c, s_ in ents] + [c for c, _s in ents]
-    angles = gb.op("Gather", wiring.cos_e, gb.i([trig]), axis=0) if na else None
     parts, rows, offsets = [], 0, {}
-    for name, value, width, used in (("trig", angles, 2 * na, na > 0),
+    for name, value, width, used in (("trig", wiring.cos_e, wiring.n_entries, na > 0),
                                      ("x", wiring.x, F, bool(rest)),
                                      ("nominal", nom, n_nom, bool(st.nominal))):  # fmt: skip
         if used:
@@ -337,7 +338,7 @@ def _learned(ctx: StepContext, wiring: Wiring, nominal, r: int, rg, st: NativeSt
     V = 2 * na + len(rest) + 6 * bool(st.nominal)
     S = np.zeros((rows, V))
     if na:  # sin q = cos(q - pi/2), cos q
-        S[offsets["trig"] : offsets["trig"] + 2 * na, : 2 * na] = np.eye(2 * na)
+        S[offsets["trig"] + np.array(trig), np.arange(2 * na)] = 1.0
     for j, (kind, key) in enumerate(rest):
         S[offsets["x"] + wiring.position(kind, key), 2 * na + j] = 1.0
     if st.nominal:

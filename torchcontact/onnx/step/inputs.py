@@ -192,12 +192,14 @@ class Checked:
 
     Attributes:
         e: the affine entries ``(E,)`` of the cleaned input (non-finite entries zeroed).
+        e_row: the same as a ``(1, E)`` row (the ``Gemm``'s own output).
         act: ``(K [+ nv], 1)`` 0/1 slot activity [and torque-mask validity].
         actK: ``(K, 1)`` slot activity.
         status: ``(1, 1)`` float status bits of the inputs (0: ok).
     """
 
     e: str
+    e_row: str
     act: str
     actK: str  # noqa: N815 - K slots
     status: str
@@ -209,12 +211,13 @@ def check(ctx: StepContext, x: str, ea: Affine, idx: dict) -> Checked:
     bad = gb.op("IsNaN", gb.op("Sub", x, x))  # x - x is NaN exactly for NaN and inf
     xc = gb.op("Where", bad, gb.f(0.0), x)
     M, off = ea.matrix()
-    e = gb.op("Reshape", gb.op("Gemm", xc, gb.f(M), gb.f(off)), gb.i([M.shape[1]]))
+    e_row = gb.op("Gemm", xc, gb.f(M), gb.f(off))
+    e = gb.op("Reshape", e_row, gb.i([M.shape[1]]))
     act = _activity(ctx, e, idx)
     actK = (
         gb.op("Slice", act, gb.i([0]), gb.i([ctx.K]), gb.i([0])) if ctx.flags.torque_rows else act
     )
-    return Checked(e, act, actK, _status(ctx, x, bad, act, e, idx))
+    return Checked(e, e_row, act, actK, _status(ctx, x, bad, act, e, idx))
 
 
 def _activity(ctx: StepContext, e: str, idx: dict) -> str:
@@ -262,10 +265,11 @@ def _status(ctx: StepContext, x: str, bad: str, act: str, e: str, idx: dict) -> 
             Mb[j, 3] = 1.0
             gate[K + c, j] = 1.0
             ungated[0, j] = 0.0
-    badf = gb.cast(bad)
-    if n_gate:
+    if n_gate:  # the gate where the entry is bad, else 0: one Where (no Cast, no Mul)
         g = gb.op("Gemm", act, gb.f(gate), gb.f(ungated), transA=1)
-        badf = gb.op("Mul", badf, g)
+        badf = gb.op("Where", bad, g, gb.f(0.0))
+    else:
+        badf = gb.cast(bad)
     counts = gb.op("MatMul", badf, gb.f(Mb))
     parts = [counts]
     weights = [float(b) for b in bits]

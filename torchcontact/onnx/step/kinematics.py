@@ -74,7 +74,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
 
     Args:
         ctx: the graph.
-        e: the affine entries.
+        e: the affine entries, a ``(1, E)`` row.
         idx: their indices (:func:`~torchcontact.onnx.step.inputs.plan`).
         zero: the index of a constant 0 entry (``cos 0 = 1``).
         ce: ``Cos(e)`` when computed already (None: computed here).
@@ -83,7 +83,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
     has_pri = any(b.kind == "prismatic" for b in tree.bodies)
     ce = gb.op("Cos", e) if ce is None else ce
     E = int(idx["n_entries"])
-    src = gb.op("Concat", ce, e, axis=0) if has_pri else ce
+    src = gb.op("Concat", ce, e, axis=1) if has_pri else ce
     # (without prismatic joints the displacement column is any finite entry: its map is 0)
     disp = [E + idx["disp"][i] if has_pri else zero for i in range(nb)]
     index = np.array([[idx["cos"][i], idx["sin"][i], disp[i], zero] for i in range(nb)])
@@ -94,7 +94,7 @@ def poses(ctx: StepContext, e: str, idx: dict, zero: int, ce: str | None = None)
         Cx[i, 3] = base
         for j in range(3):
             Cx[i, j] = _homogeneous(_joint_pose(ctx, i, [float(j == k) for k in range(3)])) - base
-    g = gb.op("Gather", src, gb.i(index[:, None, :]), axis=0)  # (nb, 1, 4)
+    g = gb.op("Gather", src, gb.i(index[:, None, :]), axis=1)  # (1, nb, 1, 4)
     X = gb.op("Reshape", gb.op("MatMul", g, gb.f(Cx)), gb.i([nb, 4, 4]))
     # pointer doubling: T_parent(i) T_i first, then 2^k-th ancestors
     par = [max(b.parent, 0) for b in tree.bodies]
@@ -249,13 +249,15 @@ def body_wrenches(ctx: StepContext, TP: str, VA: str,
 
     n = 6 * (1 + len(deltas))
     fb = bilinear(gb, Operand(VAb, 13, one=12), None, nb, newton_euler, n, hint="fb")
-    F = bodies_to_root(ctx, TP, fb, "f0", 1 + len(deltas))
     if not deltas:
-        return F, VAb, None
-    return gb.op("Slice", F, gb.i([0]), gb.i([6]), gb.i([1])), VAb, F
+        return bodies_to_root(ctx, TP, fb, "f0", 1), VAb, None
+    # f0 and F as two products of the stage's terms (no Slice of F)
+    F, f0 = bodies_to_root(ctx, TP, fb, "f0", 1 + len(deltas), parts=[(0, n), (0, 6)])
+    return f0, VAb, F
 
 
-def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) -> str:
+def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1,
+                   parts: Sequence[tuple[int, int]] | None = None) -> str | list[str]:  # fmt: skip
     """Per-body wrenches in their body frames, in the root frame.
 
     Args:
@@ -264,9 +266,11 @@ def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) ->
         fb: ``(nb, 6 m + 1)``: ``m`` wrenches per body, body frame, a 1 column last.
         hint: the value names' hint.
         m: wrenches per body.
+        parts: column ranges of the result to return instead, each its own product
+            (:func:`~torchcontact.onnx.builder.bilinear`).
 
     Returns:
-        ``(nb, 6 m)`` root frame.
+        ``(nb, 6 m)`` root frame (with ``parts``, a list of its column ranges).
     """
 
     def to_root(_i: int, t: list, f: list) -> list:
@@ -278,7 +282,7 @@ def bodies_to_root(ctx: StepContext, TP: str, fb: str, hint: str, m: int = 1) ->
         return out
 
     return bilinear(ctx.gb, Operand(TP, 25, one=TP_ONE), Operand(fb, 6 * m + 1, one=6 * m),
-                    ctx.nb, to_root, 6 * m, one=False, hint=hint)  # fmt: skip
+                    ctx.nb, to_root, 6 * m, one=False, hint=hint, parts=parts)  # fmt: skip
 
 
 def wrench_to_root(ctx: StepContext, child: int, t: list | None, w: sp.Force) -> sp.Force:

@@ -82,8 +82,13 @@ def contact_wrenches(ctx, gr: Grams, ys, s_rows, pairs, e, idx, actK, known: boo
     if K == 0:
         return gb.f(np.zeros((0, 12)))
     ncols = 7 if ctx.flags.covariance else 1
-    Y, base, one = _region_vector(ctx, ys, ncols)
-    zsrc = _duals(ctx, Y, base, one, ncols, s_rows, pairs)
+    if ncols == 1 and len(ys) == 1 and ys[0] is not None and s_rows is None:
+        # one region, no torque rows: z = y, the solve's (6, 1) column, read as it is (no
+        # Reshape, no Concat of a 1, no Gather)
+        zsrc = Operand(ys[0], 6, "col")
+    else:
+        Y, base, one = _region_vector(ctx, ys, ncols)
+        zsrc = _duals(ctx, Y, base, one, ncols, s_rows, pairs)
     rws = [(j, k) for j in range(ncols) for k in range(K)]
     slot_of = [k for _, k in rws]
     geo = Operand(gr.geo, gr.n_geo, "nd", one=gr.n_geo - 1, row_of=slot_of)
@@ -93,7 +98,7 @@ def contact_wrenches(ctx, gr: Grams, ys, s_rows, pairs, e, idx, actK, known: boo
         zf, zn = tuple(zz[0:3]), tuple(zz[3:6])
         return [*sp.v_add(zf, sp.v_cross(zn, tuple(g[0:3]))), *zn]
 
-    gz = bilinear(gb, geo, zsrc, len(rws), dual, 6, hint="gz")
+    gz = bilinear(gb, geo, zsrc, len(rws), dual, 6, hint="gz")  # (rows, 7): [g, zn, 1]
 
     def out(n: int, g: list, w: list) -> list:
         # P_k Y_k^T y in the link frame, and A_k x_k (sensor frame)
@@ -163,7 +168,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
         fm: :func:`contact_wrenches`.
         tau: :func:`torques`.
         ranks: per region ``(1, 1)``.
-        resids: per region ``(1, 1)`` squared residuals.
+        resids: per region ``(1, 1)`` residual norms.
         actK: ``(K, 1)`` slot activity.
         status_in: ``(1, 1)`` status bits of the inputs.
         e: the affine entries.
@@ -187,7 +192,7 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     out.add("joint_torques", (ctx.nv,))
     pieces.append(tau)
     out.add("residual", (S,))
-    pieces.append(gb.op("Sqrt", gb.op("Concat", *resids, axis=1) if S > 1 else resids[0]))
+    pieces.append(gb.op("Concat", *resids, axis=1) if S > 1 else resids[0])
     if ctx.flags.covariance:
         out.add("covariance", (K, 6, 6))
         pieces.append(_covariance(ctx, fm, e, idx))
@@ -215,8 +220,9 @@ def pack(ctx, fm, tau, ranks, resids, actK, status_in, e, idx, states, more=(),
     if localized:
         vals = gb.op("Concat", vals, *(value for _, value in localized), axis=1)
     bit = float(Status.OUTPUT_NONFINITE)
-    # status_in + bit * okf where nonfin, else status_in (the bit only for valid inputs)
-    status = gb.op("Where", nonfin, gb.op("Gemm", okf, gb.f([[bit]]), status_in), status_in)
+    # status_in + bit * okf where nonfin, else status_in (the bit only for valid inputs): one
+    # Gemm of the 0/1 flags, alpha = bit (no Where: onnxruntime's costs more than a Cast)
+    status = gb.op("Gemm", gb.cast(nonfin), okf, status_in, alpha=bit)
     # NaN outputs where the status is not 0; torques the graph does not compute: NaN always
     always = np.zeros((1, out.size))
     t0 = out.fields["joint_torques"][0]

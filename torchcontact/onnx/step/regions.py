@@ -168,10 +168,18 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None, ws_terms=()) -> list[
         Fs = sp.force_to_child(regs[r].T_child_sensor, root_to_child(ctx, regs[r].child, t, F))
         return [*Fs[0], *Fs[1]]
 
+    # one region whose child moves, no online corrections: b comes out of the stage as the
+    # (6, 1) column the solve takes (its product transposed), else as (S, 6) rows
+    column = ctx.S == 1 and ws_corr is None and not ctx.all_static(childs)
     # the readings (less their corrections) enter as the last product's Gemm bias: b = F_s - W_s
-    Ws = gb.op("Gather", e, gb.i(np.array(idx["W_s"])), axis=0)  # (S, 6)
+    W_idx = np.array(idx["W_s"])
+    Ws = gb.op("Gather", e, gb.i(W_idx.T if column else W_idx), axis=0)  # (6, 1) or (S, 6)
     for col, c in ws_terms:  # natively built corrections: W_s - col c
-        Ws = gb.op("Gemm", gb.f(-col), c, Ws)
+        Ws = (
+            gb.op("Gemm", c, gb.f(-col), Ws, transA=1)
+            if column
+            else gb.op("Gemm", gb.f(-col), c, Ws)
+        )
     if ws_corr is not None:
         Ws = gb.op("Sub", Ws, ws_corr)
     F_nd = Operand(Fb, 6, "nd", row_of=childs)
@@ -180,12 +188,15 @@ def region_b(ctx, TP, Fb, S0, e, idx, ws_corr: str | None, ws_terms=()) -> list[
                       one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
     else:
         b6 = bilinear(gb, Operand(TP, 25, "nd", one=TP_ONE, row_of=childs), F_nd, ctx.S,
-                      to_sensor, 6, one=False, hint="fs", add=Ws, beta=-1.0)  # fmt: skip
-    # per region its (6, 1) column: one Reshape for one region, else rows of b6^T
+                      to_sensor, 6, one=False, hint="fs", add=Ws, beta=-1.0,
+                      transpose=column)  # fmt: skip
+    # per region its (6, 1) column: b6 itself, one Reshape for one region, else rows of b6^T
     b6T = None if ctx.S == 1 else gb.op("Transpose", b6, perm=[1, 0])
     out = []
     for r, reg in enumerate(regs):
-        if b6T is None:
+        if column:
+            b = b6
+        elif b6T is None:
             b = gb.op("Reshape", b6, gb.i([6, 1]))
         else:
             b = gb.op("Gather", b6T, gb.i([r]), axis=1)

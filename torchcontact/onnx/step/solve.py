@@ -85,7 +85,7 @@ def solve_region(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: in
         gb.dtype = np.dtype(np.float64)
     try:
         Gw, bw = gb.op("Mul", G, gb.f(np.outer(w, w))), gb.op("Mul", b, gb.f(w[:, None]))
-        y, rank = _solve(ctx, Gw, bw, R, r_min, ncols, w[:6, None], possible)
+        y, rank = _solve(ctx, Gw, bw, R, r_min, ncols, w[:6, None], possible, graph_dtype)
         y = gb.op("Mul", y, gb.f(w[:, None]))
     finally:
         gb.dtype = graph_dtype
@@ -95,11 +95,12 @@ def solve_region(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: in
 
 
 def full_rank_possible(ctx: StepContext, reg: Region, R: int, act: str) -> str | None:
-    """A necessary condition for rank ``R`` on this frame (a ``(1, 1)`` bool), or None: never.
+    """A necessary condition for rank ``R`` on this frame, or None: never.
 
     Rank ``R`` needs at least ``R`` unknowns of active slots, and the sensor's six rows need a
     wrench slot or point forces at three points or more (at one or two points they span at most
-    3 or 5 directions of wrenches).
+    3 or 5 directions of wrenches). Returned as a ``(1, 1)`` count, ``>= 0``, that is above 2.5
+    exactly when the condition holds (:func:`solve_region` folds the test into its own).
 
     Args:
         ctx: the graph.
@@ -117,16 +118,18 @@ def full_rank_possible(ctx: StepContext, reg: Region, R: int, act: str) -> str |
     gb = ctx.gb
     if R == 6 and "force_dir" not in kinds.values():
         # a wrench (6 unknowns) or three forces (9) have the unknowns: one count decides
-        w = gb.op("Gemm", act, gb.f(M[:, 1:2] * 3.0 + M[:, 2:3]), transA=1)
-        return gb.op("Greater", w, gb.f([[2.5]]))
+        return gb.op("Gemm", act, gb.f(M[:, 1:2] * 3.0 + M[:, 2:3]), transA=1)
     v = gb.op("Gemm", act, gb.f(M), transA=1)  # (1, 3) over the active slots
     g = gb.cast(gb.op("Greater", v, gb.f([[R - 0.5, 0.5, 2.5]])))
-    return gb.op("Greater", gb.op("MatMul", g, gb.f([[2.0], [1.0], [1.0]])), gb.f([[2.5]]))
+    return gb.op("MatMul", g, gb.f([[2.0], [1.0], [1.0]]))  # 3 or 4 when possible
 
 
 def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
-           w6: np.ndarray | None = None, possible: str | None = None):  # fmt: skip
+           w6: np.ndarray | None = None, possible: str | None = None,
+           pdtype=None):  # fmt: skip
     """:func:`solve_region` on (whitened) ``G``, ``b``; ``w6``: the unit right sides' whitening.
+
+    ``pdtype``: the dtype of ``possible``'s count (None: the elimination's own).
 
     With ``possible`` (:func:`full_rank_possible`), the unpivoted sweep runs first: on a frame
     that may have full rank and where it proves every pivot of any order accepted,
@@ -141,10 +144,18 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
         rhs = gb.op("Concat", b, gb.f(E6), axis=1)
     if possible is None:
         return _pivoted(ctx, G, rhs, R, r_min, ncols)
-    diag = gb.i(np.arange(R)[:, None])
-    d0 = gb.op("GatherElements", G, diag, axis=1)
     # the rank rule: a pivot counts above rtol times the largest diagonal of G
-    tol = gb.op("Mul", gb.op("ReduceMax", d0, keepdims=1), gb.f([[ctx.em.rank_rtol]]))
+    jacobi = w6 is not None
+    if jacobi:  # the diagonal scales the sweep: in the main graph
+        d0 = gb.op("GatherElements", G, gb.i(np.arange(R)[:, None]), axis=1)
+        dmax = gb.op("ReduceMax", d0, keepdims=1)
+        tol = gb.op("Mul", dmax, gb.f([[ctx.em.rank_rtol]]))
+    else:
+        # the unweighted sweep's test compares against the largest entry of G, which is its
+        # largest diagonal entry (G is a Gram matrix: |G_ij| <= sqrt(G_ii G_jj)), with rtol
+        # folded into a constant; the pivoted branch takes the diagonal and tol itself
+        d0, tol = None, None
+        dmax = gb.op("ReduceMax", G, keepdims=1)
 
     def pivoted() -> list[str]:
         return list(_pivoted(ctx, G, rhs, R, r_min, ncols, d0, tol))
@@ -152,21 +163,30 @@ def _solve(ctx: StepContext, G: str, b: str, R: int, r_min: int, ncols: int,
     # the sweep runs on every frame, in the main graph (on a frame that cannot have full rank
     # its values are discarded): one If instead of two nested ones, each of which costs
     # onnxruntime a subgraph call per frame
-    full, solve_full = _sweep(ctx, G, rhs, R, d0, tol, jacobi=w6 is not None)
+    ok, solve_full = _sweep(ctx, G, rhs, R, d0, dmax if tol is None else tol, jacobi)
+    # the If's condition: every pivot accepted (ok) and full rank possible (its count > 2.5),
+    # as min_i (ok_i ? count : 0) > 2.5 (the count is >= 0), in the count's dtype
+    count_dtype = ctx.dtype if pdtype is None else np.dtype(pdtype)
+    zero = gb.const(np.zeros(1), count_dtype)
+    least = gb.op("ReduceMin", gb.op("Where", ok, possible, zero), keepdims=0)
+    cond = gb.op("Greater", least, gb.const(np.full(1, 2.5), count_dtype))
     fast = gb.branch(lambda: [solve_full(), gb.f([[float(R)]])], "full_rank")
-    y, rank = gb.op("If", gb.op("And", possible, full), n_out=2, then_branch=fast,
+    y, rank = gb.op("If", cond, n_out=2, then_branch=fast,
                     else_branch=gb.branch(pivoted, "pivoted"))  # fmt: skip
     return y, rank
 
 
-def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str,
+def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str | None, tol: str,
            jacobi: bool = True):  # fmt: skip
-    """The unpivoted sweep: ``(full, solve)``.
+    """The unpivoted sweep: ``(ok, solve)``.
 
-    ``full``: whether the pivoted rule accepts every pivot whatever the order (a bool);
-    ``solve()`` emits ``y = G^-1 rhs``, from the sweep operator on ``G``, Jacobi-scaled with
-    ``jacobi`` (the whitened systems: their rows' scales spread over decades; an unweighted
-    ``G`` is swept as it is, five nodes fewer).
+    ``ok``: ``(R, 1)`` bool, for each ``i`` whether ``1 / (G^-1)_ii`` is above the rank rule's
+    threshold; all true: the pivoted rule accepts every pivot whatever the order. ``tol`` is
+    that threshold with ``jacobi``, else the largest diagonal of ``G`` (the threshold over
+    ``rtol``: ``rtol / (G^-1)_ii > max diag G``, the product by ``rtol`` folded into a
+    constant). ``solve()`` emits ``y = G^-1 rhs``, from the sweep operator on ``G``,
+    Jacobi-scaled with ``jacobi`` (the whitened systems: their rows' scales spread over decades;
+    an unweighted ``G`` is swept as it is, five nodes fewer).
     """
     gb = ctx.gb
     diag = gb.i(np.arange(R)[:, None])
@@ -191,9 +211,8 @@ def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str,
     # 1 / (G^-1)_ii (eliminating more only lowers it); 1 / (G^-1)_ii = d0_i / (G'^-1)_ii. NaN
     # (a zero diagonal or pivot met here) fails.
     h = gb.op("Sub", gb.f(2.0), gb.op("GatherElements", A, diag, axis=1))  # (G'^-1)_ii
-    inv = gb.op("Div", d0 if jacobi else gb.f(1.0), h)
-    ok = gb.cast(gb.op("Greater", inv, tol))
-    full = gb.op("Greater", gb.op("ReduceMin", ok, keepdims=0), gb.f(0.5))
+    inv = gb.op("Div", d0 if jacobi else gb.f(1.0 / ctx.em.rank_rtol), h)
+    ok = gb.op("Greater", inv, tol)
 
     def solve() -> str:  # y = D G'^-1 D rhs
         if not jacobi:
@@ -201,7 +220,7 @@ def _sweep(ctx: StepContext, G: str, rhs: str, R: int, d0: str, tol: str,
         u = gb.op("Div", rhs, sc)
         return gb.op("Div", gb.op("Gemm", A, u, u, alpha=-1.0, beta=2.0), sc)
 
-    return full, solve
+    return ok, solve
 
 
 def _pivoted(ctx: StepContext, G: str, rhs: str, R: int, r_min: int, ncols: int,
