@@ -50,11 +50,14 @@ VERSION = "2"
 # opcodes (the C++ enum below has the same numbers)
 OPS = ("load", "store", "mov", "add", "sub", "mul", "div", "neg", "sqrt", "sin", "cos", "sincos",
        "sel", "gt", "finite", "and", "or", "not", "loop", "endloop", "fma", "fms", "mma", "mms",
-       "add3")  # fmt: skip
+       "add3", "fnm", "dot3", "dot3s")  # fmt: skip
 #: Operand flags of an opcode (``16 * op + flags``): operand a, b, c or e is a constant's index.
 _KFLAG = {"a": 1, "b": 2, "c": 4, "e": 8}
-#: Fields of an instruction: ``(op, d, a, b, c, e)``.
-WIDTH = 6
+#: ... except for the three-product opcodes (``dot3``, ``dot3s``), whose flags name the pattern
+#: of constants: none, ``g`` alone, or ``b``, ``e`` and ``g``.
+_KPATTERN = {"": 0, "g": 1, "beg": 2}
+#: Fields of an instruction: ``(op, d, a, b, c, e, f, g)``.
+WIDTH = 8
 OP = {name: i for i, name in enumerate(OPS)}
 #: ``endloop``'s stop field: never stop early / always stop after one iteration.
 STOP_NEVER, STOP_ALWAYS = -1, -2
@@ -68,9 +71,12 @@ typedef decltype(M{}[0] + 0) MI;  // one lane of a mask: 0 or all ones
 enum { KA = 1, KB = 2, KC = 4, KE = 8 };
 enum {
   LOAD, STORE, MOV, ADD, SUB, MUL, DIV, NEG, SQRT, SIN, COS, SINCOS, SEL, GT, FINITE, AND, OR,
-  NOT, LOOP, ENDLOOP, FMA, FMS, MMA, MMS, ADD3
+  NOT, LOOP, ENDLOOP, FMA, FMS, MMA, MMS, ADD3, FNM, DOT3, DOT3S
 };
-struct Ins { int32_t op, d, a, b, c, e; };
+// three products (dot3, dot3s): the flags name a pattern instead, P_G: g is a constant, P_BEG:
+// b, e and g are (the second factor of each product)
+enum { P_G = 1, P_BEG = 2 };
+struct Ins { int32_t op, d, a, b, c, e, f, g; };
 
 extern "C" int tc_vm_abi(void) { return TC_VM_ABI; }
 extern "C" int64_t tc_vm_block(void) { return B; }
@@ -111,6 +117,13 @@ extern "C" int64_t tc_vm_block(void) { return B; }
     for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], ek); break; } \
   case 16 * OPC + KB + KE: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) \
     for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek); break; }
+#define C6(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SL(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gs[v]); break; } \
+  case 16 * OPC + P_G: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SK(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gk); break; } \
+  case 16 * OPC + P_BEG: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) SL(f, f) SK(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek, fs[v], gk); break; }
 #define E_ID(a) a
 #define E_ADD(a, b) (a) + (b)
 #define E_SUB(a, b) (a) - (b)
@@ -121,6 +134,9 @@ extern "C" int64_t tc_vm_block(void) { return B; }
 #define E_ADD3(a, b, c) ((a) + (b)) + (c)
 #define E_MMA(a, b, c, e) (a) * (b) + (c) * (e)
 #define E_MMS(a, b, c, e) (a) * (b) - (c) * (e)
+#define E_FNM(a, b, c) (c) - (a) * (b)
+#define E_DOT3(a, b, c, e, f, g) (a) * (b) + (c) * (e) + (f) * (g)
+#define E_DOT3S(a, b, c, e, f, g) (a) * (b) - (c) * (e) + (f) * (g)
 
 // Runs the bytecode on frames [0, n): blocks of B frames, one instruction at a time on a block.
 // Slot k is S[k * NV .. k * NV + NV) (B values; a mask slot holds MI lanes). Returns 0, or 1
@@ -142,8 +158,9 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
       V* D = S + (int64_t)x.d * NV;
       switch (x.op) {
         C2(ADD, E_ADD) C2(SUB, E_SUB) C2(MUL, E_MUL) C2(DIV, E_DIV)
-        C3(FMA, E_FMA) C3(FMS, E_FMS) C3(ADD3, E_ADD3)
+        C3(FMA, E_FMA) C3(FMS, E_FMS) C3(ADD3, E_ADD3) C3(FNM, E_FNM)
         C4(MMA, E_MMA) C4(MMS, E_MMS)
+        C6(DOT3, E_DOT3) C6(DOT3S, E_DOT3S)
         C1(MOV, E_ID)
         default:
       switch (x.op >> 4) {
@@ -269,7 +286,7 @@ class Bytecode:
     """A program encoded for the VM.
 
     Attributes:
-        code: ``(ncode, 6)`` int32 instructions ``(op, d, a, b, c, e)``.
+        code: ``(ncode, 8)`` int32 instructions ``(op, d, a, b, c, e, f, g)``.
         consts: ``(nconst,)`` float64 constants, the values of slots ``0 .. nconst - 1``.
         nslots: slots the program uses (constants included).
     """
@@ -326,8 +343,9 @@ class Bytecode:
 _DEFS = {"load": "d", "sincos": "dc", "loop": "", "endloop": "", "store": ""}
 _USES = {"load": "", "store": "c", "mov": "a", "neg": "a", "sqrt": "a", "sin": "a", "cos": "a",
          "sincos": "a", "finite": "a", "not": "a", "sel": "abc", "loop": "", "endloop": "a",
-         "fma": "abc", "fms": "abc", "mma": "abce", "mms": "abce", "add3": "abc"}  # fmt: skip
-_FIELD = {"d": 1, "a": 2, "b": 3, "c": 4, "e": 5}
+         "fma": "abc", "fms": "abc", "mma": "abce", "mms": "abce", "add3": "abc", "fnm": "abc", "dot3": "abcefg",
+         "dot3s": "abcefg"}  # fmt: skip
+_FIELD = {"d": 1, "a": 2, "b": 3, "c": 4, "e": 5, "f": 6, "g": 7}
 
 
 def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
@@ -484,11 +502,11 @@ def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
         emit(s)
     for a, j, c in const_out:
         code.append(["store", 0, a, j, const(c)])
-    code, loops = _fuse(code)
+    code, loops = _fuse(code, const)
     return _allocate(code, loops, const_vals, nvreg[0])
 
 
-def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
+def _fuse(code: list[list], const) -> tuple[list[list], list[tuple[int, int]]]:
     """Fold values read once into the instruction reading them (superinstructions).
 
     In one pass over ``code``, an instruction takes in the definition of an operand that only it
@@ -501,7 +519,15 @@ def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
       differ from eager torch by rounding only);
     * a second product: ``a * b + c * e``, ``a * b - c * e`` (``mma``/``mms``: a 3-vector's
       cross product, a row of a rotation times a vector, two terms of a dot product);
+    * a product into the difference it is subtracted from: ``c - a * b`` (``fnm``);
+    * a third product: ``a * b + (c * e + f * g)`` (``dot3``: a row of a rotation times a
+      vector), and a sum or difference of two products into a sum or difference, as a third
+      product by a constant ``+-1`` (exact): ``x + (a * b - c * e)`` (``dot3s``),
+      ``(a * b + c * e) - x``; only the patterns of constants the interpreter has a loop for
+      (none, the ``+-1`` alone, or every product's second factor);
     * a sum into a sum: ``(a + b) + c`` (``add3``; the same additions in the same order).
+
+    ``const(value)`` is the encoder's constant operand of a value (the ``+-1`` factors).
 
     Each fused instruction reads its operands where the last one read them; an operand written
     again in between (a carried slot) keeps the two instructions apart. Also returns the
@@ -560,14 +586,25 @@ def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
                     else:
                         ins[:] = ["fms", ins[1], ins[2], ins[3], m[2]]
                     return True
-        if op in ("add", "sub"):  # a * b + c, c + a * b, a * b - c
-            for k in (2, 3) if op == "add" else (2,):
+        if op in ("add", "sub"):  # a * b + c, c + a * b, a * b - c, c - a * b
+            for k in (2, 3):
                 other = ins[5 - k]
                 m = inner(ins[k], "mul", at)
                 if m is None or nconst(m[2], m[3], other) > 1:
                     continue  # the interpreter takes one constant operand per instruction
                 dead.add(defs[ins[k]])
-                ins[:] = ["fma" if op == "add" else "fms", ins[1], m[2], m[3], other]
+                name = "fma" if op == "add" else "fms" if k == 2 else "fnm"
+                ins[:] = [name, ins[1], m[2], m[3], other]
+                return True
+            # x + (a * b +- c * e), (a * b +- c * e) - x: a third product x * (+-1)
+            for k in (2, 3) if op == "add" else (2,):
+                x = ins[5 - k]
+                m = inner(ins[k], "mma", at) or inner(ins[k], "mms", at)
+                if m is None or isinstance(x, tuple) or nconst(m[3], m[5]) == 1:
+                    continue
+                dead.add(defs[ins[k]])
+                one = const(1.0 if op == "add" else -1.0)
+                ins[:] = ["dot3" if m[0] == "mma" else "dot3s", ins[1], *m[2:6], x, one]
                 return True
         if op in ("fma", "fms"):  # a * b + c * e, a * b - c * e
             m = inner(ins[4], "mul", at)
@@ -577,6 +614,13 @@ def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
                     dead.add(defs[ins[4]])
                     ins[:] = ["mma" if op == "fma" else "mms", ins[1], *p, *q]
                     return True
+        if op == "fma":  # a * b + (c * e + f * g)
+            m = inner(ins[4], "mma", at)
+            p = pair(ins[2], ins[3])
+            if m is not None and p is not None and nconst(p[1], m[3], m[5]) in (0, 3):
+                dead.add(defs[ins[4]])
+                ins[:] = ["dot3", ins[1], *p, *m[2:6]]
+                return True
         if op == "add" and not nconst(ins[2], ins[3]):  # (a + b) + c, c + (a + b)
             for k in (2, 3):
                 m = inner(ins[k], "add", at)
@@ -641,11 +685,12 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
     for p, ins in enumerate(code):
         defs, uses = _fields(ins)
         row = [16 * OP[ins[0]], *ins[1:], *[0] * (WIDTH - len(ins))]
+        konst = ""
         for f in uses:
             r = ins[_FIELD[f]]
             if isinstance(r, tuple):  # a constant: its index, flagged in the opcode
                 row[_FIELD[f]] = r[1]
-                row[0] |= _KFLAG[f]
+                konst += f
             elif r >= 0 or ins[0] != "endloop":
                 row[_FIELD[f]] = slot[r]
         # operands read for the last time free their slots before the results take one (an
@@ -662,6 +707,10 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
                     slot[r] = nslots
                     nslots += 1
             row[_FIELD[f]] = slot[r]
+        if ins[0] in ("dot3", "dot3s"):
+            row[0] += _KPATTERN[konst]
+        else:
+            row[0] += sum(_KFLAG[f] for f in konst)
         for r in ending.get(p, ()):
             if first[r] == p:  # written and never read: free at once
                 free.append(slot[r])
