@@ -343,8 +343,8 @@ class Bytecode:
 _DEFS = {"load": "d", "sincos": "dc", "loop": "", "endloop": "", "store": ""}
 _USES = {"load": "", "store": "c", "mov": "a", "neg": "a", "sqrt": "a", "sin": "a", "cos": "a",
          "sincos": "a", "finite": "a", "not": "a", "sel": "abc", "loop": "", "endloop": "a",
-         "fma": "abc", "fms": "abc", "mma": "abce", "mms": "abce", "add3": "abc", "fnm": "abc", "dot3": "abcefg",
-         "dot3s": "abcefg"}  # fmt: skip
+         "fma": "abc", "fms": "abc", "mma": "abce", "mms": "abce", "add3": "abc", "fnm": "abc",
+         "dot3": "abcefg", "dot3s": "abcefg"}  # fmt: skip
 _FIELD = {"d": 1, "a": 2, "b": 3, "c": 4, "e": 5, "f": 6, "g": 7}
 
 

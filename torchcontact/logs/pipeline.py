@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcontact import kernels
 from torchcontact.errors import InputError, LogError
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
@@ -266,6 +267,9 @@ def prepare(
 
     src = str(path)
     pf = open_log(path)
+    if model.device.type == "cpu" and pf.metadata.num_rows >= kernels.AUTO_BUILD_MIN_FRAMES:
+        # a first run on this machine: the tape VM builds while the log is scanned
+        kernels.prepare_vm(model.dtype)
     extra = [] if residual is None else residual.extra_columns
     cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
     scan = scan_log(pf, src, bool(cols.contact_fields))
