@@ -17,6 +17,10 @@ that runs a program's trace encoded as **bytecode** by :func:`encode`:
   kernels' rule, per block of frames instead of per vector);
 * ``sin``/``cos`` are the kernels' ``vsincos`` (the same prelude), IEEE semantics (no
   ``-ffast-math``): NaN and inf propagate as in eager torch.
+* superinstructions (:func:`_fuse`): a value read by one instruction only is folded into it
+  where a rule matches, ``a*b + c``, ``a*b + c*e``, ``a*b + c*e + f*g``, ``c - a*b``,
+  ``(a + b) + c`` and the like (the RNEA's cross products and rotations times vectors), so
+  fewer instructions decode and fewer intermediate slots go through memory.
 
 The calling convention is the kernels' (``(N, k)`` strided arrays, one pointer and row stride
 per array), with the bytecode in front: ``tc_vm(code, ncode, consts, nconst, nslots, n, in,
