@@ -21,6 +21,12 @@ and CPU seconds of the run's process and their ratios to the warm run. Run on a 
 
     python benchmarks/vm_cold.py                       # 1 M iCub frames, 2 rounds
     python benchmarks/vm_cold.py --frames 200000 --rounds 3 --tmp /tmp/tc-vm-cold
+
+``--against SRC`` compares this checkout's first run with another torchcontact's (a source tree,
+such as ``git archive fe83dd1 | tar -x -C /tmp/main``, run with ``PYTHONPATH=SRC``): each round
+runs, for each of the two in turn (the order alternating), a warm run and a first run (the
+default variant), and the table gives the ratio of each round's pair, so that a loaded
+machine's changes fall on both alike.
 """
 
 from __future__ import annotations
@@ -65,17 +71,60 @@ def settle(cache: str, limit: float = 900.0) -> float:
     return time.perf_counter() - t
 
 
+def against(args, log: Path, out: Path, tmp: Path) -> None:
+    """``--against``: warm and first (default) runs of this checkout and ``args.against``."""
+    here = str(Path(__file__).resolve().parents[1])
+    trees = {"this checkout": here, f"--against {args.against}": str(Path(args.against).resolve())}
+    warm_caches = {}
+    for i, (name, src) in enumerate(trees.items()):
+        cache = str(tmp / f"cache-warm-{i}")
+        env = {**os.environ, "PYTHONPATH": src, "TORCHCONTACT_CACHE": cache}
+        run_child("e2e", args.robot, log, out, "cpu", env)  # fills the warm cache
+        settle(cache)
+        run_child("e2e", args.robot, log, out, "cpu", env)
+        warm_caches[name] = env
+    pairs: dict[str, list[tuple[float, float]]] = {name: [] for name in trees}
+    load0 = os.getloadavg()[0]
+    for r in range(args.rounds):
+        for name in list(trees)[:: 1 if r % 2 == 0 else -1]:
+            warm = run_child("e2e", args.robot, log, out, "cpu", warm_caches[name])
+            cache = str(tmp / f"cache-cold-{time.time_ns()}-{r}")
+            env = {**warm_caches[name], "TORCHCONTACT_CACHE": cache, "TORCHCONTACT_VM": "1"}
+            cold = run_child("e2e", args.robot, log, out, "cpu", env)
+            settle(cache)
+            pairs[name].append((warm["seconds"], cold["seconds"]))
+            print(f"round {r}: {name}: warm {warm['seconds']:.2f} s, first {cold['seconds']:.2f} s:"
+                  f" {cold['seconds'] / warm['seconds']:.2f}x", flush=True)  # fmt: skip
+    print()
+    print(metadata())
+    print(f"log: {log.name}, {args.frames:,} frames, robot {args.robot}; rounds {args.rounds};"
+          f" load average at start {load0:.1f}, at end {os.getloadavg()[0]:.1f}")  # fmt: skip
+    print()
+    print("| torchcontact | warm (median s) | first run (median s) | first / warm per round |"
+          " median of the rounds' ratios |")  # fmt: skip
+    print("|---|---:|---:|---|---:|")
+    for name, ps in pairs.items():
+        ratios = [c / w for w, c in ps]
+        print(f"| {name} | {statistics.median(w for w, _ in ps):.2f}"
+              f" | {statistics.median(c for _, c in ps):.2f} | {[round(x, 2) for x in ratios]}"
+              f" | {statistics.median(ratios):.2f}x |")  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robot", choices=["icub", "tcarm"], default="icub")
     ap.add_argument("--frames", type=int, default=1_000_000)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--tmp", default=None, help="folder for the log and caches (kept; reused)")
+    ap.add_argument("--against", default=None, help="another torchcontact's source tree")
     args = ap.parse_args()
     tmp = Path(args.tmp or tempfile.mkdtemp(prefix="tc-vm-cold-"))
     tmp.mkdir(parents=True, exist_ok=True)
     log = write_log(args.robot, args.frames, tmp / f"{args.robot}{args.frames}.parquet")
     out = tmp / "out.parquet"
+    if args.against:
+        against(args, log, out, tmp)
+        return
     warm_cache = str(tmp / "cache-warm")
     warm_env = {**os.environ, "TORCHCONTACT_CACHE": warm_cache}
     run_child("e2e", args.robot, log, out, "cpu", warm_env)  # fills the warm cache

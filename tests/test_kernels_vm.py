@@ -275,3 +275,98 @@ def test_cached_builds_the_vm_once_and_no_kernel_during_the_run(tmp_path, monkey
     assert not kernels.background_builds() and not kernels._ready(prog, q)
     states = {e["name"].split("_")[1]: e["state"] for e in _store.entries(tmp_path / "kernels")}
     assert states["vm-double"] == "ok" and states.get("rnea", "source only") == "source only"
+
+
+#: The superinstructions the encoder fuses (``_vm._fuse``) and an output of each.
+FUSED = ("mma", "mms", "fnm", "dot3", "dot3s", "add3")
+
+
+def _fused_program() -> kernels.Program:
+    def fn(d):
+        x = d["x"]
+        m = S.mul
+        return {  # every product of two values once (a product read twice is not fused)
+            "o": [
+                S.add(m(x[0], x[1]), m(x[2], x[3])),  # mma
+                S.sub(m(x[4], x[5]), m(x[6], x[7])),  # mms
+                S.add(m(x[8], 2.5), m(-1.5, x[9])),  # mma, constants second
+                S.sub(x[10], m(x[11], x[0])),  # fnm
+                S.add(m(x[1], x[2]), S.add(m(x[3], x[4]), m(x[5], x[6]))),  # dot3
+                S.add(m(0.3, x[7]), S.add(m(x[8], 0.7), m(x[9], -0.2))),  # dot3, constants
+                S.add(x[10], S.sub(m(x[1], x[3]), m(x[2], x[4]))),  # dot3s, x10 * 1
+                S.add(x[11], S.sub(m(x[0], 2.0), m(x[1], 3.0))),  # dot3s, constants
+                S.sub(S.add(m(x[5], x[7]), m(x[6], x[8])), x[9]),  # dot3, x9 * -1
+                S.add(S.add(x[0], x[1]), x[2]),  # add3 (exact)
+                S.add(x[3], S.add(x[4], x[5])),  # add3 (exact)
+                S.add(x[6], S.neg(x[7])),  # a difference (exact)
+                S.add(m(x[8], x[9]), S.neg(x[10])),  # fms
+                S.mul(S.add(m(x[10], x[11]), m(x[0], x[2])), x[3]),  # a fused value, read
+            ]
+        }
+
+    return kernels.Program("vm_fused", fn, {"x": 12}, {"o": 14}, "vm_fused|1")
+
+
+#: outputs of ``_fused_program`` computed with the same roundings as eager torch
+EXACT_FUSED = (9, 10, 11)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_vm_superinstructions_equal_the_plain_sequence(dtype):
+    """Each superinstruction (two and three products, c - a*b, (a+b)+c, x+(-y)) is in the
+    bytecode and gives eager torch's values (its plain sequence of operations) to rounding,
+    exactly where no product is fused; NaN and inf propagate; 70 frames (a partial block)."""
+    prog = _fused_program()
+    tr, out = prog.trace()
+    bc = _vm.encode(tr, out)
+    ops = {_vm.OPS[op >> 4] for op in bc.code[:, 0]}
+    assert set(FUSED) <= ops, set(FUSED) - ops
+    assert "neg" not in ops  # every negation folded
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(70, 12, generator=g, dtype=torch.float64)
+    x[3, 0], x[8, 2], x[69, 4] = float("nan"), float("inf"), -float("inf")
+    x[12, 0], x[12, 2] = float("inf"), float("inf")  # inf - inf: NaN
+    x = x.to(dtype)
+    got = kernels.vm_kernel(prog, dtype, wait=True)({"x": x})["o"]
+    ref = kernels.run_eager(prog, {"x": x})["o"]
+    assert torch.equal(got.isnan(), ref.isnan())
+    tol = VM_VS_EAGER if dtype == torch.float64 else 1e-6
+    d = ((got - ref).abs() / (1 + ref.abs())).nan_to_num(0.0)
+    assert float(d.max()) <= tol, d.amax(0)
+    for k in EXACT_FUSED:
+        assert torch.equal(got[:, k].nan_to_num(7.0), ref[:, k].nan_to_num(7.0)), k
+
+
+def test_no_fusion_across_a_write_of_an_operand():
+    """A product is not moved past a write to its operand (a loop's carried slot): the loop
+    body's ``a * b`` read after the carried ``a`` is rewritten stays a separate ``mul``."""
+    code = [
+        ["mul", 2, 0, 1, 0],  # t = a * b
+        ["mov", 0, 1, 0, 0],  # a = b (a carried slot written again)
+        ["mov", 0, 3, 0, 0],
+        ["add", 4, 2, 3, 0],  # t + c: fusing would read the new a
+        ["store", 0, 0, 0, 4],
+    ]
+    out, _ = _vm._fuse([list(i) for i in code], lambda v: ("k", 0))
+    assert [i[0] for i in out] == ["mul", "mov", "mov", "add", "store"]
+    code[1], code[2] = ["mov", 5, 1, 0, 0], ["mov", 6, 3, 0, 0]  # no write to a: fused
+    out, _ = _vm._fuse([list(i) for i in code], lambda v: ("k", 0))
+    assert [i[0] for i in out] == ["mov", "mov", "fma", "store"]
+
+
+def test_prepare_vm_starts_the_build_once_and_loads_it(tmp_path, monkeypatch):
+    """A log job calls prepare_vm before it scans the log: on an empty cache it starts the
+    VM's detached build and returns at once; once built, it loads it; off with
+    ``$TORCHCONTACT_VM=0``."""
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    monkeypatch.setenv("TORCHCONTACT_VM", "0")
+    assert kernels.prepare_vm(torch.float64) is False
+    assert not (tmp_path / "kernels").exists()
+    monkeypatch.setenv("TORCHCONTACT_VM", "1")
+    assert kernels.prepare_vm(torch.float64) is False
+    assert kernels._vm_state(torch.float64) == "building"
+    kernels._wait_for_vm(torch.float64, 60)
+    assert kernels.prepare_vm(torch.float64) is True
+    assert kernels._vm_state(torch.float64) == "ready"

@@ -71,6 +71,7 @@ __all__ = [
     "build_source",
     "cache_dir",
     "compiled",
+    "prepare_vm",
     "run",
     "vm_enabled",
     "vm_kernel",
@@ -770,6 +771,26 @@ def vm_enabled() -> bool:
     build the VM).
     """
     return _vm_mode() != "0"
+
+
+def prepare_vm(dtype: torch.dtype = torch.float64) -> bool:
+    """Start building the tape VM for ``dtype`` now (detached) when the cache has none.
+
+    For a caller that knows early that it will run programs on the CPU under ``"auto"`` or
+    ``"cached"`` (a log job, before it scans the log): the VM's build (under a second of the
+    compiler, once per machine and dtype) then overlaps that work instead of being waited for
+    at the first program. Does nothing with ``$TORCHCONTACT_VM=0``; a VM in the cache is loaded.
+    Never raises: a failed build warns once and ``auto`` stays eager, as it would later.
+
+    Args:
+        dtype: the programs' dtype (``torch.float64`` or ``torch.float32``).
+
+    Returns:
+        True when the VM is loaded, False while it builds (or when it is off or unavailable).
+    """
+    if not vm_enabled() or dtype not in _DTYPES:
+        return False
+    return _vm_function(dtype, build=True) is not None
 
 
 def _build_behind_vm() -> bool:

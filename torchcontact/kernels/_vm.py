@@ -17,6 +17,10 @@ that runs a program's trace encoded as **bytecode** by :func:`encode`:
   kernels' rule, per block of frames instead of per vector);
 * ``sin``/``cos`` are the kernels' ``vsincos`` (the same prelude), IEEE semantics (no
   ``-ffast-math``): NaN and inf propagate as in eager torch.
+* superinstructions (:func:`_fuse`): a value read by one instruction only is folded into it
+  where a rule matches, ``a*b + c``, ``a*b + c*e``, ``a*b + c*e + f*g``, ``c - a*b``,
+  ``(a + b) + c`` and the like (the RNEA's cross products and rotations times vectors), so
+  fewer instructions decode and fewer intermediate slots go through memory.
 
 The calling convention is the kernels' (``(N, k)`` strided arrays, one pointer and row stride
 per array), with the bytecode in front: ``tc_vm(code, ncode, consts, nconst, nslots, n, in,
@@ -45,13 +49,19 @@ __all__ = ["BLOCK", "Bytecode", "encode", "source"]
 BLOCK = 64
 
 #: Bump when the bytecode or the interpreter's calling convention changes.
-VERSION = "1"
+VERSION = "2"
 
 # opcodes (the C++ enum below has the same numbers)
 OPS = ("load", "store", "mov", "add", "sub", "mul", "div", "neg", "sqrt", "sin", "cos", "sincos",
-       "sel", "gt", "finite", "and", "or", "not", "loop", "endloop", "fma", "fms")  # fmt: skip
-#: Operand flags of an opcode (``8 * op + flags``): operand a, b or c is a constant's index.
-_KFLAG = {"a": 1, "b": 2, "c": 4}
+       "sel", "gt", "finite", "and", "or", "not", "loop", "endloop", "fma", "fms", "mma", "mms",
+       "add3", "fnm", "dot3", "dot3s")  # fmt: skip
+#: Operand flags of an opcode (``16 * op + flags``): operand a, b, c or e is a constant's index.
+_KFLAG = {"a": 1, "b": 2, "c": 4, "e": 8}
+#: ... except for the three-product opcodes (``dot3``, ``dot3s``), whose flags name the pattern
+#: of constants: none, ``g`` alone, or ``b``, ``e`` and ``g``.
+_KPATTERN = {"": 0, "g": 1, "beg": 2}
+#: Fields of an instruction: ``(op, d, a, b, c, e, f, g)``.
+WIDTH = 8
 OP = {name: i for i, name in enumerate(OPS)}
 #: ``endloop``'s stop field: never stop early / always stop after one iteration.
 STOP_NEVER, STOP_ALWAYS = -1, -2
@@ -60,35 +70,64 @@ SOURCE = r"""
 #include <stdlib.h>
 enum { B = TC_BLOCK, NV = B / W };
 typedef decltype(M{}[0] + 0) MI;  // one lane of a mask: 0 or all ones
-// opcode = 8 * base + flags: an operand a, b or c with its flag set is a constant (an index
+// opcode = 16 * base + flags: an operand a, b, c or e with its flag set is a constant (an index
 // into the constants) instead of a slot
-enum { KA = 1, KB = 2, KC = 4 };
+enum { KA = 1, KB = 2, KC = 4, KE = 8 };
 enum {
   LOAD, STORE, MOV, ADD, SUB, MUL, DIV, NEG, SQRT, SIN, COS, SINCOS, SEL, GT, FINITE, AND, OR,
-  NOT, LOOP, ENDLOOP, FMA, FMS
+  NOT, LOOP, ENDLOOP, FMA, FMS, MMA, MMS, ADD3, FNM, DOT3, DOT3S
 };
-struct Ins { int32_t op, d, a, b, c; };
+// three products (dot3, dot3s): the flags name a pattern instead, P_G: g is a constant, P_BEG:
+// b, e and g are (the second factor of each product)
+enum { P_G = 1, P_BEG = 2 };
+struct Ins { int32_t op, d, a, b, c, e, f, g; };
 
 extern "C" int tc_vm_abi(void) { return TC_VM_ABI; }
 extern "C" int64_t tc_vm_block(void) { return B; }
 
-// an operand: the slot's vector v, or the constant splat
-#define OPND(P, F, FLAG) const V* P##s = S + (int64_t)x.F * NV; \
-  const V P##k = splat(K[x.F & ((x.op & FLAG) ? -1 : 0)]); const bool P##c = x.op & FLAG;
-#define GET(P, v) (P##c ? P##k : P##s[v])
-// each case runs its loop in a version per constant pattern, so the compiler vectorises each
-#define LOOP1(EXPR) \
-  if (ac) { for (int v = 0; v < NV; ++v) D[v] = (EXPR(ak)); } \
-  else { for (int v = 0; v < NV; ++v) D[v] = (EXPR(as[v])); }
-#define LOOP2(EXPR) \
-  if (ac) { for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v]); } \
-  else if (bc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk); } \
-  else { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v]); }
-#define LOOP3(EXPR) \
-  if (ac) { for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v], cs[v]); } \
-  else if (bc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v]); } \
-  else if (cc) { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], ck); } \
-  else { for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v]); }
+// operand P of field F: the slot's vectors P##s, or the constant's splat P##k
+#define SL(P, F) const V* P##s = S + (int64_t)x.F * NV;
+#define SK(P, F) const V P##k = splat(K[x.F]);
+// the same where the field may hold a slot (its flag FLAG unset): constant 0 then
+#define SKF(P, F, FLAG) const V P##k = splat(K[(x.op & FLAG) ? x.F : 0]);
+// The arithmetic opcodes are cases of their own per constant pattern (one dispatch, and each
+// loop vectorised), named by the opcode with its flags.
+#define C1(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v]); break; } \
+  case 16 * OPC + KA: { SK(a, a) for (int v = 0; v < NV; ++v) D[v] = EXPR(ak); break; }
+#define C2(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) SL(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v]); \
+    break; } \
+  case 16 * OPC + KA: { SK(a, a) SL(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v]); \
+    break; } \
+  case 16 * OPC + KB: { SL(a, a) SK(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk); \
+    break; }
+#define C3(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v]); break; } \
+  case 16 * OPC + KA: { SK(a, a) SL(b, b) SL(c, c) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v], cs[v]); break; } \
+  case 16 * OPC + KB: { SL(a, a) SK(b, b) SL(c, c) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v]); break; } \
+  case 16 * OPC + KC: { SL(a, a) SL(b, b) SK(c, c) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], ck); break; }
+// two products: a * b and c * e, a constant only as the second factor of each
+#define C4(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v]); break; } \
+  case 16 * OPC + KB: { SL(a, a) SK(b, b) SL(c, c) SL(e, e) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], es[v]); break; } \
+  case 16 * OPC + KE: { SL(a, a) SL(b, b) SL(c, c) SK(e, e) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], ek); break; } \
+  case 16 * OPC + KB + KE: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek); break; }
+#define C6(OPC, EXPR) \
+  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SL(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gs[v]); break; } \
+  case 16 * OPC + P_G: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SK(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gk); break; } \
+  case 16 * OPC + P_BEG: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) SL(f, f) SK(g, g) \
+    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek, fs[v], gk); break; }
 #define E_ID(a) a
 #define E_ADD(a, b) (a) + (b)
 #define E_SUB(a, b) (a) - (b)
@@ -96,6 +135,12 @@ extern "C" int64_t tc_vm_block(void) { return B; }
 #define E_DIV(a, b) (a) / (b)
 #define E_FMA(a, b, c) (a) * (b) + (c)
 #define E_FMS(a, b, c) (a) * (b) - (c)
+#define E_ADD3(a, b, c) ((a) + (b)) + (c)
+#define E_MMA(a, b, c, e) (a) * (b) + (c) * (e)
+#define E_MMS(a, b, c, e) (a) * (b) - (c) * (e)
+#define E_FNM(a, b, c) (c) - (a) * (b)
+#define E_DOT3(a, b, c, e, f, g) (a) * (b) + (c) * (e) + (f) * (g)
+#define E_DOT3S(a, b, c, e, f, g) (a) * (b) - (c) * (e) + (f) * (g)
 
 // Runs the bytecode on frames [0, n): blocks of B frames, one instruction at a time on a block.
 // Slot k is S[k * NV .. k * NV + NV) (B values; a mask slot holds MI lanes). Returns 0, or 1
@@ -115,7 +160,14 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
     for (int64_t pc = 0; pc < ncode; ++pc) {
       const Ins& x = P[pc];
       V* D = S + (int64_t)x.d * NV;
-      switch (x.op >> 3) {
+      switch (x.op) {
+        C2(ADD, E_ADD) C2(SUB, E_SUB) C2(MUL, E_MUL) C2(DIV, E_DIV)
+        C3(FMA, E_FMA) C3(FMS, E_FMS) C3(ADD3, E_ADD3) C3(FNM, E_FNM)
+        C4(MMA, E_MMA) C4(MMS, E_MMS)
+        C6(DOT3, E_DOT3) C6(DOT3S, E_DOT3S)
+        C1(MOV, E_ID)
+        default:
+      switch (x.op >> 4) {
         case LOAD: {  // slot d = column b of input a
           T* d = (T*)D;
           const int64_t s = in_stride[x.a];
@@ -138,13 +190,6 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
           }
           break;
         }
-        case MOV: { OPND(a, a, KA) LOOP1(E_ID) break; }
-        case ADD: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_ADD) break; }
-        case SUB: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_SUB) break; }
-        case MUL: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_MUL) break; }
-        case DIV: { OPND(a, a, KA) OPND(b, b, KB) LOOP2(E_DIV) break; }
-        case FMA: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMA) break; }
-        case FMS: { OPND(a, a, KA) OPND(b, b, KB) OPND(c, c, KC) LOOP3(E_FMS) break; }
         case NEG: {
           const V* A = S + (int64_t)x.a * NV;
           for (int v = 0; v < NV; ++v) D[v] = -A[v];
@@ -159,7 +204,7 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
         case SIN: case COS: case SINCOS: {  // sincos: d = sin a, c = cos a (one reduction)
           const V* A = S + (int64_t)x.a * NV;
           V* Cw = S + (int64_t)x.c * NV;
-          const int k = x.op >> 3;
+          const int k = x.op >> 4;
           for (int v = 0; v < NV; ++v) {
             V s, c;
             vsincos(A[v], &s, &c);
@@ -170,7 +215,8 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
         }
         case SEL: {  // d = mask a ? b : c
           const M* m = (const M*)(S + (int64_t)x.a * NV);
-          OPND(b, b, KB) OPND(c, c, KC)
+          SL(b, b) SL(c, c) SKF(b, b, KB) SKF(c, c, KC)
+          const bool bc = x.op & KB, cc = x.op & KC;
           if (bc && cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : ck; }
           else if (bc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : cs[v]; }
           else if (cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bs[v] : ck; }
@@ -179,9 +225,9 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
         }
         case GT: {
           M* d = (M*)D;
-          OPND(a, a, KA) OPND(b, b, KB)
-          if (ac) { for (int v = 0; v < NV; ++v) d[v] = ak > bs[v]; }
-          else if (bc) { for (int v = 0; v < NV; ++v) d[v] = as[v] > bk; }
+          SL(a, a) SL(b, b) SKF(a, a, KA) SKF(b, b, KB)
+          if (x.op & KA) { for (int v = 0; v < NV; ++v) d[v] = ak > bs[v]; }
+          else if (x.op & KB) { for (int v = 0; v < NV; ++v) d[v] = as[v] > bk; }
           else { for (int v = 0; v < NV; ++v) d[v] = as[v] > bs[v]; }
           break;
         }
@@ -195,7 +241,7 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
           M* d = (M*)D;
           const M* a = (const M*)(S + (int64_t)x.a * NV);
           const M* b = (const M*)(S + (int64_t)x.b * NV);
-          if ((x.op >> 3) == AND) { for (int v = 0; v < NV; ++v) d[v] = a[v] & b[v]; }
+          if ((x.op >> 4) == AND) { for (int v = 0; v < NV; ++v) d[v] = a[v] & b[v]; }
           else { for (int v = 0; v < NV; ++v) d[v] = a[v] | b[v]; }
           break;
         }
@@ -221,6 +267,7 @@ extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nco
           break;
         }
       }
+      }
     }
   }
   free(S);
@@ -243,7 +290,7 @@ class Bytecode:
     """A program encoded for the VM.
 
     Attributes:
-        code: ``(ncode, 5)`` int32 instructions ``(op, d, a, b, c)``.
+        code: ``(ncode, 8)`` int32 instructions ``(op, d, a, b, c, e, f, g)``.
         consts: ``(nconst,)`` float64 constants, the values of slots ``0 .. nconst - 1``.
         nslots: slots the program uses (constants included).
     """
@@ -270,10 +317,11 @@ class Bytecode:
             if hashlib.sha256(payload).hexdigest() != head["sha256"]:
                 return None
             nc, nk = int(head["ncode"]), int(head["nconst"])
-            if len(payload) != nc * 20 + nk * 8:
+            w = 4 * WIDTH
+            if len(payload) != nc * w + nk * 8:
                 return None
-            code = np.frombuffer(payload[: nc * 20], "<i4").reshape(nc, 5).astype(np.int32)
-            consts = np.frombuffer(payload[nc * 20 :], "<f8").astype(np.float64)
+            code = np.frombuffer(payload[: nc * w], "<i4").reshape(nc, WIDTH).astype(np.int32)
+            consts = np.frombuffer(payload[nc * w :], "<f8").astype(np.float64)
             return cls(code, consts, int(head["nslots"]))
         except (ValueError, KeyError, TypeError):
             return None
@@ -299,8 +347,9 @@ class Bytecode:
 _DEFS = {"load": "d", "sincos": "dc", "loop": "", "endloop": "", "store": ""}
 _USES = {"load": "", "store": "c", "mov": "a", "neg": "a", "sqrt": "a", "sin": "a", "cos": "a",
          "sincos": "a", "finite": "a", "not": "a", "sel": "abc", "loop": "", "endloop": "a",
-         "fma": "abc", "fms": "abc"}  # fmt: skip
-_FIELD = {"d": 1, "a": 2, "b": 3, "c": 4}
+         "fma": "abc", "fms": "abc", "mma": "abce", "mms": "abce", "add3": "abc", "fnm": "abc",
+         "dot3": "abcefg", "dot3s": "abcefg"}  # fmt: skip
+_FIELD = {"d": 1, "a": 2, "b": 3, "c": 4, "e": 5, "f": 6, "g": 7}
 
 
 def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
@@ -457,16 +506,36 @@ def encode(trace: Trace, outputs: dict[str, list]) -> Bytecode:
         emit(s)
     for a, j, c in const_out:
         code.append(["store", 0, a, j, const(c)])
-    code, loops = _fuse(code)
+    code, loops = _fuse(code, const)
     return _allocate(code, loops, const_vals, nvreg[0])
 
 
-def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
-    """Fold a product read once into the sum or difference reading it: ``a * b + c``, ``a * b - c``.
+def _fuse(code: list[list], const) -> tuple[list[list], list[tuple[int, int]]]:
+    """Fold values read once into the instruction reading them (superinstructions).
 
-    One instruction instead of two (a fused multiply-add, as the compiled kernels' C++ gets
-    from ``-ffp-contract=fast``: results differ from eager torch by rounding only). Also
-    returns the loops' ``(loop, endloop)`` positions in the new code, with its jumps updated.
+    In one pass over ``code``, an instruction takes in the definition of an operand that only it
+    reads (written once, so not a loop's carried slot) while a rule matches:
+
+    * a negation into a sum: ``x + (-y)`` is ``x - y``, ``a * b + (-y)`` is ``a * b - y``
+      (exact);
+    * a product into a sum or difference: ``a * b + c``, ``a * b - c`` (``fma``/``fms``, a fused
+      multiply-add, as the compiled kernels' C++ gets from ``-ffp-contract=fast``: results
+      differ from eager torch by rounding only);
+    * a second product: ``a * b + c * e``, ``a * b - c * e`` (``mma``/``mms``: a 3-vector's
+      cross product, a row of a rotation times a vector, two terms of a dot product);
+    * a product into the difference it is subtracted from: ``c - a * b`` (``fnm``);
+    * a third product: ``a * b + (c * e + f * g)`` (``dot3``: a row of a rotation times a
+      vector), and a sum or difference of two products into a sum or difference, as a third
+      product by a constant ``+-1`` (exact): ``x + (a * b - c * e)`` (``dot3s``),
+      ``(a * b + c * e) - x``; only the patterns of constants the interpreter has a loop for
+      (none, the ``+-1`` alone, or every product's second factor);
+    * a sum into a sum: ``(a + b) + c`` (``add3``; the same additions in the same order).
+
+    ``const(value)`` is the encoder's constant operand of a value (the ``+-1`` factors).
+
+    Each fused instruction reads its operands where the last one read them; an operand written
+    again in between (a carried slot) keeps the two instructions apart. Also returns the
+    loops' ``(loop, endloop)`` positions in the new code, with its jumps updated.
     """
     uses: dict[int, int] = {}
     for ins in code:
@@ -474,29 +543,100 @@ def _fuse(code: list[list]) -> tuple[list[list], list[tuple[int, int]]]:
             r = ins[_FIELD[f]]
             if isinstance(r, int) and r >= 0:
                 uses[r] = uses.get(r, 0) + 1
-    # a value written twice is a carried slot: never fused
+    # a value written twice is a carried slot: never fused, and its writes are positions
     defs: dict[int, int] = {}
+    writes: dict[int, list[int]] = {}
     for p, ins in enumerate(code):
         for f in _fields(ins)[0]:
             r = ins[_FIELD[f]]
             defs[r] = -1 if r in defs else p
-    dead = set()
-    for ins in code:
-        if ins[0] not in ("add", "sub"):
-            continue
-        for side in (1, 2) if ins[0] == "add" else (1,):
-            r = ins[1 + side]
-            other = ins[4 - side]
-            if not isinstance(r, int) or uses.get(r) != 1 or defs.get(r, -1) < 0:
-                continue
-            m = code[defs[r]]
-            if m[0] != "mul" or defs[r] in dead:
-                continue
-            if sum(isinstance(x, tuple) for x in (m[2], m[3], other)) > 1:
-                continue  # the interpreter takes one constant operand per instruction
-            ins[:] = ["fma" if ins[0] == "add" else "fms", ins[1], m[2], m[3], other]
-            dead.add(defs[r])
-            break
+            writes.setdefault(r, []).append(p)
+    dead: set[int] = set()
+
+    def inner(r, op: str, at: int) -> list | None:
+        """The instruction ``op`` defining operand ``r``, when only ``at`` reads it."""
+        if not isinstance(r, int) or uses.get(r) != 1 or defs.get(r, -1) < 0:
+            return None
+        p = defs[r]
+        m = code[p]
+        if m[0] != op or p in dead:
+            return None
+        for f in _fields(m)[1]:  # its operands still hold their values at ``at``
+            x = m[_FIELD[f]]
+            if isinstance(x, int) and any(p < w < at for w in writes.get(x, ())):
+                return None
+        return m
+
+    def nconst(*xs) -> int:
+        return sum(isinstance(x, tuple) for x in xs)
+
+    def pair(x, y) -> tuple | None:
+        """A product's factors with its constant second; None for two constants."""
+        if isinstance(x, tuple):
+            x, y = y, x
+        return None if isinstance(x, tuple) else (x, y)
+
+    def rewrite(ins: list, at: int) -> bool:
+        op = ins[0]
+        if op in ("add", "fma"):  # x + (-y), a * b + (-y)
+            sides = (2, 3) if op == "add" else (4,)
+            for k in sides:
+                m = inner(ins[k], "neg", at)
+                rest = (ins[5 - k],) if op == "add" else (ins[2], ins[3])
+                if m is not None and nconst(m[2], *rest) <= 1:
+                    dead.add(defs[ins[k]])
+                    if op == "add":
+                        ins[:] = ["sub", ins[1], ins[5 - k], m[2], 0]
+                    else:
+                        ins[:] = ["fms", ins[1], ins[2], ins[3], m[2]]
+                    return True
+        if op in ("add", "sub"):  # a * b + c, c + a * b, a * b - c, c - a * b
+            for k in (2, 3):
+                other = ins[5 - k]
+                m = inner(ins[k], "mul", at)
+                if m is None or nconst(m[2], m[3], other) > 1:
+                    continue  # the interpreter takes one constant operand per instruction
+                dead.add(defs[ins[k]])
+                name = "fma" if op == "add" else "fms" if k == 2 else "fnm"
+                ins[:] = [name, ins[1], m[2], m[3], other]
+                return True
+            # x + (a * b +- c * e), (a * b +- c * e) - x: a third product x * (+-1)
+            for k in (2, 3) if op == "add" else (2,):
+                x = ins[5 - k]
+                m = inner(ins[k], "mma", at) or inner(ins[k], "mms", at)
+                if m is None or isinstance(x, tuple) or nconst(m[3], m[5]) == 1:
+                    continue
+                dead.add(defs[ins[k]])
+                one = const(1.0 if op == "add" else -1.0)
+                ins[:] = ["dot3" if m[0] == "mma" else "dot3s", ins[1], *m[2:6], x, one]
+                return True
+        if op in ("fma", "fms"):  # a * b + c * e, a * b - c * e
+            m = inner(ins[4], "mul", at)
+            if m is not None:
+                p, q = pair(ins[2], ins[3]), pair(m[2], m[3])
+                if p is not None and q is not None:
+                    dead.add(defs[ins[4]])
+                    ins[:] = ["mma" if op == "fma" else "mms", ins[1], *p, *q]
+                    return True
+        if op == "fma":  # a * b + (c * e + f * g)
+            m = inner(ins[4], "mma", at)
+            p = pair(ins[2], ins[3])
+            if m is not None and p is not None and nconst(p[1], m[3], m[5]) in (0, 3):
+                dead.add(defs[ins[4]])
+                ins[:] = ["dot3", ins[1], *p, *m[2:6]]
+                return True
+        if op == "add" and not nconst(ins[2], ins[3]):  # (a + b) + c, c + (a + b)
+            for k in (2, 3):
+                m = inner(ins[k], "add", at)
+                if m is not None and not nconst(m[2], m[3]):
+                    dead.add(defs[ins[k]])
+                    ins[:] = ["add3", ins[1], m[2], m[3], ins[5 - k]]
+                    return True
+        return False
+
+    for p, ins in enumerate(code):
+        while rewrite(ins, p):
+            pass
     new_pos, out = {}, []
     for p, ins in enumerate(code):
         if p not in dead:
@@ -545,15 +685,16 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
     for r in range(nvreg):
         if last[r] >= 0:
             ending.setdefault(last[r], []).append(r)
-    out = np.zeros((len(code), 5), dtype=np.int32)
+    out = np.zeros((len(code), WIDTH), dtype=np.int32)
     for p, ins in enumerate(code):
         defs, uses = _fields(ins)
-        row = [8 * OP[ins[0]], ins[1], ins[2], ins[3], ins[4]]
+        row = [16 * OP[ins[0]], *ins[1:], *[0] * (WIDTH - len(ins))]
+        konst = ""
         for f in uses:
             r = ins[_FIELD[f]]
             if isinstance(r, tuple):  # a constant: its index, flagged in the opcode
                 row[_FIELD[f]] = r[1]
-                row[0] |= _KFLAG[f]
+                konst += f
             elif r >= 0 or ins[0] != "endloop":
                 row[_FIELD[f]] = slot[r]
         # operands read for the last time free their slots before the results take one (an
@@ -570,6 +711,10 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
                     slot[r] = nslots
                     nslots += 1
             row[_FIELD[f]] = slot[r]
+        if ins[0] in ("dot3", "dot3s"):
+            row[0] += _KPATTERN[konst]
+        else:
+            row[0] += sum(_KFLAG[f] for f in konst)
         for r in ending.get(p, ()):
             if first[r] == p:  # written and never read: free at once
                 free.append(slot[r])

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchcontact import kernels
 from torchcontact.errors import InputError, LogError
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
@@ -266,6 +267,10 @@ def prepare(
 
     src = str(path)
     pf = open_log(path)
+    rows = pf.metadata.num_rows
+    if model.device.type == "cpu" and rows >= kernels.AUTO_BUILD_MIN_FRAMES:
+        if kernel_backend(rows, "cpu") == "auto":  # the VM runs what is not built yet: on a
+            kernels.prepare_vm(model.dtype)  # machine without it, it builds while we scan
     extra = [] if residual is None else residual.extra_columns
     cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
     scan = scan_log(pf, src, bool(cols.contact_fields))
