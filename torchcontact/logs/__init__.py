@@ -18,7 +18,7 @@ _LAZY = {
     "LogLocalize": "torchcontact.logs.chunks",
     "estimate_file": "torchcontact.logs.pipeline",
     "estimate_files": "torchcontact.logs.pipeline",
-    "expand_inputs": "torchcontact.logs.pipeline",
+    "expand_inputs": "torchcontact.logs.format",
     "input_schema": "torchcontact.logs.format",
     "joint_names_of": "torchcontact.logs.format",
     "savgol_derivatives": "torchcontact.logs.derive",
@@ -45,8 +45,8 @@ if TYPE_CHECKING:  # pragma: no cover - static analysers see the eager imports
     from torchcontact.errors import LogError
     from torchcontact.logs.chunks import LogConstraints, LogEstimator, LogLocalize
     from torchcontact.logs.derive import savgol_derivatives
-    from torchcontact.logs.format import input_schema, joint_names_of
-    from torchcontact.logs.pipeline import estimate_file, estimate_files, expand_inputs
+    from torchcontact.logs.format import expand_inputs, input_schema, joint_names_of
+    from torchcontact.logs.pipeline import estimate_file, estimate_files
     from torchcontact.logs.simlog import simulated_table, write_simulated_log
 
 

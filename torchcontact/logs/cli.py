@@ -186,15 +186,14 @@ def _ray_prestart(args: argparse.Namespace) -> None:
     """``--engine ray``: start Ray and its workers' imports before this process imports torch.
 
     :func:`torchcontact.logs._ray_boot.prestart`, unless the run is to be refused: an option the
-    Ray engine refuses, or an input that does not exist, gets its error without Ray's start-up
-    first.
+    Ray engine refuses gets its error without Ray's start-up first (the inputs are resolved
+    before this is called).
     """
     if (
         args.workers < 1
         or not 0 < args.worker_cpus < float("inf")
         or args.track_bias
         or args.derivatives != "centred"
-        or not all(Path(p).exists() or any(c in p for c in "*?[") for p in args.inputs)
     ):
         return
     from torchcontact.logs._ray_boot import prestart
@@ -209,15 +208,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     ``--max-bad`` of its frames have a non-zero status (its output is written all the same),
     and for data errors; 2 for usage errors; 130 when interrupted.
     """
+    from torchcontact.logs.format import expand_inputs
+
+    files = expand_inputs(args.inputs)  # a missing input's error before Ray's start-up
     if args.engine == "ray":
         _ray_prestart(args)
     from torchcontact.errors import LogError
     from torchcontact.logs.noise import parse_ft_noise
-    from torchcontact.logs.pipeline import estimate_files, expand_inputs
+    from torchcontact.logs.pipeline import estimate_files
     from torchcontact.logs.run import unusable
 
     _threads(args)
-    files = expand_inputs(args.inputs)
     robot = resolve_robot_argument(args, logs=files)  # never silently the bundled arm
     if args.strict_joints:
         check_log_joints(files, robot.load(), strict=True)

@@ -42,6 +42,7 @@ A localizing estimate (``--localize``) adds the columns of
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import warnings
@@ -1521,6 +1522,27 @@ def read_journal(path: str | Path) -> Any:
             return f.read_all()
     except (OSError, pa.ArrowException) as exc:
         raise LogError(f"{path}: unreadable part of an interrupted run ({exc})") from None
+
+
+def expand_inputs(inputs: Sequence[str | Path]) -> list[Path]:
+    """Files, folders (their ``*.parquet``) and globs -> a sorted list of files.
+
+    Raises:
+        LogError: an input that matches nothing.
+    """
+    files: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(p.glob("*.parquet"))
+        elif p.exists():
+            found = [p]
+        else:
+            found = sorted(Path(m) for m in glob.glob(str(item)))
+        if not found:
+            raise LogError(f"{item}: no such file, folder or glob match")
+        files += found
+    return files
 
 
 def check_outputs(

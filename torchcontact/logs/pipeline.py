@@ -30,7 +30,6 @@ builds while the others wait for it. A failed build falls back to eager torch.
 
 from __future__ import annotations
 
-import glob
 import os
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -55,7 +54,7 @@ from torchcontact.logs.chunks import (
 )
 from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, iter_chunks, open_log
+from torchcontact.logs.format import check_outputs, expand_inputs, iter_chunks, open_log
 from torchcontact.logs.run import Done, Run, background, side_paths
 from torchcontact.model import RobotModel
 
@@ -767,27 +766,6 @@ def _context(
 
 def _path_or_none(x: Any) -> str | Path | None:
     return x if isinstance(x, (str, Path)) else None
-
-
-def expand_inputs(inputs: Sequence[str | Path]) -> list[Path]:
-    """Files, folders (their ``*.parquet``) and globs -> a sorted list of files.
-
-    Raises:
-        LogError: an input that matches nothing.
-    """
-    files: list[Path] = []
-    for item in inputs:
-        p = Path(item)
-        if p.is_dir():
-            found = sorted(p.glob("*.parquet"))
-        elif p.exists():
-            found = [p]
-        else:
-            found = sorted(Path(m) for m in glob.glob(str(item)))
-        if not found:
-            raise LogError(f"{item}: no such file, folder or glob match")
-        files += found
-    return files
 
 
 def output_paths(inputs: Sequence[Path], out: str | Path) -> list[Path]:
