@@ -126,6 +126,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcontact._internal import counts
 from torchcontact._scalar import (
     Scalar,
     add,
@@ -1073,5 +1074,5 @@ def cone_constrained_lstsq(
     act = (torch.stack([t(v, torch.bool) for v in sol.active], -1) if cones
            else torch.zeros(n, 0, dtype=torch.bool))  # fmt: skip
     return (x, t(sol.converged, torch.bool).reshape(batch),
-            t(sol.iterations).round().to(torch.int64).reshape(batch),
+            counts(t(sol.iterations)).reshape(batch),
             act.reshape(*batch, len(cones)))  # fmt: skip

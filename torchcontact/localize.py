@@ -48,7 +48,7 @@ from torch import Tensor
 
 from torchcontact import kernels
 from torchcontact import spatial as sp
-from torchcontact._internal import check_input, flatten_batch
+from torchcontact._internal import check_input, counts, flatten_batch
 from torchcontact._scalar import isfinite, logical_and, logical_not, select
 from torchcontact.dynamics import BaseMotion
 from torchcontact.errors import InputError, MissingExtraError
@@ -988,7 +988,7 @@ class Localizer:
             prog = line_program(self.em, cands, base is not None)
             self.em._programs[("localize", base is not None)] = prog
         out = run_program(prog, tensors, self.backend, chunk_size)
-        status0 = out["status"][:, 0].round().to(torch.int64)
+        status0 = counts(out["status"][:, 0])
         pose = out["pose"].reshape(n, len(cands), 12)
         R_all = pose[..., :9].reshape(n, len(cands), 3, 3)
         p_all = pose[..., 9:]

@@ -46,6 +46,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchcontact._internal import counts
 from torchcontact._scalar import (
     Scalar,
     add,
@@ -360,9 +361,7 @@ def min_norm_solve(G: Tensor, b: Tensor, rtol: float | None = None) -> MinNormSo
     def t(x: Scalar) -> Tensor:
         return x if isinstance(x, Tensor) else G.new_full(batch, float(x))
 
-    return MinNormSolution(
-        torch.stack([t(v) for v in y], -1), t(rank).round().to(torch.int64), t(res)
-    )
+    return MinNormSolution(torch.stack([t(v) for v in y], -1), counts(t(rank)), t(res))
 
 
 def min_norm_solve_eigh(G: Tensor, b: Tensor, rtol: float | None = None) -> MinNormSolution:

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from torchcontact import dynamics as _dyn
 from torchcontact import kernels
-from torchcontact._internal import check_input, flatten_batch, in_tracing
+from torchcontact._internal import check_input, counts, flatten_batch, in_tracing
 from torchcontact.constrained import FrictionCones, PreviousFrame
 from torchcontact.contacts import KINDS, Contacts
 from torchcontact.dynamics import BaseMotion
@@ -365,8 +365,8 @@ class ContactEstimator:
             out = run_program(prog, tensors, backend, chunk_size)
         else:
             out = _run_waves(prog, tensors, waves, K, backend, chunk_size)
-        rank = out["rank"].round().to(torch.long)
-        unknowns = out["unknowns"].round().to(torch.long)
+        rank = counts(out["rank"])
+        unknowns = counts(out["unknowns"])
         ident = rank == unknowns
         names = self.sensor_names
         return ContactEstimate(
@@ -377,11 +377,11 @@ class ContactEstimator:
             residual={s: out["residual"][:, i].reshape(batch) for i, s in enumerate(names)},
             identifiable={s: ident[:, i].reshape(batch) for i, s in enumerate(names)},
             joint_torques=out["tau"].reshape(*batch, nv),
-            status=out["status"][:, 0].round().to(torch.long).reshape(batch),
+            status=counts(out["status"][:, 0]).reshape(batch),
             covariance=out["cov"].reshape(*batch, K, 6, 6) if with_cov else None,
             cones=None if cone_flags is None else ConeStatus(
                 {s: out["converged"][:, i].reshape(batch) > 0.5 for i, s in enumerate(names)},
-                {s: out["iterations"][:, i].round().to(torch.long).reshape(batch)
+                {s: counts(out["iterations"][:, i]).reshape(batch)
                  for i, s in enumerate(names)},
                 out["cone_active"].reshape(*batch, K) > 0.5,
             ),

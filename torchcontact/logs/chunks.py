@@ -896,7 +896,10 @@ class LogEstimator:
         def t(x: np.ndarray) -> torch.Tensor:
             if share and x.dtype == np.float64 and x.flags.writeable and x.flags.c_contiguous:
                 return torch.from_numpy(x)  # the chunk's own array: no copy
-            return torch.tensor(x, dtype=model.dtype, device=model.device)  # Arrow memory is r/o
+            if share:  # Arrow memory is read-only: numpy copies it (torch's copy of a large
+                # array is an OpenMP region, whose idle threads then spin for milliseconds)
+                return torch.from_numpy(np.array(x, dtype=np.float64, order="C"))
+            return torch.tensor(x, dtype=model.dtype, device=model.device)
 
         args = {
             "q": t(d.q), "qd": t(d.qd), "qdd": t(d.qdd),  # type: ignore[arg-type]
