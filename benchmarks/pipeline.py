@@ -148,10 +148,7 @@ def _cpu() -> float:
 
 def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     """One timed run; prints a JSON line."""
-    import torch
-
-    torch.set_num_threads(1)
-    res: dict = {}
+    res: dict = {}  # torch's own thread count, as the CLI has it
     if kind in ("floor", "floor-defaults"):
         import pyarrow as pa
         import pyarrow.parquet as pq
