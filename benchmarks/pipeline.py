@@ -197,6 +197,8 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     elif kind == "stages":
         res = _stages(robot, log, out, extra)
     elif kind == "inmem":
+        import torch
+
         import torchcontact as tc
         from torchcontact.contacts import Contacts
         from torchcontact.logs.format import read_log_columns
