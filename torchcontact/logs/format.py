@@ -1598,9 +1598,9 @@ def encoded_part_table(buffer: Any, path: str | Path, columns: Sequence[str] | N
     import pyarrow.parquet as pq
 
     try:
-        return pq.read_table(
-            pa.BufferReader(buffer), columns=columns, page_checksum_verification=True
-        )
+        # ParquetFile, not pq.read_table: the dataset reader imports pandas
+        f = pq.ParquetFile(pa.BufferReader(buffer), page_checksum_verification=True)
+        return f.read(columns=columns)
     except (OSError, pa.ArrowException) as exc:
         raise LogError(f"{path}: unreadable part of a run ({exc})") from None
 
@@ -1694,7 +1694,7 @@ def read_part(path: str | Path, index: PartIndex) -> Any:
         if len(data) != index.size:
             raise OSError(f"{len(data)} of {index.size} bytes")
         buf = pa.BufferReader(standalone(data, index.footer))
-        return pq.read_table(buf, page_checksum_verification=True)
+        return pq.ParquetFile(buf, page_checksum_verification=True).read()  # no pandas
     except (OSError, ValueError, pa.ArrowException) as exc:
         raise LogError(
             f"{path}: the part at byte {index.start} of an interrupted run is unreadable ({exc})"
