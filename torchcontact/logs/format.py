@@ -209,14 +209,14 @@ def _numpy_dtype(typ: Any) -> np.dtype:
     import pyarrow as pa
 
     t = pa.types
+    if not (t.is_floating(typ) or t.is_integer(typ) or t.is_temporal(typ)):
+        raise TypeError(f"no numpy dtype for Arrow {typ}")
     size = typ.bit_width // 8
     if t.is_floating(typ):
         return np.dtype(f"f{size}")
     if t.is_unsigned_integer(typ):
         return np.dtype(f"u{size}")
-    if t.is_integer(typ) or t.is_temporal(typ):
-        return np.dtype(f"i{size}")
-    raise TypeError(f"no numpy dtype for Arrow {typ}")
+    return np.dtype(f"i{size}")
 
 
 def arrow_to_numpy(values: Any, dtype: Any = None, fill: Any = None) -> np.ndarray:
@@ -272,6 +272,7 @@ def arrow_to_numpy(values: Any, dtype: Any = None, fill: Any = None) -> np.ndarr
             out = np.zeros(n, natural)
         else:
             out = np.frombuffer(buf, natural, count=n, offset=off * natural.itemsize)
+            out.flags.writeable = False  # Arrow's memory, maybe shared: read-only, as to_numpy
     if values.null_count:
         target = np.dtype(dtype) if dtype is not None else out.dtype
         if fill is None:
