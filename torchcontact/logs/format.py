@@ -781,11 +781,6 @@ def _float64(values: Any) -> Any:
     return pc.cast(values, pa.float64(), safe=False)
 
 
-def _nan_filled(values: Any) -> np.ndarray:
-    """A float64 pyarrow array as numpy, NaN for its nulls (no copy when it has none)."""
-    return arrow_to_numpy(values, np.float64)
-
-
 def vectors(
     column: Any, n: int, name: str = "", source: object = ""
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -834,12 +829,12 @@ def vectors(
             pa.types.is_fixed_size_list(column.type)
             or (np.diff(arrow_to_numpy(column.offsets)) == n).all()
         ):
-            return _nan_filled(flat).reshape(N, n), np.zeros(N, bool)
+            return arrow_to_numpy(flat, np.float64).reshape(N, n), np.zeros(N, bool)
     null = arrow_to_numpy(column.is_null())
     out = np.full((N, n), np.nan)
     lengths = arrow_to_numpy(pc.list_value_length(column), fill=-1)
     bad = null | (lengths != n)
-    flat = _nan_filled(flat)
+    flat = arrow_to_numpy(flat, np.float64)
     parent = arrow_to_numpy(pc.list_parent_indices(column))
     good_rows = ~bad
     keep = good_rows[parent]
