@@ -1635,7 +1635,12 @@ def localize_chunk(
     import pyarrow as pa
 
     from torchcontact.contacts import ContactRecords
-    from torchcontact.logs.format import fixed_list, localization_fields
+    from torchcontact.logs.format import (
+        fixed_list,
+        localization_fields,
+        numpy_to_arrow,
+        string_array,
+    )
     from torchcontact.status import localize_messages
 
     model = localizer.model
@@ -1691,17 +1696,17 @@ def localize_chunk(
         std = (np.full(N, np.nan) if r.position_std is None
                else r.position_std.detach().cpu().double().numpy())  # fmt: skip
         values = {
-            "localize_link": pa.array(link_names[np.where(has, link, -1)].tolist(), pa.string()),
+            "localize_link": string_array(link_names[np.where(has, link, -1)].tolist()),
             "localize_position": fixed_list(pos),
             "localize_normal": fixed_list(nrm),
             "localize_force": fixed_list(r.force.detach().cpu().double().numpy()),
-            "localize_moment_residual": pa.array(
+            "localize_moment_residual": numpy_to_arrow(
                 r.moment_residual.detach().cpu().double().numpy(), pa.float64()
             ),
-            "localize_position_std": pa.array(std, pa.float64()),
-            "localize_candidates": pa.array(r.candidates.cpu().numpy().astype(np.int64)),
-            "localize_status_code": pa.array(code),
-            "localize_status": pa.array(text.tolist(), pa.string()),
+            "localize_position_std": numpy_to_arrow(std, pa.float64()),
+            "localize_candidates": numpy_to_arrow(r.candidates.cpu().numpy().astype(np.int64)),
+            "localize_status_code": numpy_to_arrow(code),
+            "localize_status": string_array(text.tolist()),
         }
         for name, typ in localization_fields([s]):
             columns[name] = values[name[: -len(s) - 1]].cast(typ)

@@ -1,17 +1,38 @@
 """Start-up: ``torchcontact --help`` imports neither torch nor numpy, and ``estimate`` none of the
 modules it does not use (each checked in a fresh interpreter)."""
 
+import errno
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pyarrow.parquet as pq
+import pytest
 
 from torchcontact.cli import COMMANDS, build_parser
+from torchcontact.errors import LogError
+from torchcontact.logs import estimate_file
+from torchcontact.logs import format as fmt
 
 ROOT = Path(__file__).resolve().parents[2]
-UNUSED_BY_ESTIMATE = ("ray", "matplotlib", "onnx", "onnxruntime", "rosbags", "pymodbus", "serial")
+# pandas: pyarrow imports it (0.3-0.6 s) at its first numpy conversion; the log job converts with
+# torchcontact.logs.format's helpers, which never do
+UNUSED_BY_ESTIMATE = ("ray", "matplotlib", "onnx", "onnxruntime", "rosbags", "pymodbus", "serial",
+                      "pandas")  # fmt: skip
+
+
+def _estimate(*args: str) -> tuple[set[str], str]:
+    """A console-script ``torchcontact estimate ARGS`` run, as users run it (its entry ends the
+    process with os._exit once the output is published): the top-level modules it imported
+    (``-X importtime`` lists every one) and its stdout."""
+    code = "from torchcontact.cli import console_main; console_main()"
+    r = subprocess.run([sys.executable, "-X", "importtime", "-c", code, "estimate", *args],
+                       capture_output=True, text=True, cwd=ROOT)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    imported = {line.split("|")[-1].strip().split(".")[0] for line in r.stderr.splitlines()
+                if line.startswith("import time:")}  # fmt: skip
+    return imported, r.stdout
 
 
 def _fresh(code: str) -> list:
@@ -42,15 +63,34 @@ def test_estimate_imports_only_what_it_uses(sim_log, tmp_path):
     os._exit once the output is published): the JSON summary and the output arrive whole, and
     ``-X importtime`` lists every module the process imported."""
     out = tmp_path / "o.parquet"
-    code = "from torchcontact.cli import console_main; console_main()"
-    args = ["estimate", str(sim_log), "--robot", "tcarm", "--out", str(out), "--quiet", "--json"]
-    r = subprocess.run([sys.executable, "-X", "importtime", "-c", code, *args],
-                       capture_output=True, text=True, cwd=ROOT)  # fmt: skip
-    assert r.returncode == 0, r.stderr[-2000:]
-    imported = {line.split("|")[-1].strip().split(".")[0] for line in r.stderr.splitlines()
-                if line.startswith("import time:")}  # fmt: skip
+    imported, stdout = _estimate(str(sim_log), "--robot", "tcarm", "--out", str(out), "--quiet",
+                                 "--json")  # fmt: skip
     assert "torch" in imported and not imported & set(UNUSED_BY_ESTIMATE)
-    assert json.loads(r.stdout)["frames"] == 600 and pq.read_table(out).num_rows == 600
+    assert json.loads(stdout)["frames"] == 600 and pq.read_table(out).num_rows == 600
+
+
+def test_resume_imports_no_pandas(model, sim_log, tmp_path, monkeypatch):
+    """``--resume`` reads the kept parts back without pandas either: a run stopped by a full disk
+    after two of its three chunks, resumed by the console script."""
+    out = tmp_path / "o.parquet"
+    real, calls = fmt.PartsWriter.append, []
+
+    def full_after_two(self, part):
+        calls.append(1)
+        if len(calls) > 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, part)
+
+    monkeypatch.setattr(fmt.PartsWriter, "append", full_after_two)
+    with pytest.raises(LogError, match="2 of 3 chunks are kept"):
+        estimate_file(sim_log, model, out, batch_size=200)
+    monkeypatch.undo()
+    imported, stdout = _estimate(str(sim_log), "--robot", "tcarm", "--out", str(out), "--resume",
+                                 "--batch-size", "200", "--quiet", "--json")  # fmt: skip
+    summary = json.loads(stdout)
+    assert summary["resumed_chunks"] == 2 and summary["processed_now"] == 200
+    assert "torch" in imported and "pandas" not in imported
+    assert pq.read_table(out).num_rows == 600
 
 
 def test_the_command_table_is_what_the_modules_register():

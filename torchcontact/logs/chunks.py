@@ -71,7 +71,9 @@ from torchcontact.logs.format import (
     fixed_list,
     ft_column,
     joint_permutation,
+    numpy_to_arrow,
     output_schema,
+    string_array,
     struct_list,
 )
 from torchcontact.logs.noise import FTNoise
@@ -777,7 +779,7 @@ class LogEstimator:
         if cons is not None:  # the cone binds; null where the contact was not estimated
             ca = np.zeros(M, bool)
             ca[ok_c] = res["active"][records.frame[ok_c], slot[ok_c]]
-            children["cone_active"] = pa.array(ca, mask=~ok_c)
+            children["cone_active"] = numpy_to_arrow(ca, mask=~ok_c)
             # the unconstrained estimate outside the cone: on well-posed frames only
             well = ~bad
             for sname in self.sensors:
@@ -785,25 +787,25 @@ class LogEstimator:
             ok_w = ok_c & well[records.frame] if M else ok_c
             oc = np.zeros(M, bool)
             oc[ok_w] = res["outside"][records.frame[ok_w], slot[ok_w]]
-            children["outside_cone"] = pa.array(oc, mask=~ok_w)
+            children["outside_cone"] = numpy_to_arrow(oc, mask=~ok_w)
         out: dict[str, Any] = {"t_ns": d.t_ns}
         out["contacts"] = struct_list(children, records.frame, N, ctype)
         out["joint_torques"] = fixed_list(jt)
         for s in self.sensors:
             rank, unknowns = res[f"rank.{s}"], res[f"unknowns.{s}"]
-            out[f"rank.{s}"], out[f"unknowns.{s}"] = pa.array(rank), pa.array(unknowns)
-            out[f"nullity.{s}"] = pa.array(unknowns - rank)
+            out[f"rank.{s}"], out[f"unknowns.{s}"] = numpy_to_arrow(rank), numpy_to_arrow(unknowns)
+            out[f"nullity.{s}"] = numpy_to_arrow(unknowns - rank)
             residual = res[f"residual.{s}"]
             residual = np.where(bad, np.nan, residual) if any_bad else residual
-            out[f"residual.{s}"] = pa.array(residual)
+            out[f"residual.{s}"] = numpy_to_arrow(residual)
             if cons is not None:  # the solver's status; null on frames with a non-zero status
-                out[f"converged.{s}"] = pa.array(res[f"converged.{s}"], mask=bad)
-                out[f"iterations.{s}"] = pa.array(res[f"iterations.{s}"], mask=bad)
+                out[f"converged.{s}"] = numpy_to_arrow(res[f"converged.{s}"], mask=bad)
+                out[f"iterations.{s}"] = numpy_to_arrow(res[f"iterations.{s}"], mask=bad)
             if bias is not None:  # the tracked offset and its std, per frame
                 i = list(self.sensors).index(s)
                 for prefix, v in zip(ESTIMATE_BIAS_COLUMNS, bias, strict=True):
                     out[bias_column(prefix, s)] = fixed_list(v[:, i])
-        out["status_code"] = pa.array(code)
+        out["status_code"] = numpy_to_arrow(code)
         out["status"] = status_text(code)
         out["status_detail"] = d.issues.details()
         out.update(located)
@@ -859,12 +861,12 @@ class LogEstimator:
         slot = np.full(M + A, -1, np.int64)
         slot[idx] = slot_good
         # each output record's row in [input records, localized records]
-        take = pa.array(np.where(mine_rows, M + np.cumsum(mine_rows) - 1, source))
+        take = numpy_to_arrow(np.where(mine_rows, M + np.cumsum(mine_rows) - 1, source))
         # the output struct's fields: the input's values, the localized records' own
         have = {n for n, _ in self.contact_fields}
         fill = {
-            "link": lambda: pa.array(added.links.tolist(), pa.string()),
-            "kind": lambda: pa.array(["force"] * A, pa.string()),
+            "link": lambda: string_array(added.links.tolist()),
+            "kind": lambda: string_array(["force"] * A),
             "position": lambda: fixed_list(added.positions),
             "normal": lambda: fixed_list(
                 np.full((A, 3), np.nan) if added.normals is None else added.normals

@@ -34,11 +34,15 @@ from torchcontact.logs.derive import (
 )
 from torchcontact.logs.format import (
     BASE_COLUMNS,
+    arrow_scalar,
+    arrow_to_numpy,
     ft_column,
     ft_cov_column,
     iter_chunks,
     joint_names_of,
+    numpy_to_arrow,
     read_contacts,
+    string_array,
     timestamps,
     vectors,
 )
@@ -257,18 +261,17 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
     if isinstance(lst, pa.ChunkedArray):
         lst = lst.combine_chunks()
     if lst.null_count:  # null rows -> empty lists, as read_contacts
-        lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
+        lst = pc.if_else(lst.is_null(), arrow_scalar([], lst.type), lst)
     structs = lst.flatten()
     if not len(structs):
         return
-    frame = np.asarray(pc.list_parent_indices(lst).to_numpy(zero_copy_only=False), np.int64)
+    frame = arrow_to_numpy(pc.list_parent_indices(lst), np.int64)
     codes = []
     for key in ("link", "kind"):
         enc = pc.dictionary_encode(structs.field(key))
         gid = np.array([names.setdefault(str(v), len(names)) for v in enc.dictionary.to_pylist()]
                        + [-1], np.int64)  # fmt: skip
-        idx = enc.indices.fill_null(len(gid) - 1).to_numpy(zero_copy_only=False)
-        codes.append(gid[np.asarray(idx, np.int64)])
+        codes.append(gid[arrow_to_numpy(enc.indices, np.int64, fill=len(gid) - 1)])
     ok = (codes[0] >= 0) & (codes[1] >= 0)
     if not ok.any():
         return
@@ -385,16 +388,14 @@ class FrameIssues:
         bits = np.unpackbits(combos, axis=1)[:, : len(self.items)].astype(bool)
         texts = ["; ".join(t for (_, t), b in zip(self.items, row, strict=True) if b) or None
                  for row in bits]  # fmt: skip
-        return pa.array(texts, pa.string()).take(pa.array(which.reshape(-1)))
+        return string_array(texts).take(numpy_to_arrow(which.reshape(-1)))
 
 
 def status_text(code: np.ndarray) -> Any:
     """``(n,)`` pyarrow string array of :func:`~torchcontact.status_messages` per code."""
-    import pyarrow as pa
-
     uniq, which = np.unique(code, return_inverse=True)
-    texts = pa.array([status_messages(int(c)) for c in uniq], pa.string())
-    return texts.take(pa.array(which.reshape(-1)))
+    texts = string_array([status_messages(int(c)) for c in uniq])
+    return texts.take(numpy_to_arrow(which.reshape(-1)))
 
 
 # ---------------------------------------------------------------------- one chunk
@@ -564,8 +565,7 @@ class ChunkDecoder:
         if base and len(base) != 3:
             raise LogError(f"{self.source}: need all of {list(BASE_COLUMNS)} or none")
         extra = {
-            c: np.array(table.column(c).to_numpy(zero_copy_only=False), dtype=np.float64)
-            for c in self.extra_columns
+            c: np.array(arrow_to_numpy(table.column(c), np.float64)) for c in self.extra_columns
         }
         if self.contact_fields:
             records, fields, malformed = read_contacts(table.column("contacts"))
@@ -575,7 +575,8 @@ class ChunkDecoder:
         slot = np.full(len(records), -1, np.int64)
         slot[~bad_record] = 0  # placed by slots()
         ft_cov = {s: self._covariances(table, s, issues, first_row) for s in self.cov_sensors}
-        return Decoded(N, pa.array(t, pa.int64()), t, q, qd, qdd, ft, tau, base, extra, records,
+        t_arrow = numpy_to_arrow(t, pa.int64())
+        return Decoded(N, t_arrow, t, q, qd, qdd, ft, tau, base, extra, records,
                        fields, slot, None, issues, row=first_row, ft_cov=ft_cov)  # fmt: skip
 
     def _covariances(

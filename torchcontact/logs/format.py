@@ -84,6 +84,8 @@ __all__ = [
     "check_schema",
     "check_vector_type",
     "contact_struct_type",
+    "arrow_scalar",
+    "arrow_to_numpy",
     "contacts_column",
     "fixed_list",
     "ft_column",
@@ -95,9 +97,11 @@ __all__ = [
     "joint_permutation",
     "localization_fields",
     "logged_robot",
+    "numpy_to_arrow",
     "encode_part",
     "open_log",
     "output_schema",
+    "string_array",
     "read_contacts",
     "read_journal",
     "read_log_columns",
@@ -192,13 +196,205 @@ def ft_cov_column(sensor: str) -> str:
     return f"ft_cov.{sensor}"
 
 
+# ------------------------------------------------------------- numpy <-> Arrow, without pandas
+# pyarrow imports pandas (0.3-0.6 s) the first time it converts from or to numpy or Python
+# values: pa.array(ndarray or list), Array.to_numpy(), np.asarray(array), pa.scalar(...), and
+# compute functions given numpy or Python arguments. Arrays built from buffers, their buffers read
+# as numpy, and compute functions on Arrow arguments do not. Every conversion on the log job's path
+# goes through these helpers, so that ``torchcontact estimate`` never imports pandas.
+
+
+def _numpy_dtype(typ: Any) -> np.dtype:
+    """The numpy dtype of a fixed-width Arrow type's values (temporal types: their integers)."""
+    import pyarrow as pa
+
+    t = pa.types
+    if not (t.is_floating(typ) or t.is_integer(typ) or t.is_temporal(typ)):
+        raise TypeError(f"no numpy dtype for Arrow {typ}")
+    size = typ.bit_width // 8
+    if t.is_floating(typ):
+        return np.dtype(f"f{size}")
+    if t.is_unsigned_integer(typ):
+        return np.dtype(f"u{size}")
+    return np.dtype(f"i{size}")
+
+
+def arrow_to_numpy(values: Any, dtype: Any = None, fill: Any = None) -> np.ndarray:
+    """A pyarrow array of numbers, booleans or time stamps as a 1-D numpy array.
+
+    Without pandas (which ``Array.to_numpy`` imports). A single chunk without nulls whose type
+    matches ``dtype`` is returned without a copy, as a read-only view of the Arrow buffer (as
+    ``to_numpy`` does); sliced arrays (``offset != 0``) are honoured. Booleans are unpacked from
+    their bitmap. Temporal types give their integers (e.g. ns of a ``timestamp("ns")``).
+
+    Args:
+        values: a pyarrow ``Array`` or ``ChunkedArray`` of length N.
+        dtype: the numpy dtype of the result (default: that of the Arrow type).
+        fill: the value of null entries. Default: NaN, and the result is float64 unless
+            ``dtype`` is a float type (as ``to_numpy(zero_copy_only=False)`` does for numbers).
+
+    Returns:
+        ``(N,)`` numpy array.
+
+    Raises:
+        TypeError: a type that is not fixed-width (strings, lists), or nulls with no ``fill``
+            in an integer or boolean ``dtype``.
+
+    Example:
+        >>> a = numpy_to_arrow(np.array([1, 2, 3]), mask=np.array([False, True, False]))
+        >>> arrow_to_numpy(a).tolist(), arrow_to_numpy(a.slice(2), np.int32).tolist()
+        ([1.0, nan, 3.0], [3])
+        >>> arrow_to_numpy(a, fill=-1).tolist()
+        [1, -1, 3]
+    """
+    import pyarrow as pa
+
+    if isinstance(values, pa.ChunkedArray):
+        if values.num_chunks != 1:
+            parts = [arrow_to_numpy(c, dtype, fill) for c in values.chunks]
+            if parts:
+                return np.concatenate(parts)
+            values = values.combine_chunks()
+        else:
+            values = values.chunk(0)
+    typ = values.type
+    n, off = len(values), values.offset
+    if pa.types.is_boolean(typ):
+        buf = values.buffers()[1]
+        bits = np.frombuffer(buf, np.uint8) if buf is not None and n else np.zeros(0, np.uint8)
+        out = np.unpackbits(bits, count=off + n, bitorder="little")[off:].view(bool)
+    elif pa.types.is_null(typ):
+        out = np.zeros(n, np.float64)
+    else:
+        natural = _numpy_dtype(typ)
+        buf = values.buffers()[1]
+        if buf is None or n == 0:
+            out = np.zeros(n, natural)
+        else:
+            out = np.frombuffer(buf, natural, count=n, offset=off * natural.itemsize)
+            out.flags.writeable = False  # Arrow's memory, maybe shared: read-only, as to_numpy
+    if values.null_count:
+        target = np.dtype(dtype) if dtype is not None else out.dtype
+        if fill is None:
+            if target.kind != "f":
+                if dtype is not None:
+                    raise TypeError(f"{values.null_count} nulls and no fill for {target}")
+                target = np.dtype(np.float64)
+            fill = np.nan
+        out = out.astype(target)  # a copy
+        out[arrow_to_numpy(values.is_null())] = fill
+        return out
+    return out if dtype is None else out.astype(dtype, copy=False)
+
+
+def _validity(mask: np.ndarray | None) -> tuple[Any, int]:
+    """An Arrow validity bitmap (LSB first) for ``mask`` (True: null), and the null count."""
+    import pyarrow as pa
+
+    if mask is None:
+        return None, 0
+    mask = np.asarray(mask, bool).reshape(-1)
+    nulls = int(mask.sum())
+    if not nulls:
+        return None, 0
+    return pa.py_buffer(np.packbits(~mask, bitorder="little")), nulls
+
+
+def numpy_to_arrow(values: np.ndarray, type: Any = None, mask: np.ndarray | None = None) -> Any:
+    """A pyarrow array from a 1-D numpy array of numbers or booleans (no pandas).
+
+    As ``pa.array(values, type, mask=mask)``: NaN stays a value, only ``mask`` makes nulls. The
+    Arrow array shares the memory of a contiguous ``values`` of its dtype (no copy).
+
+    Args:
+        values: ``(N,)`` array (any shape is flattened in C order).
+        type: the Arrow type (a fixed-width number, time stamp or ``bool``; default: from the
+            dtype). Values are converted to its numpy dtype.
+        mask: ``(N,)`` bool, True where the entry is null.
+
+    Returns:
+        A pyarrow ``Array`` of length N.
+
+    Example:
+        >>> numpy_to_arrow(np.array([1.0, np.nan]), mask=np.array([True, False])).to_pylist()
+        [None, nan]
+    """
+    import pyarrow as pa
+
+    values = np.asarray(values)
+    if type is None:
+        type = pa.from_numpy_dtype(values.dtype)
+    validity, nulls = _validity(mask)
+    if pa.types.is_boolean(type):
+        flat = np.asarray(values, bool).reshape(-1)
+        data = pa.py_buffer(np.packbits(flat, bitorder="little"))
+    else:
+        flat = np.ascontiguousarray(values, _numpy_dtype(type)).reshape(-1)
+        data = pa.py_buffer(flat)
+    return pa.Array.from_buffers(type, len(flat), [validity, data], null_count=nulls)
+
+
+def string_array(texts: Sequence[str | None], type: Any = None) -> Any:
+    """A pyarrow ``string`` array from Python strings, None as null (no pandas).
+
+    Args:
+        texts: N strings or None.
+        type: ``pa.string()`` (default) or another string type to cast to.
+
+    Example:
+        >>> string_array(["force", None, "é"]).to_pylist()
+        ['force', None, 'é']
+    """
+    import pyarrow as pa
+
+    encoded = [b"" if t is None else t.encode("utf-8") for t in texts]
+    lengths = np.fromiter(map(len, encoded), np.int64, len(encoded))
+    offsets = np.zeros(len(encoded) + 1, np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    large = offsets[-1] >= 2**31
+    mask = np.fromiter((t is None for t in texts), bool, len(encoded))
+    validity, nulls = _validity(mask)
+    arr = pa.Array.from_buffers(
+        pa.large_string() if large else pa.string(),
+        len(encoded),
+        [validity, pa.py_buffer(offsets if large else offsets.astype(np.int32)),
+         pa.py_buffer(b"".join(encoded))],
+        null_count=nulls,
+    )  # fmt: skip
+    return arr if type is None or arr.type == type else arr.cast(type)
+
+
+def arrow_scalar(value: Any, type: Any) -> Any:
+    """A pyarrow scalar of ``type`` without pandas (which ``pa.scalar`` imports).
+
+    Args:
+        value: None (null), a number, bool or string, or ``[]`` (an empty list).
+        type: its Arrow type.
+
+    Example:
+        >>> import pyarrow as pa
+        >>> arrow_scalar(None, pa.int64()).is_valid, arrow_scalar(2, pa.int8()).as_py()
+        (False, 2)
+    """
+    import pyarrow as pa
+
+    if value is None:
+        return pa.nulls(1, type)[0]
+    if isinstance(value, str):
+        return string_array([value], type)[0]
+    if isinstance(value, list) and not value and pa.types.is_list(type):
+        empty = pa.nulls(0, type.value_type)
+        return pa.ListArray.from_arrays(numpy_to_arrow(np.zeros(2, np.int32)), empty, type=type)[0]
+    return numpy_to_arrow(np.array([value]), type)[0]
+
+
 def fixed_list(values: np.ndarray) -> Any:
     """A pyarrow ``fixed_size_list<double>[n]`` array from an ``(N, n)`` float array."""
     import pyarrow as pa
 
     values = np.ascontiguousarray(values, dtype=np.float64)
     n = values.shape[-1]
-    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1), pa.float64()), n)
+    return pa.FixedSizeListArray.from_arrays(numpy_to_arrow(values, pa.float64()), n)
 
 
 #: Optional contact fields of the friction-cone constrained estimate: log field -> the
@@ -578,17 +774,11 @@ def _float64(values: Any) -> Any:
     if pa.types.is_float64(values.type):
         return values
     if pa.types.is_integer(values.type):
-        lossy = pc.or_(pc.greater(values, _EXACT_INT), pc.less(values, -_EXACT_INT))
+        big, small = arrow_scalar(_EXACT_INT, pa.int64()), arrow_scalar(-_EXACT_INT, pa.int64())
+        lossy = pc.or_(pc.greater(values, big), pc.less(values, small))
         if pc.any(lossy).as_py():
-            values = pc.if_else(lossy, pa.scalar(None, values.type), values)
+            values = pc.if_else(lossy, arrow_scalar(None, values.type), values)
     return pc.cast(values, pa.float64(), safe=False)
-
-
-def _nan_filled(values: Any) -> np.ndarray:
-    """A float64 pyarrow array as numpy, NaN for its nulls (no copy when it has none)."""
-    if values.null_count:
-        values = values.fill_null(np.nan)
-    return np.asarray(values.to_numpy(zero_copy_only=False), float)
 
 
 def vectors(
@@ -637,15 +827,15 @@ def vectors(
         # values as they are, no copy
         if (
             pa.types.is_fixed_size_list(column.type)
-            or (np.diff(np.asarray(column.offsets.to_numpy(zero_copy_only=False))) == n).all()
+            or (np.diff(arrow_to_numpy(column.offsets)) == n).all()
         ):
-            return _nan_filled(flat).reshape(N, n), np.zeros(N, bool)
-    null = np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
+            return arrow_to_numpy(flat, np.float64).reshape(N, n), np.zeros(N, bool)
+    null = arrow_to_numpy(column.is_null())
     out = np.full((N, n), np.nan)
-    lengths = pc.list_value_length(column).fill_null(-1).to_numpy(zero_copy_only=False)
+    lengths = arrow_to_numpy(pc.list_value_length(column), fill=-1)
     bad = null | (lengths != n)
-    flat = _nan_filled(flat)
-    parent = pc.list_parent_indices(column).to_numpy(zero_copy_only=False)
+    flat = arrow_to_numpy(flat, np.float64)
+    parent = arrow_to_numpy(pc.list_parent_indices(column))
     good_rows = ~bad
     keep = good_rows[parent]
     if keep.any():
@@ -731,9 +921,9 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
 
     lst = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
     if lst.null_count:  # null rows -> empty lists (if_else rebuilds the whole column)
-        lst = pc.if_else(lst.is_null(), pa.scalar([], lst.type), lst)
+        lst = pc.if_else(lst.is_null(), arrow_scalar([], lst.type), lst)
     structs = lst.flatten()
-    frame = np.asarray(pc.list_parent_indices(lst).to_numpy(zero_copy_only=False), np.int64)
+    frame = arrow_to_numpy(pc.list_parent_indices(lst), np.int64)
     fields = dict(zip([f.name for f in structs.type], structs.flatten(), strict=True))
     M = len(frame)
     vec: dict[str, np.ndarray] = {}
@@ -759,7 +949,7 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
                 raise LogError(
                     f"column 'contacts.{name}' is {fields[name].type}; expected {expected}"
                 ) from None
-            cone[name] = np.asarray(col.fill_null(np.nan).to_numpy(zero_copy_only=False), float)
+            cone[name] = arrow_to_numpy(col, np.float64)
 
     def names(key: str) -> tuple[np.ndarray, np.ndarray]:
         """Distinct names (None last) and each record's index: Arrow's dictionary encoding."""
@@ -767,8 +957,7 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
             return np.array([None], dtype=object), np.zeros(M, np.int64)
         enc = pc.dictionary_encode(fields[key])
         uniq = np.array([*enc.dictionary.to_pylist(), None], dtype=object)
-        idx = enc.indices.fill_null(len(uniq) - 1).to_numpy(zero_copy_only=False)
-        return uniq, np.asarray(idx, np.int64)
+        return uniq, arrow_to_numpy(enc.indices, np.int64, fill=len(uniq) - 1)
 
     ln, lc = names("link")
     kn, kc = names("kind")
@@ -821,19 +1010,19 @@ def contacts_column(
         if values is None:
             return pa.nulls(len(f), pa.list_(pa.float64()))
         missing = np.isnan(values).all(-1)
-        flat = pa.array(np.ascontiguousarray(values[~missing], np.float64).reshape(-1))
+        flat = numpy_to_arrow(values[~missing], pa.float64())
         offsets = np.r_[0, np.cumsum(np.where(missing, 0, width))].astype(np.int32)
-        mask = pa.array(missing) if missing.any() else None
-        return pa.ListArray.from_arrays(pa.array(offsets), flat, mask=mask)
+        mask = numpy_to_arrow(missing) if missing.any() else None
+        return pa.ListArray.from_arrays(numpy_to_arrow(offsets), flat, mask=mask)
 
     def scalars(values: np.ndarray | None, typ: Any) -> Any:
         if values is None:
             return pa.nulls(len(f), typ)
-        return pa.array(values, pa.float64(), mask=np.isnan(values)).cast(typ)
+        return numpy_to_arrow(values, pa.float64(), mask=np.isnan(values)).cast(typ)
 
     children: dict[str, Any] = {
-        "link": pa.array(list(records.links), pa.string()),
-        "kind": pa.array(list(records.kinds), pa.string()),
+        "link": string_array(list(records.links)),
+        "kind": string_array(list(records.kinds)),
         "position": fixed_list(records.positions),
         "direction": nullable(records.directions, 3),
         "wrench": nullable(records.wrenches, 6),
@@ -865,7 +1054,7 @@ def struct_list(
     arrays = [children[fld.name].cast(fld.type) for fld in struct_type]
     struct = pa.StructArray.from_arrays(arrays, fields=list(struct_type))
     offsets = np.r_[0, np.cumsum(np.bincount(frame, minlength=frames))].astype(np.int32)
-    return pa.ListArray.from_arrays(pa.array(offsets), struct)
+    return pa.ListArray.from_arrays(numpy_to_arrow(offsets), struct)
 
 
 # ---------------------------------------------------------------------- reading
@@ -1088,8 +1277,7 @@ def read_log_columns(
             out[c] = vectors(col, int(lengths[0].as_py()) if len(lengths) else 0, c, path)[0]
         else:
             check_number_type(typ, c, path)
-            arr = _float64(col.combine_chunks()).fill_null(np.nan)
-            out[c] = np.asarray(arr.to_numpy(zero_copy_only=False), np.float64)
+            out[c] = arrow_to_numpy(_float64(col.combine_chunks()), np.float64)
     return out
 
 
@@ -1121,7 +1309,7 @@ def timestamps(column: Any, source: object = "", first_row: int = 0) -> np.ndarr
     if not (pa.types.is_integer(typ) or pa.types.is_timestamp(typ)):
         raise LogError(f"{where}column 't_ns' is {typ}; expected int64 time stamps (ns)")
     if column.null_count:
-        first = int(np.flatnonzero(column.is_null().to_numpy(zero_copy_only=False))[0])
+        first = int(np.flatnonzero(arrow_to_numpy(column.is_null()))[0])
         raise LogError(
             f"{where}{column.null_count} frames have no time stamp (null t_ns), the first in row"
             f" {first_row + first}; every frame needs one"
@@ -1132,7 +1320,7 @@ def timestamps(column: Any, source: object = "", first_row: int = 0) -> np.ndarr
         ints = column.cast(pa.int64())
     except pa.ArrowInvalid as exc:  # uint64 beyond int64
         raise LogError(f"{where}column 't_ns' ({typ}) does not fit int64 ns: {exc}") from None
-    return np.asarray(ints.to_numpy(zero_copy_only=False), np.int64)
+    return arrow_to_numpy(ints, np.int64)
 
 
 # ---------------------------------------------------------------------- writing
@@ -1406,9 +1594,9 @@ def encoded_part_table(buffer: Any, path: str | Path, columns: Sequence[str] | N
     import pyarrow.parquet as pq
 
     try:
-        return pq.read_table(
-            pa.BufferReader(buffer), columns=columns, page_checksum_verification=True
-        )
+        # ParquetFile, not pq.read_table: the dataset reader imports pandas
+        f = pq.ParquetFile(pa.BufferReader(buffer), page_checksum_verification=True)
+        return f.read(columns=columns)
     except (OSError, pa.ArrowException) as exc:
         raise LogError(f"{path}: unreadable part of a run ({exc})") from None
 
@@ -1502,7 +1690,7 @@ def read_part(path: str | Path, index: PartIndex) -> Any:
         if len(data) != index.size:
             raise OSError(f"{len(data)} of {index.size} bytes")
         buf = pa.BufferReader(standalone(data, index.footer))
-        return pq.read_table(buf, page_checksum_verification=True)
+        return pq.ParquetFile(buf, page_checksum_verification=True).read()  # no pandas
     except (OSError, ValueError, pa.ArrowException) as exc:
         raise LogError(
             f"{path}: the part at byte {index.start} of an interrupted run is unreadable ({exc})"

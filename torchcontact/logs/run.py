@@ -48,8 +48,10 @@ from torchcontact.errors import LogError, TorchContactError
 from torchcontact.logs.format import (
     PartIndex,
     PartsWriter,
+    arrow_to_numpy,
     encode_part,
     encoded_part_table,
+    numpy_to_arrow,
     read_encoded_part,
     read_journal,
     read_part,
@@ -274,11 +276,8 @@ class _Tally:
     @staticmethod
     def needs_texts(table: Any) -> bool:
         """Whether :meth:`add` reads the status texts of ``table`` (a bad or outside frame)."""
-        import pyarrow.compute as pc
-
-        code = table.column("status_code")
-        hit = pc.not_equal(pc.bit_wise_and(code, ~WARNINGS | OUTSIDE), 0)
-        return bool(pc.any(hit).as_py())
+        code = arrow_to_numpy(table.column("status_code"), fill=0)
+        return bool(((code & (~WARNINGS | OUTSIDE)) != 0).any())
 
     def add(self, table: Any, now: bool) -> None:
         import pyarrow.compute as pc
@@ -286,19 +285,19 @@ class _Tally:
         if self.localize is not None:
             self._add_localized(table)
 
-        code = table.column("status_code")
+        code = arrow_to_numpy(table.column("status_code"), fill=0)
         # frames with NaN outputs: a status bit other than the warnings (outputs kept)
-        bad = pc.not_equal(pc.bit_wise_and(code, ~WARNINGS), 0)
-        outside = pc.not_equal(pc.bit_wise_and(code, OUTSIDE), 0)
-        n_out = int(pc.sum(outside).as_py() or 0)
+        bad = (code & ~WARNINGS) != 0
+        outside = (code & OUTSIDE) != 0
+        n_out = int(outside.sum())
         self.outside += n_out
         if n_out:  # which features, counted (the details of those frames)
-            why = pc.filter(table.column("status_detail"), outside).to_pylist()
+            why = pc.filter(table.column("status_detail"), numpy_to_arrow(outside)).to_pylist()
             for text in why:
                 for part in (text or "").split("; "):
                     if "training range" in part:
                         self.outside_details[part] = self.outside_details.get(part, 0) + 1
-        n_bad = int(pc.sum(bad).as_py() or 0)
+        n_bad = int(bad.sum())
         self.rows += table.num_rows
         self.bad += n_bad
         if now:
@@ -306,17 +305,16 @@ class _Tally:
             self.bad_now += n_bad
         if n_bad:
             why = pc.coalesce(table.column("status_detail"), table.column("status"))
-            counts = pc.value_counts(pc.filter(why, bad)).to_pylist()
+            counts = pc.value_counts(pc.filter(why, numpy_to_arrow(bad))).to_pylist()
             for c in counts:
                 self.details[c["values"]] = self.details.get(c["values"], 0) + c["counts"]
         if now:
             for s in self.cone_sensors:
-                its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False)
-                conv = table.column(f"converged.{s}").to_numpy(zero_copy_only=False)
-                its = its.astype(float)
+                its = arrow_to_numpy(table.column(f"iterations.{s}"), np.float64)  # null: NaN
+                conv = arrow_to_numpy(table.column(f"converged.{s}"), bool, fill=False)
                 ran = ~np.isnan(its) & (its > 0)
                 self.solved += int(ran.sum())
-                self.converged += int(np.sum(conv[ran] == True))  # noqa: E712 - object array
+                self.converged += int(conv[ran].sum())
                 if ran.any():
                     self.it_sum += int(its[ran].sum())
                     self.it_max = max(self.it_max, int(its[ran].max()))
@@ -330,23 +328,23 @@ class _Tally:
         n = table.num_rows
         ran = np.zeros(n, bool)
         for s in self.cone_sensors:
-            its = table.column(f"iterations.{s}").to_numpy(zero_copy_only=False).astype(float)
+            its = arrow_to_numpy(table.column(f"iterations.{s}"), np.float64)
             ran |= ~np.isnan(its) & (its > 0)
-        code = table.column("status_code").to_numpy()
+        code = arrow_to_numpy(table.column("status_code"), fill=0)
         failed = (code & NOT_CONVERGED) != 0
         self.cone_frames += int(ran.sum())
         self.not_converged_frames += int(failed.sum())
         self.converged_frames += int((ran & ~failed).sum())
         contacts = table.column("contacts")
-        frame = pc.list_parent_indices(contacts).to_numpy()
+        frame = arrow_to_numpy(pc.list_parent_indices(contacts))
         flat = pc.list_flatten(contacts)
         for name, attr in (("cone_active", "active_frames"), ("outside_cone", "outside_frames")):
-            v = pc.fill_null(pc.struct_field(flat, name), False).to_numpy(zero_copy_only=False)
+            v = arrow_to_numpy(pc.struct_field(flat, name), bool, fill=False)
             hit = np.zeros(n, bool)
-            hit[frame[v.astype(bool)]] = True
+            hit[frame[v]] = True
             setattr(self, attr, getattr(self, attr) + int(hit.sum()))
         # well posed: the outside_cone test ran (non-null) on a frame's contacts
-        tested = pc.is_valid(pc.struct_field(flat, "outside_cone")).to_numpy(zero_copy_only=False)
+        tested = arrow_to_numpy(pc.is_valid(pc.struct_field(flat, "outside_cone")))
         well = np.zeros(n, bool)
         well[frame[tested]] = True
         self.well_posed_frames += int(well.sum())
@@ -358,8 +356,8 @@ class _Tally:
 
         sensors, ambiguous = self.localize  # type: ignore[misc]
         for s in sensors:
-            code = table.column(f"localize_status_code.{s}").to_numpy(zero_copy_only=False)
-            has = table.column(f"localize_link.{s}").is_valid().to_numpy(zero_copy_only=False)
+            code = arrow_to_numpy(table.column(f"localize_status_code.{s}"))
+            has = arrow_to_numpy(table.column(f"localize_link.{s}").is_valid())
             used = localized_frames(code, has, ambiguous)
             self.located[s] = self.located.get(s, 0) + int(used.sum())
             bits = self.located_bits.setdefault(s, {b.name: 0 for b in LocalizeStatus})
