@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import torch
@@ -12,9 +13,16 @@ from torchcontact.errors import InputError
 
 
 def in_tracing() -> bool:
-    """True while tracing for ONNX export, TorchScript or torch.compile (no value checks then)."""
+    """True while tracing for ONNX export, TorchScript or torch.compile (no value checks then).
+
+    ``torch.onnx`` is asked only once something imported it: no export runs without it, and
+    torch imports it lazily, at a cost of 0.1 s (the first frame of a log job paid it).
+    """
+    onnx = sys.modules.get("torch.onnx")
     return bool(
-        torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+        torch.jit.is_tracing()
+        or (onnx is not None and onnx.is_in_onnx_export())
+        or torch.compiler.is_compiling()
     )
 
 

@@ -33,6 +33,8 @@ from typing import Any, NamedTuple, Union
 import torch
 from torch import Tensor
 
+from torchcontact._internal import in_tracing
+
 __all__ = [
     "Scalar",
     "Sym",
@@ -456,7 +458,7 @@ def loop(
             state = list(state)
             if isinstance(stop, bool) and stop:
                 break
-            if isinstance(stop, Tensor) and not _exporting() and bool(stop.all()):
+            if isinstance(stop, Tensor) and not in_tracing() and bool(stop.all()):
                 break
         return state
     if tr._in_loop:
@@ -480,13 +482,6 @@ def loop(
     spec = Loop(int(n), tuple(state), tuple(carries), tuple(new), stop, start, len(tr.nodes))
     node = tr._new("loop", (spec,), False)
     return [tr._new("loopout", (node, i), False) for i in range(len(state))]
-
-
-def _exporting() -> bool:
-    """Tracing for export: the graph must hold the whole budget, data-independent."""
-    return bool(
-        torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
-    )
 
 
 def loop_deps(s: Sym) -> list[Sym]:
