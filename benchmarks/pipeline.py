@@ -148,7 +148,12 @@ def _cpu() -> float:
 
 def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     """One timed run; prints a JSON line."""
-    res: dict = {}  # torch's own thread count, as the CLI has it
+    import torch
+
+    # one torch thread, as `torchcontact estimate` has by default (--threads 1; the e2e runs are
+    # that command, which sets it itself)
+    torch.set_num_threads(1)
+    res: dict = {}
     if kind in ("floor", "floor-defaults"):
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -207,8 +212,6 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
     elif kind == "stages":
         res = _stages(robot, log, out, extra)
     elif kind == "inmem":
-        import torch
-
         import torchcontact as tc
         from torchcontact.contacts import Contacts
         from torchcontact.logs.format import read_log_columns
