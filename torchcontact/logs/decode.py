@@ -41,6 +41,7 @@ from torchcontact.logs.format import (
     iter_chunks,
     joint_names_of,
     numpy_to_arrow,
+    one_array,
     read_contacts,
     string_array,
     timestamps,
@@ -255,11 +256,9 @@ def _name_leaf(pf: Any, name: str) -> str | None:
 
 def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], int]) -> None:
     """Most records of each ``(link, kind)`` in one frame of a ``list<struct<link, kind>>``."""
-    import pyarrow as pa
     import pyarrow.compute as pc
 
-    if isinstance(lst, pa.ChunkedArray):
-        lst = lst.combine_chunks()
+    lst = one_array(lst)
     if lst.null_count:  # null rows -> empty lists, as read_contacts
         lst = pc.if_else(lst.is_null(), arrow_scalar([], lst.type), lst)
     structs = lst.flatten()

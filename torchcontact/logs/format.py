@@ -98,6 +98,7 @@ __all__ = [
     "localization_fields",
     "logged_robot",
     "numpy_to_arrow",
+    "one_array",
     "encode_part",
     "open_log",
     "output_schema",
@@ -217,6 +218,18 @@ def _numpy_dtype(typ: Any) -> np.dtype:
     if t.is_unsigned_integer(typ):
         return np.dtype(f"u{size}")
     return np.dtype(f"i{size}")
+
+
+def one_array(column: Any) -> Any:
+    """A pyarrow array, or a chunked array as one array: a single chunk as it is, no copy.
+
+    ``ChunkedArray.combine_chunks`` copies even a single chunk (2 MB per 8192 frames of ``q``).
+    """
+    import pyarrow as pa
+
+    if not isinstance(column, pa.ChunkedArray):
+        return column
+    return column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
 
 
 def arrow_to_numpy(values: Any, dtype: Any = None, fill: Any = None) -> np.ndarray:
@@ -815,8 +828,7 @@ def vectors(
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks()
+    column = one_array(column)
     check_vector_type(column.type, name or "a vector column", source)
     N = len(column)
     if N == 0 or pa.types.is_null(column.type) or column.null_count == N:
@@ -919,7 +931,7 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    lst = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    lst = one_array(column)
     if lst.null_count:  # null rows -> empty lists (if_else rebuilds the whole column)
         lst = pc.if_else(lst.is_null(), arrow_scalar([], lst.type), lst)
     structs = lst.flatten()
@@ -1277,7 +1289,7 @@ def read_log_columns(
             out[c] = vectors(col, int(lengths[0].as_py()) if len(lengths) else 0, c, path)[0]
         else:
             check_number_type(typ, c, path)
-            out[c] = arrow_to_numpy(_float64(col.combine_chunks()), np.float64)
+            out[c] = arrow_to_numpy(_float64(one_array(col)), np.float64)
     return out
 
 
@@ -1302,8 +1314,7 @@ def timestamps(column: Any, source: object = "", first_row: int = 0) -> np.ndarr
     """
     import pyarrow as pa
 
-    if isinstance(column, pa.ChunkedArray):
-        column = column.combine_chunks()
+    column = one_array(column)
     where = f"{source}: " if str(source) else ""
     typ = column.type
     if not (pa.types.is_integer(typ) or pa.types.is_timestamp(typ)):
