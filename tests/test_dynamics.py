@@ -258,3 +258,30 @@ def test_cuda_matches_cpu():
     cpu = model.inverse_dynamics(q, qd, qdd)
     gpu = model.to("cuda").inverse_dynamics(q.cuda(), qd.cuda(), qdd.cuda())
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)
+
+
+def test_finite_check_and_counts_on_large_and_strided_inputs():
+    """The finite check sums CPU arrays with numpy (no OpenMP region): NaN and inf are still
+    found in large, transposed and float32 inputs; counts round to the nearest integer."""
+    from torchcontact._internal import counts
+
+    model = load_model("ur5")
+    n = 8192  # 49,152 values: above torch's parallel grain
+    q = torch.zeros(n, model.nv, dtype=torch.float64)
+    for value, where in ((float("nan"), (4000, 5)), (float("inf"), (8191, 0))):
+        bad = q.clone()
+        bad[where] = value
+        with pytest.raises(ValueError, match=rf"q contains NaN or inf.*\({where[0]}, {where[1]}\)"):
+            model.inverse_dynamics(bad, q, q)
+    strided = torch.zeros(model.nv, n, dtype=torch.float64)
+    strided[2, 7] = float("nan")
+    with pytest.raises(ValueError, match=r"qd contains NaN or inf.*\(7, 2\)"):
+        model.inverse_dynamics(q, strided.t(), q)
+    m32 = model.to(dtype=torch.float32)
+    bad32 = torch.zeros(n, model.nv)
+    bad32[1, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"qdd contains NaN or inf.*\(1, 1\)"):
+        m32.inverse_dynamics(torch.zeros_like(bad32), torch.zeros_like(bad32), bad32)
+    x = torch.tensor([0.0, 0.49, 0.5, 2.9999999, 3.0000001, 6.0, 12.4], dtype=torch.float64)
+    assert counts(x).tolist() == [0, 0, 1, 3, 3, 6, 12]
+    assert counts(x).dtype == torch.int64

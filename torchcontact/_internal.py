@@ -84,7 +84,12 @@ def _finite_sum(x: Tensor) -> bool:
     torch's CPU sum of more than 32768 elements is an OpenMP region, whose idle threads then
     spin for milliseconds beside a log job's reader and writer threads.
     """
-    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and not x.is_sparse:
+    if (
+        x.device.type == "cpu"
+        and x.dtype in (torch.float32, torch.float64)
+        and x.layout == torch.strided
+        and not x.is_neg()
+    ):
         return bool(np.isfinite(x.detach().numpy().sum()))
     return bool(torch.isfinite(x.sum()))
 
