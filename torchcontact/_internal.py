@@ -27,14 +27,15 @@ def in_tracing() -> bool:
 
 
 def counts(x: Tensor) -> Tensor:
-    """A program's counts as int64, rounded to the nearest.
+    """A program's counts ``(*S)`` float as ``(*S)`` int64, rounded to the nearest.
 
     Counts are ranks, unknowns, status bits and iterations: small non-negative integers held as
     floats.
 
     ``(x + 0.5)`` truncated, not ``torch.round``: round's CPU kernel opens an OpenMP region from a
     few thousand elements on, and the region's idle threads then spin for milliseconds, taking a
-    core from a log job's reader and writer threads (a sixth of a warm run's CPU time, measured).
+    core from a log job's reader and writer threads (16-20 % of the CPU of a warm
+    ``estimate_file`` run with torch's default threads, measured).
     """
     return (x + 0.5).to(torch.int64)
 
