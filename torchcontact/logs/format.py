@@ -262,14 +262,9 @@ def arrow_to_numpy(values: Any, dtype: Any = None, fill: Any = None) -> np.ndarr
     """
     import pyarrow as pa
 
-    if isinstance(values, pa.ChunkedArray):
-        if values.num_chunks != 1:
-            parts = [arrow_to_numpy(c, dtype, fill) for c in values.chunks]
-            if parts:
-                return np.concatenate(parts)
-            values = values.combine_chunks()
-        else:
-            values = values.chunk(0)
+    if isinstance(values, pa.ChunkedArray) and values.num_chunks > 1:
+        return np.concatenate([arrow_to_numpy(c, dtype, fill) for c in values.chunks])
+    values = one_array(values)  # no chunk: an empty array
     typ = values.type
     n, off = len(values), values.offset
     if pa.types.is_boolean(typ):
