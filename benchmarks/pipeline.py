@@ -293,7 +293,9 @@ def _stages(robot: str, log: str, out: str, ref: str) -> dict:
     import torchcontact.logs.format as fmt
     import torchcontact.logs.run as run
 
-    wrap(pl, "prepare", "prepare (scan)")
+    wrap(pl, "prepare", "prepare (scan)")  # an older tree's
+    wrap(pl, "open_prepared", "prepare (the scan's first pass; its second on a thread)")
+    wrap(getattr(pl, "Prepared", None), "finish", "waiting for the scan's second pass")
     wrap(pl, "log_noise", "noise estimate (its reading, decoding, kernel)")
     wrap(pl, "read_chunks", "Parquet read (calling thread; pyarrow's threads: total only)", True)
     wrap(dec.ChunkDecoder, "decode", "decoding (Arrow -> arrays, checks)")

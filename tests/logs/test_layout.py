@@ -116,3 +116,91 @@ def test_when_a_run_waits_for_its_kernel(model, sim_log, tmp_path, monkeypatch):
         pl.kernel_backend(big, "cpu", True) == "cpu"
         and pl.kernel_backend(small, "cpu", True) == "auto"
     )
+
+
+def test_scan_on_a_thread_beside_the_noise_estimate(model, sim_log, tmp_path, monkeypatch):
+    """The scan's second pass (the layout) runs on a thread while the noise estimate decodes the
+    first chunks: those get their slots once the layout is known, and the run is the same as
+    with the scan done first; the scan's error reaches the caller, with nothing written."""
+    import threading
+    import time
+
+    from torchcontact.errors import LogError
+
+    real = pl.scan_rest
+    pending = []
+
+    def slow(*a, **k):  # the noise estimate decodes its chunk before the layout is known
+        time.sleep(0.3)
+        return real(*a, **k)
+
+    def decode(self, *a, **k):
+        pending.append(self.layout_pending)
+        return real_decode(self, *a, **k)
+
+    from torchcontact.logs.decode import ChunkDecoder
+
+    real_decode = ChunkDecoder.decode
+    monkeypatch.setattr(ChunkDecoder, "decode", decode)
+    seen = []
+    real_est = ContactEstimator.estimate
+
+    def spy(self, q, qd, qdd, ft, contacts, **kw):
+        seen.append((contacts.links, contacts.kinds))
+        return real_est(self, q, qd, qdd, ft, contacts, **kw)
+
+    monkeypatch.setattr(ContactEstimator, "estimate", spy)
+    monkeypatch.setattr(pl, "scan_rest", slow)
+    a = estimate_file(sim_log, model, tmp_path / "a.parquet", batch_size=pl.NOISE_BATCH)
+    assert pending[0] is True  # decoded (for the noise) while the scan ran
+    layout = pl.prepare(sim_log, model)[1].layout
+    assert set(seen) == {(layout.links, layout.kinds)} and a["slots"] == layout.K
+    # the same run with the scan done first
+    opened = pl.open_prepared
+    monkeypatch.setattr(pl, "open_prepared", lambda *a, **k: opened(*a, **{**k, "overlap": False}))
+    pending.clear()
+    b = estimate_file(sim_log, model, tmp_path / "b.parquet", batch_size=pl.NOISE_BATCH)
+    assert not any(pending)
+    assert pq.read_table(a["output"]).equals(pq.read_table(b["output"]), check_metadata=True)
+    assert a["noise"] == b["noise"] and a["time_segments"] == b["time_segments"]
+
+    # an unreadable contacts column found by the scan's thread: its error, no output
+    def broken(*a, **k):
+        assert threading.current_thread().name == "torchcontact-scan"
+        raise LogError("log.parquet: corrupted data in row group 0 (rows 0-599)")
+
+    monkeypatch.setattr(pl, "open_prepared", opened)
+    monkeypatch.setattr(pl, "scan_rest", broken)
+    with pytest.raises(LogError, match="corrupted data in row group 0"):
+        estimate_file(sim_log, model, tmp_path / "c.parquet", batch_size=pl.NOISE_BATCH)
+    assert not (tmp_path / "c.parquet").exists()
+    assert not (tmp_path / "c.parquet.partial").exists()
+
+
+def test_cone_fields_are_type_checked_not_read_without_constraints():
+    """An estimate without constraints reads no friction-cone values, but a field of the wrong
+    type is refused all the same."""
+    from torchcontact.errors import LogError
+
+    t = pa.struct([("link", pa.string()), ("kind", pa.string()),
+                   ("position", pa.list_(pa.float64(), 3)), ("normal", pa.list_(pa.float64())),
+                   ("friction", pa.float64()), ("pushing", pa.bool_())])  # fmt: skip
+    rec = {"link": "a", "kind": "force", "position": [1.0, 2.0, 3.0], "normal": [0.0, 0.0, 1.0],
+           "friction": 0.5, "pushing": True}  # fmt: skip
+    col = pa.array([[rec], [], [rec, rec]], pa.list_(t))
+    full, _, malformed = read_contacts(col)
+    bare, _, bare_bad = read_contacts(col, cones=False)
+    assert full.normals.shape == (3, 3) and full.friction.tolist() == [0.5] * 3
+    assert bare.normals is None and bare.friction is None and bare.pushing is None
+    assert "normal" in malformed and "normal" not in bare_bad
+    np.testing.assert_array_equal(full.positions, bare.positions)
+    assert full.frame.tolist() == bare.frame.tolist() == [0, 2, 2]
+    bad_t = pa.struct([*[t.field(i) for i in range(4)], ("friction", pa.string())])
+    bad = pa.array([[{**rec, "friction": "high"}]], pa.list_(bad_t))
+    for cones in (True, False):
+        with pytest.raises(LogError, match="contacts.friction"):
+            read_contacts(bad, cones=cones)
+    bad_n = pa.struct([*[t.field(i) for i in range(3)], ("normal", pa.list_(pa.string()))])
+    for cones in (True, False):
+        with pytest.raises(LogError, match="contacts.normal"):
+            read_contacts(pa.array([[{**rec, "normal": ["x"]}]], pa.list_(bad_n)), cones=cones)

@@ -212,3 +212,12 @@ def test_a_resume_keeps_the_recorded_noise_when_only_rounding_differs():
     assert le.noise.sensors["s"].std == std
     recorded_noise(le, None)  # not a resume
     assert le.noise.sensors["s"].std == std
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 50, 51, 2000])
+def test_median_is_numpys(n):
+    """The noise estimate's median (no numpy.ma import) gives numpy's numbers exactly."""
+    from torchcontact.logs.noise import _median
+
+    x = np.random.default_rng(n).standard_normal((n, 6)) * np.arange(1, 7)
+    np.testing.assert_array_equal(_median(x), np.median(x, 0))

@@ -1154,7 +1154,8 @@ def decoded_chunks(
         after: ``(t_ns, q)`` of the up to ``2 h`` frames following the last table, or None at
             the log's end.
         slots: place each chunk's contacts in the log's slots here (the local engine's reader
-            thread: off the estimating thread, which is the longest on many cores); else
+            thread: off the estimating thread, which is the longest on many cores), from the
+            first chunk decoded once the layout is set (``decoder.layout_pending``); else
             :meth:`LogEstimator.estimate` does.
 
     Yields:
@@ -1201,7 +1202,7 @@ def _finish_chunk(
         d.starts = time_segments(np.r_[last_t, d.t], le.step_ns)[len(last_t) :]
     if le.localizer is not None and le.residual is None and LOCALIZE_ON_READER:
         d.located = le.localized(d)  # overlaps the estimate of the chunk before
-    elif slots and le.localizer is None:
+    elif slots and le.localizer is None and not le.decoder.layout_pending:
         le.decoder.slots(d, le.model.dtype, le.model.device)
     return d
 

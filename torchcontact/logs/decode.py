@@ -4,7 +4,7 @@ Three steps, each on the data's way from Parquet to the estimator:
 
 1. :func:`log_columns`: the schema checked against the robot (joints, sensors, the contact
    struct, derived ``qd``/``qdd``, the columns to read).
-2. :func:`scan_log`: one pass over the cheap columns of the whole file (``t_ns`` and the
+2. :func:`scan_log`: two passes over the cheap columns of the whole file (``t_ns`` and the
    contacts' ``link`` and ``kind`` only): the most records of each ``(link, kind)`` pair in one
    frame, which fixes **one slot layout for the whole log** (so every chunk runs the same
    compiled program), and the time steps and segments (:mod:`torchcontact.logs.derive`).
@@ -59,6 +59,8 @@ __all__ = [
     "LogScan",
     "log_columns",
     "scan_log",
+    "scan_rest",
+    "scan_step",
     "status_text",
 ]
 
@@ -285,7 +287,9 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
 
 
 def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
-    """One pass over ``t_ns`` and the contacts' names of the whole log (cheap columns only).
+    """Two passes over the cheap columns of the whole log: ``t_ns``, the contacts' names.
+
+    :func:`scan_step` then :func:`scan_rest` (the second pass needs the median step).
 
     Args:
         pf: the opened log (:func:`~torchcontact.logs.format.open_log`).
@@ -299,32 +303,54 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
         LogError: ``t_ns`` of another type or with nulls, unreadable data (the message names
             the row group).
     """
+    return scan_rest(pf, src, contacts, scan_step(pf, src))
+
+
+def scan_step(pf: Any, src: str) -> float:
+    """The first pass: the median step of the log's ``t_ns`` (:func:`median_step`), ns.
+
+    Every stamp is checked here (type, nulls), before any chunk is decoded.
+
+    Raises:
+        LogError: ``t_ns`` of another type or with nulls, unreadable ``t_ns`` data.
+    """
+    hist: dict[int, int] = {}
+    last: int | None = None
+    done = 0
+    for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src):
+        t = timestamps(tab.column("t_ns"), src, done)
+        step_histogram(t if last is None else np.r_[last, t], hist)
+        last = int(t[-1]) if len(t) else last
+        done += tab.num_rows
+    return median_step(hist)
+
+
+def scan_rest(pf: Any, src: str, contacts: bool, step: float) -> LogScan:
+    """The second pass: time segments at the median ``step`` and the contacts' ``(link, kind)``.
+
+    Reads ``t_ns`` and the contacts' ``link`` and ``kind`` only. It needs nothing decoded, so a
+    run can do it on a thread of its own, beside the chunks it decodes first
+    (:func:`torchcontact.logs.pipeline.open_prepared`).
+
+    Raises:
+        LogError: unreadable data (the message names the row group).
+    """
     rows = pf.metadata.num_rows
     leaves = [_name_leaf(pf, n) for n in ("link", "kind")] if contacts else []
     if contacts and None in leaves:  # an unusual nesting: read the whole column
         leaves = ["contacts"]
     names: dict[str, int] = {}
     counts: dict[tuple[int, int], int] = {}
-    hist: dict[int, int] = {}
-    last: int | None = None
-    done = 0
-    for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src):
-        t = timestamps(tab.column("t_ns"), src, done)
-        step_histogram(t if last is None else np.r_[last, t], hist)
-        if contacts:
-            _pair_counts(tab.column("contacts"), names, counts)
-        last = int(t[-1]) if len(t) else last
-        done += tab.num_rows
-    step = median_step(hist)
-    # second pass over t_ns alone: segments need the median step of the whole log
     segments = untrusted = gaps = short = 0
     seg_start = 0  # first row of the open segment
     ctx = np.zeros(0, np.int64)  # the last two stamps before the block
     done = 0
-    for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src):
+    for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src):
         t = timestamps(tab.column("t_ns"), src, done)
         if not len(t):
             continue
+        if contacts:
+            _pair_counts(tab.column("contacts"), names, counts)
         starts = time_segments(np.r_[ctx, t], step)[len(ctx) :]
         step_in = t - np.r_[ctx[-1:] if len(ctx) else t[:1], t[:-1]]  # 0 for the log's first
         back = step_in <= 0
@@ -492,6 +518,9 @@ class ChunkDecoder:
         self.derived = list(derived)
         self.region = region
         self.layout = layout
+        #: the log's layout is being scanned (:func:`~torchcontact.logs.pipeline.open_prepared`):
+        #: chunks are decoded without slots until it is set
+        self.layout_pending = False
         self.friction = friction
         self.cones = cones
         self.extra_columns = list(extra_columns)
@@ -567,7 +596,7 @@ class ChunkDecoder:
             c: np.array(arrow_to_numpy(table.column(c), np.float64)) for c in self.extra_columns
         }
         if self.contact_fields:
-            records, fields, malformed = read_contacts(table.column("contacts"))
+            records, fields, malformed = read_contacts(table.column("contacts"), self.cones)
             bad_record = self._check_contacts(records, malformed, N, issues)
         else:
             records, fields, bad_record = ContactRecords.empty(), {}, np.zeros(0, bool)
@@ -615,6 +644,8 @@ class ChunkDecoder:
 
     def slots(self, d: Decoded, dtype: Any, device: Any) -> None:
         """Place the good records of ``d`` in the log's slots (``d.contacts``, ``d.slot``)."""
+        if self.layout_pending:  # a chunk would get a layout of its own (another program)
+            raise RuntimeError("ChunkDecoder.slots before the log's slot layout is set")
         good = np.flatnonzero(d.slot >= 0)
         layout = self.layout
         # every record good (the common case): no copy of the records

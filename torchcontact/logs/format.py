@@ -903,11 +903,15 @@ def check_schema(schema: Any, source: object = "") -> None:
 
 
 # ---------------------------------------------------------------------- contacts <-> Arrow
-def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str, np.ndarray]]:
+def read_contacts(
+    column: Any, cones: bool = True
+) -> tuple[ContactRecords, dict[str, Any], dict[str, np.ndarray]]:
     """The records of a ``contacts`` column (list of structs).
 
     Args:
         column: a pyarrow (chunked) ``list<struct>`` array; null rows are frames without contact.
+        cones: read the friction-cone fields' values; with False their types are checked only
+            (an estimate without constraints does not use them) and the records have none.
 
     Returns:
         ``(records, fields, malformed)``: :class:`~torchcontact.contacts.ContactRecords` (frames
@@ -945,10 +949,16 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
             vec[name], malformed[name] = np.full((M, width), np.nan), np.ones(M, bool)
     cone: dict[str, np.ndarray] = {}
     if "normal" in fields:
-        cone["normals"], malformed["normal"] = vectors(fields["normal"], 3, "contacts.normal")
+        if cones:
+            cone["normals"], malformed["normal"] = vectors(fields["normal"], 3, "contacts.normal")
+        else:
+            check_vector_type(fields["normal"].type, "contacts.normal")
     for name in ("friction", "cone_angle", "pushing"):
         if name in fields:
             col = fields[name]
+            plain = pa.types.is_floating(col.type) or pa.types.is_integer(col.type)
+            if not cones and (plain or pa.types.is_boolean(col.type)):
+                col = col.slice(0, 0)  # converts: nothing to check in the values
             try:
                 col = pc.cast(col, pa.float64())
             except (pa.ArrowException, NotImplementedError):
@@ -956,7 +966,8 @@ def read_contacts(column: Any) -> tuple[ContactRecords, dict[str, Any], dict[str
                 raise LogError(
                     f"column 'contacts.{name}' is {fields[name].type}; expected {expected}"
                 ) from None
-            cone[name] = arrow_to_numpy(col, np.float64)
+            if cones:
+                cone[name] = arrow_to_numpy(col, np.float64)
 
     def names(key: str) -> tuple[np.ndarray, np.ndarray]:
         """Distinct names (None last) and each record's index: Arrow's dictionary encoding."""
@@ -1065,11 +1076,13 @@ def struct_list(
 
 
 # ---------------------------------------------------------------------- reading
-def open_log(path: str | Path) -> Any:
+def open_log(path: str | Path, metadata: Any = None) -> Any:
     """Open a Parquet log for streaming; page checksums are verified where the file has them.
 
     Args:
         path: the file.
+        metadata: the footer of the same file opened before (another reader of it, for another
+            thread: a ``ParquetFile`` is not shared between threads); None: read it.
 
     Returns:
         A ``pyarrow.parquet.ParquetFile``. Reads are not pre-buffered: pre-buffering keeps every
@@ -1085,7 +1098,9 @@ def open_log(path: str | Path) -> Any:
     if not Path(path).is_file():
         raise LogError(f"{path}: no such file")
     try:
-        pf = pq.ParquetFile(path, pre_buffer=False, page_checksum_verification=True)
+        pf = pq.ParquetFile(
+            path, metadata=metadata, pre_buffer=False, page_checksum_verification=True
+        )
     except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
         raise LogError(f"{path}: not a readable Parquet file ({exc})") from None
     check_schema(pf.schema_arrow, path)

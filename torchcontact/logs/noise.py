@@ -148,6 +148,17 @@ def resolve(
     return FTNoise(out)
 
 
+def _median(x: np.ndarray) -> np.ndarray:
+    """``np.median(x, 0)`` of finite values: the same numbers.
+
+    Without numpy's import of ``numpy.ma`` (15 ms of a log run's start).
+    """
+    n = len(x)
+    k = (n - 1) // 2
+    part = np.partition(x, [k, n // 2], axis=0)
+    return part[k] if n % 2 else (part[k] + part[n // 2]) / 2.0
+
+
 def contact_free_noise(
     le: Any, chunks: Iterable[Any], sensors: Sequence[str], pairs: int = NOISE_PAIRS
 ) -> dict[str, tuple[np.ndarray, int]]:
@@ -215,6 +226,6 @@ def contact_free_noise(
     if not diffs:
         return {s: (np.full(6, np.nan), 0) for s in sensors}
     dr = np.concatenate(diffs)[:pairs]
-    mad = np.median(np.abs(dr - np.median(dr, 0)), 0)
+    mad = _median(np.abs(dr - _median(dr)))
     std = np.maximum(_MAD_SCALE * mad / math.sqrt(2.0), STD_FLOOR)
     return {s: (std[6 * i : 6 * i + 6], len(dr)) for i, s in enumerate(sensors)}

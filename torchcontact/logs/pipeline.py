@@ -31,6 +31,7 @@ builds while the others wait for it. A failed build falls back to eager torch.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -52,7 +53,13 @@ from torchcontact.logs.chunks import (
     estimate_stream,
     localized_layout,
 )
-from torchcontact.logs.decode import LogScan, log_columns, scan_log, stamps_and_positions
+from torchcontact.logs.decode import (
+    LogScan,
+    log_columns,
+    scan_rest,
+    scan_step,
+    stamps_and_positions,
+)
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
 from torchcontact.logs.format import check_outputs, expand_inputs, iter_chunks, open_log
 from torchcontact.logs.run import Done, Run, background, side_paths
@@ -70,6 +77,7 @@ __all__ = [
     "estimate_files",
     "expand_inputs",
     "load_robot",
+    "open_prepared",
     "prepare",
 ]
 
@@ -233,12 +241,87 @@ def prepare(
     bias: LogBias | None = None,
     localize: LogLocalize | None = None,
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
-    """Open a log, scan it once and build its :class:`LogEstimator` with the log's slot layout.
+    """Open a log, scan it and build its :class:`LogEstimator` with the log's slot layout.
+
+    :func:`open_prepared` and :meth:`Prepared.finish` at once (same arguments).
+
+    Returns:
+        ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
+
+    Raises:
+        LogError, InputError: as :func:`open_prepared` and :meth:`Prepared.finish`.
+    """
+    p = open_prepared(path, model, sensors, residual, velocity_margin, ft_range, constraints,
+                      causal, bias, localize)  # fmt: skip
+    return p.pf, p.le, p.columns, p.finish()
+
+
+@dataclass
+class Prepared:
+    """A log opened for a run whose scan's second pass may still be running on a thread.
+
+    The estimator is usable for decoding at once (its time step is known); its slot layout is
+    set by :meth:`finish`, which waits for the scan. Until then, chunks are decoded without
+    slots (``decoder.layout_pending``): :func:`with_head` or :meth:`LogEstimator.estimate` slots
+    them later.
+
+    Attributes:
+        pf: the opened log.
+        le: its estimator.
+        columns: the columns to read.
+    """
+
+    pf: Any
+    le: LogEstimator
+    columns: list[str]
+    _scan: Any
+
+    def finish(self) -> LogScan:
+        """Wait for the scan and set the slot layout; the scan (its errors are raised here)."""
+        if not isinstance(self._scan, LogScan):
+            self._scan = self._scan.result()
+            _use_scan(self.le, self._scan)
+        return self._scan
+
+    def close(self) -> None:
+        """Wait for the scan's thread to end, without raising its error (:meth:`finish` does)."""
+        if not isinstance(self._scan, LogScan):
+            self._scan.exception()
+
+
+def _use_scan(le: LogEstimator, scan: LogScan) -> None:
+    """Set what the decoding takes from the scan: the slot layout, whether one segment."""
+    le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
+    if le.localizer is not None:
+        le.layout = le.decoder.layout = localized_layout(le.layout, le.localizer.links)
+    le.decoder.whole_log_segment = scan.segments == 1
+    le.decoder.layout_pending = False
+
+
+def open_prepared(
+    path: str | Path,
+    model: RobotModel,
+    sensors: Sequence[str] | None = None,
+    residual: Any = None,
+    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
+    ft_range: Mapping[str, Any] | None = None,
+    constraints: LogConstraints | None = None,
+    causal: tuple[int, int] | None = None,
+    bias: LogBias | None = None,
+    localize: LogLocalize | None = None,
+    overlap: bool = False,
+) -> Prepared:
+    """Open a log, find its time step and build its :class:`LogEstimator`; scan the rest.
+
+    The scan's first pass (``t_ns``: the median step, every stamp checked) runs here. Its second
+    pass (time segments, the contacts' names: the slot layout) runs on a thread with
+    ``overlap``, beside what the caller does next (the noise estimate's first chunks), else here
+    too. Overlap applies to logs with ``qd``/``qdd`` and without localization: a derived log's
+    decoding needs its time segments, a localizing one its layout.
 
     A log without a ``contacts`` column is estimated as contact-free, with one warning (unless
-    its contacts are localized); a log
-    whose ``qd``/``qdd`` are derived and whose ``t_ns`` splits into several time segments gets
-    one warning that counts them.
+    its contacts are localized); a log whose ``qd``/``qdd`` are derived and whose ``t_ns``
+    splits into several time segments gets one warning that counts them.
 
     Args:
         path: the log.
@@ -251,14 +334,12 @@ def prepare(
         causal: see :class:`LogEstimator` (``--derivatives causal``).
         bias: see :class:`LogEstimator` (``--track-bias``).
         localize: see :class:`LogEstimator` (the layout gets a ``force`` slot per candidate).
-
-    Returns:
-        ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
+        overlap: the scan's second pass on a thread (see above).
 
     Raises:
         LogError: not Parquet, no joint names, mismatched joints, no sensor column, no ``q``, a
             bad ``t_ns``, a residual whose sensor is not in use or whose feature columns the
-            log lacks.
+            log lacks. Unreadable contact names are raised by :meth:`Prepared.finish`.
         InputError: ``constraints`` on a log whose contacts have no ``normal`` field, or no
             ``friction``/``cone_angle`` field and no default friction.
     """
@@ -272,7 +353,7 @@ def prepare(
             kernels.prepare_vm(model.dtype)  # machine without it, it builds while we scan
     extra = [] if residual is None else residual.extra_columns
     cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
-    scan = scan_log(pf, src, bool(cols.contact_fields))
+    step = scan_step(pf, src)
     le = LogEstimator(
         model,
         cols.joint_names,
@@ -284,18 +365,33 @@ def prepare(
         velocity_margin=velocity_margin,
         ft_range=ft_range,
         constraints=constraints,
-        step_ns=scan.step_ns,
+        step_ns=step,
         causal=causal,
         bias=bias,
         localize=localize,
     )
-    le.layout = le.decoder.layout = scan.layout(le.decoder.usable)
-    if le.localizer is not None:
-        le.layout = le.decoder.layout = localized_layout(le.layout, le.localizer.links)
-    le.decoder.whole_log_segment = scan.segments == 1
-    if cols.derived and scan.segments > 1:
-        warnings.warn(f"{src}: {scan.describe_time()}", UserWarning, stacklevel=3)
-    return pf, le, cols.columns, scan
+    contacts = bool(cols.contact_fields)
+    if overlap and not cols.derived and le.localizer is None:
+        from concurrent.futures import Future
+
+        scan = Future()
+        twin = open_log(path, metadata=pf.metadata)  # a reader of its own for the thread
+
+        def run() -> None:
+            try:
+                kernels.code_digest()  # the first kernel lookup's, off the noise estimate's way
+                scan.set_result(scan_rest(twin, src, contacts, step))
+            except BaseException as exc:  # raised by finish()
+                scan.set_exception(exc)
+
+        le.decoder.layout_pending = True
+        threading.Thread(target=run, name="torchcontact-scan", daemon=True).start()
+        return Prepared(pf, le, cols.columns, scan)
+    done = scan_rest(pf, src, contacts, step)
+    _use_scan(le, done)
+    if cols.derived and done.segments > 1:
+        warnings.warn(f"{src}: {done.describe_time()}", UserWarning, stacklevel=3)
+    return Prepared(pf, le, cols.columns, done)
 
 
 def run_ident(path: str | Path, model: RobotModel, le: LogEstimator, **options: Any) -> dict:
@@ -467,7 +563,10 @@ def with_head(
     rest = head.rest if kept else None
     rows = first + sum(d.n for d in kept)
     while kept:
-        yield kept.pop(0)
+        d = kept.pop(0)
+        if d.contacts is None and le.localizer is None:  # decoded before the layout was known
+            le.decoder.slots(d, le.model.dtype, le.model.device)
+        yield d
     if rest is not None:
         yield from rest
         return
@@ -632,19 +731,15 @@ def estimate_file(
                 " its state depends on every earlier frame; rerun from the start"
             )
         localize = run_localize(localize, model, robot)
-        pf, le, columns, scan = prepare(
-            path,
-            model,
-            sensors,
-            residual,
-            velocity_margin,
-            ft_range,
-            constraints,
-            causal,
-            bias,
-            localize,
-        )
-        head = log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
+        # the scan's second pass (the slot layout) runs beside the noise estimate's chunks
+        prep = open_prepared(path, model, sensors, residual, velocity_margin, ft_range,
+                             constraints, causal, bias, localize, overlap=True)  # fmt: skip
+        pf, le, columns = prep.pf, prep.le, prep.columns
+        try:
+            head = log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
+        finally:
+            prep.close()
+        scan = prep.finish()
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         # an interrupted run keeps its chunk size: read it before the ident is compared
