@@ -204,7 +204,7 @@ def _ray_prestart(args: argparse.Namespace) -> None:
 
 
 #: glibc's ``mallopt`` parameters (``<malloc.h>``).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
 
 def _keep_freed_memory() -> None:
@@ -216,9 +216,7 @@ def _keep_freed_memory() -> None:
     the kernel (219 k page faults in a warm 1 M-frame run, about 6% of its CPU; 88 k with these
     settings). mimalloc keeps its pages (unless ``MIMALLOC_PURGE_DELAY`` is set; read when
     pyarrow loads, so this runs before it is imported); glibc serves blocks up to 32 MiB from
-    one heap for every thread and trims it only above 1 GiB free (about 10 k fewer page faults
-    per 1 M frames than with an arena per thread). The bounded queues still bound the peak
-    memory.
+    its heap and trims only above 1 GiB free. The bounded queues still bound the peak memory.
     """
     import ctypes
     import platform
@@ -232,10 +230,6 @@ def _keep_freed_memory() -> None:
         return
     mallopt(_M_MMAP_THRESHOLD, 32 << 20)
     mallopt(_M_TRIM_THRESHOLD, 1 << 30)
-    # one arena: a thread's own arena grows in 64 MiB heaps that glibc unmaps whenever one is
-    # wholly free, whatever the trim threshold (the reader's chunks are freed by the estimating
-    # thread), so the next chunk faulted them in again
-    mallopt(_M_ARENA_MAX, 1)
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
