@@ -58,6 +58,7 @@ __all__ = [
     "LogColumns",
     "LogScan",
     "log_columns",
+    "name_leaves",
     "scan_log",
     "scan_rest",
     "scan_step",
@@ -256,8 +257,27 @@ def _name_leaf(pf: Any, name: str) -> str | None:
     return None
 
 
+def name_leaves(pf: Any) -> list[str]:
+    """The Parquet paths of the contacts' ``link`` and ``kind`` when both are text leaves.
+
+    A scan may read them as dictionary arrays (:func:`~torchcontact.logs.format.open_log`'s
+    ``dictionaries``); otherwise empty.
+    """
+    leaves = [_name_leaf(pf, n) for n in ("link", "kind")]
+    if None in leaves:
+        return []
+    meta = pf.metadata.schema
+    kinds = {meta.column(i).path: meta.column(i).physical_type for i in range(len(meta))}
+    return (
+        [p for p in leaves if kinds.get(p) == "BYTE_ARRAY"]
+        if all(kinds.get(p) == "BYTE_ARRAY" for p in leaves)
+        else []
+    )
+
+
 def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], int]) -> None:
     """Most records of each ``(link, kind)`` in one frame of a ``list<struct<link, kind>>``."""
+    import pyarrow as pa
     import pyarrow.compute as pc
 
     lst = one_array(lst)
@@ -269,7 +289,9 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
     frame = arrow_to_numpy(pc.list_parent_indices(lst), np.int64)
     codes = []
     for key in ("link", "kind"):
-        enc = pc.dictionary_encode(structs.field(key))
+        enc = structs.field(key)
+        if not pa.types.is_dictionary(enc.type):  # read as strings (else as the pages' own)
+            enc = pc.dictionary_encode(enc)
         gid = np.array([names.setdefault(str(v), len(names)) for v in enc.dictionary.to_pylist()]
                        + [-1], np.int64)  # fmt: skip
         codes.append(gid[arrow_to_numpy(enc.indices, np.int64, fill=len(gid) - 1)])
@@ -317,7 +339,7 @@ def scan_step(pf: Any, src: str) -> float:
     hist: dict[int, int] = {}
     last: int | None = None
     done = 0
-    for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src):
+    for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src, exact=False):
         t = timestamps(tab.column("t_ns"), src, done)
         step_histogram(t if last is None else np.r_[last, t], hist)
         last = int(t[-1]) if len(t) else last
@@ -345,7 +367,7 @@ def scan_rest(pf: Any, src: str, contacts: bool, step: float) -> LogScan:
     seg_start = 0  # first row of the open segment
     ctx = np.zeros(0, np.int64)  # the last two stamps before the block
     done = 0
-    for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src):
+    for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src, exact=False):
         t = timestamps(tab.column("t_ns"), src, done)
         if not len(t):
             continue

@@ -1076,13 +1076,15 @@ def struct_list(
 
 
 # ---------------------------------------------------------------------- reading
-def open_log(path: str | Path, metadata: Any = None) -> Any:
+def open_log(path: str | Path, metadata: Any = None, dictionaries: Sequence[str] = ()) -> Any:
     """Open a Parquet log for streaming; page checksums are verified where the file has them.
 
     Args:
         path: the file.
         metadata: the footer of the same file opened before (another reader of it, for another
             thread: a ``ParquetFile`` is not shared between threads); None: read it.
+        dictionaries: leaf columns to read as dictionary arrays (``read_dictionary``: the
+            pages' own dictionaries, no strings materialised).
 
     Returns:
         A ``pyarrow.parquet.ParquetFile``. Reads are not pre-buffered: pre-buffering keeps every
@@ -1099,7 +1101,11 @@ def open_log(path: str | Path, metadata: Any = None) -> Any:
         raise LogError(f"{path}: no such file")
     try:
         pf = pq.ParquetFile(
-            path, metadata=metadata, pre_buffer=False, page_checksum_verification=True
+            path,
+            metadata=metadata,
+            pre_buffer=False,
+            page_checksum_verification=True,
+            read_dictionary=list(dictionaries) or None,
         )
     except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
         raise LogError(f"{path}: not a readable Parquet file ({exc})") from None
@@ -1155,6 +1161,7 @@ def iter_chunks(
     batch_size: int,
     source: object = "",
     row_groups: Sequence[int] | None = None,
+    exact: bool = True,
 ) -> Iterator[Any]:
     """Tables of exactly ``batch_size`` rows (the last one shorter), whatever the row groups.
 
@@ -1164,6 +1171,8 @@ def iter_chunks(
         batch_size: rows per table (>= 1).
         source: file name for messages.
         row_groups: read only these consecutive row groups (default all).
+        exact: False: the tables as read instead, at most ``batch_size`` rows each, cut at the
+            row groups' ends (no copy to join them; for passes that need no fixed chunks).
 
     Yields:
         pyarrow tables, in file order.
@@ -1187,6 +1196,10 @@ def iter_chunks(
             raise _unreadable(pf, source, done + have, exc) from None
         if rb is None:
             break
+        if not exact:
+            yield pa.Table.from_batches([rb])
+            done += rb.num_rows
+            continue
         buf.append(rb)
         have += rb.num_rows
         while have >= batch_size:

@@ -56,6 +56,7 @@ from torchcontact.logs.chunks import (
 from torchcontact.logs.decode import (
     LogScan,
     log_columns,
+    name_leaves,
     scan_rest,
     scan_step,
     stamps_and_positions,
@@ -375,7 +376,8 @@ def open_prepared(
         from concurrent.futures import Future
 
         scan = Future()
-        twin = open_log(path, metadata=pf.metadata)  # a reader of its own for the thread
+        # a reader of its own for the thread, the contacts' names as the pages' dictionaries
+        twin = open_log(path, pf.metadata, name_leaves(pf) if contacts else ())
 
         def run() -> None:
             try:
