@@ -18,7 +18,10 @@ a ``temperature`` column, ``qd``/``qdd`` logged, joints in the log's own (shuffl
 block of 50,000 simulated frames is tiled with shifted ``t_ns`` up to ``--frames``. ``--robot
 tcarm`` uses the bundled arm instead (base sensor, skin frames).
 
-Default mode, every row in its own process, same log, medians of ``--repeat`` runs:
+Default mode, every row in its own process, same log, medians of ``--repeat`` runs. The warm
+rows (the floors, ``end to end, warm`` and ``--compare-with``'s) run in rounds, one of each per
+round, and the ratios are also given as the median over rounds of each round's own ratio: this
+machine's speed drifts by 10-20 % over minutes, which blocks of runs read as differences.
 
 - ``pyarrow floor``: reading the columns ``estimate`` reads (page checksums verified, chunks of
   8192) plus writing the estimate table (loaded first, not timed) with the output's writer
@@ -403,6 +406,33 @@ def median_run(args, kind, log, out, extra="", env=None, watch=None):
     return r
 
 
+def interleaved_runs(args, log, out, specs: dict) -> dict:
+    """``args.repeat`` rounds of one run of each spec (``name: (kind, extra, env)``), in turn.
+
+    Returns:
+        ``name ->`` its median run (as :func:`median_run`), with ``runs``: every run, by round.
+    """
+    runs: dict = {name: [] for name in specs}
+    for _ in range(args.repeat):
+        for name, (kind, extra, env) in specs.items():
+            runs[name].append(run_child(kind, args.robot, log, out, extra, env))
+    out_ = {}
+    for name, rs in runs.items():
+        r = dict(sorted(rs, key=lambda x: x["seconds"])[len(rs) // 2])
+        r["all"] = [round(x["seconds"], 3) for x in rs]
+        r["compilers"] = max(x["compilers"] for x in rs)
+        r["runs"] = rs
+        out_[name] = r
+    return out_
+
+
+def paired_ratio(rounds: dict, a: str, b: str) -> str:
+    """Median over rounds of ``a``'s seconds / ``b``'s in the same round (drift cancels)."""
+    pairs = zip(rounds[a]["runs"], rounds[b]["runs"], strict=True)
+    r = [x["seconds"] / y["seconds"] for x, y in pairs]
+    return f"{statistics.median(r):.2f}"
+
+
 def help_seconds(n: int = 5) -> tuple[float, float]:
     """Median wall time of ``torchcontact --help`` and of ``python -c pass``."""
     exe = [sys.executable, "-m", "torchcontact.cli", "--help"]
@@ -457,10 +487,24 @@ def mode_table(args, tmp: Path) -> None:
     _, _, columns, _ = prepare(log, tc.RobotModel.from_urdf(urdf))
     Path(str(est) + ".columns").write_text(json.dumps(columns))
 
-    floor = median_run(args, "floor", log, out, str(est))
-    floor_defaults = median_run(args, "floor-defaults", log, out, str(est))
-    warm = median_run(args, "e2e", log, out, args.device, warm_env)
-    warm_imported = median_run(args, "e2e-imported", log, out, args.device, warm_env)
+    # the warm runs in rounds (floor, this tree, the other tree, ...): this machine's speed
+    # drifts by 10-20 % over minutes, which blocks of runs would read as differences
+    specs = {
+        "floor": ("floor", str(est), None),
+        "floor-defaults": ("floor-defaults", str(est), None),
+        "e2e": ("e2e", args.device, warm_env),
+        "e2e-imported": ("e2e-imported", args.device, warm_env),
+    }
+    if args.compare_with:  # another checkout (e.g. the commit before), same log
+        code = str(Path(args.compare_with).resolve())
+        # its own cache: warm means the kernels that tree builds, not those this one adds
+        env = {**warm_env, "PYTHONPATH": code, "TC_BENCH_CODE": code,
+               "TORCHCONTACT_CACHE": str(tmp / "cache-compare")}  # fmt: skip
+        warm_up(args, log, out, env)  # its kernels into the cache
+        specs["base"] = ("e2e", args.device, env)
+    rounds = interleaved_runs(args, log, out, specs)
+    floor, floor_defaults = rounds["floor"], rounds["floor-defaults"]
+    warm, warm_imported, base = rounds["e2e"], rounds["e2e-imported"], rounds.get("base")
     colds = []
     for i in range(args.repeat):
         cache = str(tmp / f"cache-cold-{time.time_ns()}-{i}")
@@ -480,14 +524,6 @@ def mode_table(args, tmp: Path) -> None:
     cold["compilers"] = max(x["compilers"] for x in colds)
     cold["all"] = [round(x["seconds"], 3) for x in colds]
     inmem = median_run(args, "inmem", log, out, "", warm_env)
-    base = None
-    if args.compare_with:  # another checkout (e.g. the commit before), same log
-        code = str(Path(args.compare_with).resolve())
-        # its own cache: warm means the kernels that tree builds, not those this one adds
-        env = {**warm_env, "PYTHONPATH": code, "TC_BENCH_CODE": code,
-               "TORCHCONTACT_CACHE": str(tmp / "cache-compare")}  # fmt: skip
-        warm_up(args, log, out, env)  # its kernels into the cache
-        base = median_run(args, "e2e", log, out, args.device, env)
     second = second_run_during_build(args, log, tmp) if not args.no_race_build else "not run"
     helps, bare = help_seconds()
     n = floor["frames"]
@@ -522,9 +558,11 @@ def mode_table(args, tmp: Path) -> None:
     print()
     ratio = floor["seconds"] / warm["seconds"]
     cpu_ratio = floor["cpu"] / warm["cpu"]
+    paired = paired_ratio(rounds, "floor", "e2e")
     print("| goal | measured |")
     print("|---|---|")
-    print(f"| end to end (warm) / pyarrow floor >= 0.8 | {ratio:.2f} (CPU: {cpu_ratio:.2f}) |")
+    print(f"| end to end (warm) / pyarrow floor >= 0.8 | {ratio:.2f} (CPU: {cpu_ratio:.2f});"
+          f" per round {paired} |")  # fmt: skip
     print(f"| end to end (warm, pyarrow imported first) / pyarrow floor |"
           f" {floor['seconds'] / warm_imported['seconds']:.2f}"
           f" (CPU: {floor['cpu'] / warm_imported['cpu']:.2f}) |")  # fmt: skip
@@ -537,7 +575,8 @@ def mode_table(args, tmp: Path) -> None:
     if base is not None:
         print(f"| end to end (warm), this checkout vs {args.compare_with} |"
               f" {base['seconds'] / warm['seconds']:.2f}x faster"
-              f" (CPU: {base['cpu'] / warm['cpu']:.2f}x) |")  # fmt: skip
+              f" (CPU: {base['cpu'] / warm['cpu']:.2f}x); per round"
+              f" {paired_ratio(rounds, 'base', 'e2e')}x |")  # fmt: skip
     print(f"| `torchcontact --help` <= 0.3 s | {helps:.3f} s (python -c pass: {bare:.3f} s) |")
     print(f"| a second run while the first one's kernel builds | {second} |")
     print(f"| compilers at once, cold run (one kernel per log) <= 1 | {cold['compilers']} |")
