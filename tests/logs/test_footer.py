@@ -69,3 +69,28 @@ def test_more_than_15_parts_and_a_truncated_footer(tmp_path):
     assert (tmp_path / "parts.parquet").read_bytes() == (tmp_path / "one.parquet").read_bytes()
     with pytest.raises(_footer.FooterError, match="truncated"):
         _footer.join_footers([(4, parts[0].footer), (100, parts[1].footer[:-40])])
+
+
+def test_footer_joined_part_by_part_and_after_a_resume(tmp_path):
+    """PartsWriter joins each part's footer as it appends it: the same file as one writer's, also
+    when a resumed writer starts from recorded parts; a part it cannot read adds nothing."""
+    tables = [_table(n, i) for i, n in enumerate((7, 30, 1, 12))]
+    _file(tables, tmp_path / "one.parquet")
+    parts = [encode_part(t, t.schema) for t in tables]
+    w = PartsWriter(tmp_path / "parts.parquet", tables[0].schema)
+    done = [w.append(p) for p in parts[:2]]
+    w.abort(keep=True)  # interrupted: its first two parts recorded
+    w = PartsWriter(tmp_path / "parts.parquet", tables[0].schema, done)
+    for p in parts[2:]:
+        w.append(p)
+    w.close()
+    assert (tmp_path / "parts.parquet").read_bytes() == (tmp_path / "one.parquet").read_bytes()
+
+    join = _footer.FooterJoin()
+    join.add(4, parts[0].footer)
+    before = join.footer()
+    with pytest.raises(_footer.FooterError, match="truncated"):
+        join.add(100, parts[1].footer[:-40])
+    assert join.footer() == before == _footer.join_footers([(4, parts[0].footer)])
+    with pytest.raises(_footer.FooterError, match="no part"):
+        _footer.FooterJoin().footer()

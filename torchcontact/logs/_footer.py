@@ -19,7 +19,15 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterable
 
-__all__ = ["MAGIC", "footer_bytes", "footer_rows", "join_footers", "split_file", "standalone"]
+__all__ = [
+    "MAGIC",
+    "FooterJoin",
+    "footer_bytes",
+    "footer_rows",
+    "join_footers",
+    "split_file",
+    "standalone",
+]
 
 MAGIC = b"PAR1"
 
@@ -312,12 +320,37 @@ def join_footers(parts: Iterable[tuple[int, bytes]]) -> bytes:
     Raises:
         FooterError: no part, or a footer this module cannot read.
     """
-    first: bytes | None = None
-    groups = bytearray()
-    count = rows = 0
-    try:
-        for start, footer in parts:
-            first = footer if first is None else first
+    join = FooterJoin()
+    for start, footer in parts:
+        join.add(start, footer)
+    return join.footer()
+
+
+class FooterJoin:
+    """:func:`join_footers` a part at a time.
+
+    Each part's row groups are shifted when it is added (the writer thread adds each part as it
+    appends it, during the run); :meth:`footer` assembles the footer at the end.
+    """
+
+    def __init__(self) -> None:
+        self.first: bytes | None = None
+        self.groups = bytearray()
+        self.count = 0
+        self.rows = 0
+        #: the first footer's other fields: id -> its value's bytes (the parts of one run have the
+        #: same schema and metadata: a later part's field is passed over by comparing bytes)
+        self._same: dict[int, bytes] = {}
+
+    def add(self, start: int, footer: bytes) -> None:
+        """Add the part whose column chunks begin at byte ``start`` (see :func:`join_footers`).
+
+        Raises:
+            FooterError: a footer this module cannot read (nothing of it is added).
+        """
+        groups, count, rows = bytearray(), self.count, 0
+        values: dict[int, bytes] = {}
+        try:
             delta = start - 4
             seen = set()
             fid, ft, i = _field(footer, 0, 0)
@@ -333,36 +366,60 @@ def join_footers(parts: Iterable[tuple[int, bytes]]) -> bytes:
                         i = _row_group_at(footer, i, groups, delta, count)
                         count += 1
                 elif ft not in (_TRUE, _FALSE):
-                    i = _skip(footer, i, ft)
+                    same = self._same.get(fid)
+                    if same is not None and footer.startswith(same, i):
+                        # the compact protocol is read byte after byte: a value whose bytes
+                        # begin with another whole value's bytes is that value
+                        i += len(same)
+                    else:
+                        i0, i = i, _skip(footer, i, ft)
+                        if self.first is None:
+                            values[fid] = bytes(footer[i0:i])
                 seen.add(fid)
                 fid, ft, i = _field(footer, i, fid)
-            if i != len(footer):
-                raise FooterError("trailing bytes after the Parquet footer")
-            if not {_FMD_NUM_ROWS, _FMD_ROW_GROUPS} <= seen:
-                raise FooterError("a Parquet footer without its row count or row groups")
+        except IndexError:
+            raise FooterError("a truncated Parquet footer") from None
+        if i != len(footer):
+            raise FooterError("trailing bytes after the Parquet footer")
+        if not {_FMD_NUM_ROWS, _FMD_ROW_GROUPS} <= seen:
+            raise FooterError("a Parquet footer without its row count or row groups")
+        if self.first is None:
+            self._same = values
+        self.first = footer if self.first is None else self.first
+        self.groups += groups
+        self.count, self.rows = count, self.rows + rows
+
+    def footer(self) -> bytes:
+        """The joined footer of the parts added so far.
+
+        Raises:
+            FooterError: no part added.
+        """
+        first = self.first
         if first is None:
             raise FooterError("no part to join")
         # the first part's footer with the row count and the row groups replaced
         out = bytearray()
         h0 = 0
-        fid, ft, i = _field(first, 0, 0)
-        while ft != _STOP:
-            end = i if ft in (_TRUE, _FALSE) else _skip(first, i, ft)
-            out += first[h0:i]
-            if fid == _FMD_NUM_ROWS:
-                _put_varint(out, _zig(rows))
-            elif fid == _FMD_ROW_GROUPS:
-                if count < 15:
-                    out.append(count << 4 | _STRUCT)
+        try:
+            fid, ft, i = _field(first, 0, 0)
+            while ft != _STOP:
+                end = i if ft in (_TRUE, _FALSE) else _skip(first, i, ft)
+                out += first[h0:i]
+                if fid == _FMD_NUM_ROWS:
+                    _put_varint(out, _zig(self.rows))
+                elif fid == _FMD_ROW_GROUPS:
+                    if self.count < 15:
+                        out.append(self.count << 4 | _STRUCT)
+                    else:
+                        out.append(0xF0 | _STRUCT)
+                        _put_varint(out, self.count)
+                    out += self.groups
                 else:
-                    out.append(0xF0 | _STRUCT)
-                    _put_varint(out, count)
-                out += groups
-            else:
-                out += first[i:end]
-            h0 = end
-            fid, ft, i = _field(first, end, fid)
+                    out += first[i:end]
+                h0 = end
+                fid, ft, i = _field(first, end, fid)
+        except IndexError:
+            raise FooterError("a truncated Parquet footer") from None
         out.append(_STOP)
-    except IndexError:
-        raise FooterError("a truncated Parquet footer") from None
-    return bytes(out)
+        return bytes(out)

@@ -1515,7 +1515,7 @@ class PartsWriter:
     """
 
     def __init__(self, path: str | Path, schema: Any, done: Sequence[PartIndex] = ()) -> None:
-        from torchcontact.logs._footer import MAGIC
+        from torchcontact.logs._footer import MAGIC, FooterJoin
 
         self.path = Path(path)
         self.tmp = _tmp(self.path)
@@ -1538,6 +1538,10 @@ class PartsWriter:
             self._file = open(self.tmp, "wb", buffering=0)
             self._file.write(MAGIC)
         self.position = self.parts[-1].end if self.parts else len(MAGIC)
+        # the footer is joined as the parts come (on the appending thread), not all at close
+        self._join = FooterJoin()
+        for p in self.parts:
+            self._join.add(p.start, p.footer)
 
     def append(self, part: EncodedPart) -> PartIndex:
         """Append an encoded part; returns where it lies (handed to the OS when this returns)."""
@@ -1545,6 +1549,7 @@ class PartsWriter:
         done = 0
         while done < len(view):  # a raw file may write less than asked
             done += self._file.write(view[done:])
+        self._join.add(self.position, part.footer)  # its row groups shifted to where they lie
         index = PartIndex(self.position, len(view), part.rows, part.footer)
         self.position += len(view)
         self.parts.append(index)
@@ -1553,11 +1558,11 @@ class PartsWriter:
 
     def close(self) -> None:
         """Write the joined footer and rename the file (an empty log keeps its schema)."""
-        from torchcontact.logs._footer import footer_bytes, join_footers
+        from torchcontact.logs._footer import footer_bytes
 
         if not self.parts:
             self.append(encode_part(self.schema.empty_table(), self.schema))
-        self._file.write(footer_bytes(join_footers((p.start, p.footer) for p in self.parts)))
+        self._file.write(footer_bytes(self._join.footer()))
         self._file.close()
         os.replace(self.tmp, self.path)
 
