@@ -367,3 +367,15 @@ def test_bad_options_are_refused_before_anything_is_written(model, sim_log, tmp_
 
 def tcarm():
     return tc.robots.tcarm_path()
+
+
+def test_status_text_per_code():
+    """Each frame's status text is its code's messages, for status bits (counted) and any other
+    int64 code (sorted)."""
+    from torchcontact.logs.decode import status_text
+    from torchcontact.status import status_messages
+
+    rng = np.random.default_rng(0)
+    for code in (np.zeros(5, np.int64), rng.choice([0, 2, 4, 64, 66, 128], 500),
+                 np.zeros(0, np.int64), np.array([1 << 40, 0, 3, 1 << 40])):  # fmt: skip
+        assert status_text(code).to_pylist() == [status_messages(int(c)) for c in code]

@@ -440,7 +440,14 @@ class FrameIssues:
 
 def status_text(code: np.ndarray) -> Any:
     """``(n,)`` pyarrow string array of :func:`~torchcontact.status_messages` per code."""
-    uniq, which = np.unique(code, return_inverse=True)
+    code = np.asarray(code, np.int64).reshape(-1)
+    if len(code) and 0 <= code.min() and code.max() < 1 << 16:  # status bits: count, not sort
+        uniq = np.flatnonzero(np.bincount(code))
+        lut = np.zeros(int(uniq[-1]) + 1, np.int64)
+        lut[uniq] = np.arange(len(uniq))
+        which = lut[code]
+    else:
+        uniq, which = np.unique(code, return_inverse=True)
     texts = string_array([status_messages(int(c)) for c in uniq])
     return texts.take(numpy_to_arrow(which.reshape(-1)))
 
