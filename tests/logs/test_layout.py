@@ -57,7 +57,8 @@ def _same_rows(a, b):
     )
 
 
-def test_one_layout_per_log_same_rows_as_one_per_chunk(model, changing, tmp_path, monkeypatch):
+def _layouts_seen(monkeypatch):
+    """The ``(links, kinds)`` of every ContactEstimator.estimate call from now on."""
     seen = []
     real = ContactEstimator.estimate
 
@@ -66,6 +67,11 @@ def test_one_layout_per_log_same_rows_as_one_per_chunk(model, changing, tmp_path
         return real(self, q, qd, qdd, ft, contacts, **kw)
 
     monkeypatch.setattr(ContactEstimator, "estimate", spy)
+    return seen
+
+
+def test_one_layout_per_log_same_rows_as_one_per_chunk(model, changing, tmp_path, monkeypatch):
+    seen = _layouts_seen(monkeypatch)
     s = estimate_file(changing, model, tmp_path / "o.parquet", batch_size=128)
     out = pq.read_table(s["output"])
     # the most records of each (link, kind) in one frame over the whole file
@@ -142,14 +148,7 @@ def test_scan_on_a_thread_beside_the_noise_estimate(model, sim_log, tmp_path, mo
 
     real_decode = ChunkDecoder.decode
     monkeypatch.setattr(ChunkDecoder, "decode", decode)
-    seen = []
-    real_est = ContactEstimator.estimate
-
-    def spy(self, q, qd, qdd, ft, contacts, **kw):
-        seen.append((contacts.links, contacts.kinds))
-        return real_est(self, q, qd, qdd, ft, contacts, **kw)
-
-    monkeypatch.setattr(ContactEstimator, "estimate", spy)
+    seen = _layouts_seen(monkeypatch)
     monkeypatch.setattr(pl, "scan_rest", slow)
     a = estimate_file(sim_log, model, tmp_path / "a.parquet", batch_size=pl.NOISE_BATCH)
     assert pending[0] is True  # decoded (for the noise) while the scan ran

@@ -231,20 +231,12 @@ def load_residual(checkpoint: str | Path, model: RobotModel) -> Any:
 
 
 def prepare(
-    path: str | Path,
-    model: RobotModel,
-    sensors: Sequence[str] | None = None,
-    residual: Any = None,
-    velocity_margin: float | None = DEFAULT_VELOCITY_MARGIN,
-    ft_range: Mapping[str, Any] | None = None,
-    constraints: LogConstraints | None = None,
-    causal: tuple[int, int] | None = None,
-    bias: LogBias | None = None,
-    localize: LogLocalize | None = None,
+    path: str | Path, model: RobotModel, *args: Any, **kwargs: Any
 ) -> tuple[Any, LogEstimator, list[str], LogScan]:
     """Open a log, scan it and build its :class:`LogEstimator` with the log's slot layout.
 
-    :func:`open_prepared` and :meth:`Prepared.finish` at once (same arguments).
+    :func:`open_prepared` (the same arguments; the scan on the calling thread) and
+    :meth:`Prepared.finish` at once.
 
     Returns:
         ``(ParquetFile, LogEstimator, columns to read, LogScan)``.
@@ -252,8 +244,7 @@ def prepare(
     Raises:
         LogError, InputError: as :func:`open_prepared` and :meth:`Prepared.finish`.
     """
-    p = open_prepared(path, model, sensors, residual, velocity_margin, ft_range, constraints,
-                      causal, bias, localize)  # fmt: skip
+    p = open_prepared(path, model, *args, **kwargs)
     return p.pf, p.le, p.columns, p.finish()
 
 
