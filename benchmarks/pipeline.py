@@ -398,32 +398,32 @@ def warm_up(args, log, out, env) -> None:
 
 
 # ---------------------------------------------------------------------- modes
-def median_run(args, kind, log, out, extra="", env=None, watch=None):
-    runs = [run_child(kind, args.robot, log, out, extra, env, watch) for _ in range(args.repeat)]
+def median_of(runs: list) -> dict:
+    """The median run (by seconds) of ``runs``, with ``all`` their seconds and ``compilers`` the
+    most compilers any of them saw."""
     r = dict(sorted(runs, key=lambda x: x["seconds"])[len(runs) // 2])
     r["all"] = [round(x["seconds"], 3) for x in runs]
     r["compilers"] = max(x["compilers"] for x in runs)
     return r
 
 
+def median_run(args, kind, log, out, extra="", env=None, watch=None):
+    return median_of(
+        [run_child(kind, args.robot, log, out, extra, env, watch) for _ in range(args.repeat)]
+    )
+
+
 def interleaved_runs(args, log, out, specs: dict) -> dict:
     """``args.repeat`` rounds of one run of each spec (``name: (kind, extra, env)``), in turn.
 
     Returns:
-        ``name ->`` its median run (as :func:`median_run`), with ``runs``: every run, by round.
+        ``name ->`` its median run (:func:`median_of`), with ``runs``: every run, by round.
     """
     runs: dict = {name: [] for name in specs}
     for _ in range(args.repeat):
         for name, (kind, extra, env) in specs.items():
             runs[name].append(run_child(kind, args.robot, log, out, extra, env))
-    out_ = {}
-    for name, rs in runs.items():
-        r = dict(sorted(rs, key=lambda x: x["seconds"])[len(rs) // 2])
-        r["all"] = [round(x["seconds"], 3) for x in rs]
-        r["compilers"] = max(x["compilers"] for x in rs)
-        r["runs"] = rs
-        out_[name] = r
-    return out_
+    return {name: {**median_of(rs), "runs": rs} for name, rs in runs.items()}
 
 
 def paired_ratio(rounds: dict, a: str, b: str) -> str:
@@ -520,9 +520,7 @@ def mode_table(args, tmp: Path) -> None:
             )
         )
         _settle(cache)  # its builds go on after it: not into the next timing
-    cold = dict(sorted(colds, key=lambda x: x["seconds"])[len(colds) // 2])
-    cold["compilers"] = max(x["compilers"] for x in colds)
-    cold["all"] = [round(x["seconds"], 3) for x in colds]
+    cold = median_of(colds)
     inmem = median_run(args, "inmem", log, out, "", warm_env)
     second = second_run_during_build(args, log, tmp) if not args.no_race_build else "not run"
     helps, bare = help_seconds()

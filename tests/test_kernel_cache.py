@@ -177,7 +177,7 @@ def test_a_second_process_runs_while_a_build_is_being_written(cache, monkeypatch
     prog = dynamics.program(model, "id", False, False)
     q = torch.linspace(-3, 3, N, dtype=torch.float64)[:, None]
     ref = model.inverse_dynamics(q, q, q, backend="eager")  # warm up before A starts
-    kernels._code_digest()
+    kernels.code_digest()
     body = "models[0].inverse_dynamics(q[:8], q[:8], q[:8], backend='cpu')\n"  # builds, waits
     a = subprocess.Popen([sys.executable, "-c", _snippet([0.45], body)], cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip

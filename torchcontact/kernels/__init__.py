@@ -230,18 +230,10 @@ def _write_source(cpp: Path, src: str) -> None:
 def code_digest() -> str:
     """sha256 of torchcontact's Python sources (once per process, 6-20 ms; thread-safe).
 
-    The first kernel lookup of a process needs it: a log run computes it on a thread of its
-    own beside its first chunks (:func:`torchcontact.logs.pipeline.open_prepared`).
-    """
-    return _code_digest()
-
-
-def _code_digest() -> str:
-    """sha256 of torchcontact's Python sources (once per process, ~20 ms).
-
     A program's key names its constants (model, layout, flags); the code that turns them into
     a program is named by this digest, so an index record never outlives the code it was made
-    with.
+    with. The first kernel lookup of a process needs it: a log run computes it on a thread of
+    its own beside its first chunks (:func:`torchcontact.logs.pipeline.open_prepared`).
     """
     if not _code:
         root = Path(__file__).resolve().parents[1]
@@ -254,7 +246,7 @@ def _code_digest() -> str:
 
 def _key_hash(program: Program, dtype: torch.dtype) -> str:
     """Hash of what determines a CPU kernel's source without tracing: code, key, machine."""
-    ident = (f"{_VERSION}|{_code_digest()}|{torch.__version__}|{_machine_tag()}|"
+    ident = (f"{_VERSION}|{code_digest()}|{torch.__version__}|{_machine_tag()}|"
              f"{_vector_bytes()}|{program.name}|{program.key}|{dtype}")  # fmt: skip
     return hashlib.sha256(ident.encode()).hexdigest()[:32]
 

@@ -384,8 +384,7 @@ class FooterJoin:
         if not {_FMD_NUM_ROWS, _FMD_ROW_GROUPS} <= seen:
             raise FooterError("a Parquet footer without its row count or row groups")
         if self.first is None:
-            self._same = values
-        self.first = footer if self.first is None else self.first
+            self.first, self._same = footer, values
         self.groups += groups
         self.count, self.rows = count, self.rows + rows
 

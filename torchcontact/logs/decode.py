@@ -263,16 +263,11 @@ def name_leaves(pf: Any) -> list[str]:
     A scan may read them as dictionary arrays (:func:`~torchcontact.logs.format.open_log`'s
     ``dictionaries``); otherwise empty.
     """
-    leaves = [_name_leaf(pf, n) for n in ("link", "kind")]
-    if None in leaves:
-        return []
     meta = pf.metadata.schema
     kinds = {meta.column(i).path: meta.column(i).physical_type for i in range(len(meta))}
-    return (
-        [p for p in leaves if kinds.get(p) == "BYTE_ARRAY"]
-        if all(kinds.get(p) == "BYTE_ARRAY" for p in leaves)
-        else []
-    )
+    leaves = [_name_leaf(pf, n) for n in ("link", "kind")]
+    text = [p for p in leaves if p is not None and kinds.get(p) == "BYTE_ARRAY"]
+    return text if len(text) == 2 else []
 
 
 def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], int]) -> None:

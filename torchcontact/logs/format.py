@@ -956,8 +956,9 @@ def read_contacts(
     for name in ("friction", "cone_angle", "pushing"):
         if name in fields:
             col = fields[name]
-            plain = pa.types.is_floating(col.type) or pa.types.is_integer(col.type)
-            if not cones and (plain or pa.types.is_boolean(col.type)):
+            typ = pa.types
+            if not cones and (typ.is_floating(col.type) or typ.is_integer(col.type)
+                              or typ.is_boolean(col.type)):  # fmt: skip
                 col = col.slice(0, 0)  # converts: nothing to check in the values
             try:
                 col = pc.cast(col, pa.float64())
