@@ -732,12 +732,15 @@ def mode_ray(args, tmp: Path) -> None:
         t = time.perf_counter() - t0
         return t, (_machine_cpu() - c0) / t
 
-    local, busy = timed(lambda: run_child("e2e", args.robot, log, tmp / "out.parquet",
-                                          args.device, env))  # fmt: skip
-    (tmp / "out.parquet").unlink(missing_ok=True)
-    print(f"| local | {local:.1f} | {args.ray / local:,.0f} | 1.00 | {busy:.1f} |", flush=True)
+    local = None
+    if not args.no_local:
+        local, busy = timed(lambda: run_child("e2e", args.robot, log, tmp / "out.parquet",
+                                              args.device, env))  # fmt: skip
+        (tmp / "out.parquet").unlink(missing_ok=True)
+        print(f"| local | {local:.1f} | {args.ray / local:,.0f} | 1.00 | {busy:.1f} |", flush=True)
     base = None
     spans = []  # (workers, epoch seconds at the command's start and end) of each Ray run
+    phases = []  # (workers, the driver's phases from the run's summary)
     for w in args.workers:
         out = tmp / "ray.parquet"
         # the console script's entry (`torchcontact estimate`), which ends the process once the
@@ -755,13 +758,26 @@ def mode_ray(args, tmp: Path) -> None:
                 if r.returncode:
                     raise RuntimeError(r.stderr[-2000:])
                 spans.append((w, e0, time.time()))
+                summary = json.loads(r.stdout)
+                summary = summary[0] if isinstance(summary, list) else summary
+                phases.append((w, summary.get("phases_s", {})))
 
             t.append(timed(one))
         s, busy = sorted(t)[len(t) // 2]
         base = base or s
-        print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} | {local / s:.2f}"
-              f" (x{base / s:.1f} vs 1 worker) | {busy:.1f} |", flush=True)  # fmt: skip
+        vs_local = "" if local is None else f"{local / s:.2f} "
+        print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} | {vs_local}"
+              f"(x{base / s:.1f} vs 1 worker) | {busy:.1f} |", flush=True)  # fmt: skip
     (tmp / "ray.parquet").unlink(missing_ok=True)
+    print(
+        "\nThe driver's phases (the summary's `phases_s`: seconds from the estimate's start, after"
+        " the command's imports and Ray's connect):\n"
+    )
+    print("| workers | Ray started | log scanned | first unit done | published |")
+    print("|---:|---:|---:|---:|---:|")
+    for w, ph in phases:
+        cells = [ph.get(k) for k in ("ray_started", "log_scanned", "first_unit_done", "published")]
+        print(f"| {w} | " + " | ".join("" if c is None else f"{c:.2f}" for c in cells) + " |")
     if os.environ.get("RAY_ADDRESS"):  # a running cluster keeps its task events
         units = -(-args.ray // (8 * BATCH))  # the engine's default units
         code = f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); " \
@@ -785,14 +801,26 @@ def ray_timelines(spans, total_units: int) -> None:
     time.sleep(3)  # the workers report their task events every second
     events = ray.timeline()
     print("| workers | warm-ups sent | first warm-up runs | first unit | last unit ends |"
-          " run ends | units seen | unit s (median) | workers busy |")  # fmt: skip
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          " run ends | units seen | unit s (median; mean) | workers busy | idle between a"
+          " worker's units (median; total s) | a worker's first unit (last) |")  # fmt: skip
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for w, a, b in spans:
         ev = [e for e in events if a * 1e6 <= e.get("ts", 0) <= b * 1e6]
 
         def named(suffix, ev=ev, a=a):
             return [(e["ts"] / 1e6 - a, e.get("dur", 0) / 1e6) for e in ev
                     if e.get("name", "").endswith(suffix)]  # fmt: skip
+
+        per_worker: dict = {}  # (node, worker) -> its units' (start, end), in order
+        for e in ev:
+            if e.get("name", "").endswith("_estimate_units"):
+                t = e["ts"] / 1e6 - a
+                per_worker.setdefault((e.get("pid"), e.get("tid")), []).append(
+                    (t, t + e.get("dur", 0) / 1e6)
+                )
+        idle = [b2 - e1 for us in per_worker.values() for (_, e1), (b2, _) in
+                zip(sorted(us), sorted(us)[1:], strict=False)]  # fmt: skip
+        starts = [min(us)[0] for us in per_worker.values()]
 
         sent = [t for t, _ in named("submit_task")]
         # the CLI's import tasks (before the driver imports torch), then the model warm-ups
@@ -806,7 +834,10 @@ def ray_timelines(spans, total_units: int) -> None:
         print(f"| {w} | {min(sent, default=float('nan')):.2f} |"
               f" {min((t for t, _ in warm), default=float('nan')):.2f} | {first:.2f} |"
               f" {last:.2f} | {b - a:.2f} | {len(units)} of {total_units} |"
-              f" {statistics.median(d for _, d in units):.2f} | {busy:.0%} |")  # fmt: skip
+              f" {statistics.median(d for _, d in units):.2f};"
+              f" {statistics.mean(d for _, d in units):.2f} | {busy:.0%} |"
+              f" {statistics.median(idle) if idle else 0:.3f}; {sum(idle):.1f} |"
+              f" {max(starts):.2f} |")  # fmt: skip
 
 
 def mode_race(args, tmp: Path) -> None:
@@ -899,6 +930,7 @@ def main() -> None:
     )
     ap.add_argument("--ray", type=int, default=0, help="frames of the Ray comparison")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--no-local", action="store_true", help="Ray runs only (no local engine)")
     ap.add_argument("--race", type=int, default=0, help="tries of two runs on one output")
     ap.add_argument("--race-frames", type=int, default=200_000)
     ap.add_argument("--child", nargs=5, help=argparse.SUPPRESS)

@@ -33,3 +33,24 @@ def sim_log_q_only(model, tmp_path_factory):
     """The same trajectory without qd/qdd (the pipeline derives them)."""
     path = tmp_path_factory.mktemp("simq") / "log.parquet"
     return write_simulated_log(model, 600, path, seed=3, derivatives=False)
+
+
+@pytest.fixture(scope="session")
+def changing(sim_log, tmp_path_factory):
+    """The simulated log with its contact set changed mid-file: until frame 300 only the records
+    on forearm_skin, from there on every record plus a second copy of each hand_skin one."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    tab = pq.read_table(sim_log)
+    rows = tab["contacts"].to_pylist()
+    for i, row in enumerate(rows):
+        if i < 300:
+            rows[i] = [c for c in row if c["link"] == "forearm_skin"]
+        else:
+            rows[i] = row + [dict(c) for c in row if c["link"] == "hand_skin"]
+    contacts = pa.array(rows, tab.schema.field("contacts").type)
+    path = tmp_path_factory.mktemp("changing") / "log.parquet"
+    pq.write_table(tab.set_column(tab.schema.get_field_index("contacts"), "contacts", contacts),
+                   path)  # fmt: skip
+    return path

@@ -14,24 +14,6 @@ from torchcontact.logs import pipeline as pl
 from torchcontact.logs.format import read_contacts
 
 
-@pytest.fixture(scope="module")
-def changing(sim_log, tmp_path_factory):
-    """The simulated log with its contact set changed mid-file: until frame 300 only the records
-    on forearm_skin, from there on every record plus a second copy of each hand_skin one."""
-    tab = pq.read_table(sim_log)
-    rows = tab["contacts"].to_pylist()
-    for i, row in enumerate(rows):
-        if i < 300:
-            rows[i] = [c for c in row if c["link"] == "forearm_skin"]
-        else:
-            rows[i] = row + [dict(c) for c in row if c["link"] == "hand_skin"]
-    contacts = pa.array(rows, tab.schema.field("contacts").type)
-    path = tmp_path_factory.mktemp("changing") / "log.parquet"
-    pq.write_table(tab.set_column(tab.schema.get_field_index("contacts"), "contacts", contacts),
-                   path)  # fmt: skip
-    return path
-
-
 def _per_chunk(model, path, batch_size):
     """The output with one layout per chunk (the layout covering each chunk's own records)."""
     pf, le, columns, _ = pl.prepare(path, model)

@@ -92,8 +92,12 @@ def test_two_nodes_same_rows_and_summary_as_local(cluster, small_groups, local, 
     r = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "ray.parquet", **KW)
     err = capfd.readouterr().err
     assert "INFO" not in err and "WARNING" not in err  # no Ray log lines, one progress bar
-    assert set(r) == set(local) | {"nodes"} and r["engine"] == "ray" and r["chunks"] == 3
-    assert r["nodes"] == 2  # the units ran on both nodes
+    assert set(r) == set(local) | {"nodes", "phases_s"} and r["engine"] == "ray"
+    assert r["chunks"] == 3 and r["nodes"] == 2  # the units ran on both nodes
+    ph = r["phases_s"]  # the driver's phases, in order
+    assert list(ph) == ["ray_started", "log_scanned", "first_unit_done", "published"]
+    assert 0 <= ph["ray_started"] <= ph["first_unit_done"] <= ph["published"] == r["seconds"]
+    assert ph["log_scanned"] <= ph["first_unit_done"]
     for k in ("frames", "processed_now", "ok_now", "bad_now", "sensors", "derived", "slots"):
         assert r[k] == local[k], k
     assert r["derived"] == ["qd", "qdd"]  # derived across the edges of the units

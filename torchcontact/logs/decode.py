@@ -58,10 +58,10 @@ __all__ = [
     "LogColumns",
     "LogScan",
     "log_columns",
-    "name_leaves",
     "scan_log",
     "scan_rest",
     "scan_step",
+    "scan_threads",
     "status_text",
 ]
 
@@ -257,19 +257,6 @@ def _name_leaf(pf: Any, name: str) -> str | None:
     return None
 
 
-def name_leaves(pf: Any) -> list[str]:
-    """The Parquet paths of the contacts' ``link`` and ``kind`` when both are text leaves.
-
-    A scan may read them as dictionary arrays (:func:`~torchcontact.logs.format.open_log`'s
-    ``dictionaries``); otherwise empty.
-    """
-    meta = pf.metadata.schema
-    kinds = {meta.column(i).path: meta.column(i).physical_type for i in range(len(meta))}
-    leaves = [_name_leaf(pf, n) for n in ("link", "kind")]
-    text = [p for p in leaves if p is not None and kinds.get(p) == "BYTE_ARRAY"]
-    return text if len(text) == 2 else []
-
-
 def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], int]) -> None:
     """Most records of each ``(link, kind)`` in one frame of a ``list<struct<link, kind>>``."""
     import pyarrow as pa
@@ -285,7 +272,7 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
     codes = []
     for key in ("link", "kind"):
         enc = structs.field(key)
-        if not pa.types.is_dictionary(enc.type):  # read as strings (else as the pages' own)
+        if not pa.types.is_dictionary(enc.type):  # strings (a log may store dictionary arrays)
             enc = pc.dictionary_encode(enc)
         gid = np.array([names.setdefault(str(v), len(names)) for v in enc.dictionary.to_pylist()]
                        + [-1], np.int64)  # fmt: skip
@@ -303,15 +290,16 @@ def _pair_counts(lst: Any, names: dict[str, int], into: dict[tuple[int, int], in
         into[pk] = max(into.get(pk, 0), m)
 
 
-def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
+def scan_log(pf: Any, src: str, contacts: bool, threads: int = 1) -> LogScan:
     """Two passes over the cheap columns of the whole log: ``t_ns``, the contacts' names.
 
     :func:`scan_step` then :func:`scan_rest` (the second pass needs the median step).
 
     Args:
         pf: the opened log (:func:`~torchcontact.logs.format.open_log`).
-        src: file name for messages.
+        src: the log's path (named in messages; opened again by each thread).
         contacts: the log has a ``contacts`` column.
+        threads: threads of each pass (:func:`scan_threads`).
 
     Returns:
         :class:`LogScan`.
@@ -320,34 +308,142 @@ def scan_log(pf: Any, src: str, contacts: bool) -> LogScan:
         LogError: ``t_ns`` of another type or with nulls, unreadable data (the message names
             the row group).
     """
-    return scan_rest(pf, src, contacts, scan_step(pf, src))
+    return scan_rest(pf, src, contacts, scan_step(pf, src, threads), threads)
 
 
-def scan_step(pf: Any, src: str) -> float:
+#: Most threads of a scan pass.
+SCAN_THREADS = 8
+#: Rows of a log per scan thread at least.
+SCAN_ROWS_PER_THREAD = 1 << 19
+
+
+def scan_threads(rows: int) -> int:
+    """Threads for the scan passes of a log of ``rows`` frames.
+
+    Each thread reads a range of consecutive row groups with a reader of its own (pyarrow reads
+    and decodes without the GIL). Half the cores at most, so one on a 2-core machine, where the
+    scan's second pass already runs beside the noise estimate; up to :data:`SCAN_THREADS` on a
+    many-core driver, where the scan of a long log is what the Ray workers wait for.
+
+    Example:
+        >>> scan_threads(1000) == 1
+        True
+    """
+    import os
+
+    cores = os.cpu_count() or 1
+    return max(1, min(SCAN_THREADS, cores // 2, rows // SCAN_ROWS_PER_THREAD))
+
+
+def _ranges(pf: Any, parts: int) -> list[tuple[int, int, int]]:
+    """At most ``parts`` ranges of consecutive row groups of about equal rows.
+
+    Returns:
+        ``(first group, end group, first row)`` of each range, in file order.
+    """
+    meta = pf.metadata
+    sizes = [meta.row_group(g).num_rows for g in range(meta.num_row_groups)]
+    if not sizes:
+        return [(0, 0, 0)]
+    bounds = np.cumsum([0, *sizes])
+    parts = max(1, min(parts, len(sizes)))
+    cuts = np.searchsorted(bounds, np.linspace(0, bounds[-1], parts + 1)[1:-1])
+    edges = sorted({0, *(int(c) for c in cuts), len(sizes)})
+    return [(a, b, int(bounds[a])) for a, b in zip(edges, edges[1:], strict=False) if b > a]
+
+
+def _map_ranges(pf: Any, src: str, threads: int, fn: Any) -> list[Any]:
+    """``fn(reader, first group, end group, first row)`` over the ranges of :func:`_ranges`.
+
+    On this thread with ``pf`` for one range, else on a thread each with a reader of its own (a
+    ``ParquetFile`` is not shared between threads). Results in file order; the first range's
+    error in file order is raised, as a pass in order would raise it.
+    """
+    ranges = _ranges(pf, threads)
+    if len(ranges) == 1:
+        return [fn(pf, *ranges[0])]
+    from concurrent.futures import ThreadPoolExecutor
+
+    from torchcontact.logs.format import open_log
+
+    def one(r: tuple[int, int, int]) -> Any:
+        return fn(open_log(src, pf.metadata), *r)
+
+    with ThreadPoolExecutor(len(ranges), thread_name_prefix="torchcontact-scan") as pool:
+        futures = [pool.submit(one, r) for r in ranges]
+        return [f.result() for f in futures]
+
+
+def scan_step(pf: Any, src: str, threads: int = 1) -> float:
     """The first pass: the median step of the log's ``t_ns`` (:func:`median_step`), ns.
 
-    Every stamp is checked here (type, nulls), before any chunk is decoded.
+    Every stamp is checked here (type, nulls), before any chunk is decoded. With ``threads``,
+    ranges of row groups are read at once and their step histograms added (the steps across the
+    ranges' edges too): the same median.
 
     Raises:
         LogError: ``t_ns`` of another type or with nulls, unreadable ``t_ns`` data.
     """
+
+    def one(reader: Any, g0: int, g1: int, row0: int) -> tuple[dict, int | None, int | None]:
+        hist: dict[int, int] = {}
+        first = last = None
+        done = row0
+        for tab in iter_chunks(reader, ["t_ns"], SCAN_BLOCK, src, range(g0, g1), exact=False):
+            t = timestamps(tab.column("t_ns"), src, done)
+            if len(t):
+                step_histogram(t if last is None else np.r_[last, t], hist)
+                first = int(t[0]) if first is None else first
+                last = int(t[-1])
+            done += tab.num_rows
+        return hist, first, last
+
     hist: dict[int, int] = {}
-    last: int | None = None
-    done = 0
-    for tab in iter_chunks(pf, ["t_ns"], SCAN_BLOCK, src, exact=False):
-        t = timestamps(tab.column("t_ns"), src, done)
-        step_histogram(t if last is None else np.r_[last, t], hist)
-        last = int(t[-1]) if len(t) else last
-        done += tab.num_rows
+    last = None
+    for part, first, end in _map_ranges(pf, src, threads, one):
+        for k, c in part.items():
+            hist[k] = hist.get(k, 0) + c
+        if first is not None:
+            if last is not None:  # the step across the ranges' edge
+                step_histogram(np.array([last, first], np.int64), hist)
+            last = end
     return median_step(hist)
 
 
-def scan_rest(pf: Any, src: str, contacts: bool, step: float) -> LogScan:
+@dataclass
+class _RestPart:
+    """One range's share of the second pass (merged in file order by :func:`scan_rest`)."""
+
+    pairs: dict[tuple[str, str], int]
+    untrusted: int = 0
+    gaps: int = 0
+    starts: int = 0  # segment starts in the range
+    first_start: int = 0  # row of the first of them
+    last_start: int = 0  # row of the last of them
+    short_inside: int = 0  # frames of the short segments between the range's starts
+
+
+def _stamps_before(pf: Any, src: str, group: int) -> np.ndarray:
+    """The last two stamps before row group ``group`` (fewer at the log's start)."""
+    t = np.zeros(0, np.int64)
+    g = group
+    while len(t) < 2 and g > 0:
+        g -= 1
+        row0 = sum(pf.metadata.row_group(i).num_rows for i in range(g))
+        n = pf.metadata.row_group(g).num_rows
+        for tab in iter_chunks(pf, ["t_ns"], max(n, 1), src, [g]):
+            t = np.r_[timestamps(tab.column("t_ns"), src, row0), t]
+    return t[-2:]
+
+
+def scan_rest(pf: Any, src: str, contacts: bool, step: float, threads: int = 1) -> LogScan:
     """The second pass: time segments at the median ``step`` and the contacts' ``(link, kind)``.
 
     Reads ``t_ns`` and the contacts' ``link`` and ``kind`` only. It needs nothing decoded, so a
     run can do it on a thread of its own, beside the chunks it decodes first
-    (:func:`torchcontact.logs.pipeline.open_prepared`).
+    (:func:`torchcontact.logs.pipeline.open_prepared`). With ``threads``, ranges of row groups
+    are read at once, each with the two stamps before it as context, and merged in file order:
+    the same result.
 
     Raises:
         LogError: unreadable data (the message names the row group).
@@ -356,43 +452,62 @@ def scan_rest(pf: Any, src: str, contacts: bool, step: float) -> LogScan:
     leaves = [_name_leaf(pf, n) for n in ("link", "kind")] if contacts else []
     if contacts and None in leaves:  # an unusual nesting: read the whole column
         leaves = ["contacts"]
-    names: dict[str, int] = {}
-    counts: dict[tuple[int, int], int] = {}
+
+    def one(reader: Any, g0: int, g1: int, row0: int) -> _RestPart:
+        names: dict[str, int] = {}
+        counts: dict[tuple[int, int], int] = {}
+        part = _RestPart({})
+        ctx = _stamps_before(reader, src, g0)  # the last two stamps before the range
+        prev = None  # the range's last segment start so far
+        done = row0
+        cols = ["t_ns", *leaves]
+        for tab in iter_chunks(reader, cols, SCAN_BLOCK, src, range(g0, g1), exact=False):
+            t = timestamps(tab.column("t_ns"), src, done)
+            if not len(t):
+                continue
+            if contacts:
+                _pair_counts(tab.column("contacts"), names, counts)
+            starts = time_segments(np.r_[ctx, t], step)[len(ctx) :]
+            step_in = t - np.r_[ctx[-1:] if len(ctx) else t[:1], t[:-1]]  # 0 for the log's first
+            back = step_in <= 0
+            back[0] &= bool(done)
+            part.untrusted += int(back.sum())
+            if step > 0:
+                part.gaps += int(np.sum(step_in > GAP_FACTOR * step))
+            if not done:
+                starts[0] = False  # the log's first frame opens the first segment
+            at = np.flatnonzero(starts) + done
+            if len(at):
+                if prev is None:
+                    part.first_start = int(at[0])
+                inside = np.diff(at if prev is None else np.r_[prev, at])
+                part.short_inside += int(inside[inside < MIN_SEGMENT_FRAMES].sum())
+                part.starts += len(at)
+                prev = part.last_start = int(at[-1])
+            ctx = np.r_[ctx, t][-2:]
+            done += len(t)
+        inv = {v: k for k, v in names.items()}
+        part.pairs = {(inv[li], inv[ki]): m for (li, ki), m in counts.items()}
+        return part
+
+    pairs: dict[tuple[str, str], int] = {}
     segments = untrusted = gaps = short = 0
     seg_start = 0  # first row of the open segment
-    ctx = np.zeros(0, np.int64)  # the last two stamps before the block
-    done = 0
-    for tab in iter_chunks(pf, ["t_ns", *leaves], SCAN_BLOCK, src, exact=False):
-        t = timestamps(tab.column("t_ns"), src, done)
-        if not len(t):
-            continue
-        if contacts:
-            _pair_counts(tab.column("contacts"), names, counts)
-        starts = time_segments(np.r_[ctx, t], step)[len(ctx) :]
-        step_in = t - np.r_[ctx[-1:] if len(ctx) else t[:1], t[:-1]]  # 0 for the log's first
-        back = step_in <= 0
-        back[0] &= bool(done)
-        untrusted += int(back.sum())
-        if step > 0:
-            gaps += int(np.sum(step_in > GAP_FACTOR * step))
-        if not done:
-            starts[0] = False  # the log's first frame opens the first segment
-        at = np.flatnonzero(starts) + done
-        if len(at):  # segments closed in this block
-            closed = np.diff(np.r_[seg_start, at])
-            segments += len(closed)
-            short += int(closed[closed < MIN_SEGMENT_FRAMES].sum())
-            seg_start = int(at[-1])
-        ctx = np.r_[ctx, t][-2:]
-        done += len(t)
+    for part in _map_ranges(pf, src, threads, one):
+        for k, m in part.pairs.items():
+            pairs[k] = max(pairs.get(k, 0), m)
+        untrusted += part.untrusted
+        gaps += part.gaps
+        if part.starts:  # the segment open before the range closes at its first start
+            closed = part.first_start - seg_start
+            short += closed if closed < MIN_SEGMENT_FRAMES else 0
+            segments += part.starts
+            short += part.short_inside
+            seg_start = part.last_start
     if rows:
         final = rows - seg_start
         segments += 1
         short += final if final < MIN_SEGMENT_FRAMES else 0
-    pairs = {}
-    inv = {v: k for k, v in names.items()}
-    for (li, ki), m in counts.items():
-        pairs[(inv[li], inv[ki])] = m
     return LogScan(rows, pairs, step, max(segments, 1), untrusted, gaps, short)
 
 

@@ -1077,15 +1077,13 @@ def struct_list(
 
 
 # ---------------------------------------------------------------------- reading
-def open_log(path: str | Path, metadata: Any = None, dictionaries: Sequence[str] = ()) -> Any:
+def open_log(path: str | Path, metadata: Any = None) -> Any:
     """Open a Parquet log for streaming; page checksums are verified where the file has them.
 
     Args:
         path: the file.
         metadata: the footer of the same file opened before (another reader of it, for another
             thread: a ``ParquetFile`` is not shared between threads); None: read it.
-        dictionaries: leaf columns to read as dictionary arrays (``read_dictionary``: the
-            pages' own dictionaries, no strings materialised).
 
     Returns:
         A ``pyarrow.parquet.ParquetFile``. Reads are not pre-buffered: pre-buffering keeps every
@@ -1106,7 +1104,6 @@ def open_log(path: str | Path, metadata: Any = None, dictionaries: Sequence[str]
             metadata=metadata,
             pre_buffer=False,
             page_checksum_verification=True,
-            read_dictionary=list(dictionaries) or None,
         )
     except Exception as exc:  # pyarrow raises ArrowInvalid, OSError, ...
         raise LogError(f"{path}: not a readable Parquet file ({exc})") from None

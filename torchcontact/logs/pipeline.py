@@ -56,9 +56,9 @@ from torchcontact.logs.chunks import (
 from torchcontact.logs.decode import (
     LogScan,
     log_columns,
-    name_leaves,
     scan_rest,
     scan_step,
+    scan_threads,
     stamps_and_positions,
 )
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
@@ -345,7 +345,8 @@ def open_prepared(
             kernels.prepare_vm(model.dtype)  # machine without it, it builds while we scan
     extra = [] if residual is None else residual.extra_columns
     cols = log_columns(pf.schema_arrow, model, src, sensors, constraints, extra, bool(localize))
-    step = scan_step(pf, src)
+    threads = scan_threads(rows)  # ranges of the log at once on a many-core machine
+    step = scan_step(pf, src, threads)
     le = LogEstimator(
         model,
         cols.joint_names,
@@ -367,20 +368,19 @@ def open_prepared(
         from concurrent.futures import Future
 
         scan = Future()
-        # a reader of its own for the thread, the contacts' names as the pages' dictionaries
-        twin = open_log(path, pf.metadata, name_leaves(pf) if contacts else ())
+        twin = open_log(path, pf.metadata)  # a reader of its own for the thread
 
         def run() -> None:
             try:
                 kernels.code_digest()  # the first kernel lookup's, off the noise estimate's way
-                scan.set_result(scan_rest(twin, src, contacts, step))
+                scan.set_result(scan_rest(twin, src, contacts, step, threads))
             except BaseException as exc:  # raised by finish()
                 scan.set_exception(exc)
 
         le.decoder.layout_pending = True
         threading.Thread(target=run, name="torchcontact-scan", daemon=True).start()
         return Prepared(pf, le, cols.columns, scan)
-    done = scan_rest(pf, src, contacts, step)
+    done = scan_rest(pf, src, contacts, step, threads)
     _use_scan(le, done)
     if cols.derived and done.segments > 1:
         warnings.warn(f"{src}: {done.describe_time()}", UserWarning, stacklevel=3)

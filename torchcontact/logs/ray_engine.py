@@ -460,8 +460,10 @@ def estimate_file_ray(
             process loads the meshes once from ``robot``'s URDF.
 
     Returns:
-        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units) and
-        ``nodes``: the Ray nodes that ran the units estimated now.
+        Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units),
+        ``nodes``: the Ray nodes that ran the units estimated now, and ``phases_s``: seconds
+        from the start to Ray started (the warm-ups sent), the log scanned (and its noise
+        estimated), the first unit done (absent when none ran now) and the output published.
 
     Raises:
         InputError: as :func:`estimate_file`, ``workers`` < 1, or ``worker_cpus`` <= 0.
@@ -503,7 +505,9 @@ def estimate_file_ray(
             scanned = pool.submit(setup)
             ray, warm = _start_ray(num_cpus, _robot_arg(spec, model), job, workers,
                                    _task_options(worker_cpus, device))  # fmt: skip
+            phases = {"ray_started": time.perf_counter() - t0}
             pf, le, columns, scan = scanned.result()
+            phases["log_scanned"] = time.perf_counter() - t0
         total = pf.metadata.num_rows
         show = sys.stderr.isatty() if progress is None else progress
         recorded_noise(le, run.previous() if resume else None)
@@ -524,6 +528,7 @@ def estimate_file_ray(
                                       workers, worker_cpus, options)  # fmt: skip
                 try:
                     for r in results:
+                        phases.setdefault("first_unit_done", time.perf_counter() - t0)
                         nodes.add(str(r["node"]))
                         for u, n in zip(r["units"], r["rows"], strict=True):
                             yield Done(u, n)
@@ -545,6 +550,8 @@ def estimate_file_ray(
             engine="ray",
         )
     summary["nodes"] = len(nodes)  # Ray nodes that ran units now
+    phases["published"] = summary["seconds"]
+    summary["phases_s"] = {k: round(v, 3) for k, v in phases.items()}
     return summary
 
 
