@@ -331,8 +331,13 @@ def _finish_process() -> None:
     ``logging`` handlers, and rerun's recordings (its own exit handler sends what they still
     buffer). A Ray instance this process started is shut down as Ray's own exit handler would
     (its head processes and workers end with it). Kernel builds this command
-    started are detached processes: they go on (:func:`_background_note` said so).
+    started are detached processes: they go on (:func:`_background_note` said so); those
+    deferred to the process's end (the tape VM ran their programs) start here, as the
+    interpreter's exit handler would start them.
     """
+    kernels = sys.modules.get("torchcontact.kernels")  # never imported here for this
+    if kernels is not None:
+        kernels.start_deferred_builds()
     ray = sys.modules.get("ray")
     if ray is not None and getattr(ray, "is_initialized", lambda: False)():
         ray.shutdown()

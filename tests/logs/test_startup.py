@@ -69,6 +69,36 @@ def test_estimate_imports_only_what_it_uses(sim_log, tmp_path):
     assert json.loads(stdout)["frames"] == 600 and pq.read_table(out).num_rows == 600
 
 
+def test_the_console_script_starts_the_kernel_builds_it_deferred(model, tmp_path):
+    """The console script ends with ``os._exit`` (no exit handler runs): the kernel builds that
+    the tape VM's run deferred to the process's end start all the same, and fill the cache.
+
+    Regression: they never started, so every run of ``torchcontact estimate`` ran on the VM
+    (half the compiled kernel's speed) while its note said that the builds went on.
+    """
+    import os
+    import re
+    import time
+
+    from torchcontact.logs import write_simulated_log
+
+    log = write_simulated_log(model, 2500, tmp_path / "log.parquet", seed=1)  # >= 2048: auto
+    cache = tmp_path / "cache"
+    code = "from torchcontact.cli import console_main; console_main()"
+    r = subprocess.run([sys.executable, "-c", code, "estimate", str(log), "--robot", "tcarm",
+                        "--out", str(tmp_path / "o.parquet"), "--quiet"], capture_output=True,
+                       text=True, cwd=ROOT, env={**os.environ, "TORCHCONTACT_CACHE": str(cache)})  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    note = next(line for line in r.stderr.splitlines() if line.startswith("note: "))
+    names = re.findall(r"tck_estimator_\w+|tck_predict_\w+", note)
+    assert names and "in the background" in note
+    libs = [cache / "kernels" / n / f"{n}.so" for n in names]
+    deadline = time.monotonic() + 300
+    while not all(p.is_file() for p in libs) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert all(p.is_file() for p in libs), [p.name for p in libs if not p.is_file()]
+
+
 def test_resume_imports_no_pandas(model, sim_log, tmp_path, monkeypatch):
     """``--resume`` reads the kept parts back without pandas either: a run stopped by a full disk
     after two of its three chunks, resumed by the console script."""

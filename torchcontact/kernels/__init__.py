@@ -76,6 +76,7 @@ __all__ = [
     "run",
     "vm_enabled",
     "vm_kernel",
+    "start_deferred_builds",
     "wait_for_builds",
 ]
 
@@ -562,7 +563,7 @@ def wait_for_builds(timeout: float | None = None) -> None:
     Args:
         timeout: seconds to wait for each build (None: until it ends).
     """
-    _spawn_deferred()
+    start_deferred_builds()
     with _lock:
         pending = [*_vm_builds.values(), *_building.values()]
     for b in pending:
@@ -826,14 +827,16 @@ def _defer_build(program: Program, dtype: torch.dtype) -> None:
         _deferred[ckey] = (program, dtype, entry)
         if not _atexit:
             _atexit.append(True)
-            atexit.register(_spawn_deferred)
+            atexit.register(start_deferred_builds)
 
 
-def _spawn_deferred() -> None:
-    """Start the deferred kernel builds (at exit, or when a caller waits for the builds).
+def start_deferred_builds() -> None:
+    """Start the kernel builds deferred to this process's end (:func:`_defer_build`), now.
 
     One detached process builds them one after the other, at low priority
-    (:data:`KERNEL_BUILD_NICE`).
+    (:data:`KERNEL_BUILD_NICE`). It runs at the interpreter's exit (``atexit``), when a caller
+    waits for the builds (:func:`wait_for_builds`), and from a process that ends without the
+    interpreter's shutdown: the ``torchcontact`` console script calls it before ``os._exit``.
     """
     with _lock:
         todo = list(_deferred.items())
