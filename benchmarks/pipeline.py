@@ -6,6 +6,7 @@ Run on a quiet machine (each mode writes its own table; every timing runs in its
     python benchmarks/pipeline.py --frames 200000 --repeat 1          # quicker
     python benchmarks/pipeline.py --mem 1000000 10000000 --robot tcarm # peak RSS vs log length
     python benchmarks/pipeline.py --ray 1000000 --workers 1 2 4 8 16   # Ray scaling (many cores)
+    RAY_ADDRESS=... python benchmarks/pipeline.py --ray 1000000 --workers 1 16 --keep-workers 60
     python benchmarks/pipeline.py --race 20                           # two runs on one output
     python benchmarks/pipeline.py --wait-rule 50000 200000 1000000    # wait for the kernel?
     python benchmarks/pipeline.py --device cuda                       # estimate --device cuda
@@ -755,8 +756,10 @@ def mode_ray(args, tmp: Path) -> None:
         cmd = [sys.executable, "-c", "from torchcontact.cli import console_main; console_main()",
                "estimate", str(log), "--robot", urdf, "--out", str(out), "--engine", "ray",
                "--workers", str(w), "--quiet", "--json", "--device", args.device]  # fmt: skip
+        if args.keep_workers:  # a pool: a first run starts it, the timed runs find it warm
+            cmd += ["--keep-workers", str(args.keep_workers)]
         t = []
-        for _ in range(args.repeat):
+        for _ in range(args.repeat + (1 if args.keep_workers else 0)):
             out.unlink(missing_ok=True)
 
             def one(cmd=cmd, w=w) -> None:
@@ -770,10 +773,19 @@ def mode_ray(args, tmp: Path) -> None:
                 phases.append((w, summary.get("phases_s", {})))
 
             t.append(timed(one))
+        label = f"ray, {w} workers"
+        if args.keep_workers:
+            (s0, busy0), t = t[0], t[1:]
+            print(f"| {label}, the pool started | {s0:.1f} | {args.ray / s0:,.0f} | |"
+                  f" {busy0:.1f} |", flush=True)  # fmt: skip
+            label += ", warm pool"
+            end = ("import ray; from torchcontact.logs._ray_boot import end_pool; ray.init("
+                   "logging_level='ERROR'); print(end_pool(ray))")  # fmt: skip
+            subprocess.run([sys.executable, "-c", end], env=env, timeout=120, capture_output=True)
         s, busy = sorted(t)[len(t) // 2]
         base = base or s
         vs_local = "" if local is None else f"{local / s:.2f} "
-        print(f"| ray, {w} workers | {s:.1f} | {args.ray / s:,.0f} | {vs_local}"
+        print(f"| {label} | {s:.1f} | {args.ray / s:,.0f} | {vs_local}"
               f"(x{base / s:.1f} vs 1 worker) | {busy:.1f} |", flush=True)  # fmt: skip
     (tmp / "ray.parquet").unlink(missing_ok=True)
     print(
@@ -790,6 +802,11 @@ def mode_ray(args, tmp: Path) -> None:
         code = f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); " \
             f"import pipeline; pipeline.ray_timelines({spans!r}, {units})"  # fmt: skip
         subprocess.run([sys.executable, "-c", code], env=env, timeout=120)
+
+
+#: Ray's event names (their last dotted part) of the worker processes' warm-ups: the CLI's import
+#: tasks and the model warm-ups, or a pool actor's (method events carry the method's name only).
+WARM_UP_EVENTS = ("_import_engine", "_warm_worker", "imports", "warm")
 
 
 def ray_timelines(spans, total_units: int) -> None:
@@ -814,13 +831,13 @@ def ray_timelines(spans, total_units: int) -> None:
     for w, a, b in spans:
         ev = [e for e in events if a * 1e6 <= e.get("ts", 0) <= b * 1e6]
 
-        def named(suffix, ev=ev, a=a):
+        def named(part, ev=ev, a=a):
             return [(e["ts"] / 1e6 - a, e.get("dur", 0) / 1e6) for e in ev
-                    if e.get("name", "").endswith(suffix)]  # fmt: skip
+                    if part in e.get("name", "")]  # fmt: skip
 
         per_worker: dict = {}  # (node, worker) -> its units' (start, end), in order
         for e in ev:
-            if e.get("name", "").endswith("_estimate_units"):
+            if "estimate_units" in e.get("name", ""):  # a task's or a pool actor's
                 t = e["ts"] / 1e6 - a
                 per_worker.setdefault((e.get("pid"), e.get("tid")), []).append(
                     (t, t + e.get("dur", 0) / 1e6)
@@ -830,9 +847,10 @@ def ray_timelines(spans, total_units: int) -> None:
         starts = [min(us)[0] for us in per_worker.values()]
 
         sent = [t for t, _ in named("submit_task")]
-        # the CLI's import tasks (before the driver imports torch), then the model warm-ups
-        warm = named("_import_engine") + named("_warm_worker")
-        units = named("_estimate_units")
+        # the CLI's import tasks (or a new pool actor's imports), then the model warm-ups
+        warm = [(e["ts"] / 1e6 - a, 0.0) for e in ev
+                if e.get("name", "").split(".")[-1] in WARM_UP_EVENTS]  # fmt: skip
+        units = named("estimate_units")
         if not units:
             print(f"| {w} | no task events |")
             continue
@@ -938,6 +956,9 @@ def main() -> None:
     ap.add_argument("--ray", type=int, default=0, help="frames of the Ray comparison")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--no-local", action="store_true", help="Ray runs only (no local engine)")
+    ap.add_argument(
+        "--keep-workers", type=float, default=0.0, help="Ray runs on a worker pool (RAY_ADDRESS)"
+    )
     ap.add_argument("--race", type=int, default=0, help="tries of two runs on one output")
     ap.add_argument("--race-frames", type=int, default=200_000)
     ap.add_argument("--child", nargs=5, help=argparse.SUPPRESS)

@@ -67,8 +67,8 @@ def _same_rows(a, b):
     np.testing.assert_allclose(fa, fb, rtol=1e-11, atol=1e-11)
 
 
-def _task_pids():
-    """Ray worker processes running one of our units now."""
+def _task_pids(what: bytes = b"_estimate_units"):
+    """Ray worker processes running one of our units now (their title names the task)."""
     pids = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
@@ -76,7 +76,7 @@ def _task_pids():
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
             except OSError:
                 continue
-            if cmd.startswith(b"ray::") and b"_estimate_units" in cmd:
+            if cmd.startswith(b"ray::") and what in cmd:
                 pids.append(int(pid))
     return pids
 
@@ -167,6 +167,65 @@ def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local,
     _same_rows(pq.read_table(r["output"]), pq.read_table(local["output"]))
 
 
+def _our_actors():
+    """The live actors of this code's worker pool, by name."""
+    from torchcontact.logs._ray_boot import pool_actors
+
+    return set(pool_actors(ray))
+
+
+def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
+    """``keep_workers``: the units go to detached actors, which the next run finds with the
+    model built (reused), with the local rows each time; an actor killed during a unit is
+    replaced and its units go again (the same rows); idle actors end by themselves after the
+    seconds given, and with them their CPUs (the other tests' tasks need them)."""
+    from torchcontact.logs.ray_engine import estimate_file_ray
+    from torchcontact.robots import tcarm_path
+
+    kw = dict(KW, batch_size=32)  # units of 256 frames in chunks of 32: a unit takes a while
+    try:
+        a = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "a.parquet",
+                              keep_workers=120, **kw)  # fmt: skip
+        assert a["pool"] == {"workers": 2, "reused": 0} and len(_our_actors()) == 2
+        _same_rows(pq.read_table(a["output"]), pq.read_table(local["output"]))
+        first = _our_actors()
+        b = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "b.parquet",
+                              keep_workers=120, **kw)  # fmt: skip
+        assert b["pool"] == {"workers": 2, "reused": 2} and _our_actors() == first
+        _same_rows(pq.read_table(b["output"]), pq.read_table(local["output"]))
+
+        killed, done = [], threading.Event()
+
+        def killer():  # a pool actor's process while it runs a unit
+            while not done.is_set() and not killed:
+                for pid in _task_pids(b"PoolWorker.estimate_units"):
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    break
+                time.sleep(0.002)
+
+        t = threading.Thread(target=killer, daemon=True)
+        t.start()
+        try:
+            c = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "c.parquet",
+                                  keep_workers=1, **kw)  # fmt: skip
+        finally:
+            done.set()
+            t.join()
+        assert killed, "no unit was running to be killed"
+        assert c["frames"] == c["processed_now"] == 600 and c["pool"]["workers"] == 2
+        _same_rows(pq.read_table(c["output"]), pq.read_table(local["output"]))
+        assert _our_actors() != first  # the killed one was replaced
+        deadline = time.monotonic() + 60  # idle for 1 s: they end
+        while _our_actors() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not _our_actors()
+    finally:
+        from torchcontact.logs._ray_boot import end_pool
+
+        end_pool(ray)  # a failed check's actors: their CPUs free for the other tests
+
+
 def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
@@ -252,6 +311,18 @@ def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys, 
     assert "--worker-cpus must be a number > 0, got 0.0" in capsys.readouterr().err
     assert main(["estimate", str(sim_log), "--out", out, "--worker-cpus", "2"]) == 2
     assert "--worker-cpus applies to --engine ray only" in capsys.readouterr().err
+    assert main(["estimate", str(sim_log), "--out", out, "--keep-workers", "60"]) == 2
+    assert "--keep-workers applies to --engine ray only" in capsys.readouterr().err
+    keep = ["estimate", str(sim_log), "--out", out, "--engine", "ray", "--keep-workers"]
+    assert main([*keep, "-1"]) == 2
+    assert "--keep-workers must be seconds >= 0, got -1.0" in capsys.readouterr().err
+    from torchcontact.logs import ray_engine
+
+    with monkeypatch.context() as m:  # no cluster running apart from the command: refused
+        m.setattr(_ray_boot, "running_cluster", lambda: False)
+        m.setattr(ray_engine, "running_cluster", lambda: False)
+        assert main([*keep, "60"]) == 2
+    assert "--keep-workers needs a running Ray cluster (set RAY_ADDRESS" in capsys.readouterr().err
     missing = str(tmp_path / "missing.parquet")
     assert main(["estimate", missing, "--out", out, "--engine", "ray"]) == 1
     assert "missing.parquet" in capsys.readouterr().err

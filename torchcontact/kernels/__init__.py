@@ -56,6 +56,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torchcontact._digest import code_digest
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
 from torchcontact.kernels import _store
@@ -191,7 +192,6 @@ _building: dict[str, threading.Thread | _Build] = {}
 _warned: set[str] = set()
 _healed: set[str] = set()
 _pool: ThreadPoolExecutor | None = None
-_code: list[str] = []
 
 #: Compiler flags of the CPU kernels (IEEE semantics kept: no -ffast-math).
 CFLAGS = _store.CFLAGS
@@ -226,23 +226,6 @@ def _write_source(cpp: Path, src: str) -> None:
         if cpp.read_text() == src:
             return
     _store.write_atomic(cpp, src)
-
-
-def code_digest() -> str:
-    """sha256 of torchcontact's Python sources (once per process, 6-20 ms; thread-safe).
-
-    A program's key names its constants (model, layout, flags); the code that turns them into
-    a program is named by this digest, so an index record never outlives the code it was made
-    with. The first kernel lookup of a process needs it: a log run computes it on a thread of
-    its own beside its first chunks (:func:`torchcontact.logs.pipeline.open_prepared`).
-    """
-    if not _code:
-        root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256()
-        for p in sorted(root.rglob("*.py")):
-            h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
-        _code.append(h.hexdigest())  # two threads at once: the same value, the first kept
-    return _code[0]
 
 
 def _key_hash(program: Program, dtype: torch.dtype) -> str:

@@ -6,13 +6,21 @@ torchcontact, while the driver imports them itself, builds the model and scans t
 16-core host the driver took 4.6 s before its first Ray call, and Ray 4.6 s more to start 16
 worker processes that import torch (benchmarks/README.md, session 8): the two now overlap. This
 module imports neither torch nor numpy (nor Ray until called).
+
+It also holds the worker pool of ``--keep-workers`` (:class:`PoolWorker`): Ray actors that
+outlive the run which started them, so that the next runs on the same cluster find their worker
+processes started, with torch imported and the model built.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import threading
+import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -83,3 +91,174 @@ def prestart(workers: int, worker_cpus: float, device: str, num_cpus: int | None
         ray = ensure_ray(num_cpus)
         task = ray.remote(_import_engine).options(**task_options(worker_cpus, device))
         _booting.extend(task.remote() for _ in range(workers))
+
+
+def prestart_pool(workers: int, worker_cpus: float, device: str, keep_s: float) -> None:
+    """:func:`prestart` for ``--keep-workers``: find or start the pool's actors now.
+
+    A new actor's process imports the engine at once (its first call); a live one has.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ray = ensure_ray(None)
+        for actor, new in pool(ray, workers, worker_cpus, device, keep_s):
+            if new:
+                _booting.append(actor.imports.remote())
+
+
+# ----------------------------------------------------------------------------- the worker pool
+def running_cluster() -> bool:
+    """True when Ray runs apart from this process: ``RAY_ADDRESS``, or joined already."""
+    if os.environ.get("RAY_ADDRESS"):
+        return True
+    import sys
+
+    ray = sys.modules.get("ray")
+    return bool(ray is not None and ray.is_initialized())
+
+
+def pool_namespace() -> str:
+    """The Ray namespace of this code's worker pool (one per torchcontact code digest).
+
+    A driver never sends units to workers of another code: a changed checkout or version starts
+    a pool of its own, and the old one's actors end when idle.
+    """
+    from torchcontact._digest import code_digest
+
+    return f"torchcontact-{code_digest()[:16]}"
+
+
+def _pool_label(worker_cpus: float, device: str) -> str:
+    """The start of the names of the pool's actors with these resources."""
+    return f"cpus{worker_cpus:g}-{'cuda' if device.startswith('cuda') else 'cpu'}-"
+
+
+def pool(
+    ray: Any, workers: int, worker_cpus: float, device: str, keep_s: float
+) -> list[tuple[Any, bool]]:
+    """``workers`` actors of the worker pool for these resources: live ones, then new ones.
+
+    Returns:
+        ``(actor handle, new)`` pairs: ``new`` for an actor started here.
+    """
+    ns, label = pool_namespace(), _pool_label(worker_cpus, device)
+    names = [n for n in pool_actors(ray) if n.startswith(label)]
+    found = []
+    for name in names:
+        if len(found) == workers:
+            break
+        try:
+            found.append((ray.get_actor(name, namespace=ns), False))
+        except ValueError:  # it ended meanwhile (idle)
+            continue
+    while len(found) < workers:
+        found.append((new_pool_actor(ray, worker_cpus, device, keep_s), True))
+    return found
+
+
+def pool_actors(ray: Any) -> list[str]:
+    """Names of the live actors of this code's worker pool, any resources."""
+    ns = pool_namespace()
+    return sorted(a["name"] for a in ray.util.list_named_actors(all_namespaces=True)
+                  if a.get("namespace") == ns)  # fmt: skip
+
+
+def end_pool(ray: Any) -> int:
+    """End this code's worker pool now (its actors and their CPUs); returns how many ended."""
+    n = 0
+    for name in pool_actors(ray):
+        with contextlib.suppress(ValueError):  # ended meanwhile
+            ray.kill(ray.get_actor(name, namespace=pool_namespace()))
+            n += 1
+    return n
+
+
+def new_pool_actor(ray: Any, worker_cpus: float, device: str, keep_s: float) -> Any:
+    """Start one actor of the worker pool (detached: it outlives this process)."""
+    import uuid
+
+    name = _pool_label(worker_cpus, device) + uuid.uuid4().hex[:12]
+    opts = dict(name=name, namespace=pool_namespace(), lifetime="detached", max_restarts=0,
+                **task_options(worker_cpus, device))  # fmt: skip
+    return ray.remote(PoolWorker).options(**opts).remote(keep_s)
+
+
+class PoolWorker:
+    """A Ray actor of the worker pool (``--keep-workers SECONDS``).
+
+    It runs the same units as the Ray engine's tasks (:func:`~torchcontact.logs.ray_engine.
+    _estimate_units`), one at a time, in its own worker process, which keeps torch imported, the
+    model built and the kernels loaded from one run to the next. It ends itself once it has been
+    idle for ``keep_s`` seconds (the last run's ``--keep-workers``): an idle actor still holds
+    the CPUs Ray reserved for it. Detached: a driver that ends (or is killed) leaves it.
+
+    Args:
+        keep_s: seconds of idleness after which the actor ends.
+    """
+
+    def __init__(self, keep_s: float) -> None:
+        self._keep = float(keep_s)
+        self._last = time.monotonic()
+        self._busy = 0
+        self._runs = 0
+        self._guard = threading.Lock()
+        threading.Thread(target=self._watch, name="torchcontact-pool-idle", daemon=True).start()
+
+    @contextlib.contextmanager
+    def _active(self) -> Iterator[None]:
+        with self._guard:
+            self._busy += 1
+        try:
+            yield
+        finally:
+            with self._guard:
+                self._busy -= 1
+                self._last = time.monotonic()
+
+    def imports(self) -> None:
+        """Import the engine (torch, pyarrow, torchcontact): sent to a new actor at once."""
+        with self._active():
+            _import_engine()
+
+    def warm(self, robot: dict, job: dict, keep_s: float) -> dict:
+        """A run's first call: its ``--keep-workers`` from now on, and the model built.
+
+        Returns:
+            ``error``: the model's error text or None (the first unit reports it), ``runs``:
+            the runs this actor served before.
+        """
+        with self._active():
+            self._keep = float(keep_s)
+            from torchcontact.logs.ray_engine import _warm_worker
+
+            error = _warm_worker(robot, job)
+            runs, self._runs = self._runs, self._runs + 1
+            return {"error": error, "runs": runs}
+
+    def estimate_units(self, units: list[int], config: tuple) -> dict[str, Any]:
+        """The Ray engine's unit task (:func:`~torchcontact.logs.ray_engine._estimate_units`)."""
+        with self._active():
+            from torchcontact.logs.ray_engine import _estimate_units
+
+            return _estimate_units(units, config)
+
+    def expire(self) -> bool:
+        """End this actor if it is still idle (sent by its own watchdog); False if it is not."""
+        with self._guard:
+            if self._busy or time.monotonic() - self._last <= self._keep:
+                return False
+        import ray
+
+        ray.actor.exit_actor()
+        return True  # pragma: no cover - exit_actor does not return
+
+    def _watch(self) -> None:
+        import ray
+
+        while True:
+            time.sleep(min(1.0, max(0.05, self._keep / 4)))
+            with self._guard:
+                idle = not self._busy and time.monotonic() - self._last > self._keep
+            if idle:
+                with contextlib.suppress(Exception):  # the actor is ending anyway
+                    ray.get(ray.get_runtime_context().current_actor.expire.remote())

@@ -194,12 +194,17 @@ def _ray_prestart(args: argparse.Namespace) -> None:
     if (
         args.workers < 1
         or not 0 < args.worker_cpus < float("inf")
+        or not 0 <= args.keep_workers < float("inf")
         or args.track_bias
         or args.derivatives != "centred"
     ):
         return
-    from torchcontact.logs._ray_boot import prestart
+    from torchcontact.logs._ray_boot import prestart, prestart_pool, running_cluster
 
+    if args.keep_workers > 0:
+        if running_cluster():  # else the engine refuses it, with Ray not started here
+            prestart_pool(args.workers, args.worker_cpus, args.device, args.keep_workers)
+        return
     prestart(args.workers, args.worker_cpus, args.device)
 
 
@@ -302,13 +307,16 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     raise InputError(msg)
             from torchcontact.logs.ray_engine import estimate_files_ray
 
-            kwargs.update(workers=args.workers, threads=args.threads, worker_cpus=args.worker_cpus)
+            kwargs.update(workers=args.workers, threads=args.threads, worker_cpus=args.worker_cpus,
+                          keep_workers=args.keep_workers)  # fmt: skip
             summaries = estimate_files_ray(files, robot, args.out, **kwargs)
         else:
             if args.workers != 1:
                 raise InputError("--workers applies to --engine ray only")
             if args.worker_cpus != 1:
                 raise InputError("--worker-cpus applies to --engine ray only")
+            if args.keep_workers:
+                raise InputError("--keep-workers applies to --engine ray only")
             summaries = estimate_files(files, robot, args.out, **kwargs)
     except KeyboardInterrupt:
         print("interrupted: run again with --resume to finish", file=sys.stderr)
@@ -582,6 +590,15 @@ def add_parser(subparsers: Any) -> None:
         metavar="N",
         help="CPUs Ray reserves per task (--engine ray); from 2 on a task decodes, estimates and"
         " encodes on overlapping threads, below 2 in turn (default: 1)",
+    )
+    est.add_argument(
+        "--keep-workers",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="--engine ray on a running cluster (RAY_ADDRESS): the worker processes stay this"
+        " long after their last unit, with the model built, for the next runs (a pool of"
+        " detached actors, each holding its CPUs until it ends; 0: none stay)",
     )
     est.add_argument(
         "--residual",

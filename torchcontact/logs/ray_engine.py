@@ -20,11 +20,15 @@ its units. A residual checkpoint must be stateless (MLP): units run in parallel 
 so a recurrent (GRU) residual, which needs every frame in time order, is refused. With
 ``--constraints`` a unit's first frame starts cold (no warm start across units).
 
-``workers`` tasks run at once, each holding ``worker_cpus`` CPUs.
+``workers`` tasks run at once, each holding ``worker_cpus`` CPUs. With ``keep_workers`` the units
+go to the actors of a worker pool instead (:class:`~torchcontact.logs._ray_boot.PoolWorker`), which
+outlive the run on a running cluster: the next runs find their processes started, torch imported
+and the model built (:func:`_pool_units`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -41,6 +45,7 @@ import torch
 from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.identity import RobotIdentity
 from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
+from torchcontact.logs._ray_boot import new_pool_actor, pool, running_cluster
 from torchcontact.logs._ray_boot import task_options as _task_options
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
@@ -396,6 +401,93 @@ def _unit_tasks(
             ray.cancel(ref, force=True)
 
 
+#: Units queued on each pool actor at once (one running, one waiting): an actor that ends a unit
+#: starts the next without waiting for the driver.
+UNITS_QUEUED = 2
+
+
+def _start_pool(
+    robot: dict, job: dict, workers: int, worker_cpus: float, device: str, keep_s: float
+) -> tuple[Any, list[Any], list[Any]]:
+    """Join the running cluster, find or start ``workers`` pool actors, send each a warm-up.
+
+    Returns:
+        The ``ray`` module, the warm-ups' references
+        (:meth:`~torchcontact.logs._ray_boot.PoolWorker.warm`), the actors.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+        ray = _ensure_ray(None)
+        actors = [a for a, _ in pool(ray, workers, worker_cpus, device, keep_s)]
+        return ray, [a.warm.remote(robot, job, keep_s) for a in actors], actors
+
+
+def _reused(ray: Any, warm: list[Any]) -> int:
+    """How many of the pool's actors had served a run before this one (their warm-ups)."""
+    n = 0
+    for ref in warm:
+        with contextlib.suppress(Exception):  # an actor replaced during the run
+            n += ray.get(ref, timeout=5)["runs"] > 0
+    return n
+
+
+def _pool_units(
+    ray: Any,
+    actors: list[Any],
+    todo: list[int],
+    config: Any,
+    replace: Any,
+    source: str,
+) -> Iterator[dict[str, Any]]:
+    """Run ``todo``'s units on the pool's actors, :data:`UNITS_QUEUED` queued on each.
+
+    An actor runs its calls in order, so it starts its next unit as it ends one, and at most
+    ``len(actors)`` units run at once. An actor that dies (killed, out of memory, ended idle
+    while the run queued a unit on it) is replaced (``replace()``: a new actor) and its units go
+    again, :data:`TASK_RETRIES` times at most each; a unit's own error ends the run. Yields each
+    unit's result as it finishes (any order).
+    """
+    from collections import Counter, deque
+
+    queue = deque(todo)
+    pending: dict[Any, tuple[int, int, Any]] = {}  # reference -> (slot, unit, actor)
+    load = [0] * len(actors)
+    tries: Counter = Counter()
+
+    def fill() -> None:
+        for slot, actor in enumerate(actors):
+            while queue and load[slot] < UNITS_QUEUED:
+                u = queue.popleft()
+                pending[actor.estimate_units.remote([u], config)] = (slot, u, actor)
+                load[slot] += 1
+
+    try:
+        fill()
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            slot, u, actor = pending.pop(ready[0])
+            load[slot] -= 1
+            try:
+                result = ray.get(ready[0])
+            except ray.exceptions.RayActorError:  # the actor is gone, not the unit's error
+                tries[u] += 1
+                if tries[u] > TASK_RETRIES:
+                    raise LogError(
+                        f"{source}: unit {u} lost its Ray worker {tries[u]} times (killed or out"
+                        " of memory)"
+                    ) from None
+                queue.appendleft(u)
+                if actors[slot] is actor:  # its other units fail too: one new actor
+                    actors[slot] = replace()
+            else:
+                yield result
+            fill()
+    finally:
+        for ref in pending:  # an error or an interrupted run: the queued units are dropped
+            with contextlib.suppress(Exception):
+                ray.cancel(ref)
+
+
 def estimate_file_ray(
     path: str | Path,
     robot: str | Path | RobotSpec,
@@ -420,6 +512,7 @@ def estimate_file_ray(
     ft_noise: Any = None,
     unweighted: bool = False,
     localize: Any = None,
+    keep_workers: float = 0.0,
 ) -> dict:
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
@@ -458,15 +551,24 @@ def estimate_file_ray(
         unweighted: as :func:`estimate_file`.
         localize: as :func:`estimate_file` (options or a :class:`LogLocalize`); each worker
             process loads the meshes once from ``robot``'s URDF.
+        keep_workers: seconds (> 0) that the worker processes stay after the run, idle, for the
+            next runs: the units go to a pool of detached actors on the running cluster
+            (``RAY_ADDRESS``), which the next runs of this torchcontact with the same
+            ``worker_cpus`` and device find started, with the model built. Each actor holds its
+            CPUs until it ends, ``keep_workers`` seconds after its last unit. 0: plain tasks in
+            this run's worker processes.
 
     Returns:
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units),
-        ``nodes``: the Ray nodes that ran the units estimated now, and ``phases_s``: seconds
+        ``nodes``: the Ray nodes that ran the units estimated now, with ``keep_workers``
+        ``pool``: ``{"workers": n, "reused": k}`` (``k`` of the ``n`` actors ran before this
+        run), and ``phases_s``: seconds
         from the start to Ray started (the warm-ups sent), the log scanned (and its noise
         estimated), the first unit done (absent when none ran now) and the output published.
 
     Raises:
-        InputError: as :func:`estimate_file`, ``workers`` < 1, or ``worker_cpus`` <= 0.
+        InputError: as :func:`estimate_file`, ``workers`` < 1, ``worker_cpus`` <= 0, or
+            ``keep_workers`` < 0, or > 0 without a running cluster.
         OutputBusyError: another live process is writing ``out``.
         LogError: as :func:`estimate_file`, or a recurrent (GRU) residual.
     """
@@ -477,6 +579,13 @@ def estimate_file_ray(
     )
     if not (isinstance(worker_cpus, (int, float)) and 0 < worker_cpus < float("inf")):
         raise InputError(f"--worker-cpus must be a number > 0, got {worker_cpus!r}")
+    if not (isinstance(keep_workers, (int, float)) and 0 <= keep_workers < float("inf")):
+        raise InputError(f"--keep-workers must be seconds >= 0, got {keep_workers!r}")
+    if keep_workers and not running_cluster():
+        raise InputError(
+            "--keep-workers needs a running Ray cluster (set RAY_ADDRESS, e.g. after `ray start"
+            " --head`): a Ray instance that this command starts ends with it"
+        )
     out = Path(out)
     check_outputs([out, *side_paths(out)], [path, robot, residual])
     device = resolve_device(device)
@@ -503,8 +612,13 @@ def estimate_file_ray(
         # import torchcontact and build the model (a log of 16 M frames takes seconds to scan)
         with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-scan") as pool:
             scanned = pool.submit(setup)
-            ray, warm = _start_ray(num_cpus, _robot_arg(spec, model), job, workers,
-                                   _task_options(worker_cpus, device))  # fmt: skip
+            if keep_workers:
+                ray, warm, actors = _start_pool(
+                    _robot_arg(spec, model), job, workers, worker_cpus, device, keep_workers
+                )
+            else:
+                ray, warm = _start_ray(num_cpus, _robot_arg(spec, model), job, workers,
+                                       _task_options(worker_cpus, device))  # fmt: skip
             phases = {"ray_started": time.perf_counter() - t0}
             pf, le, columns, scan = scanned.result()
             phases["log_scanned"] = time.perf_counter() - t0
@@ -524,8 +638,14 @@ def estimate_file_ray(
                 return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-                results = _unit_tasks(ray, warm, todo, path, spec, model, le, run, columns, res,
-                                      workers, worker_cpus, options)  # fmt: skip
+                if keep_workers:
+                    config = ray.put(unit_config(path, spec, model, le, run.units, columns,
+                                                 run.partial, res, options))  # fmt: skip
+                    results = _pool_units(ray, actors, todo, config, lambda: new_pool_actor(
+                        ray, worker_cpus, device, keep_workers), str(path))  # fmt: skip
+                else:
+                    results = _unit_tasks(ray, warm, todo, path, spec, model, le, run, columns,
+                                          res, workers, worker_cpus, options)  # fmt: skip
                 try:
                     for r in results:
                         phases.setdefault("first_unit_done", time.perf_counter() - t0)
@@ -550,6 +670,8 @@ def estimate_file_ray(
             engine="ray",
         )
     summary["nodes"] = len(nodes)  # Ray nodes that ran units now
+    if keep_workers:
+        summary["pool"] = {"workers": len(actors), "reused": _reused(ray, warm)}
     phases["published"] = summary["seconds"]
     summary["phases_s"] = {k: round(v, 3) for k, v in phases.items()}
     return summary
