@@ -34,7 +34,7 @@ machine's speed drifts by 10-20 % over minutes, which blocks of runs read as dif
   loading, the log's scan, reading, estimating, journal, writing, rename: all timed). The
   floor's clock starts after pyarrow is imported; this one's includes it: ``end to end, warm,
   pyarrow imported before the clock`` is the same run with that import done first, after the
-  allocator settings the CLI makes before it (``_keep_freed_memory``). Two unmeasured runs come
+  allocator settings the CLI makes before it (``keep_freed_memory``). Two unmeasured runs come
   first, each followed by the kernel builds it started (the estimator's; the noise estimate's
   forward model, requested by the first run that finds the estimator's in the cache), so that
   "warm" means every kernel a run uses is cached.
@@ -192,9 +192,9 @@ def child(kind: str, robot: str, log: str, out: str, extra: str) -> None:
 
         if kind == "e2e-imported":  # as the floor: pyarrow's modules imported before the clock,
             # after the allocator settings the CLI makes before pyarrow loads
-            from torchcontact.logs.cli import _keep_freed_memory
+            from torchcontact.logs._alloc import keep_freed_memory
 
-            _keep_freed_memory()
+            keep_freed_memory()
             import pyarrow.compute  # noqa: F401
             import pyarrow.parquet  # noqa: F401
 

@@ -24,6 +24,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from torchcontact.logs._alloc import ALLOC_ENV, keep_freed_memory
+
 #: The import tasks :func:`prestart` sent (kept referenced until the process ends).
 _booting: list[Any] = []
 
@@ -44,19 +46,20 @@ def ensure_ray(num_cpus: int | None) -> Any:
         root = str(Path(__file__).resolve().parents[2])
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
         kwargs: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.ERROR)
+        env = {"PYTHONPATH": path, **ALLOC_ENV}  # the workers' allocators as the CLI's
         if os.environ.get("RAY_ADDRESS"):  # a running cluster: it has its own resources
-            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs,
-                     runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
+            ray.init(address=os.environ["RAY_ADDRESS"], **kwargs, runtime_env={"env_vars": env})
         else:
-            before = os.environ.get("PYTHONPATH")
-            os.environ["PYTHONPATH"] = path
+            before = {k: os.environ.get(k) for k in env}
+            os.environ.update(env)
             try:
                 ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
             finally:
-                if before is None:
-                    del os.environ["PYTHONPATH"]
-                else:
-                    os.environ["PYTHONPATH"] = before
+                for k, v in before.items():
+                    if v is None:
+                        del os.environ[k]
+                    else:
+                        os.environ[k] = v
     return ray
 
 
@@ -71,6 +74,7 @@ def task_options(worker_cpus: float, device: str) -> dict[str, Any]:
 
 def _import_engine() -> None:
     """Ray task: this worker process imports the Ray engine (torch, pyarrow, torchcontact)."""
+    keep_freed_memory()  # before pyarrow loads
     import torchcontact.logs.ray_engine  # noqa: F401
 
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
 
 from torchcontact.errors import InputError
+from torchcontact.logs._alloc import keep_freed_memory
 from torchcontact.robot_arg import (
     add_robot_argument,
     add_strict_joints_argument,
@@ -208,35 +208,6 @@ def _ray_prestart(args: argparse.Namespace) -> None:
     prestart(args.workers, args.worker_cpus, args.device)
 
 
-#: glibc's ``mallopt`` parameters (``<malloc.h>``).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-
-
-def _keep_freed_memory() -> None:
-    """Have the allocators keep freed memory for the next chunk rather than return it to the OS.
-
-    A log job allocates and frees buffers of the same sizes (0.1-20 MB) for every chunk. pyarrow's
-    mimalloc returns freed pages after 10 ms, and glibc's malloc maps each array above its
-    threshold anew and trims its heap: every chunk faulted its pages in again, zero-filled by
-    the kernel (219 k page faults in a warm 1 M-frame run, about 6% of its CPU; 88 k with these
-    settings). mimalloc keeps its pages (unless ``MIMALLOC_PURGE_DELAY`` is set; read when
-    pyarrow loads, so this runs before it is imported); glibc serves blocks up to 32 MiB from
-    its heap and trims only above 1 GiB free. The bounded queues still bound the peak memory.
-    """
-    import ctypes
-    import platform
-
-    os.environ.setdefault("MIMALLOC_PURGE_DELAY", "-1")
-    if platform.libc_ver()[0] != "glibc":
-        return
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_THRESHOLD, 32 << 20)
-    mallopt(_M_TRIM_THRESHOLD, 1 << 30)
-
-
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs.
 
@@ -247,7 +218,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from torchcontact.logs.format import expand_inputs
 
     files = expand_inputs(args.inputs)  # a missing input's error before Ray's start-up
-    _keep_freed_memory()
+    keep_freed_memory()
     if args.engine == "ray":
         _ray_prestart(args)
     from torchcontact.errors import LogError

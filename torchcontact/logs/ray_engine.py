@@ -44,6 +44,7 @@ import torch
 
 from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.identity import RobotIdentity
+from torchcontact.logs._alloc import keep_freed_memory
 from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
 from torchcontact.logs._ray_boot import new_pool_actor, pool, running_cluster
 from torchcontact.logs._ray_boot import task_options as _task_options
@@ -112,13 +113,16 @@ _MODEL_CACHE: dict[str, Any] = {}
 
 
 def _worker_threads(job: dict) -> None:
-    """Size this worker process's threads: torch's to ``threads``, pyarrow's CPU pool to ``cpus``.
+    """Size this worker process's threads and set its allocators as the CLI's.
 
-    ``cpus`` are the CPUs Ray reserved for a task; pyarrow would otherwise start one thread per
-    core of the node in every worker process (16 processes of 16 threads on 16 cores).
+    torch's threads to ``threads``, pyarrow's CPU pool to ``cpus`` (the CPUs Ray reserved for a
+    task; pyarrow would otherwise start one thread per core of the node in every worker process:
+    16 processes of 16 threads on 16 cores), the allocators by
+    :func:`~torchcontact.logs._alloc.keep_freed_memory`.
     """
     import pyarrow as pa
 
+    keep_freed_memory()  # as the CLI's process (its environment part: the runtime's)
     if job["threads"]:
         torch.set_num_threads(job["threads"])
     pa.set_cpu_count(max(1, int(job.get("cpus", 1))))
