@@ -110,3 +110,28 @@ def test_small_row_groups_estimate_as_one(model, changing, tmp_path):
     b = estimate_file(small, model, tmp_path / "b.parquet")
     assert a["frames"] == b["frames"] == 600 and a["slots"] == b["slots"]
     assert pq.read_table(a["output"]).equals(pq.read_table(b["output"]))
+
+
+def test_damage_is_reported_as_one_pass_reports_it(changing, tmp_path):
+    """A damaged page in row group 3 of 6: the scan in ranges on threads raises the error a pass
+    in file order raises (the first damage in file order, its row group named), whichever
+    thread met it."""
+    import pytest
+
+    from torchcontact.errors import LogError
+    from torchcontact.logs.format import write_table
+
+    path = write_table(pq.read_table(changing), tmp_path / "log.parquet", row_group_size=100)
+    meta = pq.ParquetFile(path).metadata
+    chunk = meta.row_group(3).column(0)  # t_ns of rows 300-399 (page checksums: detected)
+    data = bytearray(path.read_bytes())
+    at = chunk.data_page_offset + chunk.total_compressed_size // 2
+    data[at : at + 16] = bytes(16)
+    path.write_bytes(bytes(data))
+    errors = []
+    for threads in (1, 3, 6):
+        with pytest.raises(LogError) as e:
+            scan_log(open_log(path), str(path), True, threads)
+        errors.append(str(e.value))
+    assert "corrupted data in row group 3 (rows 300-399)" in errors[0]
+    assert errors == [errors[0]] * 3

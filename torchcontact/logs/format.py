@@ -1133,12 +1133,35 @@ def _null_stamps(pf: Any) -> int:
     return total
 
 
-def _unreadable(pf: Any, source: object, row: int, exc: Exception) -> LogError:
+def _unreadable(
+    pf: Any,
+    source: object,
+    row: int,
+    exc: Exception,
+    columns: Sequence[str] | None = None,
+    span: int = 0,
+) -> LogError:
+    """The error of a read of the rows ``[row, row + span)`` that failed.
+
+    pyarrow reads a batch across row groups, so the damage may lie in a later group of the
+    batch than ``row``'s: with ``columns``, the batch's groups are read one at a time (the
+    columns the failed read asked for) and the first that fails is named, so that a read of the
+    file in any batches or ranges names the same row group.
+    """
+    import pyarrow as pa
+
     starts = np.cumsum([0] + [pf.metadata.row_group(i).num_rows for i in range(pf.num_row_groups)])
     g = int(np.searchsorted(starts, row, side="right") - 1)
     g = min(max(g, 0), max(pf.num_row_groups - 1, 0))
+    if columns is not None:
+        end = int(np.searchsorted(starts, row + max(span, 1), side="left"))  # the batch's groups
+        for k in range(g, min(max(end, g + 1), pf.num_row_groups)):
+            try:
+                pf.read_row_group(k, columns=list(columns))
+            except (OSError, pa.ArrowException) as e:
+                g, exc = k, e
+                break
     lo, hi = int(starts[g]), int(starts[min(g + 1, len(starts) - 1)]) - 1
-    import pyarrow as pa
 
     if "Expected all lists to be of size" in str(exc) and int(pa.__version__.split(".")[0]) < 26:
         return LogError(
@@ -1191,7 +1214,7 @@ def iter_chunks(
         try:
             rb = next(it, None)
         except (OSError, pa.ArrowException) as exc:
-            raise _unreadable(pf, source, done + have, exc) from None
+            raise _unreadable(pf, source, done + have, exc, columns, batch_size) from None
         if rb is None:
             break
         if not exact:
