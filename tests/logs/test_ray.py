@@ -139,16 +139,14 @@ def test_a_task_on_one_cpu_writes_the_part_of_a_task_on_three(cluster, small_gro
     assert pq.read_table(pa.BufferReader(parts[0])).num_rows == 200
 
 
-def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local, tmp_path):
-    from torchcontact.logs.ray_engine import estimate_file_ray
-    from torchcontact.robots import tcarm_path
-
-    killed = []
-    done = threading.Event()
+def _killing_one(what: bytes, run):
+    """``run()`` while a thread SIGKILLs the first Ray worker process that runs a unit (its title
+    names ``what``); asserts that one was killed."""
+    killed, done = [], threading.Event()
 
     def killer():
         while not done.is_set() and not killed:
-            for pid in _task_pids():
+            for pid in _task_pids(what):
                 os.kill(pid, signal.SIGKILL)
                 killed.append(pid)
                 break
@@ -157,12 +155,21 @@ def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local,
     t = threading.Thread(target=killer, daemon=True)
     t.start()
     try:
-        kw = dict(KW, batch_size=32)  # several chunks per unit: a unit takes a while
-        r = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "k.parquet", **kw)
+        result = run()
     finally:
         done.set()
         t.join()
     assert killed, "no unit was running to be killed"
+    return result
+
+
+def test_a_killed_worker_costs_a_retry_not_the_run(cluster, small_groups, local, tmp_path):
+    from torchcontact.logs.ray_engine import estimate_file_ray
+    from torchcontact.robots import tcarm_path
+
+    kw = dict(KW, batch_size=32)  # several chunks per unit: a unit takes a while
+    r = _killing_one(b"_estimate_units", lambda: estimate_file_ray(
+        small_groups, tcarm_path(), tmp_path / "k.parquet", **kw))  # fmt: skip
     assert r["frames"] == 600 and r["processed_now"] == 600
     _same_rows(pq.read_table(r["output"]), pq.read_table(local["output"]))
 
@@ -194,25 +201,8 @@ def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
         assert b["pool"] == {"workers": 2, "reused": 2} and _our_actors() == first
         _same_rows(pq.read_table(b["output"]), pq.read_table(local["output"]))
 
-        killed, done = [], threading.Event()
-
-        def killer():  # a pool actor's process while it runs a unit
-            while not done.is_set() and not killed:
-                for pid in _task_pids(b"PoolWorker.estimate_units"):
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-                    break
-                time.sleep(0.002)
-
-        t = threading.Thread(target=killer, daemon=True)
-        t.start()
-        try:
-            c = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "c.parquet",
-                                  keep_workers=1, **kw)  # fmt: skip
-        finally:
-            done.set()
-            t.join()
-        assert killed, "no unit was running to be killed"
+        c = _killing_one(b"PoolWorker.estimate_units", lambda: estimate_file_ray(
+            small_groups, tcarm_path(), tmp_path / "c.parquet", keep_workers=1, **kw))  # fmt: skip
         assert c["frames"] == c["processed_now"] == 600 and c["pool"]["workers"] == 2
         _same_rows(pq.read_table(c["output"]), pq.read_table(local["output"]))
         assert _our_actors() != first  # the killed one was replaced
