@@ -119,3 +119,27 @@ def test_a_run_appending_parts_tallies_as_one_encoding_tables(tmp_path):
     a, b = ({k: v for k, v in s.items() if k not in skip} for s in summaries)
     assert a == b and b["bad_frames"] == 3 and b["bad_details"] == [["F/T not finite", 3]]
     assert b["outside_training"] == 2
+
+
+def test_two_writers_of_one_part_never_mix(tmp_path):
+    """A part written by two writers at once (a pool actor left running by a killed driver, and
+    the resumed run's writer): each writes a temporary file of its own, the last rename wins, and
+    the part reads back whole. A part whose run has ended (its folder removed) is an error, and
+    no folder is made again."""
+    from torchcontact.logs.format import LogWriter
+
+    tab = _table(200)
+    path = tmp_path / "part-00000002.parquet"
+    a, b = (LogWriter(path, tab.schema, unique_tmp=True, create_dirs=False) for _ in range(2))
+    for k in range(0, 200, 50):  # interleaved, as two processes would write
+        a.write(tab.slice(k, 50))
+        b.write(tab.slice(k, 50))
+    assert len(list(tmp_path.glob("*.tmp"))) == 2
+    a.close()
+    b.close()
+    assert not list(tmp_path.glob("*.tmp"))
+    assert pq.read_table(path, page_checksum_verification=True).equals(tab)
+    gone = tmp_path / "ended.partial" / "part-00000000.parquet"
+    with pytest.raises(OSError):
+        write_encoded_part([tab], gone, tab.schema)
+    assert not gone.parent.exists()

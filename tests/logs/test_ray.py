@@ -216,14 +216,20 @@ def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
         end_pool(ray)  # a failed check's actors: their CPUs free for the other tests
 
 
-def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
+@pytest.mark.parametrize("keep", [0, 2])
+def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path, keep):
+    """A driver killed mid-run, then ``--resume``: the local rows. With a worker pool
+    (``keep``), the killed driver's actors outlive it and may still write its queued units while
+    the resumed run writes them again: the same rows, and no stray folder after the run."""
+    from torchcontact.logs._ray_boot import end_pool
     from torchcontact.logs.ray_engine import estimate_file_ray
     from torchcontact.robots import tcarm_path
 
     out = tmp_path / "d.parquet"
     # units of 8 x --batch-size = 256 frames: 3 units
     cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(small_groups), "--out",
-           str(out), "--engine", "ray", "--workers", "2", "--batch-size", "32", "--quiet"]  # fmt: skip
+           str(out), "--engine", "ray", "--workers", "2", "--batch-size", "32", "--quiet",
+           "--keep-workers", str(keep)]  # fmt: skip
     env = {**os.environ, "RAY_ADDRESS": cluster.address, "PYTHONPATH": str(ROOT)}
     driver = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     partial = tmp_path / "d.parquet.partial"
@@ -239,10 +245,19 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path):
     assert not out.exists() and partial.is_dir()
     sidecar = json.loads((tmp_path / "d.parquet.progress.json").read_text())
     assert sidecar["engine"] == "ray" and sidecar["task_rows"] == 256
-    r = estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, workers=2, resume=True)
-    assert r["resumed_chunks"] >= 1 and r["frames"] == 600 and r["chunks"] == 3
-    assert not partial.exists()
-    _same_rows(pq.read_table(out), pq.read_table(local["output"]))
+    try:
+        r = estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, workers=2,
+                              resume=True, keep_workers=keep)  # fmt: skip
+        assert r["resumed_chunks"] >= 1 and r["frames"] == 600 and r["chunks"] == 3
+        assert not partial.exists()
+        _same_rows(pq.read_table(out), pq.read_table(local["output"]))
+        if keep:  # the actors end idle; a late part of the killed driver made no folder
+            deadline = time.monotonic() + 60
+            while _our_actors() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert not _our_actors() and not partial.exists()
+    finally:
+        end_pool(ray)
 
 
 def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch):

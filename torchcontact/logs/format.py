@@ -1389,6 +1389,12 @@ class LogWriter:
     Args:
         path: the final file; ``<path>.tmp`` holds the data until :meth:`close`.
         schema: the pyarrow schema (with its metadata).
+        unique_tmp: a temporary name of this writer's own (``<path>.<pid>-<random>.tmp``), for
+            files that two writers may write at once (a run's part, which a Ray worker left by a
+            killed driver may still be writing while the resumed run writes it again): the
+            last rename wins, and no file mixes the two.
+        create_dirs: create ``path``'s folder when missing (False: a missing folder is an
+            error, for a run's part whose run has ended and removed its folder).
 
     Example:
         >>> import tempfile, pyarrow as pa
@@ -1399,21 +1405,32 @@ class LogWriter:
         (True, 1)
     """
 
-    def __init__(self, path: str | Path, schema: Any) -> None:
+    def __init__(
+        self, path: str | Path, schema: Any, unique_tmp: bool = False, create_dirs: bool = True
+    ) -> None:
         self.path = Path(path)
         self.schema = schema
         self.rows = 0
         self._writer: Any = None
+        self._create_dirs = create_dirs
+        self._tmp = _tmp(self.path)
+        if unique_tmp:
+            import uuid
+
+            self._tmp = self.path.with_name(
+                f"{self.path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp"
+            )
 
     def write(self, table: Any, row_group_size: int | None = None) -> None:
         """Append a table (or record batch) cast to the schema."""
         import pyarrow.parquet as pq
 
         if self._writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self._create_dirs:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
             stats = ["t_ns"] if "t_ns" in self.schema.names else False
             self._writer = pq.ParquetWriter(
-                _tmp(self.path), self.schema, write_statistics=stats, **WRITE_OPTIONS
+                self._tmp, self.schema, write_statistics=stats, **WRITE_OPTIONS
             )
         table = _conformed(table, self.schema)
         self._writer.write_table(table, row_group_size=row_group_size)
@@ -1425,14 +1442,14 @@ class LogWriter:
             self.write(self.schema.empty_table())
         self._writer.close()
         self._writer = None
-        os.replace(_tmp(self.path), self.path)
+        os.replace(self._tmp, self.path)
 
     def abort(self) -> None:
         """Drop the temporary file; the final name is left untouched."""
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-        _tmp(self.path).unlink(missing_ok=True)
+        self._tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> LogWriter:
         return self
@@ -1599,14 +1616,18 @@ def write_encoded_part(tables: Iterable[Any], path: str | Path, schema: Any) -> 
     """A unit's tables as a Parquet file of its own: a Ray worker's part of a run's output.
 
     The options of :class:`LogWriter`, one row group per table (as :func:`encode_part` encodes
-    one chunk), temporary name and atomic rename. The driver appends the file's column chunks to
-    the output as they are (:func:`read_encoded_part`, :meth:`PartsWriter.append`): the workers
-    encode in parallel, the driver copies bytes.
+    one chunk), a temporary name of its own and an atomic rename: a worker of a killed driver
+    (a pool actor outlives it) may still write the part the resumed run writes again, and the
+    last rename wins with the same bytes. The folder is not created: once the run has ended and
+    removed it, such a late write fails instead of leaving a stray folder. The driver appends
+    the file's column chunks to the output as they are (:func:`read_encoded_part`,
+    :meth:`PartsWriter.append`): the workers encode in parallel, the driver copies bytes.
 
     Raises:
         InputError: no table.
+        FileNotFoundError: ``path``'s folder is gone (its run has ended).
     """
-    with LogWriter(path, schema) as w:
+    with LogWriter(path, schema, unique_tmp=True, create_dirs=False) as w:
         n = 0
         for tab in tables:
             w.write(tab)
