@@ -75,9 +75,9 @@ __all__ = [
     "compiled",
     "prepare_vm",
     "run",
+    "start_deferred_builds",
     "vm_enabled",
     "vm_kernel",
-    "start_deferred_builds",
     "wait_for_builds",
 ]
 

@@ -28,6 +28,9 @@ from torchcontact.logs._alloc import ALLOC_ENV, keep_freed_memory
 
 #: The import tasks :func:`prestart` sent (kept referenced until the process ends).
 _booting: list[Any] = []
+#: The pool :func:`prestart_pool` found or started, by its workers and actor label, until the
+#: run takes it (:func:`prestarted_pool`).
+_prestarted: dict[tuple, list[tuple[Any, bool]]] = {}
 
 
 def ensure_ray(num_cpus: int | None) -> Any:
@@ -105,9 +108,14 @@ def prestart_pool(workers: int, worker_cpus: float, device: str, keep_s: float) 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ray = ensure_ray(None)
-        for actor, new in pool(ray, workers, worker_cpus, device, keep_s):
-            if new:
-                _booting.append(actor.imports.remote())
+        members = pool(ray, workers, worker_cpus, device, keep_s)
+        _prestarted[(workers, _pool_label(worker_cpus, device))] = members
+        _booting.extend(actor.imports.remote() for actor, new in members if new)
+
+
+def prestarted_pool(workers: int, worker_cpus: float, device: str) -> list[tuple[Any, bool]] | None:
+    """The pool :func:`prestart_pool` found for these options (once), else None."""
+    return _prestarted.pop((workers, _pool_label(worker_cpus, device)), None)
 
 
 # ----------------------------------------------------------------------------- the worker pool

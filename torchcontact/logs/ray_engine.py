@@ -46,7 +46,12 @@ from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.identity import RobotIdentity
 from torchcontact.logs._alloc import keep_freed_memory
 from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
-from torchcontact.logs._ray_boot import new_pool_actor, pool, running_cluster
+from torchcontact.logs._ray_boot import (
+    new_pool_actor,
+    pool,
+    prestarted_pool,
+    running_cluster,
+)
 from torchcontact.logs._ray_boot import task_options as _task_options
 from torchcontact.logs.chunks import (
     DEFAULT_VELOCITY_MARGIN,
@@ -353,18 +358,14 @@ def _unit_tasks(
     ray: Any,
     warm: list[Any],
     todo: list[int],
-    path: str | Path,
-    robot: RobotSpec,
-    model: Any,
-    le: LogEstimator,
-    run: Run,
-    columns: list[str],
-    res: Any,
+    config: Any,
     workers: int,
     worker_cpus: float,
-    options: dict,
+    device: str,
 ) -> Iterator[dict[str, Any]]:
     """Run ``_estimate_units`` on each unit of ``todo``, ``workers`` tasks in flight at once.
+
+    ``config`` is the run's :func:`unit_config` in Ray's object store.
 
     Plain Ray tasks, not Ray Data: a unit is a coarse task with a side effect (its journal
     part), and Ray Data's streaming executor ramped its concurrency up slowly (16 tasks of 1 s
@@ -375,10 +376,8 @@ def _unit_tasks(
     with CPUs to spare); after :data:`WARM_UP_WAIT_S`, the units go all the same. Waiting for
     every warm-up instead cost 2.4 s on 16 workers (the slowest process to import torch).
     """
-    config = ray.put(unit_config(path, robot, model, le, run.units, columns, run.partial, res,
-                                 options))  # fmt: skip
     task = ray.remote(_estimate_units).options(
-        **_task_options(worker_cpus, options["device"]),
+        **_task_options(worker_cpus, device),
         max_retries=TASK_RETRIES,  # a dead worker process: its unit again (not user errors)
     )
     queue = list(reversed(todo))
@@ -422,7 +421,10 @@ def _start_pool(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(None)
-        actors = [a for a, _ in pool(ray, workers, worker_cpus, device, keep_s)]
+        members = prestarted_pool(workers, worker_cpus, device)  # the CLI's, moments ago
+        if members is None:
+            members = pool(ray, workers, worker_cpus, device, keep_s)
+        actors = [a for a, _ in members]
         return ray, [a.warm.remote(robot, job, keep_s) for a in actors], actors
 
 
@@ -566,9 +568,9 @@ def estimate_file_ray(
         Summary dict as :func:`estimate_file` (``engine`` is ``"ray"``, chunks count units),
         ``nodes``: the Ray nodes that ran the units estimated now, with ``keep_workers``
         ``pool``: ``{"workers": n, "reused": k}`` (``k`` of the ``n`` actors ran before this
-        run), and ``phases_s``: seconds
-        from the start to Ray started (the warm-ups sent), the log scanned (and its noise
-        estimated), the first unit done (absent when none ran now) and the output published.
+        run), and ``phases_s``: seconds from the start to Ray started (the warm-ups sent), the
+        log scanned (and its noise estimated), the first unit done (absent when none ran now)
+        and the output published.
 
     Raises:
         InputError: as :func:`estimate_file`, ``workers`` < 1, ``worker_cpus`` <= 0, or
@@ -642,14 +644,13 @@ def estimate_file_ray(
                 return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+                config = ray.put(unit_config(path, spec, model, le, run.units, columns,
+                                             run.partial, res, options))  # fmt: skip
                 if keep_workers:
-                    config = ray.put(unit_config(path, spec, model, le, run.units, columns,
-                                                 run.partial, res, options))  # fmt: skip
                     results = _pool_units(ray, actors, todo, config, lambda: new_pool_actor(
                         ray, worker_cpus, device, keep_workers), str(path))  # fmt: skip
                 else:
-                    results = _unit_tasks(ray, warm, todo, path, spec, model, le, run, columns,
-                                          res, workers, worker_cpus, options)  # fmt: skip
+                    results = _unit_tasks(ray, warm, todo, config, workers, worker_cpus, device)
                 try:
                     for r in results:
                         phases.setdefault("first_unit_done", time.perf_counter() - t0)
