@@ -388,6 +388,29 @@ def test_a_missing_optional_dependency_names_its_extra(tmp_path, monkeypatch, ca
     assert "unexpected" not in line and not (tmp_path / "s.parquet").exists()
 
 
+def test_ray_is_shut_down_at_the_end_only_where_this_process_started_it(monkeypatch):
+    """The console script's end (``_end_ray``): a local Ray instance this process started ends with it (its head
+    processes would outlive it); a running cluster it joined is not shut down (the cluster ends
+    the driver's job when the process exits)."""
+    import types
+
+    from torchcontact import cli
+    from torchcontact.logs import _ray_boot
+
+    calls = []
+    fake = types.SimpleNamespace(is_initialized=lambda: True, shutdown=lambda: calls.append(1))
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setattr(_ray_boot, "_local_instance", [])
+    cli._end_ray()  # joined a running cluster
+    assert calls == []
+    monkeypatch.setattr(_ray_boot, "_local_instance", [True])
+    cli._end_ray()  # started here
+    assert calls == [1]
+    fake.is_initialized = lambda: False
+    cli._end_ray()  # not running any more
+    assert calls == [1]
+
+
 def test_the_console_script_ends_at_once_and_loses_nothing(small_log, tmp_path):
     """``console_main`` skips the interpreter's shutdown (no atexit handler runs) once stdout is
     flushed; a stdout it cannot write is an error, not exit 0; ``python -m torchcontact`` keeps

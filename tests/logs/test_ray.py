@@ -182,8 +182,9 @@ def _our_actors():
 
 
 def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
-    """``keep_workers``: the units go to detached actors, which the next run finds with the
-    model built (reused), with the local rows each time; an actor killed during a unit is
+    """``keep_workers``: the units go to detached actors, which the next runs find with the
+    model built (reused; the second a console-script process that ends without Ray's shutdown),
+    with the local rows each time; an actor killed during a unit is
     replaced and its units go again (the same rows); idle actors end by themselves after the
     seconds given, and with them their CPUs (the other tests' tasks need them)."""
     from torchcontact.logs.ray_engine import estimate_file_ray
@@ -196,8 +197,18 @@ def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
         assert a["pool"] == {"workers": 2, "reused": 0} and len(_our_actors()) == 2
         _same_rows(pq.read_table(a["output"]), pq.read_table(local["output"]))
         first = _our_actors()
-        b = estimate_file_ray(small_groups, tcarm_path(), tmp_path / "b.parquet",
-                              keep_workers=120, **kw)  # fmt: skip
+        # the console script joined to the cluster finds them too, and ends without Ray's
+        # shutdown (the cluster ends its job): the actors stay for the next run
+        entry = "from torchcontact.cli import console_main; console_main()"
+        r = subprocess.run(
+            [sys.executable, "-c", entry, "estimate", str(small_groups), "--out",
+             str(tmp_path / "b.parquet"), "--engine", "ray", "--workers", "2", "--batch-size",
+             "32", "--keep-workers", "120", "--quiet", "--json"],
+            env={**os.environ, "RAY_ADDRESS": cluster.address, "PYTHONPATH": str(ROOT)},
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        b = json.loads(r.stdout)
         assert b["pool"] == {"workers": 2, "reused": 2} and _our_actors() == first
         _same_rows(pq.read_table(b["output"]), pq.read_table(local["output"]))
 
