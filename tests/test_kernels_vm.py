@@ -370,3 +370,20 @@ def test_prepare_vm_starts_the_build_once_and_loads_it(tmp_path, monkeypatch):
     kernels._wait_for_vm(torch.float64, 60)
     assert kernels.prepare_vm(torch.float64) is True
     assert kernels._vm_state(torch.float64) == "ready"
+
+
+def test_the_kernel_builds_during_the_run_by_default_only_on_many_cores(monkeypatch):
+    """Unset ``$TORCHCONTACT_VM``: ``behind`` (the kernel built during the run, on the cores the
+    run leaves idle) from ``BEHIND_MIN_CPUS`` CPUs of this process's affinity, else ``1`` (after
+    the run); a value given always wins."""
+    import os
+
+    monkeypatch.delenv("TORCHCONTACT_VM", raising=False)
+    for cpus, mode in ((2, "1"), (kernels.BEHIND_MIN_CPUS - 1, "1"),
+                       (kernels.BEHIND_MIN_CPUS, "behind"), (64, "behind")):  # fmt: skip
+        monkeypatch.setattr(os, "sched_getaffinity", lambda _pid, n=cpus: set(range(n)))
+        assert kernels._vm_mode() == mode
+        assert kernels._build_behind_vm() is (mode == "behind") and kernels.vm_enabled()
+    for given in ("1", "only", "0", "Behind "):
+        monkeypatch.setenv("TORCHCONTACT_VM", given)
+        assert kernels._vm_mode() == given.strip().lower()
