@@ -387,3 +387,57 @@ def test_the_kernel_builds_during_the_run_by_default_only_on_many_cores(monkeypa
     for given in ("1", "only", "0", "Behind "):
         monkeypatch.setenv("TORCHCONTACT_VM", given)
         assert kernels._vm_mode() == given.strip().lower()
+
+
+def test_a_vm_build_started_before_torch_is_adopted_not_repeated(tmp_path, monkeypatch):
+    """``torchcontact._lightkernels.start_vm_build`` (a command, before it imports torch) starts
+    the VM's detached build on an empty cache, once; the kernels package then waits for that
+    builder (``building``) and loads its library, starting no compiler of its own; nothing is
+    started when the VM is built or with ``$TORCHCONTACT_VM=0``."""
+    from torchcontact import _lightkernels as lk
+
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    monkeypatch.setenv("TORCHCONTACT_VM", "1")
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    monkeypatch.setattr(lk, "_builds", {})
+    assert lk.start_vm_build("double") is True
+    assert lk.start_vm_build("double") is False  # its builder runs
+    ((name, proc),) = lk._builds.items()
+    assert name == kernels._vm_entry(torch.float64)[0].name  # one VM entry, either way
+    spawned = []
+    monkeypatch.setattr(kernels._store, "spawn_build", lambda *a, **k: spawned.append(a))
+    if kernels.prepare_vm(torch.float64) is False:  # still compiling: adopted
+        assert kernels._vm_state(torch.float64) == "building"
+        assert kernels._vm_builds[torch.float64].proc is proc
+        kernels._wait_for_vm(torch.float64, 120)
+    assert kernels.prepare_vm(torch.float64) is True and spawned == []
+    assert lk.start_vm_build("double") is False  # built
+    monkeypatch.setenv("TORCHCONTACT_VM", "0")
+    monkeypatch.setattr(lk, "_builds", {})
+    assert lk.start_vm_build("float") is False and lk._builds == {}
+
+
+def test_without_a_compiler_the_vm_warns_once_and_auto_runs_eagerly(tmp_path, monkeypatch):
+    """No C++ compiler: the VM's build fails, with one warning naming it; ``auto`` runs
+    eagerly (the eager result), and a second call warns no more."""
+    import warnings
+
+    monkeypatch.setenv("TORCHCONTACT_CACHE", str(tmp_path))
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    monkeypatch.setenv("TORCHCONTACT_VM", "1")
+    for name in ("_vm_fns", "_vm_builds", "_vm_failed", "_vm_calls", "_vm_code"):
+        monkeypatch.setattr(kernels, name, {})
+    prog = dynamics.program(_pendulum(0.91), "id", False, False)
+    q = torch.linspace(-3, 3, kernels.AUTO_BUILD_MIN_FRAMES, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    want = kernels.run_eager(prog, x)["tau"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first = kernels.run(prog, x, "auto")["tau"]
+        kernels.wait_for_builds(timeout=60)  # the kernel's own detached build fails too
+        second = kernels.run(prog, x, "auto")["tau"]
+    torch.testing.assert_close(first, want, atol=0, rtol=0)
+    torch.testing.assert_close(second, want, atol=0, rtol=0)
+    vm = [str(w.message) for w in caught if "tape VM" in str(w.message)]
+    assert len(vm) == 1 and "not available" in vm[0] and "no-such-compiler" in vm[0]

@@ -214,24 +214,10 @@ def add_cache_parser(sub: Any) -> None:
 
 
 def _kernel_store() -> Any:
-    """:mod:`torchcontact.kernels._store`, loaded by path without the kernels package.
+    """:mod:`torchcontact.kernels._store` without the kernels package (which imports torch)."""
+    from torchcontact._lightkernels import kernel_module
 
-    The store imports the standard library only (it also runs by path as the detached kernel
-    builder); the package imports torch, which ``cache info`` does not need.
-    """
-    import importlib.util
-    from pathlib import Path
-
-    name = "torchcontact.kernels._store"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(
-        "_torchcontact_kernel_store", Path(__file__).parent / "kernels" / "_store.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return kernel_module("_store")
 
 
 def _cache_command(args: argparse.Namespace) -> int:

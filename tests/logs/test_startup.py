@@ -99,6 +99,74 @@ def test_the_console_script_starts_the_kernel_builds_it_deferred(model, tmp_path
     assert all(p.is_file() for p in libs), [p.name for p in libs if not p.is_file()]
 
 
+def test_estimate_starts_the_vm_build_before_importing_torch(model, tmp_path):
+    """On an empty cache, a CPU run of a log of ``AUTO_BUILD_MIN_FRAMES`` frames or more starts
+    the tape VM's build before it imports torch (its compiler runs beside the import), once: the
+    kernels package loads what it built (or adopts the builder while it runs:
+    tests/test_kernels_vm.py) instead of starting its own."""
+    import os
+
+    from torchcontact.logs import write_simulated_log
+
+    log = write_simulated_log(model, 2500, tmp_path / "log.parquet", seed=1)  # >= 2048
+    code = (
+        "import json, sys\n"
+        "import torchcontact._lightkernels as lk\n"
+        "calls, start = [], lk.start_vm_build\n"
+        "def spy(dtype):\n"
+        "    calls.append(['torch' in sys.modules, dtype])\n"
+        "    return start(dtype)\n"
+        "lk.start_vm_build = spy\n"
+        "from torchcontact.cli import main\n"
+        f"rc = main(['estimate', {str(log)!r}, '--robot', 'tcarm', '--out',"
+        f" {str(tmp_path / 'o.parquet')!r}, '--quiet', '--device', 'cpu'])\n"
+        "import torch\n"
+        "from torchcontact import kernels\n"
+        "b = kernels._vm_builds.get(torch.float64)\n"
+        "own = b is not None and not any(p is b.proc for p in lk._builds.values())\n"
+        "print(json.dumps([rc, calls, len(lk._builds), own, torch.float64 in kernels._vm_fns]))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                       env={**os.environ, "TORCHCONTACT_CACHE": str(tmp_path / "cache")})  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    rc, calls, started, own_build, vm_ran = json.loads(r.stdout.strip().splitlines()[-1])
+    assert rc == 0 and calls == [[False, "double"]] and started == 1
+    assert vm_ran and not own_build  # the run used the VM that build made, and started no other
+
+
+def test_which_runs_start_the_vm_build_early(tmp_path, monkeypatch):
+    """``_start_vm_build``: CPU runs (``--device cpu``, or ``auto`` without an NVIDIA driver) of
+    a first log of ``AUTO_BUILD_MIN_FRAMES`` rows or more, with the run's dtype; an unreadable
+    log is left to the run's own error."""
+    import argparse
+
+    import pyarrow as pa
+
+    from torchcontact import _lightkernels
+    from torchcontact.logs import cli as lcli
+
+    calls = []
+    monkeypatch.setattr(_lightkernels, "start_vm_build", calls.append)
+    n = _lightkernels.AUTO_BUILD_MIN_FRAMES
+    big, small, bad = tmp_path / "big.parquet", tmp_path / "small.parquet", tmp_path / "bad.parquet"
+    pq.write_table(pa.table({"t_ns": list(range(n))}), big)
+    pq.write_table(pa.table({"t_ns": list(range(n - 1))}), small)
+    bad.write_text("not parquet")
+
+    def run(files, device="cpu", dtype="float64", nvidia=False):
+        monkeypatch.setattr(lcli, "_nvidia_driver", lambda: nvidia)
+        lcli._start_vm_build(argparse.Namespace(device=device, dtype=dtype), files)
+
+    run([big])
+    run([big, small], dtype="float32")
+    run([big], device="auto")
+    for files, device, nvidia in (([small, big], "cpu", False), ([big], "cuda", False),
+                                  ([big], "auto", True), ([bad], "cpu", False),
+                                  ([tmp_path / "missing.parquet"], "cpu", False), ([], "cpu", False)):  # fmt: skip
+        run(files, device, nvidia=nvidia)
+    assert calls == ["double", "float", "double"]
+
+
 def test_resume_imports_no_pandas(model, sim_log, tmp_path, monkeypatch):
     """``--resume`` reads the kept parts back without pandas either: a run stopped by a full disk
     after two of its three chunks, resumed by the console script."""

@@ -44,7 +44,6 @@ import contextlib
 import ctypes
 import functools
 import hashlib
-import platform
 import subprocess
 import threading
 import warnings
@@ -56,11 +55,17 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torchcontact import _lightkernels
 from torchcontact._digest import code_digest
 from torchcontact._scalar import Sym, Trace, float_dtype
 from torchcontact.errors import KernelBuildError
-from torchcontact.kernels import _store
+from torchcontact.kernels import _csource, _store
 from torchcontact.kernels._store import build_dir_lock, cache_dir
+
+#: The machine's tag and vector width (:mod:`torchcontact.kernels._csource`, which the VM's early
+#: build uses without torch): a ``-march=native`` build only runs where it was built.
+_machine_tag = _csource.machine_tag
+_vector_bytes = _csource.vector_bytes
 
 __all__ = [
     "BACKENDS",
@@ -90,7 +95,7 @@ __all__ = [
 BACKENDS = ("auto", "eager", "cpu", "cuda", "cached")
 
 #: Batches at least this large start a background build under ``backend="auto"``.
-AUTO_BUILD_MIN_FRAMES = 2048
+AUTO_BUILD_MIN_FRAMES = _lightkernels.AUTO_BUILD_MIN_FRAMES
 
 _VERSION = "2"  # bump when the generated code's calling convention or the cache changes
 
@@ -129,35 +134,6 @@ class Program:
         got = {k: len(v) for k, v in out.items()}
         if got != self.outputs:
             raise ValueError(f"program {self.name}: outputs {got}, declared {self.outputs}")
-
-
-@functools.cache
-def _machine_tag() -> str:
-    """CPU model and flags: a ``-march=native`` build only runs where it was built."""
-    flags = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith(("flags", "model name")):
-                    flags += line
-                if line.startswith("flags"):
-                    break
-    except OSError:
-        flags = platform.processor()
-    return hashlib.sha256(f"{platform.machine()}|{flags}".encode()).hexdigest()[:12]
-
-
-@functools.cache
-def _vector_bytes() -> int:
-    """Bytes of one SIMD register: 64 with AVX-512, else 32 (AVX2; other ISAs split it)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return 64 if " avx512f" in line else 32
-    except OSError:
-        pass
-    return 32
 
 
 # --------------------------------------------------------------------------------------- eager
@@ -730,7 +706,7 @@ def _ready(program: Program, like: Tensor) -> bool:
 #: :func:`background_note` says so). Unset: ``behind`` on a machine with at least
 #: :data:`BEHIND_MIN_CPUS` CPUs for this process, else ``1`` (both measured faster for the run
 #: itself there: docs/kernel_cache.md).
-VM_ENV = "TORCHCONTACT_VM"
+VM_ENV = _csource.VM_ENV
 #: CPUs (this process's affinity) from which an unset ``$TORCHCONTACT_VM`` means ``behind``: the
 #: compiler takes cores the run leaves idle (a log job keeps about 4 busy), and a long log
 #: switches to the kernel once it is built. Measured on a 16-core host (1 M iCub frames, empty
@@ -923,7 +899,13 @@ def _vm_function(
                         entry.remove_library()
             with _lock:
                 pending = _vm_builds.get(dtype)
+                if pending is None:  # a build the command started before it imported torch
+                    proc = _early_vm_build(entry.name)
+                    if proc is not None:
+                        pending = _vm_builds[dtype] = _Build(proc, entry, lambda: _vm_fns[dtype])
             if pending is not None and pending.done():  # it ended, and the VM is not there
+                if entry.check()[0] == "ok":  # ... unless it ended after the check above
+                    continue
                 log = ""
                 with contextlib.suppress(OSError):
                     log = entry.log.read_text().strip()[-1500:]
@@ -944,6 +926,14 @@ def _vm_function(
     except KernelBuildError as e:
         _vm_fail(dtype, str(e), wait)
     return None
+
+
+def _early_vm_build(name: str) -> subprocess.Popen | None:
+    """The VM's build a command started before importing torch (``torchcontact._lightkernels``)."""
+    import sys
+
+    light = sys.modules.get("torchcontact._lightkernels")
+    return None if light is None else light.vm_build(name)
 
 
 def _wait_for_vm(dtype: torch.dtype, timeout: float) -> None:

@@ -20,80 +20,20 @@ only ``-ffp-contract=fast`` fuses multiply-adds, which changes results by roundi
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
 from torchcontact._scalar import Sym, Trace, loop_deps
+from torchcontact.kernels._csource import PRELUDE, emit_prelude
 from torchcontact.kernels._store import PARTS_MARK
+
+__all__ = ["PART_NODES", "PRELUDE", "emit", "emit_prelude"]
 
 _BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 
 #: Nodes per generated function (:func:`emit`): a program larger than this is cut into parts
 #: (``benchmarks/kernel_build.py``: build time against kernel speed).
 PART_NODES = 1000
-
-PRELUDE = r"""
-#include <stdint.h>
-typedef TC_T T;
-typedef T V __attribute__((vector_size(TC_VBYTES)));
-enum { W = TC_VBYTES / sizeof(T) };
-typedef decltype(V{} < V{}) M;
-static inline V splat(T c) { return V{} + c; }
-// libm by its builtins (<cmath> alone takes 0.2 s of every compile), float or double as std::
-static inline T tc_sqrt(T x) {
-  if constexpr (sizeof(T) == 4) return __builtin_sqrtf(x); else return __builtin_sqrt(x);
-}
-static inline T tc_sin(T x) {
-  if constexpr (sizeof(T) == 4) return __builtin_sinf(x); else return __builtin_sin(x);
-}
-static inline T tc_cos(T x) {
-  if constexpr (sizeof(T) == 4) return __builtin_cosf(x); else return __builtin_cos(x);
-}
-static inline V vsqrt(V x) { V r; for (int i = 0; i < W; ++i) r[i] = tc_sqrt(x[i]); return r; }
-typedef TC_I I __attribute__((vector_size(TC_VBYTES)));
-// sin and cos of every lane: x = r + k pi/2 with |r| <= pi/4 (Cody-Waite reduction in three
-// exactly representable parts of pi/2, fused multiply-adds), Taylor polynomials of r (terms up
-// to r^17 and r^18: below half an ulp on |r| <= pi/4), quadrant k mod 4 by selects. Lanes
-// beyond the reduction's exact range (|x| > TC_SC_LIMIT) are recomputed with libm.
-static inline void vsincos(V x, V* s, V* c) {
-  const V k = (x * (T)TC_2_PI + (T)TC_MAGIC) - (T)TC_MAGIC;
-  V r = x - k * (T)TC_C1;
-  r = r - k * (T)TC_C2;
-  r = r - k * (T)TC_C3;
-  const V z = r * r;
-  const V ps = r + r * z * (TC_SIN_POLY);
-  const V pc = (T)1 + z * (TC_COS_POLY);
-  const I q = __builtin_convertvector(k, I);
-  const I odd = (q & 1) != 0;
-  const V sn = odd ? pc : ps;
-  const V cs = odd ? ps : pc;
-  *s = ((q & 2) != 0) ? -sn : sn;
-  *c = (((q + 1) & 2) != 0) ? -cs : cs;
-  bool big = false;
-  for (int l = 0; l < W; ++l) big |= !(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT);
-  if (__builtin_expect(big, 0)) {
-    for (int l = 0; l < W; ++l) {
-      if (!(__builtin_fabs(x[l]) <= (T)TC_SC_LIMIT)) {
-        (*s)[l] = tc_sin(x[l]);
-        (*c)[l] = tc_cos(x[l]);
-      }
-    }
-  }
-}
-static inline bool all_lanes(M m) {
-  bool a = true;
-  for (int l = 0; l < W; ++l) a = a && m[l];
-  return a;
-}
-// one lane per frame: W rows of a (N, k) array, element j of each
-static inline V load(const T* p, int64_t s, int j) { return V{TC_LOAD}; }
-static inline void store(T* p, int64_t s, int j, V x) { TC_STORE }
-"""
-
-
-# pi/2 to 60 digits (a mathematical constant), split for the Cody-Waite reduction
-_HALF_PI = "1.57079632679489661923132169163975144209858469968755291048747"
 
 
 #: The source compiles as one translation unit, or as ``TC_GROUPS`` units compiled in
@@ -110,64 +50,6 @@ GROUPS = r"""
 #define TC_HAS_MAIN (TC_GROUP == 0)
 #endif
 """
-
-
-def _sincos_constants(dtype: str) -> dict[str, str]:
-    """Constants of ``vsincos`` for ``double`` or ``float``: pi/2 in three parts, the range."""
-    from decimal import Decimal, getcontext
-
-    getcontext().prec = 80
-    bits, mant, magic = (30, 53, "0x1.8p52") if dtype == "double" else (11, 24, "0x1.8p23")
-    rest = Decimal(_HALF_PI)
-    parts = []
-    for _ in range(2):  # two parts of ``bits`` significant bits each: k * part is exact
-        m, ex = math.frexp(float(rest))
-        part = math.ldexp(math.floor(m * 2**bits), ex - bits)
-        parts.append(part)
-        rest -= Decimal(part)
-    parts.append(float(rest))
-    limit = 2.0 ** (mant - bits - 1) * float(Decimal(_HALF_PI))
-    fact = [1.0]
-    for n in range(1, 20):
-        fact.append(fact[-1] * n)
-
-    def horner(coeffs: list[float]) -> str:
-        expr = f"(T){coeffs[-1]!r}"
-        for c in reversed(coeffs[:-1]):
-            expr = f"(T){c!r} + z * ({expr})"
-        return expr
-
-    sin_c = [(-1) ** k / fact[2 * k + 1] for k in range(1, 9)]  # r^3 .. r^17 over r^3
-    cos_c = [(-1) ** k / fact[2 * k] for k in range(1, 10)]  # r^2 .. r^18 over r^2
-    return {
-        "TC_2_PI": repr(float(1 / Decimal(_HALF_PI))),
-        "TC_MAGIC": magic,
-        "TC_C1": repr(parts[0]),
-        "TC_C2": repr(parts[1]),
-        "TC_C3": repr(parts[2]),
-        "TC_SIN_POLY": horner(sin_c),
-        "TC_COS_POLY": horner(cos_c),
-        "TC_SC_LIMIT": repr(limit),
-        "TC_I": "int64_t" if dtype == "double" else "int32_t",
-    }
-
-
-def emit_prelude(dtype: str, vbytes: int) -> str:
-    """:data:`PRELUDE` for ``dtype`` (``"double"`` or ``"float"``) and ``vbytes``-byte vectors.
-
-    The generated kernels and the tape VM (:mod:`torchcontact.kernels._vm`) share it, so their
-    sines and cosines (``vsincos``) are the same function.
-    """
-    lanes = vbytes // (8 if dtype == "double" else 4)
-    prelude = PRELUDE
-    for k, val in _sincos_constants(dtype).items():
-        prelude = prelude.replace(k, val)
-    return (
-        prelude.replace("TC_T", dtype)
-        .replace("TC_VBYTES", str(vbytes))
-        .replace("TC_LOAD", ", ".join(f"p[{i} * s + j]" for i in range(lanes)))
-        .replace("TC_STORE", " ".join(f"p[{i} * s + j] = x[{i}];" for i in range(lanes)))
-    )
 
 
 def _const(c: float, dtype: str) -> str:
@@ -393,13 +275,14 @@ def emit(
     # (an input is loaded again by each part that reads it)
     inputs = {s.index: s for s in nodes if s.op == "in"}
     slot: dict[int, str] = {}
+    count = {"sv": 0, "sm": 0}  # values and masks crossing parts so far
     for _, refs, defs in emitted:
         for i in sorted(r for r in refs if isinstance(r, int) and r not in defs):
             if i not in slot and i not in inputs:
                 kind = "sm" if i in masks else "sv"
-                slot[i] = f"{kind}[{sum(1 for v in slot.values() if v.startswith(kind))}]"
-    n_sv = sum(1 for v in slot.values() if v.startswith("sv"))
-    n_sm = len(slot) - n_sv
+                slot[i] = f"{kind}[{count[kind]}]"
+                count[kind] += 1
+    n_sv, n_sm = count["sv"], count["sm"]
     const_name = {n: c for c, n in consts.items()}
     funcs: list[str] = []
     calls: list[str] = []

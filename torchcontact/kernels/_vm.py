@@ -39,19 +39,21 @@ from pathlib import Path
 import numpy as np
 
 from torchcontact._scalar import Sym, Trace, loop_deps
-from torchcontact.kernels import _cpp, _store
+from torchcontact.kernels import _cpp, _csource, _store
 
 __all__ = ["BLOCK", "Bytecode", "encode", "source"]
 
-#: Frames per block: each instruction runs on this many frames (a slot is ``BLOCK`` values).
-#: Measured in ``benchmarks/vm.py`` (iCub estimator, AVX2): 32 and 128 within a few percent of
-#: 64; larger blocks spill the live slots out of L2.
-BLOCK = 64
+#: Frames per block (:data:`~torchcontact.kernels._csource.VM_BLOCK`; a benchmark may set this
+#: one to time other blocks with their own source).
+BLOCK = _csource.VM_BLOCK
+#: The bytecode's and the interpreter's version (:data:`~torchcontact.kernels._csource.VM_VERSION`).
+VERSION = _csource.VM_VERSION
+#: The interpreter's C++ (:data:`~torchcontact.kernels._csource.VM_SOURCE`), and its source for a
+#: dtype and vector width.
+SOURCE = _csource.VM_SOURCE
+source = _csource.vm_source
 
-#: Bump when the bytecode or the interpreter's calling convention changes.
-VERSION = "2"
-
-# opcodes (the C++ enum below has the same numbers)
+# opcodes (the interpreter's C++ enum, ``_csource.VM_SOURCE``, has the same numbers)
 OPS = ("load", "store", "mov", "add", "sub", "mul", "div", "neg", "sqrt", "sin", "cos", "sincos",
        "sel", "gt", "finite", "and", "or", "not", "loop", "endloop", "fma", "fms", "mma", "mms",
        "add3", "fnm", "dot3", "dot3s")  # fmt: skip
@@ -65,224 +67,6 @@ WIDTH = 8
 OP = {name: i for i, name in enumerate(OPS)}
 #: ``endloop``'s stop field: never stop early / always stop after one iteration.
 STOP_NEVER, STOP_ALWAYS = -1, -2
-
-SOURCE = r"""
-#include <stdlib.h>
-enum { B = TC_BLOCK, NV = B / W };
-typedef decltype(M{}[0] + 0) MI;  // one lane of a mask: 0 or all ones
-// opcode = 16 * base + flags: an operand a, b, c or e with its flag set is a constant (an index
-// into the constants) instead of a slot
-enum { KA = 1, KB = 2, KC = 4, KE = 8 };
-enum {
-  LOAD, STORE, MOV, ADD, SUB, MUL, DIV, NEG, SQRT, SIN, COS, SINCOS, SEL, GT, FINITE, AND, OR,
-  NOT, LOOP, ENDLOOP, FMA, FMS, MMA, MMS, ADD3, FNM, DOT3, DOT3S
-};
-// three products (dot3, dot3s): the flags name a pattern instead, P_G: g is a constant, P_BEG:
-// b, e and g are (the second factor of each product)
-enum { P_G = 1, P_BEG = 2 };
-struct Ins { int32_t op, d, a, b, c, e, f, g; };
-
-extern "C" int tc_vm_abi(void) { return TC_VM_ABI; }
-extern "C" int64_t tc_vm_block(void) { return B; }
-
-// operand P of field F: the slot's vectors P##s, or the constant's splat P##k
-#define SL(P, F) const V* P##s = S + (int64_t)x.F * NV;
-#define SK(P, F) const V P##k = splat(K[x.F]);
-// the same where the field may hold a slot (its flag FLAG unset): constant 0 then
-#define SKF(P, F, FLAG) const V P##k = splat(K[(x.op & FLAG) ? x.F : 0]);
-// The arithmetic opcodes are cases of their own per constant pattern (one dispatch, and each
-// loop vectorised), named by the opcode with its flags.
-#define C1(OPC, EXPR) \
-  case 16 * OPC: { SL(a, a) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v]); break; } \
-  case 16 * OPC + KA: { SK(a, a) for (int v = 0; v < NV; ++v) D[v] = EXPR(ak); break; }
-#define C2(OPC, EXPR) \
-  case 16 * OPC: { SL(a, a) SL(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v]); \
-    break; } \
-  case 16 * OPC + KA: { SK(a, a) SL(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v]); \
-    break; } \
-  case 16 * OPC + KB: { SL(a, a) SK(b, b) for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk); \
-    break; }
-#define C3(OPC, EXPR) \
-  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v]); break; } \
-  case 16 * OPC + KA: { SK(a, a) SL(b, b) SL(c, c) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(ak, bs[v], cs[v]); break; } \
-  case 16 * OPC + KB: { SL(a, a) SK(b, b) SL(c, c) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v]); break; } \
-  case 16 * OPC + KC: { SL(a, a) SL(b, b) SK(c, c) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], ck); break; }
-// two products: a * b and c * e, a constant only as the second factor of each
-#define C4(OPC, EXPR) \
-  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v]); break; } \
-  case 16 * OPC + KB: { SL(a, a) SK(b, b) SL(c, c) SL(e, e) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], es[v]); break; } \
-  case 16 * OPC + KE: { SL(a, a) SL(b, b) SL(c, c) SK(e, e) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], ek); break; } \
-  case 16 * OPC + KB + KE: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek); break; }
-#define C6(OPC, EXPR) \
-  case 16 * OPC: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SL(g, g) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gs[v]); break; } \
-  case 16 * OPC + P_G: { SL(a, a) SL(b, b) SL(c, c) SL(e, e) SL(f, f) SK(g, g) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bs[v], cs[v], es[v], fs[v], gk); break; } \
-  case 16 * OPC + P_BEG: { SL(a, a) SK(b, b) SL(c, c) SK(e, e) SL(f, f) SK(g, g) \
-    for (int v = 0; v < NV; ++v) D[v] = EXPR(as[v], bk, cs[v], ek, fs[v], gk); break; }
-#define E_ID(a) a
-#define E_ADD(a, b) (a) + (b)
-#define E_SUB(a, b) (a) - (b)
-#define E_MUL(a, b) (a) * (b)
-#define E_DIV(a, b) (a) / (b)
-#define E_FMA(a, b, c) (a) * (b) + (c)
-#define E_FMS(a, b, c) (a) * (b) - (c)
-#define E_ADD3(a, b, c) ((a) + (b)) + (c)
-#define E_MMA(a, b, c, e) (a) * (b) + (c) * (e)
-#define E_MMS(a, b, c, e) (a) * (b) - (c) * (e)
-#define E_FNM(a, b, c) (c) - (a) * (b)
-#define E_DOT3(a, b, c, e, f, g) (a) * (b) + (c) * (e) + (f) * (g)
-#define E_DOT3S(a, b, c, e, f, g) (a) * (b) - (c) * (e) + (f) * (g)
-
-// Runs the bytecode on frames [0, n): blocks of B frames, one instruction at a time on a block.
-// Slot k is S[k * NV .. k * NV + NV) (B values; a mask slot holds MI lanes). Returns 0, or 1
-// when the slots cannot be allocated.
-extern "C" int tc_vm(const int32_t* code, int64_t ncode, const T* K, int64_t nconst,
-                     int64_t nslots, int64_t n, const T* const* in, const int64_t* in_stride,
-                     T* const* out, const int64_t* out_stride) {
-  (void)nconst;
-  V* S = (V*)aligned_alloc(64, (size_t)(nslots > 0 ? nslots : 1) * NV * sizeof(V));
-  if (!S) return 1;
-  const T zero[1] = {0};
-  if (nconst == 0) K = zero;
-  const Ins* P = (const Ins*)code;
-  for (int64_t f0 = 0; f0 < n; f0 += B) {
-    const int64_t nl = n - f0 < B ? n - f0 : B;
-    int64_t it = 0;
-    for (int64_t pc = 0; pc < ncode; ++pc) {
-      const Ins& x = P[pc];
-      V* D = S + (int64_t)x.d * NV;
-      switch (x.op) {
-        C2(ADD, E_ADD) C2(SUB, E_SUB) C2(MUL, E_MUL) C2(DIV, E_DIV)
-        C3(FMA, E_FMA) C3(FMS, E_FMS) C3(ADD3, E_ADD3) C3(FNM, E_FNM)
-        C4(MMA, E_MMA) C4(MMS, E_MMS)
-        C6(DOT3, E_DOT3) C6(DOT3S, E_DOT3S)
-        C1(MOV, E_ID)
-        default:
-      switch (x.op >> 4) {
-        case LOAD: {  // slot d = column b of input a
-          T* d = (T*)D;
-          const int64_t s = in_stride[x.a];
-          const T* p = in[x.a] + f0 * s + x.b;
-          if (nl == B) {
-            for (int f = 0; f < B; ++f) d[f] = p[f * s];
-          } else {  // the last, partial block: zero-padded
-            for (int f = 0; f < B; ++f) d[f] = f < nl ? p[f * s] : (T)0;
-          }
-          break;
-        }
-        case STORE: {  // column b of output a = slot (or constant) c
-          const int64_t s = out_stride[x.a];
-          T* p = out[x.a] + f0 * s + x.b;
-          if (x.op & KC) {
-            for (int64_t f = 0; f < nl; ++f) p[f * s] = K[x.c];
-          } else {
-            const T* c = (const T*)(S + (int64_t)x.c * NV);
-            for (int64_t f = 0; f < nl; ++f) p[f * s] = c[f];
-          }
-          break;
-        }
-        case NEG: {
-          const V* A = S + (int64_t)x.a * NV;
-          for (int v = 0; v < NV; ++v) D[v] = -A[v];
-          break;
-        }
-        case SQRT: {
-          T* d = (T*)D;
-          const T* a = (const T*)(S + (int64_t)x.a * NV);
-          for (int f = 0; f < B; ++f) d[f] = tc_sqrt(a[f]);
-          break;
-        }
-        case SIN: case COS: case SINCOS: {  // sincos: d = sin a, c = cos a (one reduction)
-          const V* A = S + (int64_t)x.a * NV;
-          V* Cw = S + (int64_t)x.c * NV;
-          const int k = x.op >> 4;
-          for (int v = 0; v < NV; ++v) {
-            V s, c;
-            vsincos(A[v], &s, &c);
-            if (k == COS) D[v] = c; else D[v] = s;
-            if (k == SINCOS) Cw[v] = c;
-          }
-          break;
-        }
-        case SEL: {  // d = mask a ? b : c
-          const M* m = (const M*)(S + (int64_t)x.a * NV);
-          SL(b, b) SL(c, c) SKF(b, b, KB) SKF(c, c, KC)
-          const bool bc = x.op & KB, cc = x.op & KC;
-          if (bc && cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : ck; }
-          else if (bc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bk : cs[v]; }
-          else if (cc) { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bs[v] : ck; }
-          else { for (int v = 0; v < NV; ++v) D[v] = m[v] ? bs[v] : cs[v]; }
-          break;
-        }
-        case GT: {
-          M* d = (M*)D;
-          SL(a, a) SL(b, b) SKF(a, a, KA) SKF(b, b, KB)
-          if (x.op & KA) { for (int v = 0; v < NV; ++v) d[v] = ak > bs[v]; }
-          else if (x.op & KB) { for (int v = 0; v < NV; ++v) d[v] = as[v] > bk; }
-          else { for (int v = 0; v < NV; ++v) d[v] = as[v] > bs[v]; }
-          break;
-        }
-        case FINITE: {  // x - x is 0 for finite x, NaN for NaN and +-inf
-          M* d = (M*)D;
-          const V* A = S + (int64_t)x.a * NV;
-          for (int v = 0; v < NV; ++v) { V y = A[v] - A[v]; d[v] = y == y; }
-          break;
-        }
-        case AND: case OR: {
-          M* d = (M*)D;
-          const M* a = (const M*)(S + (int64_t)x.a * NV);
-          const M* b = (const M*)(S + (int64_t)x.b * NV);
-          if ((x.op >> 4) == AND) { for (int v = 0; v < NV; ++v) d[v] = a[v] & b[v]; }
-          else { for (int v = 0; v < NV; ++v) d[v] = a[v] | b[v]; }
-          break;
-        }
-        case NOT: {
-          M* d = (M*)D;
-          const M* a = (const M*)(S + (int64_t)x.a * NV);
-          for (int v = 0; v < NV; ++v) d[v] = ~a[v];
-          break;
-        }
-        case LOOP:  // a: the budget, b: the instruction after the loop
-          it = 0;
-          if (x.a <= 0) pc = x.b - 1;
-          break;
-        case ENDLOOP: {  // a: the stop mask's slot (or -1 never, -2 always), b: the body, c: budget
-          ++it;
-          bool stop = x.a == -2;
-          if (x.a >= 0) {
-            const MI* m = (const MI*)(S + (int64_t)x.a * NV);
-            stop = true;
-            for (int64_t f = 0; f < nl; ++f) stop = stop && m[f];
-          }
-          if (!stop && it < x.c) pc = x.b - 1;
-          break;
-        }
-      }
-      }
-    }
-  }
-  free(S);
-  return 0;
-}
-"""
-
-
-def source(dtype: str, vbytes: int, block: int = BLOCK) -> str:
-    """The VM's C++ source for ``dtype`` (``"double"``/``"float"``), ``vbytes``-byte vectors."""
-    lanes = vbytes // (8 if dtype == "double" else 4)
-    if block % lanes:
-        raise ValueError(f"block {block} is not a multiple of {lanes} lanes")
-    body = SOURCE.replace("TC_BLOCK", str(block)).replace("TC_VM_ABI", VERSION)
-    return f"// torchcontact tape VM {VERSION}\n{_cpp.emit_prelude(dtype, vbytes)}{body}"
 
 
 @dataclass(frozen=True)
@@ -726,21 +510,13 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
 
 
 def entry(dtype: str, vbytes: int, machine: str) -> tuple[_store.Entry, str]:
-    """The VM's cache entry for ``dtype`` and its source (named by the source's hash)."""
-    src = source(dtype, vbytes)
-    h = hashlib.sha256(f"{VERSION}|{machine}|{_store.VM_FLAGS}|{src}".encode()).hexdigest()[:20]
-    return _store.Entry(_store.cache_dir() / "kernels", f"{_store.VM_PREFIX}{dtype}_{h}"), src
+    """The VM's cache entry for ``dtype`` and its source (:func:`_csource.vm_entry`)."""
+    return _csource.vm_entry(_store, dtype, vbytes, machine)
 
 
 def write_source(e: _store.Entry, src: str) -> None:
     """Write the VM's source into its entry (unless it is there already)."""
-    e.dir.mkdir(parents=True, exist_ok=True)
-    try:
-        if e.source.read_text() == src:
-            return
-    except OSError:
-        pass
-    _store.write_atomic(e.source, src)
+    _csource.write_vm_source(_store, e, src)
 
 
 def build(e: _store.Entry) -> Path:

@@ -208,6 +208,37 @@ def _ray_prestart(args: argparse.Namespace) -> None:
     prestart(args.workers, args.worker_cpus, args.device)
 
 
+def _nvidia_driver() -> bool:
+    """True where an NVIDIA driver is loaded (``--device auto`` may then pick CUDA)."""
+    return Path("/dev/nvidiactl").exists()
+
+
+def _start_vm_build(args: argparse.Namespace, files: list[Path]) -> None:
+    """Start the tape VM's build now, before torch is imported, when the run will need it.
+
+    A CPU run of a log of at least ``AUTO_BUILD_MIN_FRAMES`` frames runs its programs on the VM
+    until their kernels are built; on an empty cache the VM's own build (a second of the
+    compiler, once per machine and dtype) would start once the log is opened, after torch's
+    import (2-2.5 s on the 2-core machine), and the run would wait for it. Started here
+    (:func:`torchcontact._lightkernels.start_vm_build`; the kernels package adopts the build), it
+    compiles on a core that the import leaves idle. ``--device cuda``, or ``auto`` on a machine
+    with an NVIDIA driver, skips it (the VM runs CPU programs only).
+    """
+    if args.device == "cuda" or (args.device == "auto" and _nvidia_driver()):
+        return
+    import pyarrow as pa  # the run's own import (the allocators are set: keep_freed_memory)
+    import pyarrow.parquet as pq
+
+    from torchcontact._lightkernels import AUTO_BUILD_MIN_FRAMES, start_vm_build
+
+    try:
+        rows = pq.read_metadata(files[0]).num_rows if files else 0
+    except (OSError, pa.ArrowException):  # the run reports an unreadable log in its own words
+        return
+    if rows >= AUTO_BUILD_MIN_FRAMES:
+        start_vm_build("double" if args.dtype == "float64" else "float")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs.
 
@@ -221,6 +252,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     keep_freed_memory()
     if args.engine == "ray":
         _ray_prestart(args)
+    _start_vm_build(args, files)
     from torchcontact.errors import LogError
     from torchcontact.logs.noise import parse_ft_noise
     from torchcontact.logs.pipeline import estimate_files
