@@ -315,6 +315,28 @@ def test_the_cached_backend_uses_a_built_kernel_and_never_starts_a_build(cache):
     assert kernels._ready(prog, q) and (cache / "cc.log").read_text().count("start") == calls
 
 
+def test_an_unbuilt_kernel_is_checked_once_then_found_when_another_process_builds_it(
+    cache, monkeypatch
+):
+    """A call that does not build (``auto`` while the VM runs the program, ``cached``) checks
+    the entry once; later calls stat its library instead (each chunk of a first run asked, 1.8
+    ms each), and load the kernel as soon as another process has built it."""
+    prog = dynamics.program(_pendulum(0.59), "id", False, False)
+    q = torch.linspace(-3, 3, N, dtype=torch.float64)[:, None]
+    x = {"q": q, "qd": q * 0.5, "qdd": q * 0.25}
+    checks = []
+    real = kernels._cpu_entry
+    monkeypatch.setattr(kernels, "_cpu_entry", lambda *a: checks.append(1) or real(*a))
+    for _ in range(5):
+        assert kernels.compiled(prog, torch.float64, wait=False, build=False) is None
+    assert len(checks) == 1
+    _store.build(real(prog, torch.float64)[0])  # as another process's build
+    k = kernels.compiled(prog, torch.float64, wait=False, build=False)
+    assert k is not None and len(checks) == 2  # checked again once the library is there
+    torch.testing.assert_close(k(x)["tau"], kernels.run_eager(prog, x)["tau"], rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (nvcc)")
 def test_cuda_entry_is_checked_published_and_healed(cache):
     """CUDA entries: recorded after an nvcc build in a private folder; a truncated and an

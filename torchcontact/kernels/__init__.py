@@ -165,6 +165,10 @@ _lock = threading.Lock()
 _loaded: dict[str, Callable] = {}
 _failed: dict[str, str] = {}
 _building: dict[str, threading.Thread | _Build] = {}
+#: (ckey, cache folder) -> the entry of a CPU kernel found not built by a call that does not
+#: build (``auto`` while the VM runs the program, ``cached``): later calls stat its library
+#: instead of checking the entry again (1.8 ms a chunk, 0.23 s per 1 M frames of a first run)
+_unbuilt: dict[tuple[str, str], _store.Entry] = {}
 _warned: set[str] = set()
 _healed: set[str] = set()
 _pool: ThreadPoolExecutor | None = None
@@ -455,7 +459,16 @@ def _compiled_cpu(
     program: Program, dtype: torch.dtype, ckey: str, wait: bool, build: bool = True
 ) -> Callable | None:
     """The CPU kernel from the cache: checked, healed, built now or by a detached process."""
+    memo = (ckey, str(cache_dir()))
+    if not (wait or build):
+        with _lock:
+            unbuilt = _unbuilt.get(memo)
+        if unbuilt is not None and not unbuilt.library.exists():
+            return None  # still not built (each chunk of a run on the VM asks)
     entry, (state, why) = _cpu_entry(program, dtype)
+    if state != "absent" or wait or build:
+        with _lock:
+            _unbuilt.pop(memo, None)
     if state == "ok":
         try:
             return _finish(ckey, lambda: _load(entry, program, dtype), raise_=wait)
@@ -467,6 +480,9 @@ def _compiled_cpu(
     if wait:
         return _finish(ckey, lambda: _build_now(entry, program, dtype), raise_=True)
     if not build:
+        if state == "absent":
+            with _lock:
+                _unbuilt[memo] = entry
         return None
     # the VM runs the program meanwhile: the kernel builds on the cores the run leaves
     nice = KERNEL_BUILD_NICE if _vm_state(dtype) == "ready" else 0
