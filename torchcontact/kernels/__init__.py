@@ -916,7 +916,7 @@ def _vm_function(
             with _lock:
                 pending = _vm_builds.get(dtype)
                 if pending is None:  # a build the command started before it imported torch
-                    proc = _early_vm_build(entry.name)
+                    proc = _lightkernels.vm_build(entry.name)
                     if proc is not None:
                         pending = _vm_builds[dtype] = _Build(proc, entry, lambda: _vm_fns[dtype])
             if pending is not None and pending.done():  # it ended, and the VM is not there
@@ -942,14 +942,6 @@ def _vm_function(
     except KernelBuildError as e:
         _vm_fail(dtype, str(e), wait)
     return None
-
-
-def _early_vm_build(name: str) -> subprocess.Popen | None:
-    """The VM's build a command started before importing torch (``torchcontact._lightkernels``)."""
-    import sys
-
-    light = sys.modules.get("torchcontact._lightkernels")
-    return None if light is None else light.vm_build(name)
 
 
 def _wait_for_vm(dtype: torch.dtype, timeout: float) -> None:
