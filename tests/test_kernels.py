@@ -238,7 +238,7 @@ def test_a_killed_build_does_not_block_the_next(monkeypatch, tmp_path):
     prog = dynamics.program(model, "id", False, False)
     src, h = kernels._source(prog, torch.float64)
     name, cpp, so = kernels._paths(prog, h)
-    kernels._write_source(cpp, src)
+    kernels._store.write_source(cpp, src)
     (cpp.parent / "lock").write_text("")  # what a SIGKILLed cpp_extension.load leaves behind
     code = f"from pathlib import Path; from torchcontact.kernels import build_source; " \
            f"build_source({name!r}, Path({str(cpp)!r}))"  # fmt: skip

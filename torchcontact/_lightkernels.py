@@ -70,7 +70,7 @@ def start_vm_build(dtype: str = "double") -> bool:
         proc = _builds.get(entry.name)
         if proc is not None and proc.poll() is None:
             return False
-        cs.write_vm_source(store, entry, src)
+        store.write_source(entry.source, src)
         _builds[entry.name] = store.spawn_build(entry)
     except OSError:  # an unwritable cache: the package reports it at its first program
         return False

@@ -200,14 +200,6 @@ def _paths(program: Program, h: str) -> tuple[str, Path, Path]:
     return name, e.source, e.library
 
 
-def _write_source(cpp: Path, src: str) -> None:
-    cpp.parent.mkdir(parents=True, exist_ok=True)
-    with contextlib.suppress(OSError):
-        if cpp.read_text() == src:
-            return
-    _store.write_atomic(cpp, src)
-
-
 def _key_hash(program: Program, dtype: torch.dtype) -> str:
     """Hash of what determines a CPU kernel's source without tracing: code, key, machine."""
     ident = (f"{_VERSION}|{code_digest()}|{torch.__version__}|{_machine_tag()}|"
@@ -240,7 +232,7 @@ def _cpu_entry(program: Program, dtype: torch.dtype) -> tuple[_store.Entry, tupl
     _save_bytecode(program, kh)  # the VM's code of the same trace: no second trace for it
     program._traced.clear()  # the source is all the cache needs: free the trace's memory
     name, cpp, _ = _paths(program, h)
-    _write_source(cpp, src)
+    _store.write_source(cpp, src)
     record = {"entry": name, "source_sha256": hashlib.sha256(src.encode()).hexdigest(),
               "program": program.name, "dtype": str(dtype), "key": program.key}  # fmt: skip
     _store.write_index(root, kh, record)
@@ -852,9 +844,7 @@ def start_deferred_builds() -> None:
 
 
 def _vm_entry(dtype: torch.dtype) -> tuple[_store.Entry, str]:
-    from torchcontact.kernels import _vm
-
-    return _vm.entry(_DTYPES[dtype], _vector_bytes(), _machine_tag())
+    return _csource.vm_entry(_store, _DTYPES[dtype], _vector_bytes(), _machine_tag())
 
 
 def _vm_state(dtype: torch.dtype) -> str:

@@ -419,14 +419,3 @@ def vm_entry(store: Any, dtype: str, vbytes: int | None = None, machine: str | N
     src = vm_source(dtype, vbytes)
     h = hashlib.sha256(f"{VM_VERSION}|{machine}|{store.VM_FLAGS}|{src}".encode()).hexdigest()[:20]
     return store.Entry(store.cache_dir() / "kernels", f"{store.VM_PREFIX}{dtype}_{h}"), src
-
-
-def write_vm_source(store: Any, entry: Any, src: str) -> None:
-    """Write the VM's source into its entry (atomically; unless it is there already)."""
-    entry.dir.mkdir(parents=True, exist_ok=True)
-    try:
-        if entry.source.read_text() == src:
-            return
-    except OSError:
-        pass
-    store.write_atomic(entry.source, src)

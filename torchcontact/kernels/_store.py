@@ -125,6 +125,15 @@ def file_digest(path: Path) -> tuple[int, str]:
     return size, h.hexdigest()
 
 
+def write_source(path: Path, src: str) -> None:
+    """Write a generated source (its folder made), atomically, unless it holds ``src`` already."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.suppress(OSError):
+        if path.read_text() == src:
+            return
+    write_atomic(path, src)
+
+
 def write_atomic(path: Path, data: bytes | str) -> None:
     """Write a file under a temporary name beside it, flush it to disk, rename it into place."""
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")

@@ -509,14 +509,9 @@ def _allocate(code: list[list], loops: list[tuple[int, int]], const_vals: list[f
 # ----------------------------------------------------------------------------- the interpreter
 
 
-def entry(dtype: str, vbytes: int, machine: str) -> tuple[_store.Entry, str]:
-    """The VM's cache entry for ``dtype`` and its source (:func:`_csource.vm_entry`)."""
-    return _csource.vm_entry(_store, dtype, vbytes, machine)
-
-
 def write_source(e: _store.Entry, src: str) -> None:
     """Write the VM's source into its entry (unless it is there already)."""
-    _csource.write_vm_source(_store, e, src)
+    _store.write_source(e.source, src)
 
 
 def build(e: _store.Entry) -> Path:
