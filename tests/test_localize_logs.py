@@ -259,7 +259,7 @@ def test_ray_worker_rebuilds_the_localization(icub_noskin):
     from torchcontact.logs.chunks import decoded_chunks, estimate_stream
     from torchcontact.logs.format import iter_chunks
     from torchcontact.logs.pipeline import load_robot, prepare, run_localize
-    from torchcontact.logs.ray_engine import _worker_state, worker_args
+    from torchcontact.logs.ray_worker import _worker_state, worker_args
 
     urdf = str(ROBOTS["icub"]())
     model = load_robot(urdf)
@@ -270,7 +270,7 @@ def test_ray_worker_rebuilds_the_localization(icub_noskin):
     job = {"threads": 0, "dtype": "float64", "device": "cpu", "residual": None,
            "whole_log_segment": le.decoder.whole_log_segment}  # fmt: skip
     robot = {"robot": urdf, "ft_sensors": [], "identity": model.identity.sha256,
-             "identity_entries": model.identity.to_json()}  # the driver's (ray_engine)  # fmt: skip
+             "identity_entries": model.identity.to_json()}  # the setup worker's  # fmt: skip
     le2, _ = _worker_state(str(icub_noskin), robot, worker_args(le, icub_noskin), job)
     assert le2.localize is not loc and le2.localize.options() == loc.options()
     assert le2.localize.temporal is True

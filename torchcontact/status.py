@@ -23,6 +23,7 @@ from __future__ import annotations
 import enum
 
 __all__ = [
+    "DEFAULT_VELOCITY_MARGIN",
     "LOCALIZE_STATUS",
     "STATUS",
     "LocalizeStatus",
@@ -33,6 +34,10 @@ __all__ = [
     "status_bits",
     "status_messages",
 ]
+
+#: Default ``velocity_margin`` of the log pipeline: a joint faster than twice its URDF velocity
+#: limit is implausible (:attr:`Status.IMPLAUSIBLE`).
+DEFAULT_VELOCITY_MARGIN = 2.0
 
 
 class Status(enum.IntFlag):

@@ -117,7 +117,8 @@ def test_a_task_on_one_cpu_writes_the_part_of_a_task_on_three(cluster, small_gro
     overlaps them on threads: the same unit's part, byte for byte, either way."""
     from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
     from torchcontact.logs.pipeline import load_robot, log_noise, prepare
-    from torchcontact.logs.ray_engine import _estimate_units, plan_units, unit_config
+    from torchcontact.logs.ray_engine import _estimate_units, plan_units
+    from torchcontact.logs.ray_worker import unit_config
     from torchcontact.robots import RobotSpec
 
     spec = RobotSpec.of("tcarm")
@@ -197,17 +198,22 @@ def test_a_worker_pool_outlives_its_run(cluster, small_groups, local, tmp_path):
         assert a["pool"] == {"workers": 2, "reused": 0} and len(_our_actors()) == 2
         _same_rows(pq.read_table(a["output"]), pq.read_table(local["output"]))
         first = _our_actors()
-        # the console script joined to the cluster finds them too, and ends without Ray's
-        # shutdown (the cluster ends its job): the actors stay for the next run
+        # the console script joined to the cluster finds them too, imports no torch (an actor
+        # ran the setup), and ends without Ray's shutdown (the cluster ends its job): the actors
+        # stay for the next run
         entry = "from torchcontact.cli import console_main; console_main()"
         r = subprocess.run(
-            [sys.executable, "-c", entry, "estimate", str(small_groups), "--out",
+            [sys.executable, "-X", "importtime", "-c", entry, "estimate", str(small_groups), "--out",
              str(tmp_path / "b.parquet"), "--engine", "ray", "--workers", "2", "--batch-size",
              "32", "--keep-workers", "120", "--quiet", "--json"],
             env={**os.environ, "RAY_ADDRESS": cluster.address, "PYTHONPATH": str(ROOT)},
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
         assert r.returncode == 0, r.stderr
+        imported = {line.rsplit("|", 1)[1].strip() for line in r.stderr.splitlines()
+                    if line.startswith("import time:")}  # fmt: skip
+        assert "ray" in imported and "torchcontact.logs.ray_engine" in imported
+        assert "torch" not in imported and "torchcontact.logs.ray_worker" not in imported
         b = json.loads(r.stdout)
         assert b["pool"] == {"workers": 2, "reused": 2} and _our_actors() == first
         _same_rows(pq.read_table(b["output"]), pq.read_table(local["output"]))
@@ -383,7 +389,7 @@ def test_a_worker_whose_robot_differs_from_the_drivers_stops_the_run():
     """The identity check of ``_worker_state`` (in-process): a worker building tcarm without the
     driver's declared sensor (another URDF on its node, say) names the difference."""
     from torchcontact.logs import LogError
-    from torchcontact.logs.ray_engine import _worker_state
+    from torchcontact.logs.ray_worker import _worker_state
     from torchcontact.robots import RobotSpec
 
     driver = RobotSpec.of("tcarm", ["wrist_ft:hand_skin"]).load().identity
@@ -394,6 +400,59 @@ def test_a_worker_whose_robot_differs_from_the_drivers_stops_the_run():
         _worker_state("unused.parquet", robot, {}, job)
 
 
+def test_the_setup_worker_must_have_read_the_drivers_robot(tmp_path):
+    """The driver builds no model: the worker that ran the setup must have built the robot the
+    driver's URDF describes. The same text passes as it is; another text passes when it
+    describes the same robot (a reformatted copy on that node) and stops the run otherwise,
+    naming the difference."""
+    from torchcontact.logs import LogError
+    from torchcontact.logs.ray_engine import _check_robot, _urdf_sha256
+    from torchcontact.robots import RobotSpec, tcarm_path
+
+    spec = RobotSpec.of("tcarm", ["wrist_ft:hand_skin"])
+    model = spec.load()
+
+    def setup(model, sha):
+        robot = {"identity": model.identity.sha256, "identity_entries": model.identity.to_json()}
+        return {"ident": {"urdf_sha256": sha}, "config": ("log", robot, {}, {})}
+
+    assert _urdf_sha256(spec) == model.urdf_sha256
+    _check_robot(spec, setup(model, model.urdf_sha256))
+    _check_robot(spec, setup(model, "another copy of the text"))
+    text = tcarm_path().read_text()
+    copy = tmp_path / "copy.urdf"  # the same robot, written differently
+    copy.write_text(text.replace("<robot", "<robot ", 1) + "<!-- a copy -->\n")
+    assert _urdf_sha256(RobotSpec.of(copy)) != model.urdf_sha256
+    _check_robot(RobotSpec.of(copy, ["wrist_ft:hand_skin"]), setup(model, "x"))
+    other = RobotSpec.of("tcarm").load()  # without the declared sensor
+    with pytest.raises(LogError, match=r"worker that scanned the log built robot tcarm --ft-sensor"
+                       r" wrist_ft:hand_skin unlike the driver's: .*wrist_ft"):  # fmt: skip
+        _check_robot(spec, setup(other, other.urdf_sha256 + "x"))
+
+
+def test_the_device_is_the_clusters():
+    """``auto`` is CUDA where the cluster has a GPU (not where the driver has one); ``cuda`` on a
+    cluster without a GPU is refused in the user's words."""
+    from torchcontact.errors import InputError
+    from torchcontact.logs.ray_engine import _cluster_device
+
+    class Cluster:
+        def __init__(self, gpus):
+            self.gpus = gpus
+
+        def cluster_resources(self):
+            return {"CPU": 16.0, **({"GPU": self.gpus} if self.gpus else {})}
+
+    assert _cluster_device(Cluster(0), "auto") == "cpu"
+    assert _cluster_device(Cluster(2), "auto") == "cuda"
+    assert _cluster_device(Cluster(2), "cpu") == "cpu"
+    assert _cluster_device(Cluster(1), "cuda:0") == "cuda:0"
+    with pytest.raises(InputError, match="--device cuda: the Ray cluster has no GPU"):
+        _cluster_device(Cluster(0), "cuda")
+    with pytest.raises(InputError, match="--device tpu: expected auto, cpu or cuda"):
+        _cluster_device(Cluster(0), "tpu")
+
+
 def test_the_workers_allocators_are_set_as_the_clis(cluster, monkeypatch):
     """A worker process keeps freed memory as the CLI's does (a unit of 65,536 iCub frames took
     0.36 s instead of 0.47 s, 2-core machine): the runtime environment a driver joins a cluster
@@ -402,7 +461,7 @@ def test_the_workers_allocators_are_set_as_the_clis(cluster, monkeypatch):
 
     def probe():
         from torchcontact.logs import _alloc
-        from torchcontact.logs.ray_engine import _worker_threads
+        from torchcontact.logs.ray_worker import _worker_threads
 
         _worker_threads({"threads": 1, "cpus": 1})
         return os.environ.get("MIMALLOC_PURGE_DELAY"), bool(_alloc._set)

@@ -2,10 +2,11 @@
 
 ``torchcontact estimate --engine ray`` calls :func:`prestart` first thing: Ray starts (or is
 joined at ``RAY_ADDRESS``) and one task per worker has a worker process import torch and
-torchcontact, while the driver imports them itself, builds the model and scans the log. On a
-16-core host the driver took 4.6 s before its first Ray call, and Ray 4.6 s more to start 16
-worker processes that import torch (benchmarks/README.md, session 8): the two now overlap. This
-module imports neither torch nor numpy (nor Ray until called).
+torchcontact, while the driver goes on. On a 16-core host the driver took 4.6 s before its first
+Ray call, and Ray 4.6 s more to start 16 worker processes that import torch (benchmarks/README.md,
+session 8): the two now overlap. The driver itself imports no torch: a worker builds the model
+and scans the log (:func:`torchcontact.logs.ray_worker.setup_run`). This module imports neither
+torch nor numpy (nor Ray until called).
 
 It also holds the worker pool of ``--keep-workers`` (:class:`PoolWorker`): Ray actors that
 outlive the run which started them, so that the next runs on the same cluster find their worker
@@ -92,9 +93,9 @@ def task_options(worker_cpus: float, device: str) -> dict[str, Any]:
 
 
 def _import_engine() -> None:
-    """Ray task: this worker process imports the Ray engine (torch, pyarrow, torchcontact)."""
+    """Ray task: this worker process imports the Ray engine's worker side (torch, torchcontact)."""
     keep_freed_memory()  # before pyarrow loads
-    import torchcontact.logs.ray_engine  # noqa: F401
+    import torchcontact.logs.ray_worker  # noqa: F401
 
 
 def prestart(workers: int, worker_cpus: float, device: str, num_cpus: int | None = None) -> None:
@@ -214,9 +215,10 @@ def new_pool_actor(ray: Any, worker_cpus: float, device: str, keep_s: float) -> 
 class PoolWorker:
     """A Ray actor of the worker pool (``--keep-workers SECONDS``).
 
-    It runs the same units as the Ray engine's tasks (:func:`~torchcontact.logs.ray_engine.
-    _estimate_units`), one at a time, in its own worker process, which keeps torch imported, the
-    model built and the kernels loaded from one run to the next. It ends itself once it has been
+    It runs the same units as the Ray engine's tasks (:func:`~torchcontact.logs.ray_worker.
+    estimate_units`), one at a time, in its own worker process, which keeps torch imported, the
+    model built and the kernels loaded from one run to the next; a run's first actor runs its
+    setup too (:func:`~torchcontact.logs.ray_worker.setup_run`). It ends itself once it has been
     idle for ``keep_s`` seconds (the last run's ``--keep-workers``): an idle actor still holds
     the CPUs Ray reserved for it. Detached: a driver that ends (or is killed) leaves it.
 
@@ -257,18 +259,25 @@ class PoolWorker:
         """
         with self._active():
             self._keep = float(keep_s)
-            from torchcontact.logs.ray_engine import _warm_worker
+            from torchcontact.logs.ray_worker import warm_worker
 
-            error = _warm_worker(robot, job)
+            error = warm_worker(robot, job)
             runs, self._runs = self._runs, self._runs + 1
             return {"error": error, "runs": runs}
 
-    def estimate_units(self, units: list[int], config: tuple) -> dict[str, Any]:
-        """The Ray engine's unit task (:func:`~torchcontact.logs.ray_engine._estimate_units`)."""
+    def setup(self, request: dict) -> dict:
+        """A run's setup (:func:`~torchcontact.logs.ray_worker.setup_run`), before its units."""
         with self._active():
-            from torchcontact.logs.ray_engine import _estimate_units
+            from torchcontact.logs.ray_worker import setup_run
 
-            return _estimate_units(units, config)
+            return setup_run(request)
+
+    def estimate_units(self, units: list[int], config: tuple) -> dict[str, Any]:
+        """The Ray engine's unit task (:func:`~torchcontact.logs.ray_worker.estimate_units`)."""
+        with self._active():
+            from torchcontact.logs.ray_worker import estimate_units
+
+            return estimate_units(units, config)
 
     def expire(self) -> bool:
         """End this actor if it is still idle (sent by its own watchdog); False if it is not."""

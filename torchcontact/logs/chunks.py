@@ -78,7 +78,7 @@ from torchcontact.logs.format import (
 )
 from torchcontact.logs.noise import FTNoise
 from torchcontact.model import RobotModel
-from torchcontact.status import WARNINGS, Status
+from torchcontact.status import DEFAULT_VELOCITY_MARGIN, WARNINGS, Status
 
 __all__ = [
     "DEFAULT_VELOCITY_MARGIN",
@@ -92,8 +92,6 @@ __all__ = [
 
 NOT_CONVERGED = int(Status.NOT_CONVERGED)
 
-#: Default ``velocity_margin``: a joint faster than twice its URDF velocity limit is implausible.
-DEFAULT_VELOCITY_MARGIN = 2.0
 
 # The plausibility bit (64) and the non-finite-output bit (32) are set by the estimator
 # (ContactEstimator(..., velocity_margin=..., ft_range=...)), one meaning in Python and logs.

@@ -75,9 +75,6 @@ def _constraints(args: argparse.Namespace) -> Any:
     """``--constraints`` and its options -> a :class:`~torchcontact.logs.LogConstraints` or None."""
     import math
 
-    from torchcontact.constrained import FrictionCones
-    from torchcontact.logs.pipeline import LogConstraints
-
     names = ("friction", "cone_angle", "cone_iterations", "cone_objective")
     given = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) is not None]
     given += ["--no-warm-start"] if args.no_warm_start else []
@@ -93,6 +90,9 @@ def _constraints(args: argparse.Namespace) -> Any:
             raise InputError(f"--cone-angle must be in (0, pi/2) rad, got {args.cone_angle}")
         friction = math.tan(args.cone_angle)
     its = {} if args.cone_iterations is None else {"iterations": args.cone_iterations}
+    from torchcontact.constrained import FrictionCones
+    from torchcontact.logs.pipeline import LogConstraints
+
     cones = FrictionCones(**its, objective=args.cone_objective)
     return LogConstraints(cones, friction, warm_start=not args.no_warm_start)
 
@@ -250,19 +250,21 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
     files = expand_inputs(args.inputs)  # a missing input's error before Ray's start-up
     keep_freed_memory()
-    if args.engine == "ray":
+    if args.engine == "ray":  # the driver imports no torch: its workers estimate
         _ray_prestart(args)
-    _start_vm_build(args, files)
-    from torchcontact.errors import LogError
-    from torchcontact.logs.noise import parse_ft_noise
-    from torchcontact.logs.pipeline import estimate_files
-    from torchcontact.logs.run import unusable
+    else:
+        _start_vm_build(args, files)
+        import torchcontact.logs.pipeline  # noqa: F401 - torch and the pipeline, before the freeze
 
-    _threads(args)
+        _threads(args)
     # torch's and pyarrow's modules live as long as the process: the collector's full passes
     # during the run need not walk them again (one took 0.14 s of a 1 M-frame run)
     import pyarrow.compute  # noqa: F401 - the run's own imports, before the freeze
     import pyarrow.parquet  # noqa: F401
+
+    from torchcontact.errors import LogError
+    from torchcontact.logs.noise import parse_ft_noise
+    from torchcontact.logs.run import unusable
 
     gc.freeze()
     robot = resolve_robot_argument(args, logs=files)  # never silently the bundled arm
@@ -272,7 +274,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         sensors=args.sensor or None,
         batch_size=args.batch_size,
         device=args.device,
-        dtype=_dtype(args.dtype),
+        dtype=args.dtype if args.engine == "ray" else _dtype(args.dtype),
         resume=args.resume,
         progress=_progress(args),
         velocity_margin=args.velocity_margin or None,
@@ -320,6 +322,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 raise InputError("--worker-cpus applies to --engine ray only")
             if args.keep_workers:
                 raise InputError("--keep-workers applies to --engine ray only")
+            from torchcontact.logs.pipeline import estimate_files
+
             summaries = estimate_files(files, robot, args.out, **kwargs)
     except KeyboardInterrupt:
         print("interrupted: run again with --resume to finish", file=sys.stderr)

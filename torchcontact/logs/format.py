@@ -101,6 +101,7 @@ __all__ = [
     "one_array",
     "encode_part",
     "open_log",
+    "output_paths",
     "output_schema",
     "string_array",
     "read_contacts",
@@ -1812,6 +1813,19 @@ def expand_inputs(inputs: Sequence[str | Path]) -> list[Path]:
             raise LogError(f"{item}: no such file, folder or glob match")
         files += found
     return files
+
+
+def output_paths(inputs: Sequence[Path], out: str | Path) -> list[Path]:
+    """Output file per input: ``out`` itself for one file, ``out/<name>`` for several."""
+    out = Path(out)
+    if len(inputs) == 1 and not out.is_dir():
+        return [out]
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: several inputs need a folder, and {out} is a file")
+    names = [p.name for p in inputs]
+    if len(set(names)) != len(names):
+        raise LogError(f"inputs share file names {names}; give them distinct names")
+    return [out / n for n in names]
 
 
 def check_outputs(

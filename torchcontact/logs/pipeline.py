@@ -62,8 +62,14 @@ from torchcontact.logs.decode import (
     stamps_and_positions,
 )
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, expand_inputs, iter_chunks, open_log
-from torchcontact.logs.run import Done, Run, background, side_paths
+from torchcontact.logs.format import (
+    check_outputs,
+    expand_inputs,
+    iter_chunks,
+    open_log,
+    output_paths,
+)
+from torchcontact.logs.run import Done, Run, background, check_positive, side_paths
 from torchcontact.model import RobotModel
 
 __all__ = [
@@ -138,12 +144,6 @@ def load_robot(
             return robot
         return robot.to(device, dtype)
     return load_robot_model(robot, dtype=dtype, device=device)
-
-
-def _check_positive(**values: int) -> None:
-    for name, value in values.items():
-        if not isinstance(value, (int, np.integer)) or value < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
 
 
 def kernel_backend(frames: int, device: str, shared: bool = False) -> str:
@@ -705,7 +705,7 @@ def estimate_file(
     import sys
 
     t0 = time.perf_counter()
-    _check_positive(batch_size=batch_size, half_window=half_window)
+    check_positive(batch_size=batch_size, half_window=half_window)
     causal = derivative_options(derivatives, derivative_window, derivative_order)
     bias = LogBias() if track_bias is True else (track_bias or None)
     out = Path(out)
@@ -854,19 +854,6 @@ def _context(
 
 def _path_or_none(x: Any) -> str | Path | None:
     return x if isinstance(x, (str, Path)) else None
-
-
-def output_paths(inputs: Sequence[Path], out: str | Path) -> list[Path]:
-    """Output file per input: ``out`` itself for one file, ``out/<name>`` for several."""
-    out = Path(out)
-    if len(inputs) == 1 and not out.is_dir():
-        return [out]
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: several inputs need a folder, and {out} is a file")
-    names = [p.name for p in inputs]
-    if len(set(names)) != len(names):
-        raise LogError(f"inputs share file names {names}; give them distinct names")
-    return [out / n for n in names]
 
 
 def estimate_files(

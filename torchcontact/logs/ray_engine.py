@@ -14,6 +14,13 @@ finish (:class:`~torchcontact.logs.format.PartsWriter`, as the local engine's ch
 encoding, the costly part of writing, runs in the workers, and the driver copies bytes and reads
 the status columns for the summary.
 
+The driver imports neither torch nor the estimator: one worker process builds the model, scans
+the log, resolves its noise and returns the units' config
+(:func:`~torchcontact.logs.ray_worker.setup_run`), and the driver checks that this worker read
+the driver's URDF. Everything that runs in a worker process lives in
+:mod:`torchcontact.logs.ray_worker`; this module sends it by name (the wrappers below import it
+in the worker).
+
 A worker process that dies (killed, out of memory) costs a retry of its unit
 (:data:`TASK_RETRIES`), not the run; a killed driver leaves the journal, and ``--resume`` keeps
 its units. A residual checkpoint must be stateless (MLP): units run in parallel and in any order,
@@ -29,22 +36,16 @@ and the model built (:func:`_pool_units`).
 from __future__ import annotations
 
 import contextlib
-import json
+import hashlib
 import os
 import sys
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-
 from torchcontact.errors import InputError, LogError, TorchContactError
-from torchcontact.identity import RobotIdentity
-from torchcontact.logs._alloc import keep_freed_memory
 from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
 from torchcontact.logs._ray_boot import (
     new_pool_actor,
@@ -53,34 +54,11 @@ from torchcontact.logs._ray_boot import (
     running_cluster,
 )
 from torchcontact.logs._ray_boot import task_options as _task_options
-from torchcontact.logs.chunks import (
-    DEFAULT_VELOCITY_MARGIN,
-    LogEstimator,
-    LogLocalize,
-    decoded_chunks,
-    estimate_stream,
-)
-from torchcontact.logs.decode import stamps_and_positions
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, open_log, write_encoded_part
-from torchcontact.logs.pipeline import (
-    _check_positive,
-    expand_inputs,
-    kernel_backend,
-    load_residual,
-    load_robot,
-    localize_tally,
-    log_noise,
-    log_summary,
-    output_paths,
-    prepare,
-    recorded_noise,
-    resolve_device,
-    run_ident,
-    run_localize,
-)
-from torchcontact.logs.run import Done, Run, background, side_paths
-from torchcontact.robots import RobotSpec, ft_sensor_specs
+from torchcontact.logs.format import check_outputs, expand_inputs, output_paths
+from torchcontact.logs.run import Done, Run, check_positive, side_paths
+from torchcontact.robots import RobotSpec
+from torchcontact.status import DEFAULT_VELOCITY_MARGIN
 
 __all__ = ["estimate_file_ray", "estimate_files_ray", "plan_units"]
 
@@ -95,166 +73,66 @@ def plan_units(rows: int, task_rows: int) -> list[tuple[int, int]]:
     return [(a, min(a + task_rows, rows)) for a in range(0, rows, task_rows)]
 
 
-def _read_unit(pf: Any, columns: list[str], lo: int, hi: int, source: str) -> Any:
-    """Rows ``[lo, hi)`` of the log: the row groups holding them are read, then sliced."""
-    import pyarrow as pa
-
-    sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
-    bounds = np.cumsum([0, *sizes])
-    groups = [g for g in range(len(sizes)) if bounds[g] < hi and bounds[g + 1] > lo]
-    try:
-        tab = pf.read_row_groups(groups, columns=columns)
-    except (OSError, pa.ArrowException) as exc:
-        raise LogError(f"{source}: corrupted data in rows {lo}-{hi - 1}: {exc}") from None
-    return tab.slice(lo - int(bounds[groups[0]]), hi - lo)
-
-
-#: Per worker process: (path, robot, LogEstimator arguments, job) -> (LogEstimator, file).
-#: Ray reuses worker processes across tasks, so the model is built once per process and config.
-_WORKER_CACHE: dict[str, tuple[LogEstimator, Any]] = {}
-#: Per worker process: the robot model of (robot, dtype, device), built by :func:`_warm_worker`
-#: ahead of the units, or by the first unit.
-_MODEL_CACHE: dict[str, Any] = {}
-
-
-def _worker_threads(job: dict) -> None:
-    """Size this worker process's threads and set its allocators as the CLI's.
-
-    torch's threads to ``threads``, pyarrow's CPU pool to ``cpus`` (the CPUs Ray reserved for a
-    task; pyarrow would otherwise start one thread per core of the node in every worker process:
-    16 processes of 16 threads on 16 cores), the allocators by
-    :func:`~torchcontact.logs._alloc.keep_freed_memory`.
-    """
-    import pyarrow as pa
-
-    keep_freed_memory()  # as the CLI's process (its environment part: the runtime's)
-    if job["threads"]:
-        torch.set_num_threads(job["threads"])
-    pa.set_cpu_count(max(1, int(job.get("cpus", 1))))
-
-
-def _worker_model(robot: dict, job: dict) -> tuple[RobotSpec, Any]:
-    """The robot's spec and model in this worker process (built once per robot, dtype, device)."""
-    key = json.dumps([robot["robot"], robot["ft_sensors"], job["dtype"], job["device"]])
-    spec = RobotSpec(robot["robot"], ft_sensor_specs(robot["ft_sensors"]))
-    if key not in _MODEL_CACHE:
-        _worker_threads(job)
-        _MODEL_CACHE.clear()
-        _MODEL_CACHE[key] = load_robot(spec, getattr(torch, job["dtype"]), job["device"])
-    return spec, _MODEL_CACHE[key]
-
-
+# ------------------------------------------------------ what the worker processes run (by name)
 def _warm_worker(robot: dict, job: dict) -> str | None:
-    """Ray task sent as Ray starts: a worker process builds the robot model before any unit.
+    """Ray task: :func:`~torchcontact.logs.ray_worker.warm_worker` in a worker process."""
+    from torchcontact.logs.ray_worker import warm_worker
 
-    It runs while the driver still reads the log, so that the process has imported torchcontact
-    and built the model by the time its first unit arrives.
-
-    Returns:
-        None, or the error's text: a failure here is the first unit's to report (it builds the
-        model again and raises), not this task's.
-    """
-    try:
-        _worker_model(robot, job)
-    except Exception as exc:  # noqa: BLE001 - reported by the unit that needs the model
-        return f"{type(exc).__name__}: {exc}"
-    return None
+    return warm_worker(robot, job)
 
 
-def _worker_state(path: str, robot: dict, le_args: dict, job: dict) -> tuple:
-    key = json.dumps([path, robot, le_args, job], sort_keys=True, default=str)
-    if key not in _WORKER_CACHE:
-        _worker_threads(job)
-        spec, model = _worker_model(robot, job)
-        if model.identity.sha256 != robot["identity"]:  # another URDF on this node
-            driver = RobotIdentity.from_json(robot["identity_entries"])
-            raise LogError(
-                f"the Ray worker on {os.uname().nodename} built robot {spec} unlike the"
-                f" driver's: {driver.difference(model.identity) or 'another identity'}"
-            )
-        res = None if job["residual"] is None else load_residual(job["residual"], model)
-        args = dict(le_args)
-        layout = args.pop("layout")
-        opts = args.pop("localize")
-        if opts is not None:  # the meshes loaded once per worker process and config
-            opts = dict(opts)
-            args["localize"] = LogLocalize.load(model, spec, opts.pop("links"), **opts)
-        le = LogEstimator(model, residual=res, **args)
-        if layout is not None:
-            from torchcontact.contacts import SlotLayout
+def _setup_run(request: dict) -> dict:
+    """Ray task: :func:`~torchcontact.logs.ray_worker.setup_run` in a worker process."""
+    from torchcontact.logs.ray_worker import setup_run
 
-            le.layout = le.decoder.layout = SlotLayout(*layout)
-        le.decoder.whole_log_segment = job["whole_log_segment"]
-        _WORKER_CACHE.clear()
-        _WORKER_CACHE[key] = (le, open_log(path))
-    return _WORKER_CACHE[key]
+    return setup_run(request)
 
 
 def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
-    """Ray task: estimate ``units`` and journal them; their row counts and this node's id."""
-    path, robot, le_args, job = config
-    le, pf = _worker_state(path, robot, le_args, job)
-    h, derive = job["half_window"], bool(le.derived)
-    n, bs = pf.metadata.num_rows, job["batch_size"]
-    rows = []
-    for u in units:
-        start, stop = job["units"][int(u)]
-        # context across the unit's edges, as the local engine has: 2 h frames each side for
-        # derived qd/qdd, else the two stamps before (a time segment may start at the unit)
-        c = 2 * h if derive else 2
-        lo, hi = max(0, start - c), min(n, stop + 2 * h) if derive else stop
-        tab = _read_unit(pf, job["columns"], lo, hi, path)
-        unit = tab.slice(start - lo, stop - start)
-        before = after = None
-        width = len(le.input_joint_names)  # the log's joints (le.perm: the model's)
-        if start > lo:
-            before = stamps_and_positions(tab.slice(0, start - lo), le.perm, width, path, lo)
-        if derive and hi > stop:
-            after = stamps_and_positions(tab.slice(stop - lo), le.perm, width, path, stop)
-        chunks = (unit.slice(i, bs) for i in range(0, unit.num_rows, bs))
-        decoded = decoded_chunks(le, chunks, h, start, before, after)
-        part = Path(job["partial"]) / f"part-{int(u):08d}.parquet"
-        # a unit's first frame starts cold: units run in parallel and in any order; the part is
-        # encoded here, in parallel, and the driver appends its bytes as they are
-        if job["cpus"] < 2:  # the one CPU Ray reserved: decode, estimate, encode in turn
-            write_encoded_part(estimate_stream(le, decoded, None, job["backend"]), part,
-                               job["schema"])  # fmt: skip
-        else:  # as the local engine: decoding on a reader thread, the estimate on another, the
-            # encoding here (pyarrow and the kernels release the GIL)
-            with (
-                background(decoded, name="reader") as ready,
-                background(
-                    estimate_stream(le, iter(ready), None, job["backend"]), name="est"
-                ) as tabs,  # fmt: skip
-            ):
-                write_encoded_part(iter(tabs), part, job["schema"])
-        rows.append(stop - start)
-    import ray
+    """Ray task: :func:`~torchcontact.logs.ray_worker.estimate_units` in a worker process."""
+    from torchcontact.logs.ray_worker import estimate_units
 
-    return {"units": [int(u) for u in units], "rows": rows,
-            "node": ray.get_runtime_context().get_node_id()}  # fmt: skip
+    return estimate_units(units, config)
 
 
 def _start_ray(
-    num_cpus: int | None, robot: dict, job: dict, workers: int, task_options: dict
-) -> tuple[Any, list[Any]]:
+    num_cpus: int | None, device: str, robot: dict, job: dict, workers: int, worker_cpus: float
+) -> tuple[Any, str, list[Any]]:
     """Start (or join) Ray and send each of ``workers`` worker processes a :func:`_warm_worker`.
 
-    Called while the noise scan runs on another thread: the worker processes import torchcontact
-    and build the robot model beside the driver's own work. On the caller's thread, which must
-    live as long as Ray: a local instance's processes die with the thread that started them.
+    The worker processes import torchcontact and build the robot model while one of them runs
+    the run's setup. On the caller's thread, which must live as long as Ray: a local instance's
+    processes die with the thread that started them.
 
     Returns:
-        The ``ray`` module, and the warm-up tasks' references (:func:`_unit_tasks` waits for
-        them before it sends the units).
+        The ``ray`` module, the device (:func:`_cluster_device`), and the warm-up tasks'
+        references (:func:`_unit_tasks` waits for them before it sends the units).
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(num_cpus)
+        device = _cluster_device(ray, device)
+        job["device"] = device
         # with the units' resources, so that the units find these processes warm (a warm-up
         # holding no CPU ran in other processes than the units, measured)
-        warm = ray.remote(_warm_worker).options(**task_options)
-        return ray, [warm.remote(robot, job) for _ in range(workers)]
+        warm = ray.remote(_warm_worker).options(**_task_options(worker_cpus, device))
+        return ray, device, [warm.remote(robot, job) for _ in range(workers)]
+
+
+def _cluster_device(ray: Any, device: str) -> str:
+    """The run's device on the cluster: ``auto`` is ``cuda`` where the cluster has a GPU.
+
+    Raises:
+        InputError: an unknown device, or ``cuda`` on a cluster without GPUs.
+    """
+    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
+        raise InputError(f"--device {device}: expected auto, cpu or cuda")
+    gpus = ray.cluster_resources().get("GPU", 0) if device != "cpu" else 0
+    if device == "auto":
+        return "cuda" if gpus >= 1 else "cpu"
+    if device.startswith("cuda") and gpus < 1:
+        raise InputError(f"--device {device}: the Ray cluster has no GPU; use --device cpu or auto")
+    return device
 
 
 def _user_error(exc: BaseException) -> BaseException:
@@ -281,77 +159,76 @@ WARM_UP_WAIT_S = 60.0
 TASK_RETRIES = 3
 
 
-def worker_args(le: LogEstimator, path: str | Path) -> dict[str, Any]:
-    """The :class:`LogEstimator` arguments a worker process rebuilds it from (picklable).
+def _setup(
+    ray: Any,
+    request: dict,
+    actors: list[Any] | None,
+    worker_cpus: float,
+    device: str,
+    keep_s: float,
+) -> dict:
+    """The run's :func:`~torchcontact.logs.ray_worker.setup_run`, on a worker; its result.
 
-    The layout is the driver's (the log's scan); a localization travels as its options, and each
-    worker process loads the meshes from the robot's URDF once (:func:`_worker_state`).
+    On the pool's first live actor (after its warm-up: an actor runs its calls in order), else
+    as a task of its own: on the CPU, beside the warm-ups that hold the units' CPUs (it needs
+    none while they import torch); with CUDA, with a GPU like the units.
+
+    Raises:
+        TorchContactError: the setup's error (a user's input), as the worker raised it.
     """
-    return {
-        "input_joint_names": list(le.input_joint_names),
-        "sensors": list(le.sensors),
-        "contact_fields": list(le.contact_fields),
-        "source": str(path),
-        "derived": list(le.derived),
-        "velocity_margin": le.velocity_margin,
-        "ft_range": {s: v.tolist() for s, v in le._ft_range.items()},
-        "constraints": le.constraints,
-        "noise": le.noise,
-        "step_ns": le.step_ns,
-        "layout": None if le.layout is None else (le.layout.links, le.layout.kinds),
-        "localize": None if le.localize is None else le.localize.options(),
-    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
+        try:
+            if actors is None:
+                opts = _task_options(worker_cpus, device)
+                if not device.startswith("cuda"):
+                    opts["num_cpus"] = 0
+                return ray.get(ray.remote(_setup_run).options(**opts).remote(request))
+            for k, actor in enumerate(actors):
+                try:
+                    return ray.get(actor.setup.remote(request))
+                except ray.exceptions.RayActorError:  # it ended (idle, killed): the next one
+                    actors[k] = new_pool_actor(ray, worker_cpus, device, keep_s)
+            return ray.get(actors[0].setup.remote(request))
+        except Exception as exc:
+            err = _user_error(exc)
+            if isinstance(err, TorchContactError):
+                raise err from None
+            raise
 
 
-def _robot_arg(robot: RobotSpec, model: Any) -> dict[str, Any]:
-    """The robot as the driver has it, for the workers (:func:`_worker_state`).
+def _urdf_sha256(spec: RobotSpec) -> str:
+    """The sha256 of the robot's URDF text here, as :attr:`RobotModel.urdf_sha256` records it."""
+    from torchcontact import _urdf
 
-    The URDF with the declared ``--ft-sensor`` sensors, and the model's identity, which each
-    worker's model must have.
+    text, _ = _urdf.read_text(os.fspath(spec))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _check_robot(spec: RobotSpec, setup: dict) -> None:
+    """Refuse a setup whose worker built another robot than the driver's URDF describes.
+
+    The worker that ran :func:`~torchcontact.logs.ray_worker.setup_run` read ``spec``'s URDF
+    on its node, and the units check their models against its identity. The same URDF text
+    here means the same robot; another text (another copy of the file on that node) is checked
+    by the model's identity, built here (which imports torch: a cluster whose nodes hold
+    different files pays for it), so that a reformatted copy of the same robot still runs.
+
+    Raises:
+        LogError: the worker's robot differs from the driver's (the first difference named).
     """
-    return {
-        "robot": robot.robot,
-        "ft_sensors": [str(s) for s in robot.ft_sensors],
-        "identity": model.identity.sha256,
-        "identity_entries": model.identity.to_json(),
-    }
+    if setup["ident"]["urdf_sha256"] == _urdf_sha256(spec):
+        return
+    from torchcontact.identity import RobotIdentity
 
-
-def unit_config(
-    path: str | Path,
-    robot: RobotSpec,
-    model: Any,
-    le: LogEstimator,
-    units: Sequence[tuple[int, int]],
-    columns: list[str],
-    partial: Path,
-    res: Any,
-    options: dict,
-) -> tuple:
-    """The one argument every :func:`_estimate_units` task of a run gets (picklable).
-
-    Args:
-        path: the log.
-        robot: the driver's robot spec.
-        model: its model (each worker checks its own model's identity against it).
-        le: the driver's estimator (its arguments, layout, noise and output schema).
-        units: the run's units, ``(start, stop)`` rows each (:func:`plan_units`).
-        columns: the log's columns to read.
-        partial: the folder of the run's parts (``OUT.partial``).
-        res: the residual correction, or None.
-        options: ``batch_size``, ``half_window``, ``backend``, ``threads``, ``device``,
-            ``dtype`` and ``cpus`` (the CPUs Ray reserves per task).
-    """
-    job = {
-        "units": list(units),
-        "columns": columns,
-        "partial": str(Path(partial).resolve()),
-        "residual": None if res is None else res.source,
-        "whole_log_segment": le.decoder.whole_log_segment,
-        "schema": le.output_schema(),  # the driver's: every part has the output's schema
-        **options,
-    }
-    return str(Path(path).resolve()), _robot_arg(robot, model), worker_args(le, path), job
+    mine = spec.load().identity
+    robot = setup["config"][1]
+    if mine.sha256 != robot["identity"]:
+        theirs = RobotIdentity.from_json(robot["identity_entries"])
+        raise LogError(
+            f"the Ray worker that scanned the log built robot {spec} unlike the driver's:"
+            f" {mine.difference(theirs) or 'another identity'}"
+        )
 
 
 def _unit_tasks(
@@ -410,22 +287,30 @@ UNITS_QUEUED = 2
 
 
 def _start_pool(
-    robot: dict, job: dict, workers: int, worker_cpus: float, device: str, keep_s: float
-) -> tuple[Any, list[Any], list[Any]]:
+    num_cpus: int | None,
+    device: str,
+    robot: dict,
+    job: dict,
+    workers: int,
+    worker_cpus: float,
+    keep_s: float,
+) -> tuple[Any, str, list[Any], list[Any]]:
     """Join the running cluster, find or start ``workers`` pool actors, send each a warm-up.
 
     Returns:
-        The ``ray`` module, the warm-ups' references
+        The ``ray`` module, the device (:func:`_cluster_device`), the warm-ups' references
         (:meth:`~torchcontact.logs._ray_boot.PoolWorker.warm`), the actors.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-        ray = _ensure_ray(None)
+        ray = _ensure_ray(num_cpus)
+        device = _cluster_device(ray, device)
+        job["device"] = device
         members = prestarted_pool(workers, worker_cpus, device)  # the CLI's, moments ago
         if members is None:
             members = pool(ray, workers, worker_cpus, device, keep_s)
         actors = [a for a, _ in members]
-        return ray, [a.warm.remote(robot, job, keep_s) for a in actors], actors
+        return ray, device, [a.warm.remote(robot, job, keep_s) for a in actors], actors
 
 
 def _reused(ray: Any, warm: list[Any]) -> int:
@@ -503,7 +388,7 @@ def estimate_file_ray(
     batch_size: int = 8192,
     task_rows: int | None = None,
     device: str = "cpu",
-    dtype: torch.dtype = torch.float64,
+    dtype: Any = "float64",
     resume: bool = False,
     progress: bool | None = None,
     half_window: int = DEFAULT_HALF_WINDOW,
@@ -523,19 +408,23 @@ def estimate_file_ray(
     """Estimate a log with Ray; same rows and summary as :func:`torchcontact.logs.estimate_file`.
 
     Ray is started here with ``num_cpus`` CPUs, or joined at ``RAY_ADDRESS`` (a running cluster,
-    e.g. ``ray start --head`` and workers on other machines) when that variable is set.
+    e.g. ``ray start --head`` and workers on other machines) when that variable is set. This
+    process imports no torch (unless a cluster node's URDF differs from this one's: see
+    :func:`_check_robot`): one worker builds the model and scans the log.
 
     Args:
         path: input log.
         robot: ``tcarm``, ``icub``, a URDF path, or a :class:`~torchcontact.robots.RobotSpec`
             with declared F/T sensors (``--ft-sensor``): every worker builds the same model
-            and checks its identity against the driver's.
+            and checks its identity against the one that scanned the log, which must have read
+            the driver's robot.
         out: output Parquet file.
         sensors: sensors to use (default: those with a column).
         batch_size: frames per estimator call inside a unit.
         task_rows: frames of a unit (one Ray task; default ``8 * batch_size``).
-        device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per task).
-        dtype: computation dtype.
+        device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per task;
+            ``auto`` is ``cuda`` when the cluster has a GPU).
+        dtype: computation dtype: ``"float64"``, ``"float32"`` or a torch dtype.
         resume: finish an interrupted Ray run from its parts.
         progress: show a progress bar (default: when stderr is a terminal).
         half_window: ``h`` of the Savitzky-Golay differentiator when ``qd``/``qdd`` are derived.
@@ -553,7 +442,7 @@ def estimate_file_ray(
         constraints: as :func:`estimate_file` (warm starts run within a unit; a unit's first
             frame starts cold, so its rows may differ from the local engine's within the
             solver's tolerance).
-        ft_noise: as :func:`estimate_file` (resolved once here, before the units run).
+        ft_noise: as :func:`estimate_file` (resolved once, before the units run).
         unweighted: as :func:`estimate_file`.
         localize: as :func:`estimate_file` (options or a :class:`LogLocalize`); each worker
             process loads the meshes once from ``robot``'s URDF.
@@ -569,18 +458,20 @@ def estimate_file_ray(
         ``nodes``: the Ray nodes that ran the units estimated now, with ``keep_workers``
         ``pool``: ``{"workers": n, "reused": k}`` (``k`` of the ``n`` actors ran before this
         run), and ``phases_s``: seconds from the start to Ray started (the warm-ups sent), the
-        log scanned (and its noise estimated), the first unit done (absent when none ran now)
-        and the output published.
+        log scanned (the setup returned: the model built, the log scanned and its noise
+        estimated), the first unit done (absent when none ran now) and the output published.
 
     Raises:
         InputError: as :func:`estimate_file`, ``workers`` < 1, ``worker_cpus`` <= 0, or
-            ``keep_workers`` < 0, or > 0 without a running cluster.
+            ``keep_workers`` < 0, or > 0 without a running cluster, ``cuda`` on a cluster
+            without a GPU.
         OutputBusyError: another live process is writing ``out``.
-        LogError: as :func:`estimate_file`, or a recurrent (GRU) residual.
+        LogError: as :func:`estimate_file`, a recurrent (GRU) residual, or a worker whose
+            robot differs from the driver's.
     """
     t0 = time.perf_counter()
     task_rows = 8 * batch_size if task_rows is None else task_rows
-    _check_positive(
+    check_positive(
         batch_size=batch_size, half_window=half_window, workers=workers, task_rows=task_rows
     )
     if not (isinstance(worker_cpus, (int, float)) and 0 < worker_cpus < float("inf")):
@@ -592,60 +483,48 @@ def estimate_file_ray(
             "--keep-workers needs a running Ray cluster (set RAY_ADDRESS, e.g. after `ray start"
             " --head`): a Ray instance that this command starts ends with it"
         )
+    dtype = str(dtype).removeprefix("torch.")
+    if dtype not in ("float64", "float32"):
+        raise InputError(f"dtype {dtype}: expected float64 or float32")
     out = Path(out)
     check_outputs([out, *side_paths(out)], [path, robot, residual])
-    device = resolve_device(device)
     spec = robot if isinstance(robot, RobotSpec) else RobotSpec.of(robot)
     with Run(out, path) as run:  # the lock first: a second run stops before any work
-        model = load_robot(spec, dtype)
-        res = None if residual is None else load_residual(residual, model)
-        if res is not None and res.recurrent:
-            raise LogError(
-                f"{path}: --engine ray cannot use a recurrent (GRU) residual (units run in any"
-                " order); use --engine local"
+        # the worker processes' arguments: plain values (the workers build the model)
+        robot_arg = {"robot": spec.robot, "ft_sensors": [str(s) for s in spec.ft_sensors]}
+        job = dict(threads=threads, device=device, dtype=dtype, cpus=worker_cpus)
+        if keep_workers:
+            ray, device, warm, actors = _start_pool(
+                num_cpus, device, robot_arg, job, workers, worker_cpus, keep_workers
             )
-        localize = run_localize(localize, model, robot)
-        job = dict(threads=threads, device=device, dtype=str(dtype).removeprefix("torch."),
-                   cpus=worker_cpus)  # fmt: skip
-
-        def setup() -> tuple:  # the log's scan and noise: read the whole log's cheap columns
-            pf, le, columns, scan = prepare(path, model, sensors, res, velocity_margin, ft_range,
-                                            constraints, localize=localize)  # fmt: skip
-            log_noise(pf, le, columns, half_window, ft_noise, unweighted, str(path))
-            return pf, le, columns, scan
-
-        # the driver reads the log on a thread while Ray starts here and its worker processes
-        # import torchcontact and build the model (a log of 16 M frames takes seconds to scan)
-        with ThreadPoolExecutor(1, thread_name_prefix="torchcontact-scan") as pool:
-            scanned = pool.submit(setup)
-            if keep_workers:
-                ray, warm, actors = _start_pool(
-                    _robot_arg(spec, model), job, workers, worker_cpus, device, keep_workers
-                )
-            else:
-                ray, warm = _start_ray(num_cpus, _robot_arg(spec, model), job, workers,
-                                       _task_options(worker_cpus, device))  # fmt: skip
-            phases = {"ray_started": time.perf_counter() - t0}
-            pf, le, columns, scan = scanned.result()
-            phases["log_scanned"] = time.perf_counter() - t0
-        total = pf.metadata.num_rows
+        else:
+            ray, device, warm = _start_ray(num_cpus, device, robot_arg, job, workers, worker_cpus)
+        phases = {"ray_started": time.perf_counter() - t0}
+        request = dict(
+            path=str(Path(path).resolve()), robot=robot_arg, job=job,
+            partial=str(run.partial.resolve()), previous=run.previous() if resume else None,
+            batch_size=batch_size, half_window=half_window, task_rows=task_rows,
+            sensors=sensors, velocity_margin=velocity_margin, ft_range=ft_range,
+            constraints=constraints, ft_noise=ft_noise, unweighted=unweighted, localize=localize,
+            residual=None if residual is None else str(Path(residual).resolve()),
+        )  # fmt: skip
+        setup = _setup(ray, request, actors if keep_workers else None, worker_cpus, device,
+                       keep_workers)  # fmt: skip
+        _check_robot(spec, setup)
+        phases["log_scanned"] = time.perf_counter() - t0
         show = sys.stderr.isatty() if progress is None else progress
-        recorded_noise(le, run.previous() if resume else None)
-        ident = run_ident(path, model, le, engine="ray", dtype=str(dtype),
-                          half_window=half_window, batch_size=batch_size,
-                          task_rows=task_rows)  # fmt: skip
-        run.start(ident, plan_units(total, task_rows), resume)
+        st = os.stat(path)  # the input as the driver sees it (a resume compares it)
+        ident = {**setup["ident"], "input": str(Path(path).resolve()), "input_size": st.st_size,
+                 "input_mtime_ns": st.st_mtime_ns, "urdf_sha256": _urdf_sha256(spec)}  # fmt: skip
+        run.start(ident, [tuple(u) for u in setup["units"]], resume)
         todo = [u for u in range(len(run.units)) if u not in run.done]
-        options = dict(batch_size=batch_size, half_window=half_window,
-                       backend=kernel_backend(total, device, shared=True), **job)  # fmt: skip
 
         def produce() -> Iterator[Done]:
             if not todo:
                 return
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-                config = ray.put(unit_config(path, spec, model, le, run.units, columns,
-                                             run.partial, res, options))  # fmt: skip
+                config = ray.put(setup["config"])
                 if keep_workers:
                     results = _pool_units(ray, actors, todo, config, lambda: new_pool_actor(
                         ray, worker_cpus, device, keep_workers), str(path))  # fmt: skip
@@ -666,12 +545,12 @@ def estimate_file_ray(
         nodes: set[str] = set()
         summary = run.execute(
             produce(),
-            le.output_schema(),
+            setup["schema"],
             progress=show,
-            cone_sensors=list(le.sensors) if constraints is not None else [],
-            localize=localize_tally(le),
+            cone_sensors=list(setup["summary"]["sensors"]) if constraints is not None else [],
+            localize=setup["localize"],
             t0=t0,
-            **log_summary(le, scan),
+            **setup["summary"],
             engine="ray",
         )
     summary["nodes"] = len(nodes)  # Ray nodes that ran units now

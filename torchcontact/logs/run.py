@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from torchcontact._lock import OutputLock, lock_path
-from torchcontact.errors import LogError, TorchContactError
+from torchcontact.errors import InputError, LogError, TorchContactError
 from torchcontact.logs.format import (
     PartIndex,
     PartsWriter,
@@ -74,6 +74,13 @@ NOT_CONVERGED = int(Status.NOT_CONVERGED)
 #: which ``estimate --constraints`` warns that the friction contradicts the data (with the right
 #: friction only noise takes a force near a cone's rim outside it).
 OUTSIDE_CONE_WARN = 0.10
+
+
+def check_positive(**values: int) -> None:
+    """Refuse a count option below 1 or not an integer (``batch_size=0``: ``--batch-size``)."""
+    for name, value in values.items():
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be an integer >= 1, got {value!r}")
 
 
 def side_paths(out: Path) -> list[Path]:
