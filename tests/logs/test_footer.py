@@ -57,6 +57,21 @@ def test_a_footer_it_cannot_read_is_refused():
         _footer.join_footers([])
 
 
+def test_a_footers_row_count(tmp_path):
+    """``footer_rows`` reads the count up to its field (before the row groups): pyarrow's count,
+    for any number of row groups; a footer cut before it, or without it, is refused."""
+    for n, rg in ((0, None), (1, None), (37, 16), (1000, 7)):
+        _file([_table(n, 1)], tmp_path / "f.parquet", row_group_size=rg)
+        _, footer = _footer.split_file((tmp_path / "f.parquet").read_bytes())
+        assert (
+            _footer.footer_rows(bytes(footer)) == pq.read_metadata(tmp_path / "f.parquet").num_rows
+        )
+    with pytest.raises(_footer.FooterError, match="truncated"):
+        _footer.footer_rows(bytes(footer)[:40])  # within the schema
+    with pytest.raises(_footer.FooterError, match="without its row count"):
+        _footer.footer_rows(b"\x15\x02\x00")  # field 1 (i32 version), then the end
+
+
 def test_more_than_15_parts_and_a_truncated_footer(tmp_path):
     # 15 or more row groups take the compact protocol's long list header
     tables = [_table(3, i) for i in range(20)]

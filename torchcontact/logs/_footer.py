@@ -278,13 +278,24 @@ def footer_bytes(footer: bytes) -> bytes:
 def footer_rows(footer: bytes) -> int:
     """The row count a footer records.
 
+    Its fields are walked up to the row count (field 3, after the version and the schema; the
+    row groups that follow are not read: a Ray driver reads the count of every part, and parsing
+    the whole footer took 26 ms a part on the 2-core machine, against its copy's 27 ms).
+
     Raises:
-        FooterError: a footer this module cannot read.
+        FooterError: a footer this module cannot read, or one without a row count.
     """
     try:
-        return int(_get(_parse(footer), _FMD_NUM_ROWS))  # type: ignore[call-overload]
+        fid, ft, i = _field(footer, 0, 0)
+        while ft != _STOP:
+            if fid == _FMD_NUM_ROWS and ft == _I64:
+                n, _ = _varint(footer, i)
+                return _unzig(n)
+            i = i if ft in (_TRUE, _FALSE) else _skip(footer, i, ft)
+            fid, ft, i = _field(footer, i, fid)
     except IndexError:
         raise FooterError("a truncated Parquet footer") from None
+    raise FooterError("a Parquet footer without its row count")
 
 
 def _field(buf: bytes, i: int, fid: int) -> tuple[int, int, int]:
