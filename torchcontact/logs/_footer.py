@@ -130,9 +130,18 @@ def _list_head(buf: bytes, i: int) -> tuple[int, int, int]:
     return size, et, i
 
 
+#: The integer types (varints: a run of bytes with the high bit set, then one without).
+_INTS = frozenset((_I16, _I32, _I64))
+
+
 def _skip(buf: bytes, i: int, typ: int) -> int:
-    """The index after a value of type ``typ`` at ``i`` (as :func:`_read`, building nothing)."""
-    if typ in (_I16, _I32, _I64):
+    """The index after a value of type ``typ`` at ``i`` (as :func:`_read`, building nothing).
+
+    Varints and binaries are passed over inline, in lists and structs too: a footer is mostly
+    integers and short lists of them, and a call per value cost most of a footer's join (the
+    writer thread joins every chunk's footer as it appends it).
+    """
+    if typ in _INTS:
         while buf[i] & 0x80:
             i += 1
         return i + 1
@@ -149,6 +158,12 @@ def _skip(buf: bytes, i: int, typ: int) -> int:
             return i + size
         if et == _DOUBLE:
             return i + 8 * size
+        if et in _INTS:
+            for _ in range(size):
+                while buf[i] & 0x80:
+                    i += 1
+                i += 1
+            return i
         for _ in range(size):
             i = _skip(buf, i, et)
         return i
@@ -159,9 +174,15 @@ def _skip(buf: bytes, i: int, typ: int) -> int:
             ft = head & 0x0F
             if ft == _STOP:
                 return i
-            if not head >> 4:
-                _, i = _varint(buf, i)
-            if ft not in (_TRUE, _FALSE):
+            if not head >> 4:  # a field id of its own: a varint
+                while buf[i] & 0x80:
+                    i += 1
+                i += 1
+            if ft in _INTS:
+                while buf[i] & 0x80:
+                    i += 1
+                i += 1
+            elif ft not in (_TRUE, _FALSE):
                 i = _skip(buf, i, ft)
     raise FooterError(f"Thrift type {typ} in a Parquet footer")
 
@@ -178,13 +199,13 @@ def _copy_shifted(buf: bytes, i: int, out: bytearray, delta: int, shift: dict[in
         The index after the struct.
     """
     fid = 0
+    kept = i  # the bytes from here on are copied as they are, up to the next rewritten field
     while True:
-        h0 = i
         head = buf[i]
         i += 1
         ft = head & 0x0F
         if ft == _STOP:
-            out.append(_STOP)
+            out += buf[kept:i]
             return i
         if head >> 4:
             fid += head >> 4
@@ -193,11 +214,14 @@ def _copy_shifted(buf: bytes, i: int, out: bytearray, delta: int, shift: dict[in
             fid = _unzig(n)
         how = shift.get(fid) if ft not in (_TRUE, _FALSE) else None
         if how is None:
-            end = i if ft in (_TRUE, _FALSE) else _skip(buf, i, ft)
-            out += buf[h0:end]
-            i = end
+            if ft in _INTS:
+                while buf[i] & 0x80:
+                    i += 1
+                i += 1
+            elif ft not in (_TRUE, _FALSE):
+                i = _skip(buf, i, ft)
             continue
-        out += buf[h0:i]
+        out += buf[kept:i]
         if isinstance(how, dict) and ft == _STRUCT:
             i = _copy_shifted(buf, i, out, delta, how)
         elif isinstance(how, tuple) and ft == _LIST and buf[i] & 0x0F == _STRUCT:
@@ -214,6 +238,7 @@ def _copy_shifted(buf: bytes, i: int, out: bytearray, delta: int, shift: dict[in
             _put_varint(out, _zig(new))  # type: ignore[arg-type]
         else:
             raise FooterError(f"field {fid} of a Parquet footer has Thrift type {ft}")
+        kept = i
 
 
 #: The fields a part's row group has shifted when it is placed in the joined file.
