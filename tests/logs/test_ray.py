@@ -302,6 +302,21 @@ def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch
     assert s["resumed_chunks"] == 3 and s["processed_now"] == 0 and s["frames"] == 600
 
 
+def test_a_mistake_the_setup_finds_reads_as_itself(cluster, small_groups, tmp_path):
+    """The driver builds no model: a mistake only the model or the log shows (a sensor the log
+    lacks) is found by the setup's worker, and reaches the user as the local engine says it,
+    with nothing left behind."""
+    from torchcontact.errors import TorchContactError
+    from torchcontact.logs.ray_engine import estimate_file_ray
+    from torchcontact.robots import tcarm_path
+
+    out = tmp_path / "o.parquet"
+    with pytest.raises(TorchContactError, match=r"no column for sensors \['nope'\]") as err:
+        estimate_file_ray(small_groups, tcarm_path(), out, sensors=["nope"], **KW)
+    assert "Ray" not in type(err.value).__name__  # the library's error, not Ray's wrapper
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_ray_engine_refuses_what_it_cannot_do(model, sim_log, tmp_path, capsys, monkeypatch):
     import torch
 

@@ -1071,7 +1071,10 @@ def struct_list(
     """
     import pyarrow as pa
 
-    arrays = [children[fld.name].cast(fld.type) for fld in struct_type]
+    # a child of the field's type as it is: a cast to the same type still costs a compute call
+    # (most children are the input's own arrays, of the output's types)
+    arrays = [c if c.type == fld.type else c.cast(fld.type)
+              for fld in struct_type for c in (children[fld.name],)]  # fmt: skip
     struct = pa.StructArray.from_arrays(arrays, fields=list(struct_type))
     offsets = np.r_[0, np.cumsum(np.bincount(frame, minlength=frames))].astype(np.int32)
     return pa.ListArray.from_arrays(numpy_to_arrow(offsets), struct)

@@ -96,17 +96,26 @@ def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
 
 
 def _start_ray(
-    num_cpus: int | None, device: str, robot: dict, job: dict, workers: int, worker_cpus: float
-) -> tuple[Any, str, list[Any]]:
-    """Start (or join) Ray and send each of ``workers`` worker processes a :func:`_warm_worker`.
+    num_cpus: int | None,
+    device: str,
+    robot: dict,
+    job: dict,
+    workers: int,
+    worker_cpus: float,
+    request: dict,
+) -> tuple[Any, str, list[Any], Any]:
+    """Start (or join) Ray; send the run's setup to one worker process, a warm-up to the others.
 
-    The worker processes import torchcontact and build the robot model while one of them runs
-    the run's setup. On the caller's thread, which must live as long as Ray: a local instance's
-    processes die with the thread that started them.
+    The setup (:func:`_setup_run`) holds a unit's resources, as the warm-ups
+    (:func:`_warm_worker`) do: its process builds the model, which its units then find, and no
+    extra process imports torch beside the ``workers`` that will run the units (a setup task
+    beside them, holding no CPU, made the run 0.5-0.8 s longer on 2 cores). On the caller's
+    thread, which must live as long as Ray: a local instance's processes die with the thread that
+    started them. ``job["device"]`` (``request``'s job too) is set to the cluster's device.
 
     Returns:
-        The ``ray`` module, the device (:func:`_cluster_device`), and the warm-up tasks'
-        references (:func:`_unit_tasks` waits for them before it sends the units).
+        The ``ray`` module, the device (:func:`_cluster_device`), the references the units wait
+        for before they go (:func:`_unit_tasks`: the setup's and the warm-ups'), and the setup's.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
@@ -115,8 +124,10 @@ def _start_ray(
         job["device"] = device
         # with the units' resources, so that the units find these processes warm (a warm-up
         # holding no CPU ran in other processes than the units, measured)
-        warm = ray.remote(_warm_worker).options(**_task_options(worker_cpus, device))
-        return ray, device, [warm.remote(robot, job) for _ in range(workers)]
+        opts = _task_options(worker_cpus, device)
+        setup = ray.remote(_setup_run).options(**opts, max_retries=TASK_RETRIES).remote(request)
+        warm = ray.remote(_warm_worker).options(**opts)
+        return ray, device, [setup, *(warm.remote(robot, job) for _ in range(workers - 1))], setup
 
 
 def _cluster_device(ray: Any, device: str) -> str:
@@ -162,16 +173,17 @@ TASK_RETRIES = 3
 def _setup(
     ray: Any,
     request: dict,
+    sent: Any,
     actors: list[Any] | None,
     worker_cpus: float,
     device: str,
     keep_s: float,
 ) -> dict:
-    """The run's :func:`~torchcontact.logs.ray_worker.setup_run`, on a worker; its result.
+    """The result of the run's :func:`~torchcontact.logs.ray_worker.setup_run` on a worker.
 
-    On the pool's first live actor (after its warm-up: an actor runs its calls in order), else
-    as a task of its own: on the CPU, beside the warm-ups that hold the units' CPUs (it needs
-    none while they import torch); with CUDA, with a GPU like the units.
+    Without a pool, the task :func:`_start_ray` sent (``sent``); with one, the pool's first live
+    actor runs it (after its warm-up: an actor runs its calls in order; an actor that ended is
+    replaced).
 
     Raises:
         TorchContactError: the setup's error (a user's input), as the worker raised it.
@@ -180,10 +192,7 @@ def _setup(
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         try:
             if actors is None:
-                opts = _task_options(worker_cpus, device)
-                if not device.startswith("cuda"):
-                    opts["num_cpus"] = 0
-                return ray.get(ray.remote(_setup_run).options(**opts).remote(request))
+                return ray.get(sent)
             for k, actor in enumerate(actors):
                 try:
                     return ray.get(actor.setup.remote(request))
@@ -493,13 +502,6 @@ def estimate_file_ray(
         # the worker processes' arguments: plain values (the workers build the model)
         robot_arg = {"robot": spec.robot, "ft_sensors": [str(s) for s in spec.ft_sensors]}
         job = dict(threads=threads, device=device, dtype=dtype, cpus=worker_cpus)
-        if keep_workers:
-            ray, device, warm, actors = _start_pool(
-                num_cpus, device, robot_arg, job, workers, worker_cpus, keep_workers
-            )
-        else:
-            ray, device, warm = _start_ray(num_cpus, device, robot_arg, job, workers, worker_cpus)
-        phases = {"ray_started": time.perf_counter() - t0}
         request = dict(
             path=str(Path(path).resolve()), robot=robot_arg, job=job,
             partial=str(run.partial.resolve()), previous=run.previous() if resume else None,
@@ -508,7 +510,16 @@ def estimate_file_ray(
             constraints=constraints, ft_noise=ft_noise, unweighted=unweighted, localize=localize,
             residual=None if residual is None else str(Path(residual).resolve()),
         )  # fmt: skip
-        setup = _setup(ray, request, actors if keep_workers else None, worker_cpus, device,
+        sent = None
+        if keep_workers:
+            ray, device, warm, actors = _start_pool(
+                num_cpus, device, robot_arg, job, workers, worker_cpus, keep_workers
+            )
+        else:
+            ray, device, warm, sent = _start_ray(num_cpus, device, robot_arg, job, workers,
+                                                 worker_cpus, request)  # fmt: skip
+        phases = {"ray_started": time.perf_counter() - t0}
+        setup = _setup(ray, request, sent, actors if keep_workers else None, worker_cpus, device,
                        keep_workers)  # fmt: skip
         _check_robot(spec, setup)
         phases["log_scanned"] = time.perf_counter() - t0
