@@ -161,6 +161,18 @@ def _user_error(exc: BaseException) -> BaseException:
     return exc
 
 
+@contextlib.contextmanager
+def _user_errors() -> Iterator[None]:
+    """Raise a library error that a Ray call wrapped (:func:`_user_error`) as the library's."""
+    try:
+        yield
+    except Exception as exc:
+        err = _user_error(exc)
+        if isinstance(err, TorchContactError):
+            raise err from None
+        raise
+
+
 #: Seconds the units wait for the warm-ups at most (a cluster busy with other jobs may queue
 #: them; the units then go all the same).
 WARM_UP_WAIT_S = 60.0
@@ -188,22 +200,16 @@ def _setup(
     Raises:
         TorchContactError: the setup's error (a user's input), as the worker raised it.
     """
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _user_errors():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
-        try:
-            if actors is None:
-                return ray.get(sent)
-            for k, actor in enumerate(actors):
-                try:
-                    return ray.get(actor.setup.remote(request))
-                except ray.exceptions.RayActorError:  # it ended (idle, killed): the next one
-                    actors[k] = new_pool_actor(ray, worker_cpus, device, keep_s)
-            return ray.get(actors[0].setup.remote(request))
-        except Exception as exc:
-            err = _user_error(exc)
-            if isinstance(err, TorchContactError):
-                raise err from None
-            raise
+        if actors is None:
+            return ray.get(sent)
+        for k, actor in enumerate(actors):
+            try:
+                return ray.get(actor.setup.remote(request))
+            except ray.exceptions.RayActorError:  # it ended (idle, killed): the next one
+                actors[k] = new_pool_actor(ray, worker_cpus, device, keep_s)
+        return ray.get(actors[0].setup.remote(request))
 
 
 def _urdf_sha256(spec: RobotSpec) -> str:
@@ -541,17 +547,12 @@ def estimate_file_ray(
                         ray, worker_cpus, device, keep_workers), str(path))  # fmt: skip
                 else:
                     results = _unit_tasks(ray, warm, todo, config, workers, worker_cpus, device)
-                try:
+                with _user_errors():
                     for r in results:
                         phases.setdefault("first_unit_done", time.perf_counter() - t0)
                         nodes.add(str(r["node"]))
                         for u, n in zip(r["units"], r["rows"], strict=True):
                             yield Done(u, n)
-                except Exception as exc:
-                    err = _user_error(exc)
-                    if isinstance(err, TorchContactError):
-                        raise err from None
-                    raise
 
         nodes: set[str] = set()
         summary = run.execute(
