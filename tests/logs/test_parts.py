@@ -38,12 +38,16 @@ def _table(n: int, seed: int = 0) -> pa.Table:
 
 @settings(max_examples=20, deadline=None)
 @given(n=st.integers(1, 300), cuts=st.lists(st.integers(1, 300), max_size=4),
-       chunk=st.integers(16, 128))  # fmt: skip
-def test_parts_appended_read_back_as_the_log(tmp_path_factory, n, cuts, chunk):
+       chunk=st.integers(16, 128), at_once=st.integers(1, 4))  # fmt: skip
+def test_parts_appended_read_back_as_the_log(tmp_path_factory, n, cuts, chunk, at_once):
+    """Parts appended one by one, or ``at_once`` at a time with their bytes written in parallel
+    (``append_many``): the log, and the same bytes either way."""
+    from concurrent.futures import ThreadPoolExecutor
+
     tmp = tmp_path_factory.mktemp("parts")
     tab = _table(n, seed=n)
     bounds = sorted({0, n, *(c for c in cuts if c < n)})
-    w = PartsWriter(tmp / "out.parquet", tab.schema)
+    parts = []
     for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
         unit = tab.slice(lo, hi - lo)
         tables = [unit.slice(j, chunk) for j in range(0, unit.num_rows, chunk)]
@@ -51,9 +55,19 @@ def test_parts_appended_read_back_as_the_log(tmp_path_factory, n, cuts, chunk):
             write_encoded_part(tables, tmp / f"p{i}.parquet", tab.schema)
         )
         assert part.rows == hi - lo and len(data) > len(part.data)
+        parts.append(part)
+    w = PartsWriter(tmp / "one.parquet", tab.schema)
+    for part in parts:
         w.append(part)
     w.close()
-    back = pq.read_table(tmp / "out.parquet", page_checksum_verification=True)
+    w = PartsWriter(tmp / "many.parquet", tab.schema)
+    with ThreadPoolExecutor(3) as pool:
+        for i in range(0, len(parts), at_once):
+            index = w.append_many(parts[i : i + at_once], pool)
+            assert [p.rows for p in index] == [p.rows for p in parts[i : i + at_once]]
+    w.close()
+    assert (tmp / "many.parquet").read_bytes() == (tmp / "one.parquet").read_bytes()
+    back = pq.read_table(tmp / "one.parquet", page_checksum_verification=True)
     assert back.equals(tab, check_metadata=True)
 
 
@@ -143,3 +157,45 @@ def test_two_writers_of_one_part_never_mix(tmp_path):
     with pytest.raises(OSError):
         write_encoded_part([tab], gone, tab.schema)
     assert not gone.parent.exists()
+
+
+def test_a_damaged_part_among_those_ready_at_once(tmp_path):
+    """Ray parts ready together are appended at once: with a damaged one among them, those before
+    it are recorded, the run stops naming it, and the rest wait in their files; once the part is
+    written again, the resumed run gives the whole log, the same bytes as one writing it."""
+    from torchcontact.logs.run import Done, Run
+
+    n = 400
+    tab = pa.table({"t_ns": np.arange(n, dtype=np.int64),
+                    "status_code": np.zeros(n, np.int32)})  # fmt: skip
+    units = [(k, k + 100) for k in range(0, n, 100)]
+    out = tmp_path / "o.parquet"
+
+    def part(run, u):
+        lo, hi = units[u]
+        return write_encoded_part([tab.slice(lo, hi - lo)], run.part(u).with_suffix(".parquet"),
+                                  tab.schema)  # fmt: skip
+
+    with pytest.raises(LogError, match="part-00000002.parquet: unreadable part of a run"):
+        with Run(out, "log.parquet") as run:
+            run.start({"engine": "x"}, units, resume=False)
+            for u in range(4):
+                part(run, u)
+            damaged = run.part(2)
+            damaged.write_bytes(damaged.read_bytes()[:-30])  # its footer cut
+            run.execute(iter([Done(u, 100) for u in (3, 2, 1, 0)]), tab.schema)
+    with Run(out, "log.parquet") as run:
+        assert [p.name for p in sorted(run.partial.glob("part-*"))] == [
+            "part-00000000.index", "part-00000001.index", "part-00000002.parquet",
+            "part-00000003.parquet"]  # fmt: skip
+        part(run, 2)  # written again (a worker's retry)
+        run.start({"engine": "x"}, units, resume=True)
+        s = run.execute(iter([]), tab.schema)  # every unit kept: two recorded, two waiting
+    assert s["resumed_chunks"] == 4 and s["processed_now"] == 0 and s["frames"] == n
+    whole = tmp_path / "whole.parquet"
+    w = PartsWriter(whole, tab.schema)
+    for lo, hi in units:
+        w.append(read_encoded_part(write_encoded_part([tab.slice(lo, hi - lo)],
+                                                      tmp_path / "p.parquet", tab.schema))[0])  # fmt: skip
+    w.close()
+    assert out.read_bytes() == whole.read_bytes()

@@ -1598,6 +1598,52 @@ class PartsWriter:
         self.rows += part.rows
         return index
 
+    def append_many(self, parts: Sequence[EncodedPart], pool: Any = None) -> list[PartIndex]:
+        """Append parts one after the other, their bytes written at once on ``pool``'s threads.
+
+        Each part's place follows from the sizes of those before it, so the parts' bytes are
+        written at their offsets in parallel (``os.pwrite``; the kernel copies and the GIL is
+        released), then recorded in order as :meth:`append` records one. A Ray driver appends
+        the parts that its workers finished together this way (at the end of a run, the last
+        unit of every worker): one part's copy took 27-40 ms on the 2-core machine.
+
+        Args:
+            parts: the parts, in file order.
+            pool: a ``concurrent.futures`` executor (None: one part after the other here).
+
+        Returns:
+            Where each part lies, as :meth:`append` returns it.
+        """
+        starts, at = [], self.position
+        for part in parts:
+            starts.append(at)
+            at += len(memoryview(part.data))
+        fd = self._file.fileno()
+
+        def put(part: EncodedPart, start: int) -> None:
+            view = memoryview(part.data)
+            done = 0
+            while done < len(view):  # a write may write less than asked
+                done += os.pwrite(fd, view[done:], start + done)
+
+        if pool is None or len(parts) < 2:
+            for part, start in zip(parts, starts, strict=True):
+                put(part, start)
+        else:
+            writes = [pool.submit(put, p, at) for p, at in zip(parts, starts, strict=True)]
+            for f in writes:
+                f.result()
+        self._file.seek(at)
+        out = []
+        for part, start in zip(parts, starts, strict=True):
+            self._join.add(start, part.footer)  # its row groups shifted to where they lie
+            index = PartIndex(start, len(memoryview(part.data)), part.rows, part.footer)
+            self.position = index.end
+            self.parts.append(index)
+            self.rows += part.rows
+            out.append(index)
+        return out
+
     def close(self) -> None:
         """Write the joined footer and rename the file (an empty log keeps its schema)."""
         from torchcontact.logs._footer import footer_bytes

@@ -69,6 +69,9 @@ QUEUE_DEPTH = 2
 #: Threads encoding output chunks as Parquet at once (pyarrow releases the GIL): on many cores
 #: the encoding is off the writer thread, which only appends the encoded bytes in order.
 ENCODERS = 2
+#: Ray workers' parts appended at once, when that many are ready in a row (each is read into
+#: memory first: about 20 MB for a unit of 65,536 iCub frames).
+PARTS_AT_ONCE = 8
 NOT_CONVERGED = int(Status.NOT_CONVERGED)
 #: Share of the well-posed frames whose unconstrained estimate lies outside a friction cone above
 #: which ``estimate --constraints`` warns that the friction contradicts the data (with the right
@@ -830,11 +833,11 @@ class _OrderedSink:
         run = self.run
         while self.written < len(run.units) and self.written in run.done:
             k = self.written
+            if self._append_parts(k):
+                continue
             held = self._held.pop(k, None)
-            waiting = held is None  # journalled by the engine (or an earlier version)
-            if waiting and run.part(k).suffix == ".parquet":  # a Ray worker encoded it
-                part, tab = _part_table(run.part(k), self.tally, self.writer.schema.names)
-            elif waiting:
+            waiting = held is None  # journalled by an earlier version (Arrow IPC)
+            if waiting:
                 tab = read_journal(run.part(k))
                 part = encode_part(tab, self.writer.schema)
             else:
@@ -847,3 +850,48 @@ class _OrderedSink:
                 run.part(k).unlink()
             self.tally.add(tab, k in self.now)
             self.written += 1
+
+    def _append_parts(self, k: int) -> int:
+        """Append the Ray workers' parts ready from unit ``k`` on, several at once; how many.
+
+        The consecutive units from ``k`` that a worker journalled as a Parquet part (at most
+        :data:`PARTS_AT_ONCE`) are read on the encoder threads (the part, its tally columns) and
+        written at their offsets at once (:meth:`PartsWriter.append_many`), then recorded in
+        the journal in order, as one at a time would record them: a run killed in between keeps
+        a prefix of them, and the rest stay in their part files. 0: unit ``k`` is not such a
+        part (an estimated table, or an earlier version's journal).
+        """
+        run, ks = self.run, []
+        while (
+            k + len(ks) < len(run.units)
+            and k + len(ks) in run.done
+            and k + len(ks) not in self._held
+            and len(ks) < PARTS_AT_ONCE
+            and run.part(k + len(ks)).suffix == ".parquet"
+        ):
+            ks.append(k + len(ks))
+        if not ks:
+            return 0
+        names = self.writer.schema.names
+        reads = [self._encoders.submit(_part_table, run.part(u), self.tally, names) for u in ks]
+        parts, error = [], None
+        for f in reads:  # in order: the parts before a damaged one are appended
+            try:
+                parts.append(f.result())
+            except BaseException as exc:  # noqa: BLE001 - raised once the others are recorded
+                error = exc
+                break
+        if parts:
+            pool = self._encoders if len(parts) > 1 else None
+            written = _io(run.tmp, lambda: self.writer.append_many([p for p, _ in parts], pool))
+            for u, index, (_, tab) in zip(ks, written, parts, strict=False):
+                entry = run.index(u)
+                _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
+                run.part(u).unlink()
+                self.tally.add(tab, u in self.now)
+                self.written += 1
+        for f in reads:
+            f.cancel()
+        if error is not None:
+            raise error
+        return len(parts)
