@@ -243,7 +243,8 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path, 
     from torchcontact.robots import tcarm_path
 
     out = tmp_path / "d.parquet"
-    # units of 8 x --batch-size = 256 frames: 3 units
+    # units of about 8 x --batch-size = 256 frames, as many as a multiple of the 2 workers: 4
+    # units of 150 frames
     cmd = [sys.executable, "-m", "torchcontact.cli", "estimate", str(small_groups), "--out",
            str(out), "--engine", "ray", "--workers", "2", "--batch-size", "32", "--quiet",
            "--keep-workers", str(keep)]  # fmt: skip
@@ -261,11 +262,11 @@ def test_a_killed_driver_resumes(cluster, model, small_groups, local, tmp_path, 
     driver.wait()
     assert not out.exists() and partial.is_dir()
     sidecar = json.loads((tmp_path / "d.parquet.progress.json").read_text())
-    assert sidecar["engine"] == "ray" and sidecar["task_rows"] == 256
+    assert sidecar["engine"] == "ray" and sidecar["task_rows"] == 150
     try:
         r = estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, workers=2,
                               resume=True, keep_workers=keep)  # fmt: skip
-        assert r["resumed_chunks"] >= 1 and r["frames"] == 600 and r["chunks"] == 3
+        assert r["resumed_chunks"] >= 1 and r["frames"] == 600 and r["chunks"] == 4
         assert not partial.exists()
         _same_rows(pq.read_table(out), pq.read_table(local["output"]))
         if keep:  # the actors end idle; a late part of the killed driver made no folder
@@ -300,6 +301,14 @@ def test_ray_engine_resume_refusals(cluster, small_groups, tmp_path, monkeypatch
         estimate_file_ray(small_groups, tcarm_path(), out, batch_size=32, resume=True)
     s = estimate_file_ray(small_groups, tcarm_path(), out, resume=True, **KW)
     assert s["resumed_chunks"] == 3 and s["processed_now"] == 0 and s["frames"] == 600
+    # the default units (a multiple of the workers: 4 for 2) kept by a resume with 1 worker
+    out = tmp_path / "d.parquet"
+    monkeypatch.setattr(pl.PartsWriter, "close", crash)
+    with pytest.raises(KeyboardInterrupt):
+        estimate_file_ray(small_groups, tcarm_path(), out, batch_size=16, workers=2)
+    monkeypatch.undo()
+    s = estimate_file_ray(small_groups, tcarm_path(), out, batch_size=16, workers=1, resume=True)
+    assert s["resumed_chunks"] == s["chunks"] == 6 and s["processed_now"] == 0
 
 
 def test_a_mistake_the_setup_finds_reads_as_itself(cluster, small_groups, tmp_path):
@@ -392,7 +401,8 @@ def test_a_declared_ft_sensor_reaches_the_workers(cluster, tmp_path, capsys):
             "--engine", "ray", "--workers", "2", "--batch-size", "16", "--quiet", "--json"]  # fmt: skip
     assert main(argv) == 0, capsys.readouterr().err
     r = json.loads(capsys.readouterr().out)
-    assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 3 and r["ok_now"] == 300
+    # units of 8 chunks of 16 frames, their count rounded up to a multiple of the 2 workers: 4
+    assert r["sensors"] == ["wrist_ft"] and r["chunks"] == 4 and r["ok_now"] == 300
     # the CLI started the workers' imports before its own (two import tasks, both ended)
     from torchcontact.logs import _ray_boot
 
@@ -443,6 +453,19 @@ def test_the_setup_worker_must_have_read_the_drivers_robot(tmp_path):
     with pytest.raises(LogError, match=r"worker that scanned the log built robot tcarm --ft-sensor"
                        r" wrist_ft:hand_skin unlike the driver's: .*wrist_ft"):  # fmt: skip
         _check_robot(spec, setup(other, other.urdf_sha256 + "x"))
+
+
+def test_units_fill_the_last_round():
+    """By default the units' count is a multiple of the workers (every worker busy in the last
+    round), about 8 chunks each (a resume keeps its run's: test_ray_engine_resume_refusals)."""
+    from torchcontact.logs.ray_engine import default_task_rows, plan_units
+
+    for rows, bs, workers in ((12_000_000, 8192, 16), (1_000_000, 8192, 3), (300, 16, 2),
+                              (65_536 * 16, 8192, 16), (7, 8192, 4)):  # fmt: skip
+        units = plan_units(rows, default_task_rows(rows, bs, workers))
+        assert len(units) % workers == 0 or len(units) == rows  # one frame a unit at the least
+        assert units[-1][1] == rows and all(b - a <= 8 * bs for a, b in units)
+        assert len(units) < -(-rows // (8 * bs)) + workers  # at most workers - 1 more units
 
 
 def test_the_device_is_the_clusters():

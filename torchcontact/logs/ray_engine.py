@@ -55,7 +55,7 @@ from torchcontact.logs._ray_boot import (
 )
 from torchcontact.logs._ray_boot import task_options as _task_options
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
-from torchcontact.logs.format import check_outputs, expand_inputs, output_paths
+from torchcontact.logs.format import check_outputs, expand_inputs, open_log, output_paths
 from torchcontact.logs.run import Done, Run, check_positive, side_paths
 from torchcontact.robots import RobotSpec
 from torchcontact.status import DEFAULT_VELOCITY_MARGIN
@@ -71,6 +71,28 @@ def plan_units(rows: int, task_rows: int) -> list[tuple[int, int]]:
         [(0, 100), (100, 200), (200, 250)]
     """
     return [(a, min(a + task_rows, rows)) for a in range(0, rows, task_rows)]
+
+
+#: Chunks of ``batch_size`` frames in a unit, about (:func:`default_task_rows`).
+CHUNKS_PER_UNIT = 8
+
+
+def default_task_rows(rows: int, batch_size: int, workers: int) -> int:
+    """Frames of a unit: about :data:`CHUNKS_PER_UNIT` chunks, units a multiple of the workers.
+
+    The units' count is rounded up to a multiple of ``workers``, so that the run's last round
+    keeps every worker busy: 12 M frames cut into units of 65,536 gave 184 units, whose last
+    round on 16 workers ran 8 of them while the other 8 workers idled (4.1 worker-seconds of the
+    16-worker run, one unit's time at its end; Round 12 of docs/pipeline.md); 192 units of
+    62,500 frames run in 12 full rounds.
+
+    Example:
+        >>> default_task_rows(12_000_000, 8192, 16), default_task_rows(12_000_000, 8192, 1)
+        (62500, 65218)
+    """
+    units = -(-max(rows, 1) // (CHUNKS_PER_UNIT * batch_size))
+    units = -(-units // workers) * workers
+    return max(1, -(-rows // units))
 
 
 # ------------------------------------------------------ what the worker processes run (by name)
@@ -436,7 +458,8 @@ def estimate_file_ray(
         out: output Parquet file.
         sensors: sensors to use (default: those with a column).
         batch_size: frames per estimator call inside a unit.
-        task_rows: frames of a unit (one Ray task; default ``8 * batch_size``).
+        task_rows: frames of a unit (one Ray task; default :func:`default_task_rows`: about 8
+            chunks, the units' count a multiple of ``workers``; a resume keeps its run's).
         device: ``auto``, ``cpu`` or ``cuda`` (``cuda`` asks Ray for one GPU per task;
             ``auto`` is ``cuda`` when the cluster has a GPU).
         dtype: computation dtype: ``"float64"``, ``"float32"`` or a torch dtype.
@@ -485,10 +508,9 @@ def estimate_file_ray(
             robot differs from the driver's.
     """
     t0 = time.perf_counter()
-    task_rows = 8 * batch_size if task_rows is None else task_rows
-    check_positive(
-        batch_size=batch_size, half_window=half_window, workers=workers, task_rows=task_rows
-    )
+    check_positive(batch_size=batch_size, half_window=half_window, workers=workers)
+    if task_rows is not None:
+        check_positive(task_rows=task_rows)
     if not (isinstance(worker_cpus, (int, float)) and 0 < worker_cpus < float("inf")):
         raise InputError(f"--worker-cpus must be a number > 0, got {worker_cpus!r}")
     if not (isinstance(keep_workers, (int, float)) and 0 <= keep_workers < float("inf")):
@@ -508,9 +530,14 @@ def estimate_file_ray(
         # the worker processes' arguments: plain values (the workers build the model)
         robot_arg = {"robot": spec.robot, "ft_sensors": [str(s) for s in spec.ft_sensors]}
         job = dict(threads=threads, device=device, dtype=dtype, cpus=worker_cpus)
+        previous = run.previous() if resume else None
+        if task_rows is None:  # a resume cuts the log as its run did, whatever its workers
+            kept = previous.get("task_rows") if previous is not None else None
+            task_rows = kept if isinstance(kept, int) and kept > 0 else default_task_rows(
+                open_log(path).metadata.num_rows, batch_size, workers)  # fmt: skip
         request = dict(
             path=str(Path(path).resolve()), robot=robot_arg, job=job,
-            partial=str(run.partial.resolve()), previous=run.previous() if resume else None,
+            partial=str(run.partial.resolve()), previous=previous,
             batch_size=batch_size, half_window=half_window, task_rows=task_rows,
             sensors=sensors, velocity_margin=velocity_margin, ft_range=ft_range,
             constraints=constraints, ft_noise=ft_noise, unweighted=unweighted, localize=localize,
