@@ -442,17 +442,18 @@ def test_the_setup_worker_must_have_read_the_drivers_robot(tmp_path):
         return {"ident": {"urdf_sha256": sha}, "config": ("log", robot, {}, {})}
 
     assert _urdf_sha256(spec) == model.urdf_sha256
-    _check_robot(spec, setup(model, model.urdf_sha256))
-    _check_robot(spec, setup(model, "another copy of the text"))
+    _check_robot(spec, model.urdf_sha256, setup(model, model.urdf_sha256))
+    _check_robot(spec, model.urdf_sha256, setup(model, "another copy of the text"))
     text = tcarm_path().read_text()
     copy = tmp_path / "copy.urdf"  # the same robot, written differently
     copy.write_text(text.replace("<robot", "<robot ", 1) + "<!-- a copy -->\n")
     assert _urdf_sha256(RobotSpec.of(copy)) != model.urdf_sha256
-    _check_robot(RobotSpec.of(copy, ["wrist_ft:hand_skin"]), setup(model, "x"))
+    copied = RobotSpec.of(copy, ["wrist_ft:hand_skin"])
+    _check_robot(copied, _urdf_sha256(copied), setup(model, "x"))
     other = RobotSpec.of("tcarm").load()  # without the declared sensor
     with pytest.raises(LogError, match=r"worker that scanned the log built robot tcarm --ft-sensor"
                        r" wrist_ft:hand_skin unlike the driver's: .*wrist_ft"):  # fmt: skip
-        _check_robot(spec, setup(other, other.urdf_sha256 + "x"))
+        _check_robot(spec, model.urdf_sha256, setup(other, other.urdf_sha256 + "x"))
 
 
 def test_units_fill_the_last_round():
@@ -472,7 +473,7 @@ def test_the_device_is_the_clusters():
     """``auto`` is CUDA where the cluster has a GPU (not where the driver has one); ``cuda`` on a
     cluster without a GPU is refused in the user's words."""
     from torchcontact.errors import InputError
-    from torchcontact.logs.ray_engine import _cluster_device
+    from torchcontact.logs._ray_boot import cluster_device
 
     class Cluster:
         def __init__(self, gpus):
@@ -481,14 +482,14 @@ def test_the_device_is_the_clusters():
         def cluster_resources(self):
             return {"CPU": 16.0, **({"GPU": self.gpus} if self.gpus else {})}
 
-    assert _cluster_device(Cluster(0), "auto") == "cpu"
-    assert _cluster_device(Cluster(2), "auto") == "cuda"
-    assert _cluster_device(Cluster(2), "cpu") == "cpu"
-    assert _cluster_device(Cluster(1), "cuda:0") == "cuda:0"
+    assert cluster_device(Cluster(0), "auto") == "cpu"
+    assert cluster_device(Cluster(2), "auto") == "cuda"
+    assert cluster_device(Cluster(2), "cpu") == "cpu"
+    assert cluster_device(Cluster(1), "cuda:0") == "cuda:0"
     with pytest.raises(InputError, match="--device cuda: the Ray cluster has no GPU"):
-        _cluster_device(Cluster(0), "cuda")
+        cluster_device(Cluster(0), "cuda")
     with pytest.raises(InputError, match="--device tpu: expected auto, cpu or cuda"):
-        _cluster_device(Cluster(0), "tpu")
+        cluster_device(Cluster(0), "tpu")
 
 
 def test_the_workers_allocators_are_set_as_the_clis(cluster, monkeypatch):

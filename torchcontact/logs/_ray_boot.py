@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from torchcontact.errors import InputError
 from torchcontact.logs._alloc import ALLOC_ENV, keep_freed_memory
 
 #: The import tasks :func:`prestart` sent (kept referenced until the process ends).
@@ -92,6 +93,25 @@ def task_options(worker_cpus: float, device: str) -> dict[str, Any]:
     )
 
 
+def cluster_device(ray: Any, device: str) -> str:
+    """The run's device on the cluster: ``auto`` is ``cuda`` where the cluster has a GPU.
+
+    Resolved where Ray is started (the CLI's :func:`prestart` and the engine), so that the
+    workers started ahead hold the resources the run's units ask for.
+
+    Raises:
+        InputError: an unknown device, or ``cuda`` on a cluster without GPUs.
+    """
+    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
+        raise InputError(f"--device {device}: expected auto, cpu or cuda")
+    gpus = ray.cluster_resources().get("GPU", 0) if device != "cpu" else 0
+    if device == "auto":
+        return "cuda" if gpus >= 1 else "cpu"
+    if device.startswith("cuda") and gpus < 1:
+        raise InputError(f"--device {device}: the Ray cluster has no GPU; use --device cpu or auto")
+    return device
+
+
 def _import_engine() -> None:
     """Ray task: this worker process imports the Ray engine's worker side (torch, torchcontact)."""
     keep_freed_memory()  # before pyarrow loads
@@ -113,6 +133,7 @@ def prestart(workers: int, worker_cpus: float, device: str, num_cpus: int | None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = ensure_ray(num_cpus)
+        device = cluster_device(ray, device)
         task = ray.remote(_import_engine).options(**task_options(worker_cpus, device))
         _booting.extend(task.remote() for _ in range(workers))
 
@@ -125,6 +146,7 @@ def prestart_pool(workers: int, worker_cpus: float, device: str, keep_s: float) 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ray = ensure_ray(None)
+        device = cluster_device(ray, device)
         members = pool(ray, workers, worker_cpus, device, keep_s)
         _prestarted[(workers, _pool_label(worker_cpus, device))] = members
         _booting.extend(actor.imports.remote() for actor, new in members if new)

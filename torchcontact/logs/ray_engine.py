@@ -46,13 +46,14 @@ from pathlib import Path
 from typing import Any
 
 from torchcontact.errors import InputError, LogError, TorchContactError
-from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
 from torchcontact.logs._ray_boot import (
+    cluster_device,
     new_pool_actor,
     pool,
     prestarted_pool,
     running_cluster,
 )
+from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
 from torchcontact.logs._ray_boot import task_options as _task_options
 from torchcontact.logs.derive import DEFAULT_HALF_WINDOW
 from torchcontact.logs.format import check_outputs, expand_inputs, open_log, output_paths
@@ -136,13 +137,13 @@ def _start_ray(
     started them. ``job["device"]`` (``request``'s job too) is set to the cluster's device.
 
     Returns:
-        The ``ray`` module, the device (:func:`_cluster_device`), the references the units wait
+        The ``ray`` module, the device (:func:`cluster_device`), the references the units wait
         for before they go (:func:`_unit_tasks`: the setup's and the warm-ups'), and the setup's.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(num_cpus)
-        device = _cluster_device(ray, device)
+        device = cluster_device(ray, device)
         job["device"] = device
         # with the units' resources, so that the units find these processes warm (a warm-up
         # holding no CPU ran in other processes than the units, measured)
@@ -150,22 +151,6 @@ def _start_ray(
         setup = ray.remote(_setup_run).options(**opts, max_retries=TASK_RETRIES).remote(request)
         warm = ray.remote(_warm_worker).options(**opts)
         return ray, device, [setup, *(warm.remote(robot, job) for _ in range(workers - 1))], setup
-
-
-def _cluster_device(ray: Any, device: str) -> str:
-    """The run's device on the cluster: ``auto`` is ``cuda`` where the cluster has a GPU.
-
-    Raises:
-        InputError: an unknown device, or ``cuda`` on a cluster without GPUs.
-    """
-    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
-        raise InputError(f"--device {device}: expected auto, cpu or cuda")
-    gpus = ray.cluster_resources().get("GPU", 0) if device != "cpu" else 0
-    if device == "auto":
-        return "cuda" if gpus >= 1 else "cpu"
-    if device.startswith("cuda") and gpus < 1:
-        raise InputError(f"--device {device}: the Ray cluster has no GPU; use --device cpu or auto")
-    return device
 
 
 def _user_error(exc: BaseException) -> BaseException:
@@ -242,10 +227,10 @@ def _urdf_sha256(spec: RobotSpec) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _check_robot(spec: RobotSpec, setup: dict) -> None:
+def _check_robot(spec: RobotSpec, urdf_sha256: str, setup: dict) -> None:
     """Refuse a setup whose worker built another robot than the driver's URDF describes.
 
-    The worker that ran :func:`~torchcontact.logs.ray_worker.setup_run` read ``spec``'s URDF
+    ``urdf_sha256`` is the driver's URDF text's (:func:`_urdf_sha256`). The worker that ran :func:`~torchcontact.logs.ray_worker.setup_run` read ``spec``'s URDF
     on its node, and the units check their models against its identity. The same URDF text
     here means the same robot; another text (another copy of the file on that node) is checked
     by the model's identity, built here (which imports torch: a cluster whose nodes hold
@@ -254,7 +239,7 @@ def _check_robot(spec: RobotSpec, setup: dict) -> None:
     Raises:
         LogError: the worker's robot differs from the driver's (the first difference named).
     """
-    if setup["ident"]["urdf_sha256"] == _urdf_sha256(spec):
+    if setup["ident"]["urdf_sha256"] == urdf_sha256:
         return
     from torchcontact.identity import RobotIdentity
 
@@ -335,13 +320,13 @@ def _start_pool(
     """Join the running cluster, find or start ``workers`` pool actors, send each a warm-up.
 
     Returns:
-        The ``ray`` module, the device (:func:`_cluster_device`), the warm-ups' references
+        The ``ray`` module, the device (:func:`cluster_device`), the warm-ups' references
         (:meth:`~torchcontact.logs._ray_boot.PoolWorker.warm`), the actors.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's deprecation and tuning hints are not ours
         ray = _ensure_ray(num_cpus)
-        device = _cluster_device(ray, device)
+        device = cluster_device(ray, device)
         job["device"] = device
         members = prestarted_pool(workers, worker_cpus, device)  # the CLI's, moments ago
         if members is None:
@@ -554,12 +539,13 @@ def estimate_file_ray(
         phases = {"ray_started": time.perf_counter() - t0}
         setup = _setup(ray, request, sent, actors if keep_workers else None, worker_cpus, device,
                        keep_workers)  # fmt: skip
-        _check_robot(spec, setup)
+        urdf_sha256 = _urdf_sha256(spec)
+        _check_robot(spec, urdf_sha256, setup)
         phases["log_scanned"] = time.perf_counter() - t0
         show = sys.stderr.isatty() if progress is None else progress
         st = os.stat(path)  # the input as the driver sees it (a resume compares it)
         ident = {**setup["ident"], "input": str(Path(path).resolve()), "input_size": st.st_size,
-                 "input_mtime_ns": st.st_mtime_ns, "urdf_sha256": _urdf_sha256(spec)}  # fmt: skip
+                 "input_mtime_ns": st.st_mtime_ns, "urdf_sha256": urdf_sha256}  # fmt: skip
         run.start(ident, [tuple(u) for u in setup["units"]], resume)
         todo = [u for u in range(len(run.units)) if u not in run.done]
 
