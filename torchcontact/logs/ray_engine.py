@@ -230,11 +230,12 @@ def _urdf_sha256(spec: RobotSpec) -> str:
 def _check_robot(spec: RobotSpec, urdf_sha256: str, setup: dict) -> None:
     """Refuse a setup whose worker built another robot than the driver's URDF describes.
 
-    ``urdf_sha256`` is the driver's URDF text's (:func:`_urdf_sha256`). The worker that ran :func:`~torchcontact.logs.ray_worker.setup_run` read ``spec``'s URDF
-    on its node, and the units check their models against its identity. The same URDF text
-    here means the same robot; another text (another copy of the file on that node) is checked
-    by the model's identity, built here (which imports torch: a cluster whose nodes hold
-    different files pays for it), so that a reformatted copy of the same robot still runs.
+    ``urdf_sha256`` is the driver's URDF text's (:func:`_urdf_sha256`). The worker that ran
+    :func:`~torchcontact.logs.ray_worker.setup_run` read ``spec``'s URDF on its node, and the
+    units check their models against its identity. The same URDF text here means the same robot;
+    another text (another copy of the file on that node) is checked by the model's identity,
+    built here (which imports torch: a cluster whose nodes hold different files pays for it), so
+    that a reformatted copy of the same robot still runs.
 
     Raises:
         LogError: the worker's robot differs from the driver's (the first difference named).
