@@ -1587,16 +1587,7 @@ class PartsWriter:
 
     def append(self, part: EncodedPart) -> PartIndex:
         """Append an encoded part; returns where it lies (handed to the OS when this returns)."""
-        view = memoryview(part.data)
-        done = 0
-        while done < len(view):  # a raw file may write less than asked
-            done += self._file.write(view[done:])
-        self._join.add(self.position, part.footer)  # its row groups shifted to where they lie
-        index = PartIndex(self.position, len(view), part.rows, part.footer)
-        self.position += len(view)
-        self.parts.append(index)
-        self.rows += part.rows
-        return index
+        return self.append_many([part])[0]
 
     def append_many(self, parts: Sequence[EncodedPart], pool: Any = None) -> list[PartIndex]:
         """Append parts one after the other, their bytes written at once on ``pool``'s threads.
@@ -1609,7 +1600,7 @@ class PartsWriter:
 
         Args:
             parts: the parts, in file order.
-            pool: a ``concurrent.futures`` executor (None: one part after the other here).
+            pool: a ``concurrent.futures`` executor (None, or a single part: written here).
 
         Returns:
             Where each part lies, as :meth:`append` returns it.
