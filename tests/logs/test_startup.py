@@ -69,6 +69,30 @@ def test_estimate_imports_only_what_it_uses(sim_log, tmp_path):
     assert json.loads(stdout)["frames"] == 600 and pq.read_table(out).num_rows == 600
 
 
+def test_estimate_imports_with_the_collector_off_then_freezes(sim_log, tmp_path):
+    """``estimate`` imports torch, pyarrow and the pipeline without the cyclic collector (its
+    full passes during torch's import cost 0.1-0.3 CPU-s of a start), then freezes what they
+    made and turns the collector back on: in a fresh process, no full collection runs during
+    the whole run of a small log (before: 3 during torch's import), and the collector is on
+    afterwards. A caller who turned it off keeps it off."""
+    code = (
+        "import gc, json\n"
+        "starts = []\n"
+        "gc.callbacks.append(lambda phase, info: starts.append(info['generation'])\n"
+        "                    if phase == 'start' else None)\n"
+        "from torchcontact.cli import main\n"
+        f"argv = ['estimate', {str(sim_log)!r}, '--robot', 'tcarm', '--quiet']\n"
+        f"rc = main(argv + ['--out', {str(tmp_path / 'a.parquet')!r}])\n"
+        "on, frozen = gc.isenabled(), gc.get_freeze_count()\n"
+        "gc.disable()\n"
+        f"rc2 = main(argv + ['--out', {str(tmp_path / 'b.parquet')!r}])\n"
+        "print(json.dumps([rc, rc2, starts.count(2), on, frozen, gc.isenabled()]))\n"
+    )
+    rc, rc2, full, on, frozen, on_after_off = _fresh(code)
+    assert rc == rc2 == 0 and full == 0
+    assert on and frozen > 100_000 and not on_after_off
+
+
 def test_the_console_script_starts_the_kernel_builds_it_deferred(model, tmp_path):
     """The console script ends with ``os._exit`` (no exit handler runs): the kernel builds that
     the tape VM's run deferred to the process's end start all the same, and fill the cache.
