@@ -93,6 +93,26 @@ def test_estimate_imports_with_the_collector_off_then_freezes(sim_log, tmp_path)
     assert on and frozen > 100_000 and not on_after_off
 
 
+def test_a_ray_worker_imports_its_side_as_the_cli_does():
+    """A Ray worker process imports the engine's worker side (torch, torchcontact) once, with the
+    collector off and then frozen, as ``estimate`` does; later calls take the module as it is."""
+    code = (
+        "import gc, json, sys\n"
+        "starts = []\n"
+        "gc.callbacks.append(lambda phase, info: starts.append(info['generation'])\n"
+        "                    if phase == 'start' else None)\n"
+        "from torchcontact.logs._ray_boot import worker_side\n"
+        "before = 'torch' in sys.modules\n"
+        "m = worker_side()\n"
+        "frozen, full = gc.get_freeze_count(), starts.count(2)\n"
+        "again = worker_side() is m and gc.get_freeze_count() == frozen\n"
+        "print(json.dumps([before, m.__name__, full, frozen, gc.isenabled(), again]))\n"
+    )
+    before, name, full, frozen, on, again = _fresh(code)
+    assert not before and name == "torchcontact.logs.ray_worker"
+    assert full == 0 and frozen > 100_000 and on and again
+
+
 def test_the_console_script_starts_the_kernel_builds_it_deferred(model, tmp_path):
     """The console script ends with ``os._exit`` (no exit handler runs): the kernel builds that
     the tape VM's run deferred to the process's end start all the same, and fill the cache.

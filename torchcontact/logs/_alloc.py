@@ -1,11 +1,14 @@
-"""The allocator settings of the processes that run a log job: the CLI's and each Ray worker's.
+"""The allocator and collector settings of a log job's processes: the CLI's and each Ray worker's.
 
 Imports neither torch nor pyarrow: the settings must come before pyarrow loads.
 """
 
 from __future__ import annotations
 
+import gc
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 #: Environment of a log job's processes: pyarrow's mimalloc keeps the pages it frees (read when
 #: pyarrow loads; a Ray worker gets it from its runtime environment).
@@ -46,3 +49,25 @@ def keep_freed_memory() -> None:
         return
     mallopt(_M_MMAP_THRESHOLD, 32 << 20)
     mallopt(_M_TRIM_THRESHOLD, 1 << 30)
+
+
+@contextmanager
+def imports_uncollected() -> Iterator[None]:
+    """Import a log job's modules without the cyclic collector, then freeze what they made.
+
+    torch's import alone triggers 3 full and 33 partial collections, each walking every object
+    made so far: 0.1-0.3 CPU-s of a process's start on the 2-core machine (2.0-2.8 against
+    1.7-1.9 CPU-s for torch, pyarrow and the pipeline). The modules live as long as the process,
+    so :func:`gc.freeze` then moves them out of the collector's reach: the full passes during the
+    run need not walk them again (one took 0.14 s of a 1 M-frame run). What the imports left
+    unreachable (about 7,000 objects) is frozen with them, never freed, as in a process that
+    forks after its imports. The collector is on afterwards unless it was off before.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()

@@ -18,15 +18,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 import threading
 import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from torchcontact.errors import InputError
-from torchcontact.logs._alloc import ALLOC_ENV, keep_freed_memory
+from torchcontact.logs._alloc import ALLOC_ENV, imports_uncollected, keep_freed_memory
 
 #: The import tasks :func:`prestart` sent (kept referenced until the process ends).
 _booting: list[Any] = []
@@ -112,10 +114,24 @@ def cluster_device(ray: Any, device: str) -> str:
     return device
 
 
+def worker_side() -> ModuleType:
+    """:mod:`torchcontact.logs.ray_worker` in a worker process, imported once as the CLI imports.
+
+    The first call imports it (torch, pyarrow, torchcontact) with the allocators set and the
+    cyclic collector off, then freezes what the import made
+    (:func:`~torchcontact.logs._alloc.imports_uncollected`); later calls return it as it is.
+    """
+    module = sys.modules.get("torchcontact.logs.ray_worker")
+    if module is None:
+        keep_freed_memory()  # before pyarrow loads
+        with imports_uncollected():
+            import torchcontact.logs.ray_worker as module
+    return module
+
+
 def _import_engine() -> None:
     """Ray task: this worker process imports the Ray engine's worker side (torch, torchcontact)."""
-    keep_freed_memory()  # before pyarrow loads
-    import torchcontact.logs.ray_worker  # noqa: F401
+    worker_side()
 
 
 def prestart(workers: int, worker_cpus: float, device: str, num_cpus: int | None = None) -> None:
@@ -281,25 +297,19 @@ class PoolWorker:
         """
         with self._active():
             self._keep = float(keep_s)
-            from torchcontact.logs.ray_worker import warm_worker
-
-            error = warm_worker(robot, job)
+            error = worker_side().warm_worker(robot, job)
             runs, self._runs = self._runs, self._runs + 1
             return {"error": error, "runs": runs}
 
     def setup(self, request: dict) -> dict:
         """A run's setup (:func:`~torchcontact.logs.ray_worker.setup_run`), before its units."""
         with self._active():
-            from torchcontact.logs.ray_worker import setup_run
-
-            return setup_run(request)
+            return worker_side().setup_run(request)
 
     def estimate_units(self, units: list[int], config: tuple) -> dict[str, Any]:
         """The Ray engine's unit task (:func:`~torchcontact.logs.ray_worker.estimate_units`)."""
         with self._active():
-            from torchcontact.logs.ray_worker import estimate_units
-
-            return estimate_units(units, config)
+            return worker_side().estimate_units(units, config)
 
     def expire(self) -> bool:
         """End this actor if it is still idle (sent by its own watchdog); False if it is not."""

@@ -8,16 +8,13 @@ Registered by :func:`add_parser` from ``torchcontact/cli.py``. Errors are raised
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from torchcontact.errors import InputError
-from torchcontact.logs._alloc import keep_freed_memory
+from torchcontact.logs._alloc import imports_uncollected, keep_freed_memory
 from torchcontact.robot_arg import (
     add_robot_argument,
     add_strict_joints_argument,
@@ -241,28 +238,6 @@ def _start_vm_build(args: argparse.Namespace, files: list[Path]) -> None:
         start_vm_build("double" if args.dtype == "float64" else "float")
 
 
-@contextmanager
-def _imports_uncollected() -> Iterator[None]:
-    """Import the run's modules without the cyclic collector, then freeze what they made.
-
-    torch's import alone triggers 3 full and 33 partial collections, each walking every object
-    made so far: 0.1-0.3 CPU-s of a process's start on the 2-core machine (2.0-2.8 against
-    1.7-1.9 CPU-s for torch, pyarrow and the pipeline). The modules live as long as the process,
-    so :func:`gc.freeze` then moves them out of the collector's reach: the full passes during the
-    run need not walk them again (one took 0.14 s of a 1 M-frame run). What the imports left
-    unreachable (about 7,000 objects) is frozen with them, never freed, as in a process that
-    forks after its imports.
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        gc.freeze()
-        if enabled:
-            gc.enable()
-
-
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Estimate the contacts of every frame of one or more logs.
 
@@ -274,7 +249,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
     files = expand_inputs(args.inputs)  # a missing input's error before Ray's start-up
     keep_freed_memory()
-    with _imports_uncollected():
+    with imports_uncollected():
         if args.engine == "ray":  # the driver imports no torch: its workers estimate
             _ray_prestart(args)
         else:

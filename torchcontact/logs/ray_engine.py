@@ -52,6 +52,7 @@ from torchcontact.logs._ray_boot import (
     pool,
     prestarted_pool,
     running_cluster,
+    worker_side,
 )
 from torchcontact.logs._ray_boot import ensure_ray as _ensure_ray
 from torchcontact.logs._ray_boot import task_options as _task_options
@@ -99,23 +100,17 @@ def default_task_rows(rows: int, batch_size: int, workers: int) -> int:
 # ------------------------------------------------------ what the worker processes run (by name)
 def _warm_worker(robot: dict, job: dict) -> str | None:
     """Ray task: :func:`~torchcontact.logs.ray_worker.warm_worker` in a worker process."""
-    from torchcontact.logs.ray_worker import warm_worker
-
-    return warm_worker(robot, job)
+    return worker_side().warm_worker(robot, job)
 
 
 def _setup_run(request: dict) -> dict:
     """Ray task: :func:`~torchcontact.logs.ray_worker.setup_run` in a worker process."""
-    from torchcontact.logs.ray_worker import setup_run
-
-    return setup_run(request)
+    return worker_side().setup_run(request)
 
 
 def _estimate_units(units: Sequence[int], config: tuple) -> dict[str, Any]:
     """Ray task: :func:`~torchcontact.logs.ray_worker.estimate_units` in a worker process."""
-    from torchcontact.logs.ray_worker import estimate_units
-
-    return estimate_units(units, config)
+    return worker_side().estimate_units(units, config)
 
 
 def _start_ray(
