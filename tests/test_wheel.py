@@ -271,20 +271,27 @@ def test_installed_wheel_imports_every_subpackage_from_the_venv(installed, built
 
 
 def test_installed_console_script_runs_demo_export_and_train(installed):
+    """Three commands of the installed console script, each in its own process. They are
+    independent, so they run at once (the suite's time: mostly each process's imports)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     work, env = installed["work"], installed["env"]
-
-    def tc(*args: str) -> str:
-        return run_child([installed["exe"], *args], cwd=work, env=env)
-
-    out = tc("demo", "--frames", "60", "--out", "demo", "--quiet")
-    assert "estimates:" in out
+    (work / "tiny.toml").write_text(TINY_CONFIG)
+    commands = {
+        "demo": ("demo", "--frames", "60", "--out", "demo", "--quiet"),
+        "export": ("export", "estimator", "--robot", "tcarm", "--slot", "hand_skin:force",
+                   "--out", "e.onnx"),
+        "train": ("train", "fit", "--config", "tiny.toml", "--out", "ckpt"),
+    }  # fmt: skip
+    with ThreadPoolExecutor(len(commands)) as pool:
+        runs = {k: pool.submit(run_child, [installed["exe"], *a], cwd=work, env=env)
+                for k, a in commands.items()}  # fmt: skip
+        out = {k: f.result() for k, f in runs.items()}  # a child's failure fails the test
+    assert "estimates:" in out["demo"]
     for f in ("log.parquet", "estimate.parquet", "forces.png", "quality.png"):
         assert (work / "demo" / f).stat().st_size > 0, f
-    tc("export", "estimator", "--robot", "tcarm", "--slot", "hand_skin:force", "--out", "e.onnx")
     assert (work / "e.onnx").stat().st_size > 0 and (work / "e.step.onnx").stat().st_size > 0
-    (work / "tiny.toml").write_text(TINY_CONFIG)
-    out = tc("train", "fit", "--config", "tiny.toml", "--out", "ckpt")
-    assert "checkpoint: ckpt" in out
+    assert "checkpoint: ckpt" in out["train"]
     meta = json.loads((work / "ckpt" / "checkpoint.json").read_text())
     assert meta["sensor"] == "base_ft" and (work / "ckpt" / "weights.safetensors").is_file()
 
