@@ -844,12 +844,20 @@ class _OrderedSink:
                 tab, encoding = held
                 part = encoding.result()
             index = _io(run.tmp, lambda: self.writer.append(part))  # noqa: B023
-            entry = run.index(k)
-            _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
-            if waiting:
-                run.part(k).unlink()
-            self.tally.add(tab, k in self.now)
-            self.written += 1
+            self._record(k, index, tab, waiting)
+
+    def _record(self, k: int, index: PartIndex, tab: Any, journalled: bool) -> None:
+        """Record unit ``k``, whose bytes are in ``OUT.tmp`` at ``index``.
+
+        Journals it, drops its part file (``journalled``: the engine wrote one) and tallies its
+        table.
+        """
+        entry = self.run.index(k)
+        _io(entry, lambda: write_part_index(index, entry))
+        if journalled:
+            self.run.part(k).unlink()
+        self.tally.add(tab, k in self.now)
+        self.written += 1
 
     def _append_parts(self, k: int) -> int:
         """Append the Ray workers' parts ready from unit ``k`` on, several at once; how many.
@@ -885,11 +893,7 @@ class _OrderedSink:
             pool = self._encoders if len(parts) > 1 else None
             written = _io(run.tmp, lambda: self.writer.append_many([p for p, _ in parts], pool))
             for u, index, (_, tab) in zip(ks, written, parts, strict=False):
-                entry = run.index(u)
-                _io(entry, lambda: write_part_index(index, entry))  # noqa: B023
-                run.part(u).unlink()
-                self.tally.add(tab, u in self.now)
-                self.written += 1
+                self._record(u, index, tab, True)
         for f in reads:
             f.cancel()
         if error is not None:
